@@ -1,0 +1,125 @@
+"""Pinhole camera with one radial distortion coefficient, exactly the paper's eq. 2-3.
+
+An undistorted pixel (u, v) with normalized coordinates x = (u - cx) / fx, y = (v - cy) / fy is
+distorted to
+
+    u' = u + d (u - cx) (x^2 + y^2),    v' = v + d (v - cy) (x^2 + y^2),
+
+i.e. the normalized point (x, y) is scaled by (1 + d r^2). Pixel coordinates follow OpenCV: the
+centre of the top-left pixel is (0, 0). Camera coordinates: x right, y down, z forward.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .errors import DmaisError
+
+_NEWTON_MAX_ITERATIONS = 50
+
+
+def _as_points(array, width: int, name: str) -> np.ndarray:
+    points = np.asarray(array, dtype=float)
+    if points.ndim == 1:
+        points = points[None, :]
+    if points.ndim != 2 or points.shape[1] != width:
+        raise DmaisError(f"{name} must have shape (n, {width}), got {np.shape(array)}")
+    return points
+
+
+@dataclass(frozen=True)
+class Camera:
+    """Intrinsics of one camera: focal lengths and principal point in pixels, distortion d, size."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    d: float
+    width: int
+    height: int
+
+    @property
+    def K(self) -> np.ndarray:
+        """(3, 3) intrinsic matrix without skew."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def max_undistortable_radius(self) -> float:
+        """Largest distorted normalized radius the model maps back one-to-one (inf for d >= 0)."""
+        if self.d >= 0:
+            return np.inf
+        r_turn = 1.0 / np.sqrt(-3.0 * self.d)
+        return r_turn * (1.0 + self.d * r_turn**2)
+
+    def project(self, points_cam) -> np.ndarray:
+        """Distorted pixels (n, 2) of points (n, 3) in the camera frame; NaN for z <= 0."""
+        points = _as_points(points_cam, 3, "points_cam")
+        z = points[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = points[:, :2] / z[:, None]
+        xy[~(z > 0)] = np.nan
+        return self._pixel_from_normalized(self._distort_normalized(xy))
+
+    def distort(self, uv) -> np.ndarray:
+        """Distorted pixels (n, 2) from undistorted pixels (n, 2) (eq. 2)."""
+        return self._pixel_from_normalized(self._distort_normalized(self._normalized_from_pixel(uv)))
+
+    def undistort(self, uv) -> np.ndarray:
+        """Undistorted pixels (n, 2) from distorted pixels (n, 2); NaN where not invertible."""
+        return self._pixel_from_normalized(self.undistort_normalized(uv))
+
+    def undistort_normalized(self, uv) -> np.ndarray:
+        """Undistorted normalized coordinates (n, 2) (x, y) of distorted pixels (n, 2).
+
+        Inverts r_d = r (1 + d r^2) radially by Newton's method; for d < 0 points beyond the radius
+        where the model folds back (see `max_undistortable_radius`) come out as NaN.
+        """
+        xy_d = self._normalized_from_pixel(uv)
+        r_d = np.hypot(xy_d[:, 0], xy_d[:, 1])
+        r = r_d.copy()
+        for _ in range(_NEWTON_MAX_ITERATIONS):
+            step = (r + self.d * r**3 - r_d) / (1.0 + 3.0 * self.d * r**2)
+            r -= step
+            if not np.any(np.abs(step) > 1e-15 * (1.0 + r)):
+                break
+        with np.errstate(divide="ignore", invalid="ignore"):
+            scale = np.where(r_d > 0, r / r_d, 1.0)
+        scale[r_d > self.max_undistortable_radius] = np.nan
+        return xy_d * scale[:, None]
+
+    def unproject(self, uv) -> np.ndarray:
+        """Unit bearing vectors (n, 3) in the camera frame of distorted pixels (n, 2)."""
+        xy = self.undistort_normalized(uv)
+        rays = np.column_stack([xy, np.ones(len(xy))])
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+    def in_image(self, uv, margin: float = 0.0) -> np.ndarray:
+        """(n,) bool: pixels at least `margin` pixels inside the image borders."""
+        uv = _as_points(uv, 2, "uv")
+        return (
+            (uv[:, 0] >= -0.5 + margin)
+            & (uv[:, 0] <= self.width - 0.5 - margin)
+            & (uv[:, 1] >= -0.5 + margin)
+            & (uv[:, 1] <= self.height - 0.5 - margin)
+        )
+
+    def to_dict(self) -> dict:
+        return {k: (int(v) if k in ("width", "height") else float(v)) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Camera":
+        return cls(**{k: data[k] for k in ("fx", "fy", "cx", "cy", "d", "width", "height")})
+
+    def _normalized_from_pixel(self, uv) -> np.ndarray:
+        uv = _as_points(uv, 2, "uv")
+        return np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy])
+
+    def _pixel_from_normalized(self, xy: np.ndarray) -> np.ndarray:
+        return np.column_stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy])
+
+    def _distort_normalized(self, xy: np.ndarray) -> np.ndarray:
+        r2 = np.sum(xy**2, axis=1, keepdims=True)
+        return xy * (1.0 + self.d * r2)

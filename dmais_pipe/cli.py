@@ -1,0 +1,66 @@
+"""`dmais <stage> ...`: thin argument parsing over the stage functions.
+
+User errors (DmaisError) are printed on one line to stderr and exit with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from .errors import DmaisError
+
+log = logging.getLogger("dmais")
+
+
+def _cmd_simulate(args) -> None:
+    from .sim.simulate import simulate
+
+    simulate(args.config, args.out, jobs=args.jobs)
+
+
+def _cmd_validate(args) -> None:
+    from .dataset import Dataset
+
+    dataset = Dataset.load(args.dataset)
+    if not args.skip_images:
+        dataset.check_images()
+    print(dataset.summary())
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    simulate = commands.add_parser("simulate", help="write a synthetic DMAIS dataset with ground truth")
+    simulate.add_argument("config", type=Path, help="simulator YAML (or a workflow config with a 'simulate' section)")
+    simulate.add_argument("--out", type=Path, required=True, help="dataset directory to create")
+    simulate.add_argument("--jobs", type=int, default=1, help="processes rendering images in parallel")
+    simulate.set_defaults(run=_cmd_simulate)
+
+    validate = commands.add_parser("validate", help="check a dataset directory and print a summary")
+    validate.add_argument("dataset", type=Path)
+    validate.add_argument("--skip-images", action="store_true", help="do not decode the image files")
+    validate.set_defaults(run=_cmd_validate)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose else logging.INFO,
+        format="%(asctime)s %(name)s %(levelname)s: %(message)s",
+    )
+    try:
+        args.run(args)
+    except DmaisError as error:
+        print(f"dmais {args.command}: error: {error}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,31 @@
+"""Errors raised for bad user input; the CLI prints them on one line and exits with status 2."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class DmaisError(Exception):
+    """Base class of every error caused by the user's input rather than by a bug."""
+
+
+class DatasetError(DmaisError):
+    """Malformed dataset input, naming the file and, where known, the line at fault.
+
+    `line` is the 1-based line of the file as a text editor shows it (the CSV header is line 1).
+    """
+
+    def __init__(self, path: str | Path, message: str, line: int | None = None):
+        self.path = str(path)
+        self.line = line
+        self.message = message
+        where = self.path if line is None else f"{self.path}, line {line}"
+        super().__init__(f"{where}: {message}")
+
+
+class ConfigError(DmaisError):
+    """Malformed configuration file or value."""
+
+
+class GeometryError(DmaisError):
+    """Input whose geometry cannot be handled (e.g. a rotation Cayley cannot express)."""

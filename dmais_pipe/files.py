@@ -1,0 +1,55 @@
+"""Atomic writing of results: a temporary file in the target's folder, then a rename.
+
+A failed run therefore never leaves a half-written file under a name that looks complete.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import yaml
+
+
+def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
+    """Write `data` to `path` through a temporary file and a rename; creates parent folders."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    return write_bytes_atomic(path, text.encode("utf-8"))
+
+
+def write_json_atomic(path: str | Path, data) -> Path:
+    return write_text_atomic(path, json.dumps(data, indent=2) + "\n")
+
+
+def write_yaml_atomic(path: str | Path, data) -> Path:
+    return write_text_atomic(path, yaml.safe_dump(data, sort_keys=False))
+
+
+def write_csv_atomic(path: str | Path, frame: pd.DataFrame, float_format: str | None = None) -> Path:
+    return write_text_atomic(path, frame.to_csv(index=False, float_format=float_format, lineterminator="\n"))
+
+
+def write_png_atomic(path: str | Path, image: np.ndarray, compression: int = 1) -> Path:
+    """Write an 8- or 16-bit grayscale image as PNG (compression 0-9, low is fast)."""
+    ok, encoded = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])
+    if not ok:
+        raise OSError(f"could not encode {path} as PNG")
+    return write_bytes_atomic(path, encoded.tobytes())

@@ -1,0 +1,152 @@
+"""Rotations (Cayley, quaternion, ZYX Euler), rigid transforms and error metrics.
+
+Conventions: quaternions are (w, x, y, z); angles are radians; a `Rigid3` named `a_from_b` maps
+points of frame b to frame a: x_a = R @ x_b + t.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from .errors import GeometryError
+
+
+def skew(v) -> np.ndarray:
+    """(3, 3) cross-product matrix [v]x of a 3-vector, so that skew(a) @ b == cross(a, b)."""
+    x, y, z = np.asarray(v, dtype=float)
+    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+
+
+def rotation_from_cayley(q) -> np.ndarray:
+    """Rotation matrices (3, 3) or (n, 3, 3) from Cayley parameters (3,) or (n, 3).
+
+    The paper's formula: R = ((1 - q.q) I + 2 q q^T + 2 [q]x) / (1 + q.q).
+    """
+    q = np.asarray(q, dtype=float)
+    qs = np.atleast_2d(q)
+    qx, qy, qz = qs[:, 0], qs[:, 1], qs[:, 2]
+    qq = qx**2 + qy**2 + qz**2
+    R = np.empty((len(qs), 3, 3))
+    R[:, 0, 0] = 1 + qx**2 - qy**2 - qz**2
+    R[:, 0, 1] = 2 * qx * qy - 2 * qz
+    R[:, 0, 2] = 2 * qy + 2 * qx * qz
+    R[:, 1, 0] = 2 * qx * qy + 2 * qz
+    R[:, 1, 1] = 1 - qx**2 + qy**2 - qz**2
+    R[:, 1, 2] = 2 * qy * qz - 2 * qx
+    R[:, 2, 0] = 2 * qx * qz - 2 * qy
+    R[:, 2, 1] = 2 * qx + 2 * qy * qz
+    R[:, 2, 2] = 1 - qx**2 - qy**2 + qz**2
+    R /= (1 + qq)[:, None, None]
+    return R[0] if q.ndim == 1 else R
+
+
+def cayley_from_rotation(R, min_denominator: float = 1e-12) -> np.ndarray:
+    """Cayley parameters (3,) or (n, 3) of rotations (3, 3) or (n, 3, 3).
+
+    q = (R32 - R23, R13 - R31, R21 - R12) / (1 + trace R) = tan(angle / 2) * axis. Rotations by
+    180 degrees have no Cayley parameters and raise GeometryError.
+    """
+    R = np.asarray(R, dtype=float)
+    Rs = R.reshape(-1, 3, 3)
+    denominator = 1.0 + np.trace(Rs, axis1=1, axis2=2)
+    if np.any(denominator < min_denominator):
+        raise GeometryError("a rotation by 180 degrees has no Cayley parameters")
+    q = np.stack(
+        [Rs[:, 2, 1] - Rs[:, 1, 2], Rs[:, 0, 2] - Rs[:, 2, 0], Rs[:, 1, 0] - Rs[:, 0, 1]], axis=1
+    ) / denominator[:, None]
+    return q[0] if R.ndim == 2 else q
+
+
+def rotation_from_quat(q) -> np.ndarray:
+    """Rotation matrices (3, 3) or (n, 3, 3) from unit quaternions (w, x, y, z), (4,) or (n, 4)."""
+    return Rotation.from_quat(np.asarray(q, dtype=float), scalar_first=True).as_matrix()
+
+
+def quat_from_rotation(R) -> np.ndarray:
+    """Unit quaternions (w, x, y, z) with w >= 0, (4,) or (n, 4), of rotations (3, 3) or (n, 3, 3)."""
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat(canonical=True, scalar_first=True)
+
+
+def euler_zyx_from_rotation(R) -> np.ndarray:
+    """Intrinsic ZYX Euler angles (z, y, x) in radians, R = Rz(z) Ry(y) Rx(x), as the paper's tables."""
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_euler("ZYX")
+
+
+def rotation_from_euler_zyx(angles) -> np.ndarray:
+    """R = Rz(z) Ry(y) Rx(x) from angles (z, y, x) in radians, (3,) or (n, 3)."""
+    return Rotation.from_euler("ZYX", np.asarray(angles, dtype=float)).as_matrix()
+
+
+def rotation_angle(R) -> np.ndarray:
+    """Rotation angle in radians, in [0, pi], of rotations (3, 3) or (n, 3, 3)."""
+    cos = (np.trace(np.asarray(R, dtype=float), axis1=-2, axis2=-1) - 1.0) / 2.0
+    return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def rotation_error(R_estimate, R_reference) -> np.ndarray:
+    """Angle (rad) of R_estimate @ R_reference^T, accurate also for tiny angles."""
+    delta = np.asarray(R_estimate) @ np.swapaxes(np.asarray(R_reference), -1, -2)
+    return np.linalg.norm(Rotation.from_matrix(delta).as_rotvec(), axis=-1)
+
+
+def translation_error(t_estimate, t_reference) -> np.ndarray:
+    """Euclidean distance between translations (3,) or (n, 3)."""
+    return np.linalg.norm(np.asarray(t_estimate) - np.asarray(t_reference), axis=-1)
+
+
+def average_rotations(rotations, weights=None) -> np.ndarray:
+    """Markley's quaternion average (3, 3) of rotations (n, 3, 3), via scipy's Rotation.mean."""
+    return Rotation.from_matrix(np.asarray(rotations, dtype=float)).mean(weights=weights).as_matrix()
+
+
+@dataclass(frozen=True)
+class Rigid3:
+    """Rigid transform x_a = R @ x_b + t; name instances `a_from_b`."""
+
+    R: np.ndarray
+    t: np.ndarray
+
+    def __post_init__(self):
+        object.__setattr__(self, "R", np.asarray(self.R, dtype=float).reshape(3, 3))
+        object.__setattr__(self, "t", np.asarray(self.t, dtype=float).reshape(3))
+
+    @classmethod
+    def identity(cls) -> "Rigid3":
+        return cls(np.eye(3), np.zeros(3))
+
+    @classmethod
+    def from_quat(cls, q, t) -> "Rigid3":
+        return cls(rotation_from_quat(q), t)
+
+    @property
+    def quat(self) -> np.ndarray:
+        """(w, x, y, z) of R, w >= 0."""
+        return quat_from_rotation(self.R)
+
+    @property
+    def center(self) -> np.ndarray:
+        """Origin of frame a expressed in frame b: -R^T t (a camera's centre for cam_from_world)."""
+        return -self.R.T @ self.t
+
+    def apply(self, points) -> np.ndarray:
+        """Points (n, 3) or (3,) of frame b mapped to frame a."""
+        points = np.asarray(points, dtype=float)
+        return points @ self.R.T + self.t
+
+    def inverse(self) -> "Rigid3":
+        return Rigid3(self.R.T, -self.R.T @ self.t)
+
+    def __mul__(self, other: "Rigid3") -> "Rigid3":
+        """Composition: a_from_b * b_from_c = a_from_c."""
+        return Rigid3(self.R @ other.R, self.R @ other.t + self.t)
+
+    def to_dict(self) -> dict:
+        """{'R': row-major 3x3 list, 't': 3-list}, as in rig.json."""
+        return {"R": self.R.tolist(), "t": self.t.tolist()}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "Rigid3":
+        return cls(np.array(data["R"], dtype=float), np.array(data["t"], dtype=float))
