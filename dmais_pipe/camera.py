@@ -51,16 +51,27 @@ class Camera:
         """Largest distorted normalized radius the model maps back one-to-one (inf for d >= 0)."""
         if self.d >= 0:
             return np.inf
-        r_turn = 1.0 / np.sqrt(-3.0 * self.d)
-        return r_turn * (1.0 + self.d * r_turn**2)
+        return 2.0 / 3.0 * self.max_projectable_radius  # r (1 + d r^2) at its turning point
+
+    @property
+    def max_projectable_radius(self) -> float:
+        """Largest undistorted normalized radius before the model folds back (inf for d >= 0).
+
+        For d < 0, r (1 + d r^2) peaks at r = 1 / sqrt(-3 d); beyond it pixels would move back
+        towards the centre, so such points are not imaged.
+        """
+        return np.inf if self.d >= 0 else 1.0 / np.sqrt(-3.0 * self.d)
 
     def project(self, points_cam) -> np.ndarray:
-        """Distorted pixels (n, 2) of points (n, 3) in the camera frame; NaN for z <= 0."""
+        """Distorted pixels (n, 2) of points (n, 3) in the camera frame.
+
+        NaN for points with z <= 0 and, for d < 0, beyond `max_projectable_radius`.
+        """
         points = _as_points(points_cam, 3, "points_cam")
         z = points[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             xy = points[:, :2] / z[:, None]
-        xy[~(z > 0)] = np.nan
+        xy[~(z > 0) | (np.hypot(xy[:, 0], xy[:, 1]) > self.max_projectable_radius)] = np.nan
         return self._pixel_from_normalized(self._distort_normalized(xy))
 
     def distort(self, uv) -> np.ndarray:
