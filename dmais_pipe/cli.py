@@ -30,13 +30,19 @@ def _cmd_validate(args) -> None:
     print(dataset.summary())
 
 
+def _cmd_summarize(args) -> None:
+    from .report.dataset import summarize
+
+    print(summarize(args.dataset, args.out))
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     commands = parser.add_subparsers(dest="command", required=True)
 
     simulate = commands.add_parser("simulate", help="write a synthetic DMAIS dataset with ground truth")
-    simulate.add_argument("config", type=Path, help="simulator YAML (or a workflow config with a 'simulate' section)")
+    simulate.add_argument("config", type=Path, help="simulator YAML, e.g. config/simulate/demo.yaml")
     simulate.add_argument("--out", type=Path, required=True, help="dataset directory to create")
     simulate.add_argument("--jobs", type=int, default=1, help="processes rendering images in parallel")
     simulate.set_defaults(run=_cmd_simulate)
@@ -45,6 +51,11 @@ def _parser() -> argparse.ArgumentParser:
     validate.add_argument("dataset", type=Path)
     validate.add_argument("--skip-images", action="store_true", help="do not decode the image files")
     validate.set_defaults(run=_cmd_validate)
+
+    summarize = commands.add_parser("summarize", help="write a dataset summary (CSV + HTML) to a report folder")
+    summarize.add_argument("dataset", type=Path)
+    summarize.add_argument("--out", type=Path, required=True, help="report folder, e.g. reports/demo")
+    summarize.set_defaults(run=_cmd_summarize)
     return parser
 
 

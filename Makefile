@@ -1,0 +1,32 @@
+# Two entry points: `make run` (the workflow on the embedded demo) and `make test`.
+# Each creates .venv and installs the pinned dependencies on first use.
+PYTHON ?= python3
+VENV := .venv
+BIN := $(abspath $(VENV))/bin
+STAMP := $(VENV)/.installed-$(shell cksum < pyproject.toml | cut -d' ' -f1)
+CORES ?= 2
+
+.PHONY: install run paper test lint clean
+
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e '.[test]'
+	rm -f $(VENV)/.installed-* && touch $@
+
+install: $(STAMP)
+
+run: $(STAMP)
+	PATH="$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --configfile config/config.yaml
+
+paper: $(STAMP)
+	PATH="$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --configfile config/paper.yaml
+
+test: $(STAMP)
+	PATH="$(BIN):$$PATH" $(BIN)/python -m pytest -q
+
+lint: $(STAMP)
+	PATH="$(BIN):$$PATH" $(BIN)/snakemake --lint
+
+clean:
+	rm -rf results logs .snakemake data

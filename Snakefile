@@ -1,0 +1,18 @@
+from snakemake.utils import validate
+
+
+configfile: "config/config.yaml"
+
+
+validate(config, "workflow/schemas/config.schema.yaml")
+
+
+include: "workflow/rules/common.smk"
+include: "workflow/rules/simulate.smk"
+include: "workflow/rules/dataset.smk"
+
+
+rule all:
+    input:
+        rules.dataset_report.output.html,
+    default_target: True

@@ -1,0 +1,718 @@
+"""Reading, validating and writing a dataset directory: the one place that parses inputs.
+
+The format is documented for users in docs/dataset.md. Every CSV cell is read as a string, stripped
+of surrounding blanks and converted here, so that a bad value is reported with its file, its line
+(1-based, the header is line 1) and its column as a `DatasetError`.
+
+Units: metres for coordinates, pixels (OpenCV: the centre of the top-left pixel is (0, 0)) for
+image coordinates; quaternions are (w, x, y, z) of cam_from_world (images) or rig_from_world (frames).
+"""
+
+from __future__ import annotations
+
+import csv
+import logging
+import math
+import numbers
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import yaml
+
+from .errors import DatasetError
+from .files import write_csv_atomic, write_yaml_atomic
+
+log = logging.getLogger(__name__)
+
+MANIFEST = "dataset.yaml"
+CONTROL_POINTS = "control_points.csv"
+GROUND_POINTS = "ground_points.csv"
+IMAGES = "images.csv"
+FRAMES = "frames.csv"
+OBSERVATIONS = "observations.csv"
+TRUTH = "truth"
+
+STAGES = ("intrinsics", "extrinsics", "flight")
+SPLITS = ("calib", "eval")
+DEFAULT_MARKER_SIZE_M = 2.0
+
+POINT_COLUMNS = ("point_id", "x", "y", "z")
+PRIOR_CENTER = ("prior_x", "prior_y", "prior_z")
+PRIOR_QUAT = ("prior_qw", "prior_qx", "prior_qy", "prior_qz")
+IMAGE_COLUMNS = ("image", "camera", "stage", "split", "placement", "path")
+FRAME_COLUMNS = ("frame", "group", "pos_x", "pos_y", "pos_z")
+OBSERVATION_COLUMNS = ("image", "point_id", "u", "v")
+RESULT_OBSERVATION_COLUMNS = ("image", "camera", "point_id", "u", "v")
+
+_MANIFEST_KEYS = ("name", "description", "reference_camera", "cameras", "marker_size_m")
+_CAMERA_KEYS = ("width", "height", "focal_px")
+_MIN_QUATERNION_NORM = 1e-6
+_PROGRESS_EVERY = 20
+
+
+@dataclass(frozen=True)
+class CameraSpec:
+    """A camera as the manifest declares it: image size in pixels and an optional nominal focal (px)."""
+
+    width: int
+    height: int
+    focal_px: float | None
+
+
+# ------------------------------------------------------------------------------ dataset.yaml
+
+
+@dataclass(frozen=True)
+class _Manifest:
+    name: str
+    reference_camera: str
+    cameras: dict[str, CameraSpec]
+    marker_size_m: float
+    description: str
+
+
+def _read_manifest(path: Path) -> _Manifest:
+    if not path.is_file():
+        raise DatasetError(path, "missing: every dataset needs this manifest (see docs/dataset.md)")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except UnicodeDecodeError:
+        raise DatasetError(path, "is not UTF-8 text") from None
+    except yaml.YAMLError as error:
+        mark = getattr(error, "problem_mark", None)
+        problem = getattr(error, "problem", None) or str(error)
+        raise DatasetError(path, f"invalid YAML: {problem}", None if mark is None else mark.line + 1) from None
+    return _parse_manifest(data, path)
+
+
+def _parse_manifest(data, path: Path) -> _Manifest:
+    """Validate a manifest mapping (as YAML loads it); errors name `path`."""
+    if not isinstance(data, dict):
+        raise DatasetError(path, "expected a mapping with the keys name, reference_camera and cameras")
+    _check_keys(data, _MANIFEST_KEYS, path, "")
+    for key in ("name", "reference_camera", "cameras"):
+        if key not in data:
+            raise DatasetError(path, f"missing required key '{key}'")
+    cameras = _parse_cameras(data["cameras"], path)
+    reference = _text_value(data["reference_camera"], "reference_camera", path)
+    if reference not in cameras:
+        raise DatasetError(path, f"reference_camera '{reference}' is not one of the cameras ({', '.join(cameras)})")
+    description = data.get("description")
+    return _Manifest(
+        name=_text_value(data["name"], "name", path),
+        reference_camera=reference,
+        cameras=cameras,
+        marker_size_m=_positive(data.get("marker_size_m", DEFAULT_MARKER_SIZE_M), "marker_size_m", path),
+        description="" if description is None else _text_value(description, "description", path, allow_empty=True),
+    )
+
+
+def _parse_cameras(data, path: Path) -> dict[str, CameraSpec]:
+    if not isinstance(data, dict) or not data:
+        raise DatasetError(path, "cameras must be a non-empty mapping: name -> {width, height, focal_px}")
+    cameras = {}
+    for name, spec in data.items():
+        name = _text_value(name, "camera name", path)
+        where = f"cameras.{name}"
+        if not isinstance(spec, dict):
+            raise DatasetError(path, f"{where} must be a mapping with width, height and optionally focal_px")
+        _check_keys(spec, _CAMERA_KEYS, path, f"{where}: ")
+        for key in ("width", "height"):
+            if key not in spec:
+                raise DatasetError(path, f"{where}: missing required key '{key}'")
+        focal = spec.get("focal_px")
+        cameras[name] = CameraSpec(
+            width=_positive(spec["width"], f"{where}.width", path, integer=True),
+            height=_positive(spec["height"], f"{where}.height", path, integer=True),
+            focal_px=None if focal is None else _positive(focal, f"{where}.focal_px", path),
+        )
+    return cameras
+
+
+def _check_keys(data: dict, known: Sequence[str], path: Path, where: str) -> None:
+    for key in data:
+        if key not in known:
+            raise DatasetError(path, f"{where}unknown key '{key}' (known keys: {', '.join(known)})")
+
+
+def _text_value(value, key: str, path: Path, allow_empty: bool = False) -> str:
+    if not isinstance(value, str):
+        raise DatasetError(path, f"{key} must be a string, got {value!r}; quote it in the YAML")
+    if not value.strip() and not allow_empty:
+        raise DatasetError(path, f"{key} must not be empty")
+    return value.strip()
+
+
+def _positive(value, key: str, path: Path, integer: bool = False):
+    """`value` as a positive int (integer=True) or positive finite float, else a DatasetError."""
+    kind = numbers.Integral if integer else numbers.Real
+    if isinstance(value, bool) or not isinstance(value, kind) or not math.isfinite(value) or value <= 0:
+        kind = "integer" if integer else "number"
+        raise DatasetError(path, f"{key} must be a positive {kind}, got {value!r}")
+    return int(value) if integer else float(value)
+
+
+def _manifest_dict(manifest: _Manifest) -> dict:
+    """The manifest as plain YAML-able data, keys in the documented order."""
+    cameras = {}
+    for name, spec in manifest.cameras.items():
+        cameras[name] = {"width": spec.width, "height": spec.height}
+        if spec.focal_px is not None:
+            cameras[name]["focal_px"] = spec.focal_px
+    data = {"name": manifest.name}
+    if manifest.description:
+        data["description"] = manifest.description
+    data.update(reference_camera=manifest.reference_camera, cameras=cameras, marker_size_m=manifest.marker_size_m)
+    return data
+
+
+# ------------------------------------------------------------------------------ CSV tables
+
+
+@dataclass
+class _Table:
+    """A CSV file as stripped strings, one row per data line.
+
+    cells: (n, k) DataFrame of str, RangeIndex; lines: (n,) the 1-based file line of every row.
+    """
+
+    path: Path
+    cells: pd.DataFrame
+    lines: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.cells)
+
+    def error(self, message: str, row: int | None = None) -> DatasetError:
+        return DatasetError(self.path, message, None if row is None else int(self.lines[row]))
+
+    def check(self, bad: np.ndarray, message: Callable[[int], str]) -> None:
+        """Raise for the first row where `bad` (n,) is true, with `message(row)`."""
+        bad = np.asarray(bad, dtype=bool)
+        if bad.any():
+            row = int(np.argmax(bad))
+            raise self.error(message(row), row)
+
+    def text(self, column: str) -> np.ndarray:
+        """(n,) object array of the column's strings; all empty when the column is absent."""
+        if column not in self.cells:
+            return np.full(len(self), "", dtype=object)
+        return self.cells[column].to_numpy(dtype=object)
+
+    def required_text(self, column: str) -> np.ndarray:
+        values = self.text(column)
+        self.check(values == "", lambda row: f"column {column} is empty")
+        return values
+
+    def floats(self, column: str, optional: bool = False) -> np.ndarray:
+        """(n,) floats of the column; NaN for empty cells when `optional`, else every cell must be finite."""
+        text = self.text(column)
+        values = np.array([_parse_float(cell) for cell in text], dtype=float)
+        bad = ~np.isfinite(values)
+        if optional:
+            bad &= text != ""
+        self.check(bad, lambda row: f"column {column}: {text[row]!r} is not a finite number"
+                   if text[row] else f"column {column} is empty; expected a number")
+        return values
+
+    def first_rows(self, columns: Sequence[str], what: str) -> dict:
+        """Map from key (a value, or a tuple for several columns) to its row; duplicates raise naming both lines."""
+        seen = {}
+        keys = zip(*(self.text(column) for column in columns))
+        for row, key in enumerate(keys):
+            key = key[0] if len(columns) == 1 else key
+            if key in seen:
+                raise self.error(f"duplicate {what} {key!r} (first on line {self.lines[seen[key]]})", row)
+            seen[key] = row
+        return seen
+
+    def extra_columns(self, known: Sequence[str]) -> list[str]:
+        return [column for column in self.cells.columns if column not in known]
+
+
+def _parse_float(cell: str) -> float:
+    try:
+        return float(cell)
+    except ValueError:
+        return math.nan
+
+
+def _read_table(path: Path, required: Sequence[str], optional: Sequence[str] = ()) -> _Table:
+    """Read a CSV file with a header holding at least `required` columns (blank lines are skipped)."""
+    if not path.is_file():
+        raise DatasetError(path, "missing")
+    try:
+        header, rows, lines = _read_rows(path)
+    except UnicodeDecodeError:
+        raise DatasetError(path, "is not UTF-8 text") from None
+    if header is None:
+        raise DatasetError(path, f"is empty; expected the header {','.join(required)}")
+    _check_header(path, header, required)
+    cells = pd.DataFrame(rows, columns=header, dtype=str) if rows else pd.DataFrame(
+        {column: pd.Series([], dtype=str) for column in header})
+    return _Table(path, cells, np.asarray(lines, dtype=int))
+
+
+def _read_rows(path: Path) -> tuple[list[str] | None, list[list[str]], list[int]]:
+    header, rows, lines = None, [], []
+    with path.open(newline="", encoding="utf-8-sig") as file:
+        reader = csv.reader(file)
+        try:
+            for record in reader:
+                if len(record) <= 1 and not "".join(record).strip():
+                    continue  # blank line
+                record = [cell.strip() for cell in record]
+                if header is None:
+                    header = record
+                elif len(record) != len(header):
+                    raise DatasetError(path, f"{len(record)} fields, the header has {len(header)}", reader.line_num)
+                else:
+                    rows.append(record)
+                    lines.append(reader.line_num)
+        except csv.Error as error:
+            raise DatasetError(path, f"malformed CSV: {error}", reader.line_num) from None
+    return header, rows, lines
+
+
+def _check_header(path: Path, header: list[str], required: Sequence[str]) -> None:
+    seen = set()
+    for column in header:
+        if not column:
+            raise DatasetError(path, "a column of the header has no name", 1)
+        if column in seen:
+            raise DatasetError(path, f"column {column} appears twice in the header", 1)
+        seen.add(column)
+    missing = [column for column in required if column not in seen]
+    if missing:
+        raise DatasetError(path, f"missing column(s) {', '.join(missing)} (expected {','.join(required)})", 1)
+
+
+def _group(table: _Table, columns: Sequence[str]) -> np.ndarray:
+    """(n, k) floats of a column group that each row gives entirely or not at all (NaN rows)."""
+    values = np.column_stack([table.floats(column, optional=True) for column in columns])
+    given = ~np.isnan(values)
+    partial = given.any(axis=1) & ~given.all(axis=1)
+    table.check(partial, lambda row: f"{', '.join(columns)} must be given all or none; this row gives only "
+                + ", ".join(c for c, g in zip(columns, given[row]) if g))
+    return values
+
+
+def _quaternions(table: _Table, columns: Sequence[str]) -> np.ndarray:
+    """(n, 4) unit quaternions (w, x, y, z) of a column group, NaN rows where absent."""
+    q = _group(table, columns)
+    norm = np.linalg.norm(q, axis=1)
+    table.check(norm <= _MIN_QUATERNION_NORM,
+                lambda row: f"{', '.join(columns)}: quaternion norm {norm[row]:.3g} must be > {_MIN_QUATERNION_NORM:g}")
+    # Leave quaternions that are unit to rounding alone, so that loading a written dataset is exact.
+    rescale = np.abs(norm - 1.0) > 4 * np.finfo(float).eps
+    q[rescale] /= norm[rescale, None]
+    return q
+
+
+def _frame(table: _Table, columns: dict, known: Sequence[str]) -> pd.DataFrame:
+    """DataFrame of the converted `columns` followed by the table's extra columns (as strings)."""
+    extras = {column: table.cells[column] for column in table.extra_columns(known)}
+    frame = pd.DataFrame(columns, index=pd.RangeIndex(len(table)))
+    for column, values in extras.items():
+        frame[column] = _strings(values.to_numpy())
+    return frame
+
+
+def _strings(values) -> pd.Series:
+    return pd.Series(values, dtype=str)
+
+
+# ------------------------------------------------------------------------------ the files
+
+
+def _read_points(path: Path) -> tuple[pd.DataFrame, _Table]:
+    """Points indexed by point_id (str) with float columns x, y, z (+ extras), and the table read."""
+    table = _read_table(path, POINT_COLUMNS)
+    ids = table.required_text("point_id")
+    table.first_rows(["point_id"], "point id")
+    columns = {"point_id": _strings(ids), **{axis: table.floats(axis) for axis in "xyz"}}
+    return _frame(table, columns, POINT_COLUMNS).set_index("point_id"), table
+
+
+def _check_disjoint(control: _Table, ground: _Table) -> None:
+    control_rows = control.first_rows(["point_id"], "point id")
+    ids = ground.text("point_id")
+    shared = np.array([pid in control_rows for pid in ids], dtype=bool)
+    ground.check(shared, lambda row: f"point id {ids[row]!r} is also in {CONTROL_POINTS}, "
+                 f"line {control.lines[control_rows[ids[row]]]}")
+
+
+def _empty_points() -> pd.DataFrame:
+    frame = pd.DataFrame({"point_id": _strings([]), **{axis: np.zeros(0) for axis in "xyz"}})
+    return frame.set_index("point_id")
+
+
+def _read_images(path: Path, root: Path, cameras: dict[str, CameraSpec]) -> tuple[pd.DataFrame, _Table]:
+    """images.csv as a DataFrame (columns IMAGE_COLUMNS, PRIOR_CENTER, PRIOR_QUAT, extras) and its table."""
+    table = _read_table(path, IMAGE_COLUMNS, PRIOR_CENTER + PRIOR_QUAT)
+    image = table.required_text("image")
+    table.first_rows(["image"], "image id")
+    camera = table.required_text("camera")
+    table.check(~np.isin(camera, list(cameras)),
+                lambda row: f"unknown camera '{camera[row]}' ({MANIFEST} has {', '.join(cameras)})")
+    stage = table.text("stage")
+    table.check(~np.isin(stage, STAGES),
+                lambda row: f"stage {stage[row]!r} is not one of {', '.join(STAGES)}")
+    _check_split(table, stage)
+    _check_placement(table, stage, camera)
+    _check_paths(table, root)
+    center = _group(table, PRIOR_CENTER)
+    quat = _quaternions(table, PRIOR_QUAT)
+    columns = {name: _strings(table.text(name)) for name in IMAGE_COLUMNS}
+    columns.update(zip(PRIOR_CENTER, center.T))
+    columns.update(zip(PRIOR_QUAT, quat.T))
+    return _frame(table, columns, IMAGE_COLUMNS + PRIOR_CENTER + PRIOR_QUAT), table
+
+
+def _check_split(table: _Table, stage: np.ndarray) -> None:
+    split = table.text("split")
+    intrinsics = stage == "intrinsics"
+    table.check(intrinsics & (split == ""), lambda row: "split is empty; intrinsics images need calib or eval")
+    table.check(intrinsics & ~np.isin(split, SPLITS), lambda row: f"split {split[row]!r} is not calib or eval")
+    table.check(~intrinsics & (split != ""),
+                lambda row: f"split {split[row]!r} given for a {stage[row]} image; split is for intrinsics images only")
+
+
+def _check_placement(table: _Table, stage: np.ndarray, camera: np.ndarray) -> None:
+    placement = table.text("placement")
+    rig = stage != "intrinsics"
+    table.check(rig & (placement == ""), lambda row: f"placement is empty; {stage[row]} images need "
+                + ("the frame id" if stage[row] == "flight" else "a rig placement id"))
+    seen = {}
+    for row in np.flatnonzero(rig):
+        key = (stage[row], placement[row], camera[row])
+        if key in seen:
+            raise table.error(f"camera {camera[row]} has two images at {stage[row]} placement {placement[row]!r} "
+                              f"(first on line {table.lines[seen[key]]})", row)
+        seen[key] = row
+
+
+def _check_paths(table: _Table, root: Path) -> None:
+    image, path = table.text("image"), table.text("path")
+    table.check([p != "" and Path(p).is_absolute() for p in path],
+                lambda row: f"image {image[row]!r}: path {path[row]!r} must be relative to the dataset folder")
+    table.check([p != "" and not (root / p).is_file() for p in path],
+                lambda row: f"image {image[row]!r}: file {path[row]!r} does not exist")
+
+
+def _read_frames(path: Path) -> pd.DataFrame:
+    """frames.csv as a DataFrame (columns FRAME_COLUMNS, PRIOR_QUAT, extras)."""
+    table = _read_table(path, FRAME_COLUMNS, PRIOR_QUAT)
+    frame_id = table.required_text("frame")
+    table.first_rows(["frame"], "frame id")
+    columns = {"frame": _strings(frame_id), "group": _strings(table.text("group"))}
+    columns.update({axis: table.floats(axis) for axis in FRAME_COLUMNS[2:]})
+    columns.update(zip(PRIOR_QUAT, _quaternions(table, PRIOR_QUAT).T))
+    return _frame(table, columns, FRAME_COLUMNS + PRIOR_QUAT)
+
+
+def _empty_frames() -> pd.DataFrame:
+    columns = {"frame": _strings([]), "group": _strings([])}
+    columns.update({name: np.zeros(0) for name in FRAME_COLUMNS[2:] + PRIOR_QUAT})
+    return pd.DataFrame(columns)
+
+
+def _read_observations(path: Path, camera_of: dict[str, str], point_ids, with_camera: bool) -> pd.DataFrame:
+    """Observations (image, [camera,] point_id, u, v, extras) checked against images and points."""
+    names = RESULT_OBSERVATION_COLUMNS if with_camera else OBSERVATION_COLUMNS
+    table = _read_table(path, names)
+    image = table.required_text("image")
+    table.check([name not in camera_of for name in image], lambda row: f"unknown image {image[row]!r} (not in {IMAGES})")
+    if with_camera:
+        camera = table.required_text("camera")
+        table.check([camera_of[i] != c for i, c in zip(image, camera)],
+                    lambda row: f"camera {camera[row]!r} of image {image[row]!r} is "
+                    f"{camera_of[image[row]]!r} in {IMAGES}")
+    point_id = table.required_text("point_id")
+    table.check(~pd.Index(point_id).isin(point_ids),
+                lambda row: f"unknown point id {point_id[row]!r} (not in {CONTROL_POINTS} or {GROUND_POINTS})")
+    table.first_rows(["image", "point_id"], "observation (image, point_id)")
+    columns = {name: _strings(table.text(name)) for name in names if name not in ("u", "v")}
+    columns.update(u=table.floats("u"), v=table.floats("v"))
+    return _frame(table, {name: columns[name] for name in names}, names)
+
+
+def _empty_observations() -> pd.DataFrame:
+    return pd.DataFrame({"image": _strings([]), "point_id": _strings([]), "u": np.zeros(0), "v": np.zeros(0)})
+
+
+# ------------------------------------------------------------------------------ Dataset
+
+
+@dataclass(eq=False, repr=False)
+class Dataset:
+    """A validated dataset directory (docs/dataset.md). Load with `Dataset.load(path)`.
+
+    control_points, ground_points: index point_id (str), columns x, y, z (float, metres) + extras.
+    images: image, camera, stage, split, placement, path (str, '' when empty), prior_x, prior_y,
+        prior_z, prior_qw, prior_qx, prior_qy, prior_qz (float, NaN where absent) + extras.
+    frames: frame, group (str), pos_x, pos_y, pos_z, prior_qw..prior_qz (float) + extras.
+    observations: image, point_id (str), u, v (float, pixels) + extras.
+    Extra columns of the CSV files are kept as strings after the documented ones.
+    """
+
+    root: Path
+    name: str
+    reference_camera: str
+    cameras: dict[str, CameraSpec]
+    marker_size_m: float
+    description: str
+    control_points: pd.DataFrame
+    ground_points: pd.DataFrame
+    images: pd.DataFrame
+    frames: pd.DataFrame
+    observations: pd.DataFrame
+    image_lines: dict[str, int] = field(default_factory=dict)  # image id -> its line in images.csv
+
+    @classmethod
+    def load(cls, path: str | Path) -> Dataset:
+        """Read and validate the dataset directory `path`; raises DatasetError naming file and line."""
+        root = Path(path).absolute()
+        if not root.is_dir():
+            raise DatasetError(root, "is not a dataset directory")
+        manifest = _read_manifest(root / MANIFEST)
+        control, control_table = _read_points(root / CONTROL_POINTS)
+        if control.empty:
+            raise DatasetError(root / CONTROL_POINTS, "has no points; at least one control point is needed")
+        ground = _empty_points()
+        if (root / GROUND_POINTS).exists():
+            ground, ground_table = _read_points(root / GROUND_POINTS)
+            _check_disjoint(control_table, ground_table)
+        images, image_table = _read_images(root / IMAGES, root, manifest.cameras)
+        frames = _load_frames(root, images, image_table)
+        observations = _empty_observations()
+        if (root / OBSERVATIONS).exists():
+            camera_of = dict(zip(images["image"], images["camera"]))
+            points = pd.concat([control.index.to_series(), ground.index.to_series()])
+            observations = _read_observations(root / OBSERVATIONS, camera_of, points, with_camera=False)
+        _check_sources(image_table, images, observations)
+        return cls(
+            root=root, name=manifest.name, reference_camera=manifest.reference_camera, cameras=manifest.cameras,
+            marker_size_m=manifest.marker_size_m, description=manifest.description,
+            control_points=control, ground_points=ground, images=images, frames=frames, observations=observations,
+            image_lines=dict(zip(images["image"], image_table.lines.tolist())),
+        )
+
+    def __repr__(self) -> str:
+        return f"Dataset({self.name!r}, root={str(self.root)!r})"
+
+    @property
+    def truth_dir(self) -> Path:
+        """root / "truth": simulator ground truth, read only by evaluation and tests."""
+        return self.root / TRUTH
+
+    @property
+    def points(self) -> pd.DataFrame:
+        """Control and ground points in one frame indexed by point_id (columns x, y, z + extras)."""
+        if self.ground_points.empty:
+            return self.control_points.copy()
+        return pd.concat([self.control_points, self.ground_points])
+
+    def images_of(self, stage: str, camera: str | None = None, split: str | None = None) -> pd.DataFrame:
+        """Rows of `images` of one stage, optionally of one camera and one split (copy, original index)."""
+        if stage not in STAGES:
+            raise ValueError(f"unknown stage {stage!r}; expected one of {STAGES}")
+        keep = self.images["stage"] == stage
+        if camera is not None:
+            keep &= self.images["camera"] == camera
+        if split is not None:
+            keep &= self.images["split"] == split
+        return self.images[keep].copy()
+
+    def image_path(self, image: str) -> Path | None:
+        """Absolute path of `image`'s file, None when images.csv gives no path."""
+        path = self._row(image)["path"]
+        return self.root / path if path else None
+
+    def read_image(self, image: str) -> np.ndarray:
+        """(height, width) uint8 or uint16 grayscale pixels of `image`, checked against its camera's size."""
+        row = self._row(image)
+        if not row["path"]:
+            raise self._image_error(image, "has no path (its observations are given in observations.csv)")
+        return self._read_pixels(image, row["camera"], row["path"])
+
+    def check_images(self) -> int:
+        """Decode every image that has a path and check its size; returns how many were checked."""
+        rows = self.images[self.images["path"] != ""]
+        total = len(rows)
+        for k, (image, camera, path) in enumerate(zip(rows["image"], rows["camera"], rows["path"]), 1):
+            self._read_pixels(image, camera, path)
+            if k % _PROGRESS_EVERY == 0 or k == total:
+                log.info("checked %d/%d images", k, total)
+        return total
+
+    def summary(self) -> str:
+        """A short multi-line description: cameras, points, images per stage and camera, frames, observations."""
+        kinds: dict[CameraSpec, list[str]] = {}
+        for name, spec in self.cameras.items():
+            kinds.setdefault(spec, []).append(name)
+        cameras = "; ".join(f"{', '.join(names)} {spec.width}x{spec.height}"
+                            + (f" f={spec.focal_px:g}px" if spec.focal_px else "") for spec, names in kinds.items())
+        lines = [f"dataset {self.name} ({self.root})"]
+        if self.description:
+            lines.append(f"  {self.description}")
+        lines += [
+            f"cameras: {cameras} (reference {self.reference_camera})",
+            f"points: {len(self.control_points)} control, {len(self.ground_points)} ground; "
+            f"marker size {self.marker_size_m:g} m",
+            f"images: {len(self.images)}, {int((self.images['path'] != '').sum())} with a file",
+        ]
+        if len(self.images):
+            table = self.images.groupby(["stage", "camera"]).size().unstack(fill_value=0)
+            table = table.reindex(index=[s for s in STAGES if s in table.index], columns=list(self.cameras),
+                                  fill_value=0)
+            lines += ["  " + line for line in table.rename_axis(index=None, columns=None).to_string().splitlines()]
+        groups = self.frames["group"].nunique()
+        lines.append(f"frames: {len(self.frames)} in {groups} group(s)")
+        lines.append(f"observations: {len(self.observations)} on {self.observations['image'].nunique()} image(s)")
+        return "\n".join(lines)
+
+    # -------------------------------------------------------------- private
+
+    def _row(self, image: str) -> pd.Series:
+        rows = self.images[self.images["image"] == image]
+        if rows.empty:
+            raise DatasetError(self.root / IMAGES, f"unknown image {image!r}")
+        return rows.iloc[0]
+
+    def _image_error(self, image: str, message: str) -> DatasetError:
+        return DatasetError(self.root / IMAGES, f"image {image!r}: {message}", self.image_lines.get(image))
+
+    def _read_pixels(self, image: str, camera: str, path: str) -> np.ndarray:
+        file = self.root / path
+        if not file.is_file():
+            raise self._image_error(image, f"file {path!r} does not exist")
+        pixels = cv2.imread(str(file), cv2.IMREAD_UNCHANGED) if file.stat().st_size else None
+        if pixels is None:
+            raise self._image_error(image, f"file {path!r} cannot be decoded")
+        pixels = _grayscale(pixels)
+        if pixels is None or pixels.dtype not in (np.uint8, np.uint16):
+            raise self._image_error(image, f"file {path!r} is not an 8- or 16-bit grayscale, BGR or BGRA image")
+        spec = self.cameras[camera]
+        if pixels.shape != (spec.height, spec.width):
+            raise self._image_error(image, f"file {path!r} is {pixels.shape[1]}x{pixels.shape[0]}, "
+                                    f"camera {camera} expects {spec.width}x{spec.height}")
+        return pixels
+
+
+def _grayscale(pixels: np.ndarray) -> np.ndarray | None:
+    """(h, w) pixels from (h, w), (h, w, 1), BGR (h, w, 3) or BGRA (h, w, 4); None for other layouts."""
+    if pixels.ndim == 3 and pixels.shape[2] == 1:
+        return pixels[:, :, 0]
+    if pixels.ndim == 3 and pixels.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if pixels.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        return cv2.cvtColor(pixels, code)
+    return pixels if pixels.ndim == 2 else None
+
+
+def _load_frames(root: Path, images: pd.DataFrame, image_table: _Table) -> pd.DataFrame:
+    """frames.csv (required when there are flight images); every flight placement must be a frame."""
+    flight = (images["stage"] == "flight").to_numpy()
+    if not (root / FRAMES).exists():
+        if flight.any():
+            line = image_table.lines[int(np.argmax(flight))]
+            raise DatasetError(root / FRAMES, f"missing; {IMAGES} has flight images (first on line {line})")
+        return _empty_frames()
+    frames = _read_frames(root / FRAMES)
+    placement = images["placement"].to_numpy(dtype=object)
+    unknown = flight & ~np.isin(placement, frames["frame"].to_numpy(dtype=object))
+    image_table.check(unknown, lambda row: f"flight image {images['image'].iat[row]!r}: placement "
+                      f"{placement[row]!r} is not a frame of {FRAMES}")
+    return frames
+
+
+def _check_sources(image_table: _Table, images: pd.DataFrame, observations: pd.DataFrame) -> None:
+    """Every image needs a file or observations in observations.csv."""
+    observed = set(observations["image"])
+    names = images["image"].to_numpy(dtype=object)
+    bad = (images["path"] == "").to_numpy() & np.array([name not in observed for name in names], dtype=bool)
+    image_table.check(bad, lambda row: f"image {names[row]!r} has neither a path nor rows in {OBSERVATIONS}")
+
+
+# ------------------------------------------------------------------------------ writing and results
+
+
+def write_dataset(
+    root: str | Path,
+    manifest: dict,
+    control_points: pd.DataFrame,
+    images: pd.DataFrame,
+    *,
+    ground_points: pd.DataFrame | None = None,
+    frames: pd.DataFrame | None = None,
+    observations: pd.DataFrame | None = None,
+) -> Path:
+    """Write the dataset files (not the image files) to `root` atomically; returns `root`.
+
+    Frames are as `Dataset` holds them (points may also have point_id as a column; missing
+    split/placement/path columns and None become ''). The manifest is validated first and written
+    in canonical form. An optional file passed as None is not written and a stale copy is removed,
+    so that the folder describes exactly what was passed. Floats are written with round-trip precision.
+    """
+    root = Path(root)
+    parsed = _parse_manifest(manifest, root / MANIFEST)
+    write_yaml_atomic(root / MANIFEST, _manifest_dict(parsed))
+    write_csv_atomic(root / CONTROL_POINTS, _points_out(control_points))
+    write_csv_atomic(root / IMAGES, _table_out(images, IMAGE_COLUMNS, (PRIOR_CENTER, PRIOR_QUAT), texts=IMAGE_COLUMNS))
+    optional = {
+        GROUND_POINTS: (ground_points, _points_out),
+        FRAMES: (frames, lambda f: _table_out(f, FRAME_COLUMNS, (PRIOR_QUAT,), texts=("frame", "group"))),
+        OBSERVATIONS: (observations, lambda f: _table_out(f, OBSERVATION_COLUMNS, (), texts=("image", "point_id"))),
+    }
+    for name, (table, convert) in optional.items():
+        if table is None:
+            (root / name).unlink(missing_ok=True)
+        else:
+            write_csv_atomic(root / name, convert(table))
+    return root
+
+
+def _points_out(points: pd.DataFrame) -> pd.DataFrame:
+    if "point_id" not in points.columns:
+        points = points.rename_axis("point_id").reset_index()
+    return _table_out(points, POINT_COLUMNS, (), texts=("point_id",))
+
+
+def _table_out(frame: pd.DataFrame, columns: Sequence[str], groups: Sequence[Sequence[str]],
+               texts: Sequence[str]) -> pd.DataFrame:
+    """`frame` with `columns` first, then each optional column group unless entirely absent/NaN, then extras."""
+    out = frame.reset_index(drop=True).copy()
+    for column in texts:
+        values = out[column] if column in out else pd.Series([""] * len(out), dtype=object)
+        out[column] = _strings([("" if _is_missing(value) else str(value)) for value in values])
+    order = list(columns)
+    for group in groups:
+        present = [c for c in group if c in out]
+        if present and out[present].notna().any().any():
+            out = out.assign(**{c: np.nan for c in group if c not in out})
+            order += list(group)
+    known = set(columns).union(*groups) if groups else set(columns)
+    order += [column for column in out.columns if column not in known]
+    return out[order]
+
+
+def _is_missing(value) -> bool:
+    return value is None or (isinstance(value, float) and math.isnan(value))
+
+
+def load_observations(dataset: Dataset, results: str | Path | None) -> pd.DataFrame:
+    """Observations (image, camera, point_id, u, v + extras) used downstream.
+
+    From `results/observations.csv` when it exists (validated against `dataset`, errors naming that
+    file), otherwise the dataset's own observations with `camera` taken from images.csv.
+    """
+    camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
+    if results is not None and (Path(results) / OBSERVATIONS).exists():
+        return _read_observations(Path(results) / OBSERVATIONS, camera_of, dataset.points.index, with_camera=True)
+    observations = dataset.observations.copy()
+    observations.insert(1, "camera", observations["image"].map(camera_of).astype(str))
+    return observations

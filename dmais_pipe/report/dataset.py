@@ -1,0 +1,137 @@
+"""`dmais summarize DATASET --out REPORTS`: what a dataset holds, as CSV and a self-contained HTML page.
+
+For simulated datasets (with `truth/`) the page also shows the truth rig, the noise budget and one
+rendered marker beside its true centre.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from ..dataset import Dataset
+from ..files import write_bytes_atomic, write_csv_atomic, write_text_atomic
+from ..geometry import euler_zyx_from_rotation
+from ..rig import Rig
+
+
+def summarize(dataset_dir: str | Path, out: str | Path) -> Path:
+    """Write dataset_summary.csv, dataset.html (and marker_example.png when possible) to `out`."""
+    dataset = Dataset.load(dataset_dir)
+    out = Path(out)
+    table = summary_table(dataset)
+    write_csv_atomic(out / "dataset_summary.csv", table)
+    sections = [("Images and observations", _html_table(table)), ("Points", _points_html(dataset))]
+    truth = dataset.truth_dir
+    if (truth / "rig.json").is_file():
+        sections.append(("Truth rig", _html_table(rig_table(Rig.load(truth / "rig.json")))))
+    if (truth / "simulation.yaml").is_file():
+        sections.append(("Simulator noise budget", _noise_html(yaml.safe_load((truth / "simulation.yaml").read_text()))))
+    example = marker_example(dataset)
+    if example is not None:
+        png, caption = example
+        write_bytes_atomic(out / "marker_example.png", png)
+        image = f'<img alt="marker" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
+        sections.append(("A rendered marker and its true centre", f"{image}<p>{html.escape(caption)}</p>"))
+    return write_text_atomic(out / "dataset.html", _page(f"Dataset {dataset.name}", sections))
+
+
+def summary_table(dataset: Dataset) -> pd.DataFrame:
+    """Per stage and camera: images, images with files, observations given by the dataset."""
+    images = dataset.images.assign(has_file=dataset.images["path"] != "")
+    counts = dataset.observations.groupby("image").size()
+    images = images.assign(observations=images["image"].map(counts).fillna(0).astype(int))
+    table = images.groupby(["stage", "camera"], sort=True).agg(
+        images=("image", "size"), image_files=("has_file", "sum"), observations=("observations", "sum"))
+    return table.reset_index()
+
+
+def rig_table(rig: Rig) -> pd.DataFrame:
+    rows = []
+    for name, camera in rig.cameras.items():
+        rig_from_cam = rig.cam_from_rig[name].inverse()
+        z, y, x = np.degrees(euler_zyx_from_rotation(rig_from_cam.R))
+        tilt = np.degrees(np.arccos(np.clip(rig_from_cam.R[2, 2], -1.0, 1.0)))
+        rows.append({"camera": name, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
+                     "d": camera.d, "euler_zyx_deg": f"({z:.3f}, {y:.3f}, {x:.3f})", "tilt_deg": round(tilt, 3),
+                     "center_m": "({:.3f}, {:.3f}, {:.3f})".format(*rig_from_cam.t)})
+    return pd.DataFrame(rows)
+
+
+def marker_example(dataset: Dataset, half_size: int = 40) -> tuple[bytes, str] | None:
+    """PNG of a crop of a rendered image around one marker, with its true centre marked."""
+    truth_file = dataset.truth_dir / "observations.csv"
+    rendered = dataset.images[dataset.images["path"] != ""]
+    if not truth_file.is_file() or rendered.empty:
+        return None
+    truth = pd.read_csv(truth_file, dtype={"image": str, "point_id": str})
+    truth = truth[truth["image"].isin(rendered["image"])]
+    if truth.empty:
+        return None
+    row = truth.iloc[int(np.argmin(np.abs(truth["size_px"].to_numpy() - 60.0)))]
+    image = dataset.read_image(row["image"])
+    u, v = float(row["u"]), float(row["v"])
+    x0, y0 = int(round(u)) - half_size, int(round(v)) - half_size
+    crop = image[max(y0, 0): y0 + 2 * half_size + 1, max(x0, 0): x0 + 2 * half_size + 1]
+    return _plot_crop(crop, u - max(x0, 0), v - max(y0, 0)), (
+        f"image {row['image']}, point {row['point_id']}, marker ~{row['size_px']:.0f} px; "
+        f"the red cross is the true projection of the control point, ({u:.2f}, {v:.2f}) px.")
+
+
+def _plot_crop(crop: np.ndarray, u: float, v: float) -> bytes:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(4, 4), dpi=100)
+    ax.imshow(crop, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
+    ax.plot([u], [v], marker="+", color="red", markersize=18, mew=1.5)
+    ax.set_xlabel("u (px, crop)")
+    ax.set_ylabel("v (px, crop)")
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", bbox_inches="tight")
+    plt.close(fig)
+    return buffer.getvalue()
+
+
+def _points_html(dataset: Dataset) -> str:
+    return (f"<p>{len(dataset.control_points)} control points (calibration field), "
+            f"{len(dataset.ground_points)} ground points (flight sites), {len(dataset.frames)} flight frames, "
+            f"marker size {dataset.marker_size_m:g} m.</p>")
+
+
+def _noise_html(config: dict) -> str:
+    fl = config["flight"]
+    rows = [
+        ("control points (survey)", f"{config['field']['survey_sigma_m'] * 1000:g} mm per axis"),
+        ("calibration markers, not rendered", f"{config['calibration_pixel_sigma_px']:g} px per axis"),
+        ("calibration priors", f"centre {config['calibration_priors']['center_sigma_m'] * 100:g} cm, "
+                               f"attitude {config['calibration_priors']['attitude_sigma_deg']:g} deg"),
+        ("ground markers (RTK)", "{:g}, {:g}, {:g} cm (x, y, z)".format(*np.multiply(fl["survey_sigma_m"], 100))),
+        ("in-flight mount change", f"{fl['mount_sigma_arcmin']:g}' per axis per group, "
+                                   f"{fl['vibration_sigma_arcmin']:g}' per frame"),
+        ("flight markers, not rendered", f"{fl['pixel_sigma_px']:g} px per axis"),
+        ("POS position", "{:g}, {:g}, {:g} cm; lever arm {} m".format(
+            *np.multiply(fl["pos_sigma_m"], 100), fl["lever_arm_m"])),
+        ("INS attitude prior", f"{fl['ins_attitude_sigma_deg']:g} deg per axis"),
+    ]
+    return _html_table(pd.DataFrame(rows, columns=["source", "standard deviation"]))
+
+
+def _html_table(frame: pd.DataFrame) -> str:
+    return frame.to_html(index=False, border=0, classes="table", float_format=lambda x: f"{x:.4g}")
+
+
+def _page(title: str, sections: list[tuple[str, str]]) -> str:
+    body = "\n".join(f"<section><h2>{html.escape(name)}</h2>\n{content}</section>" for name, content in sections)
+    style = ("body{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}"
+             "table{border-collapse:collapse}td,th{padding:2px 10px;border-bottom:1px solid #ddd;text-align:right}")
+    return (f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+            f"<style>{style}</style></head>\n<body><h1>{html.escape(title)}</h1>\n{body}\n</body></html>\n")

@@ -1,0 +1,154 @@
+"""Simulator configuration: the physical defaults (the paper's DMAIS and noise budget) and presets.
+
+A simulator YAML overrides any subset of `DEFAULTS` (nested keys); unknown keys are errors, so a
+typo never silently falls back to a default. Presets live in `config/simulate/`.
+
+Noise budget (see docs/simulator.md for the derivation):
+- control points of the calibration field: RTK + total station, averaged, 1 mm per axis;
+- calibration-image marker positions when not rendered: 0.1 px per axis (template matching);
+- ground markers of the flight sites: RTK, 1.5 cm horizontal and 2.5 cm vertical per axis;
+- in-flight camera mounting: each camera's cam_from_rig during a flight group deviates from the
+  rooftop calibration by 0.2 arc-min per axis (thermal and mechanical change between calibration
+  and flight) plus 0.05 arc-min per frame (vibration);
+- flight marker positions when not rendered: 0.5 px per axis (vibration, turbulence at 350-500 m).
+Together these give eps_proj ~ 4 px for a 5-camera frame, as tab:pose_methods.
+"""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import yaml
+
+from ..errors import ConfigError
+
+# Truth rig. Intrinsics: tab:intrinsics ("Ours" rows) for f and d, C3's fy raised to 43700 px;
+# principal points a few tens of pixels off the centre, as real lenses are. Extrinsics: the
+# "known" columns of tab:extrinsics_R (rig_from_cam as intrinsic ZYX Euler angles, degrees) and
+# tab:extrinsics_t (camera centres in the rig frame, metres); C0 is the rig frame.
+_PAPER_RIG = {
+    "reference_camera": "C0",
+    "width": 4096,
+    "height": 3000,
+    "cameras": {
+        "C0": {"fx": 45553.0, "fy": 45569.7, "cx": 2060.0, "cy": 1492.0, "d": 3.0715,
+               "euler_zyx_deg": [0.0, 0.0, 0.0], "center_m": [0.0, 0.0, 0.0]},
+        "C1": {"fx": 44922.5, "fy": 44963.4, "cx": 2028.0, "cy": 1515.0, "d": 2.0227,
+               "euler_zyx_deg": [-179.811, -0.152, 46.233], "center_m": [-0.002, 0.102, -0.086]},
+        "C2": {"fx": 44440.4, "fy": 44411.0, "cx": 2073.0, "cy": 1510.0, "d": 2.2361,
+               "euler_zyx_deg": [-90.048, -1.170, 44.758], "center_m": [-0.113, -0.012, -0.100]},
+        "C3": {"fx": 43737.5, "fy": 43700.0, "cx": 2038.0, "cy": 1478.0, "d": 2.2207,
+               "euler_zyx_deg": [0.150, -0.047, 44.038], "center_m": [0.000, -0.143, -0.097]},
+        "C4": {"fx": 44660.0, "fy": 44620.9, "cx": 2066.0, "cy": 1486.0, "d": 1.8864,
+               "euler_zyx_deg": [90.140, 1.180, 45.615], "center_m": [0.122, -0.010, -0.100]},
+    },
+    "nominal_focal_px": 45000.0,
+}
+
+DEFAULTS = {
+    "name": "sim",
+    "seed": 0,
+    "rig": _PAPER_RIG,
+    "marker_size_m": 2.0,
+    "render": {
+        "intrinsics": True,
+        "extrinsics": True,
+        "flight": True,
+        "png_compression": 1,
+        "settings": {},  # overrides of sim.render.RenderSettings
+    },
+    "field": {
+        # The rig stands on a roof at `station` and looks north (+y) horizontally; the field has
+        # three regions at the azimuths of the three horizontal cameras (C0 and two tilted ones).
+        "station_m": [0.0, 0.0, 6.0],
+        "region_azimuth_deg": [-45.0, 0.0, 45.0],
+        "region_names": ["L", "C", "R"],
+        "distance_m": [130.0, 280.0],
+        "height_m": [2.0, 10.0],
+        "region_half_width_deg": 2.6,
+        "cell_deg": 1.05,  # azimuth spacing of the markers seen from the station
+        "row_elevation_deg": [-0.9, 0.0, 0.9],  # rows 0.9 deg apart: a 2 m marker at 130 m spans 0.88
+        "boards_per_region": 2,
+        "board_min_distance_m": 200.0,
+        "board_size_m": [3.0, 3.0],
+        "board_cells": [4, 3],
+        "facing_yaw_deg": 25.0,
+        "survey_sigma_m": 0.001,
+    },
+    "intrinsics": {
+        "calib_images_per_camera": 20,
+        "eval_images_per_camera": 5,
+        "aim_jitter_deg": [1.8, 1.3],
+        "roll_jitter_deg": 4.0,
+        "station_jitter_m": 0.3,
+        "min_points": 8,
+    },
+    "extrinsics": {
+        "placements": 5,
+        "initial_roll_deg": 0.0,
+        "adjust_jitter_deg": 0.1,
+        "station_jitter_m": 0.05,
+        "min_points": 6,
+    },
+    "calibration_priors": {
+        "center_sigma_m": 0.02,
+        "attitude_sigma_deg": 1.0,
+    },
+    "calibration_pixel_sigma_px": 0.1,
+    "flight": {
+        "altitude_m": 350.0,
+        "altitude_jitter_m": 10.0,
+        "sites": {
+            "A": {"center_m": [1500.0, -800.0, 45.0], "groups": [1, 2, 3]},
+            "B": {"center_m": [-2200.0, 1800.0, 120.0], "groups": [4, 5]},
+        },
+        "group_offset_m": 40.0,
+        "frames_per_group": 30,
+        "markers_per_camera": 8,
+        "marker_margin_frac": 0.15,
+        "terrain_amplitude_m": 3.0,
+        "hover_position_sigma_m": 1.0,
+        "hover_attitude_sigma_deg": 0.2,
+        "survey_sigma_m": [0.015, 0.015, 0.025],
+        "mount_sigma_arcmin": 0.15,
+        "vibration_sigma_arcmin": 0.3,
+        "pixel_sigma_px": 0.5,
+        "lever_arm_m": [0.15, -0.08, 0.32],
+        "pos_sigma_m": [0.02, 0.02, 0.03],
+        "ins_attitude_sigma_deg": 0.5,
+        "border_margin_px": 20.0,
+    },
+}
+
+
+def merge(defaults: dict, overrides: dict, where: str = "") -> dict:
+    """Deep copy of `defaults` with `overrides` applied; unknown keys raise ConfigError."""
+    merged = copy.deepcopy(defaults)
+    for key, value in overrides.items():
+        path = f"{where}.{key}" if where else str(key)
+        if key not in defaults:
+            raise ConfigError(f"unknown simulator setting {path!r}")
+        free_form = key in ("settings", "sites", "cameras")
+        if isinstance(defaults[key], dict) and isinstance(value, dict) and not free_form:
+            merged[key] = merge(defaults[key], value, path)
+        else:
+            merged[key] = copy.deepcopy(value)
+    return merged
+
+
+def load_config(path: str | Path) -> dict:
+    """Simulator settings from a YAML file: DEFAULTS with the file's values applied."""
+    path = Path(path)
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: file not found") from None
+    except yaml.YAMLError as error:
+        raise ConfigError(f"{path}: invalid YAML ({error})") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a mapping of settings")
+    try:
+        return merge(DEFAULTS, data)
+    except ConfigError as error:
+        raise ConfigError(f"{path}: {error}") from None

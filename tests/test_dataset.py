@@ -1,0 +1,310 @@
+"""Dataset directory: loading, round trip, and one precise error per kind of malformed input."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from dmais_pipe.cli import main
+from dmais_pipe.dataset import CameraSpec, Dataset, load_observations, write_dataset
+from dmais_pipe.errors import DatasetError
+
+W, H = 64, 48
+QUAT = (0.5, 0.5, -0.5, 0.5)
+
+
+def _inputs() -> dict:
+    manifest = {
+        "name": "tiny",
+        "description": "test dataset",
+        "reference_camera": "C0",
+        "cameras": {"C0": {"width": W, "height": H, "focal_px": 500.0}, "C1": {"width": W, "height": H}},
+        "marker_size_m": 1.5,
+    }
+    control = pd.DataFrame({"point_id": ["007", "A1", "A2", "A3"], "x": [0.1, 1e-9, 2.0, -3.25],
+                            "y": [1 / 3, 0.0, 5.5, 1e6 + 1e-6], "z": [0.0, 1.0, 2.0, 3.0]})
+    ground = pd.DataFrame({"point_id": ["G1", "G2"], "x": [10.0, 11.0], "y": [20.0, 21.0], "z": [0.5, 0.25]})
+    images = pd.DataFrame([
+        {"image": "i0", "camera": "C0", "stage": "intrinsics", "split": "calib", "path": "images/i0.png",
+         "prior_x": 1.0, "prior_y": 2.0, "prior_z": 3.0, "prior_qw": QUAT[0], "prior_qx": QUAT[1],
+         "prior_qy": QUAT[2], "prior_qz": QUAT[3]},
+        {"image": "i1", "camera": "C1", "stage": "intrinsics", "split": "eval", "path": "images/i1.png"},
+        {"image": "e0", "camera": "C1", "stage": "extrinsics", "placement": "p0", "path": "images/e0.png",
+         "prior_x": 4.0, "prior_y": 5.0, "prior_z": 6.0},
+        {"image": "f0", "camera": "C0", "stage": "flight", "placement": "g1_f000", "path": ""},
+        {"image": "f1", "camera": "C1", "stage": "flight", "placement": "g1_f000", "path": "images/f1.png"},
+    ])
+    frames = pd.DataFrame({"frame": ["g1_f000"], "group": ["1"], "pos_x": [100.0], "pos_y": [200.0],
+                           "pos_z": [1000.0], "prior_qw": [1.0], "prior_qx": [0.0], "prior_qy": [0.0],
+                           "prior_qz": [0.0]})
+    observations = pd.DataFrame({"image": ["f0", "f0", "i0"], "point_id": ["G1", "G2", "007"],
+                                 "u": [10.5, 20.25, 0.0], "v": [30.125, 40.0, 47.0]})
+    return {"manifest": manifest, "control_points": control, "images": images, "ground_points": ground,
+            "frames": frames, "observations": observations}
+
+
+def _write(root: Path, inputs: dict) -> Path:
+    write_dataset(root, inputs["manifest"], inputs["control_points"], inputs["images"],
+                  ground_points=inputs["ground_points"], frames=inputs["frames"],
+                  observations=inputs["observations"])
+    for path in inputs["images"]["path"]:
+        if path:
+            (root / path).parent.mkdir(parents=True, exist_ok=True)
+            cv2.imwrite(str(root / path), np.full((H, W), 128, np.uint8))
+    return root
+
+
+@pytest.fixture
+def root(tmp_path) -> Path:
+    return _write(tmp_path / "ds", _inputs())
+
+
+# ------------------------------------------------------------------------------ valid datasets
+
+
+def test_loads_with_clean_types(root):
+    ds = Dataset.load(root)
+    ds.check_images()
+    assert ds.name == "tiny" and ds.reference_camera == "C0" and ds.marker_size_m == 1.5
+    assert ds.cameras == {"C0": CameraSpec(W, H, 500.0), "C1": CameraSpec(W, H, None)}
+    assert list(ds.control_points.index) == ["007", "A1", "A2", "A3"]
+    assert ds.control_points.loc["A3", "y"] == 1e6 + 1e-6 and ds.control_points.loc["007", "y"] == 1 / 3
+    assert list(ds.points.index) == ["007", "A1", "A2", "A3", "G1", "G2"]
+    assert list(ds.images.columns[:7]) == ["image", "camera", "stage", "split", "placement", "path", "prior_x"]
+    assert ds.images["prior_qw"].dtype == float and np.isnan(ds.images.loc[1, "prior_x"])
+    assert ds.images.loc[1, "placement"] == "" and ds.frames.loc[0, "group"] == "1"
+    assert list(ds.images_of("flight", camera="C1")["image"]) == ["f1"]
+    assert list(ds.images_of("intrinsics", split="eval")["image"]) == ["i1"]
+    assert ds.image_path("f0") is None and ds.image_path("i0") == root.absolute() / "images/i0.png"
+    assert ds.read_image("i0").shape == (H, W)
+    assert ds.truth_dir == root.absolute() / "truth"
+    summary = ds.summary()
+    assert "tiny" in summary and "4 control, 2 ground" in summary and "observations: 3" in summary
+
+
+def test_round_trip_is_exact(root, tmp_path):
+    inputs = _inputs()
+    first = Dataset.load(root)
+    pd.testing.assert_frame_equal(first.control_points.reset_index(), inputs["control_points"], check_dtype=False)
+    pd.testing.assert_frame_equal(first.observations, inputs["observations"], check_dtype=False)
+    copy = tmp_path / "copy"
+    write_dataset(copy, inputs["manifest"], first.control_points, first.images, ground_points=first.ground_points,
+                  frames=first.frames, observations=first.observations)
+    (copy / "images").symlink_to(root / "images")
+    second = Dataset.load(copy)
+    for name in ("control_points", "ground_points", "images", "frames", "observations"):
+        pd.testing.assert_frame_equal(getattr(first, name), getattr(second, name), check_exact=True)
+    assert yaml.safe_load((copy / "dataset.yaml").read_text()) == inputs["manifest"]
+
+
+def test_optional_files_absent_and_extra_columns(tmp_path):
+    inputs = _inputs()
+    inputs["images"] = inputs["images"][inputs["images"]["stage"] != "flight"]
+    inputs["control_points"]["surveyor"] = "bob"
+    root = tmp_path / "ds"
+    write_dataset(root, inputs["manifest"], inputs["control_points"], inputs["images"])
+    assert "prior_q" in (root / "images.csv").read_text()
+    for path in inputs["images"]["path"]:
+        (root / path).parent.mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(root / path), np.zeros((H, W), np.uint8))
+    ds = Dataset.load(root)
+    assert ds.ground_points.empty and list(ds.ground_points.columns) == ["x", "y", "z"]
+    assert ds.frames.empty and ds.observations.empty
+    assert list(ds.control_points["surveyor"]) == ["bob"] * 4
+
+
+def test_priors_omitted_when_absent(tmp_path):
+    inputs = _inputs()
+    images = inputs["images"].drop(columns=["prior_qw", "prior_qx", "prior_qy", "prior_qz"])
+    images[["prior_x", "prior_y", "prior_z"]] = np.nan
+    write_dataset(tmp_path, inputs["manifest"], inputs["control_points"], images)
+    header = (tmp_path / "images.csv").read_text().splitlines()[0]
+    assert header == "image,camera,stage,split,placement,path"
+
+
+def test_read_image_converts_colour_and_keeps_16_bit(root):
+    cv2.imwrite(str(root / "images/i0.png"), np.full((H, W, 3), (10, 20, 30), np.uint8))
+    cv2.imwrite(str(root / "images/i1.png"), np.full((H, W), 40000, np.uint16))
+    ds = Dataset.load(root)
+    gray = ds.read_image("i0")
+    assert gray.shape == (H, W) and gray.dtype == np.uint8
+    assert ds.read_image("i1").dtype == np.uint16
+    assert ds.check_images() == 4
+
+
+def test_quaternions_are_normalized(root):
+    _set_cells(root, "images.csv", 0, prior_qw="2", prior_qx="0", prior_qy="0", prior_qz="0")
+    assert Dataset.load(root).images.loc[0, ["prior_qw", "prior_qx"]].tolist() == [1.0, 0.0]
+
+
+def test_load_observations_from_dataset_and_results(root, tmp_path):
+    ds = Dataset.load(root)
+    given = load_observations(ds, None)
+    assert list(given.columns) == ["image", "camera", "point_id", "u", "v"]
+    assert list(given["camera"]) == ["C0", "C0", "C0"]
+    results = tmp_path / "results"
+    results.mkdir()
+    assert load_observations(ds, results).equals(given)
+    (results / "observations.csv").write_text("image,camera,point_id,u,v\ni1,C1,A1,1.5,2.5\n")
+    found = load_observations(ds, results)
+    assert found.loc[0, "point_id"] == "A1" and found.loc[0, "u"] == 1.5
+    (results / "observations.csv").write_text("image,camera,point_id,u,v\ni1,C0,A1,1.5,2.5\n")
+    with pytest.raises(DatasetError, match=r"results/observations\.csv, line 2: camera 'C0'"):
+        load_observations(ds, results)
+
+
+# ------------------------------------------------------------------------------ malformed datasets
+
+
+def _rows(root: Path, name: str) -> list[list[str]]:
+    with (root / name).open(newline="") as file:
+        return list(csv.reader(file))
+
+
+def _save_rows(root: Path, name: str, rows: list[list[str]]) -> None:
+    with (root / name).open("w", newline="") as file:
+        csv.writer(file, lineterminator="\n").writerows(rows)
+
+
+def _set_cells(root: Path, name: str, row: int, **values) -> None:
+    """Set cells of data row `row` (0-based; file line row + 2)."""
+    rows = _rows(root, name)
+    for column, value in values.items():
+        rows[row + 1][rows[0].index(column)] = value
+    _save_rows(root, name, rows)
+
+
+def _drop_column(root: Path, name: str, column: str) -> None:
+    rows = _rows(root, name)
+    k = rows[0].index(column)
+    _save_rows(root, name, [row[:k] + row[k + 1:] for row in rows])
+
+
+def _append_copy(root: Path, name: str, row: int) -> None:
+    rows = _rows(root, name)
+    _save_rows(root, name, rows + [rows[row + 1]])
+
+
+def _edit_manifest(root: Path, **changes) -> None:
+    data = yaml.safe_load((root / "dataset.yaml").read_text())
+    data.update(changes)
+    (root / "dataset.yaml").write_text(yaml.safe_dump(data))
+
+
+# (edit, file named, line or None, substrings the message must contain)
+LOAD_ERRORS = {
+    "missing images.csv": (lambda r: (r / "images.csv").unlink(), "images.csv", None, ["missing"]),
+    "missing manifest": (lambda r: (r / "dataset.yaml").unlink(), "dataset.yaml", None, ["missing"]),
+    "missing frames.csv": (lambda r: (r / "frames.csv").unlink(), "frames.csv", None, ["flight images", "line 5"]),
+    "missing column": (lambda r: _drop_column(r, "control_points.csv", "z"), "control_points.csv", 1,
+                       ["missing column(s) z"]),
+    "NaN coordinate": (lambda r: _set_cells(r, "control_points.csv", 1, x="nan"), "control_points.csv", 3,
+                       ["column x", "'nan'"]),
+    "empty coordinate": (lambda r: _set_cells(r, "ground_points.csv", 0, z=""), "ground_points.csv", 2,
+                         ["column z is empty"]),
+    "text in number": (lambda r: _set_cells(r, "observations.csv", 2, u="abc"), "observations.csv", 4,
+                       ["column u", "'abc'"]),
+    "inf in frame": (lambda r: _set_cells(r, "frames.csv", 0, pos_z="inf"), "frames.csv", 2, ["pos_z", "'inf'"]),
+    "duplicate point id": (lambda r: _set_cells(r, "control_points.csv", 2, point_id="007"), "control_points.csv",
+                           4, ["duplicate point id '007'", "line 2"]),
+    "duplicate across files": (lambda r: _set_cells(r, "ground_points.csv", 1, point_id="A1"), "ground_points.csv",
+                               3, ["'A1'", "control_points.csv, line 3"]),
+    "duplicate image": (lambda r: _set_cells(r, "images.csv", 1, image="i0"), "images.csv", 3,
+                        ["duplicate image id 'i0'", "line 2"]),
+    "unknown camera": (lambda r: _set_cells(r, "images.csv", 2, camera="C9"), "images.csv", 4,
+                       ["unknown camera 'C9'"]),
+    "bad stage": (lambda r: _set_cells(r, "images.csv", 1, stage="flying"), "images.csv", 3, ["stage 'flying'"]),
+    "missing split": (lambda r: _set_cells(r, "images.csv", 1, split=""), "images.csv", 3, ["split is empty"]),
+    "split outside intrinsics": (lambda r: _set_cells(r, "images.csv", 2, split="calib"), "images.csv", 4,
+                                 ["split 'calib'"]),
+    "missing placement": (lambda r: _set_cells(r, "images.csv", 2, placement=""), "images.csv", 4,
+                          ["placement is empty"]),
+    "placement not a frame": (lambda r: _set_cells(r, "images.csv", 4, placement="nope"), "images.csv", 6,
+                              ["'f1'", "'nope'", "frames.csv"]),
+    "image file missing": (lambda r: (r / "images/e0.png").unlink(), "images.csv", 4,
+                           ["'e0'", "'images/e0.png' does not exist"]),
+    "no path, no observations": (lambda r: _set_cells(r, "images.csv", 1, path=""), "images.csv", 3,
+                                 ["'i1'", "neither a path nor rows in observations.csv"]),
+    "partial prior": (lambda r: _set_cells(r, "images.csv", 2, prior_y="", prior_z=""), "images.csv", 4,
+                      ["prior_x, prior_y, prior_z", "only prior_x"]),
+    "zero quaternion": (lambda r: _set_cells(r, "frames.csv", 0, prior_qw="0"), "frames.csv", 2,
+                        ["quaternion norm"]),
+    "observation unknown point": (lambda r: _set_cells(r, "observations.csv", 1, point_id="ZZ"),
+                                  "observations.csv", 3, ["unknown point id 'ZZ'"]),
+    "observation unknown image": (lambda r: _set_cells(r, "observations.csv", 0, image="x9"),
+                                  "observations.csv", 2, ["unknown image 'x9'"]),
+    "duplicate observation": (lambda r: _append_copy(r, "observations.csv", 1), "observations.csv", 5,
+                              ["duplicate observation", "('f0', 'G2')", "line 3"]),
+    "wrong field count": (lambda r: (r / "ground_points.csv").open("a").write("G9,1,2\n"), "ground_points.csv", 4,
+                          ["3 fields"]),
+    "unknown manifest key": (lambda r: _edit_manifest(r, marker_size=2), "dataset.yaml", None,
+                             ["unknown key 'marker_size'"]),
+    "reference not a camera": (lambda r: _edit_manifest(r, reference_camera="C7"), "dataset.yaml", None,
+                               ["reference_camera 'C7'"]),
+    "bad width": (lambda r: _edit_manifest(r, cameras={"C0": {"width": 0, "height": H}, "C1": {"width": W,
+                                                                                               "height": H}}),
+                  "dataset.yaml", None, ["cameras.C0.width", "positive integer"]),
+    "invalid yaml": (lambda r: (r / "dataset.yaml").write_text("name: [unclosed\n"), "dataset.yaml", 2,
+                     ["invalid YAML"]),
+    "no control points": (lambda r: (r / "control_points.csv").write_text("point_id,x,y,z\n"),
+                          "control_points.csv", None, ["no points"]),
+}
+
+
+@pytest.mark.parametrize("case", list(LOAD_ERRORS))
+def test_malformed_dataset_names_file_and_line(root, case):
+    edit, name, line, parts = LOAD_ERRORS[case]
+    edit(root)
+    with pytest.raises(DatasetError) as info:
+        Dataset.load(root)
+    message = str(info.value)
+    where = name if line is None else f"{name}, line {line}:"
+    assert where in message and Path(info.value.path).name == name and info.value.line == line, message
+    for part in parts:
+        assert part in message, message
+
+
+IMAGE_ERRORS = {
+    "cannot be decoded": (lambda r: (r / "images/i1.png").write_bytes(b"garbage, not a PNG"), 3,
+                          ["'i1'", "'images/i1.png' cannot be decoded"]),
+    "wrong size": (lambda r: cv2.imwrite(str(r / "images/e0.png"), np.zeros((32, 40), np.uint8)), 4,
+                   ["'e0'", "is 40x32, camera C1 expects 64x48"]),
+}
+
+
+@pytest.mark.parametrize("case", list(IMAGE_ERRORS))
+def test_bad_image_file_found_by_check_images(root, case):
+    edit, line, parts = IMAGE_ERRORS[case]
+    edit(root)
+    ds = Dataset.load(root)
+    with pytest.raises(DatasetError) as info:
+        ds.check_images()
+    message = str(info.value)
+    assert f"images.csv, line {line}:" in message, message
+    for part in parts:
+        assert part in message, message
+
+
+def test_point_ids_stay_strings(root):
+    assert _rows(root, "control_points.csv")[1][0] == "007"
+    ds = Dataset.load(root)
+    assert pd.api.types.is_string_dtype(ds.control_points.index) and ds.control_points.index[0] == "007"
+    assert pd.api.types.is_string_dtype(ds.observations["point_id"]) and ds.observations.loc[2, "point_id"] == "007"
+
+
+# ------------------------------------------------------------------------------ CLI
+
+
+def test_validate_cli(root, capsys):
+    assert main(["validate", str(root)]) == 0
+    assert "dataset tiny" in capsys.readouterr().out
+    _set_cells(root, "images.csv", 2, camera="C9")
+    assert main(["validate", str(root)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "unknown camera 'C9'" in err and "images.csv, line 4" in err
