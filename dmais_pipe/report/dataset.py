@@ -64,8 +64,8 @@ def rig_table(rig: Rig) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def marker_example(dataset: Dataset, half_size: int = 40) -> tuple[bytes, str] | None:
-    """PNG of a crop of a rendered image around one marker, with its true centre marked."""
+def marker_example(dataset: Dataset, zoom_half_size: int = 6) -> tuple[bytes, str] | None:
+    """PNG of the smallest rendered marker, whole and zoomed to its centre, with the true centre marked."""
     truth_file = dataset.truth_dir / "observations.csv"
     rendered = dataset.images[dataset.images["path"] != ""]
     if not truth_file.is_file() or rendered.empty:
@@ -74,27 +74,35 @@ def marker_example(dataset: Dataset, half_size: int = 40) -> tuple[bytes, str] |
     truth = truth[truth["image"].isin(rendered["image"])]
     if truth.empty:
         return None
-    row = truth.iloc[int(np.argmin(np.abs(truth["size_px"].to_numpy() - 60.0)))]
+    row = truth.loc[truth["size_px"].idxmin()]
     image = dataset.read_image(row["image"])
     u, v = float(row["u"]), float(row["v"])
-    x0, y0 = int(round(u)) - half_size, int(round(v)) - half_size
-    crop = image[max(y0, 0): y0 + 2 * half_size + 1, max(x0, 0): x0 + 2 * half_size + 1]
-    return _plot_crop(crop, u - max(x0, 0), v - max(y0, 0)), (
-        f"image {row['image']}, point {row['point_id']}, marker ~{row['size_px']:.0f} px; "
-        f"the red cross is the true projection of the control point, ({u:.2f}, {v:.2f}) px.")
+    whole = _crop(image, u, v, int(0.7 * row["size_px"]))
+    zoom = _crop(image, u, v, zoom_half_size)
+    return _plot_crops([whole, zoom]), (
+        f"Image {row['image']}, point {row['point_id']}, marker ~{row['size_px']:.0f} px across; left the whole "
+        f"marker, right its centre pixel by pixel. The red cross is the true projection of the control point, "
+        f"({u:.2f}, {v:.2f}) px (the centre of a pixel is at integer coordinates).")
 
 
-def _plot_crop(crop: np.ndarray, u: float, v: float) -> bytes:
+def _crop(image: np.ndarray, u: float, v: float, half: int) -> tuple[np.ndarray, float, float, int, int]:
+    x0, y0 = max(int(round(u)) - half, 0), max(int(round(v)) - half, 0)
+    return image[y0: int(round(v)) + half + 1, x0: int(round(u)) + half + 1], u, v, x0, y0
+
+
+def _plot_crops(crops) -> bytes:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(4, 4), dpi=100)
-    ax.imshow(crop, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
-    ax.plot([u], [v], marker="+", color="red", markersize=18, mew=1.5)
-    ax.set_xlabel("u (px, crop)")
-    ax.set_ylabel("v (px, crop)")
+    fig, axes = plt.subplots(1, len(crops), figsize=(4 * len(crops), 4), dpi=100)
+    for ax, (crop, u, v, x0, y0) in zip(axes, crops):
+        extent = (x0 - 0.5, x0 + crop.shape[1] - 0.5, y0 + crop.shape[0] - 0.5, y0 - 0.5)
+        ax.imshow(crop, cmap="gray", vmin=0, vmax=255, interpolation="nearest", extent=extent)
+        ax.plot([u], [v], marker="+", color="red", markersize=18, mew=1.5)
+        ax.set_xlabel("u (px)")
+        ax.set_ylabel("v (px)")
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", bbox_inches="tight")
     plt.close(fig)

@@ -8,8 +8,8 @@ Noise budget (see docs/simulator.md for the derivation):
 - calibration-image marker positions when not rendered: 0.1 px per axis (template matching);
 - ground markers of the flight sites: RTK, 1.5 cm horizontal and 2.5 cm vertical per axis;
 - in-flight camera mounting: each camera's cam_from_rig during a flight group deviates from the
-  rooftop calibration by 0.2 arc-min per axis (thermal and mechanical change between calibration
-  and flight) plus 0.05 arc-min per frame (vibration);
+  rooftop calibration by 0.15 arc-min per axis (thermal and mechanical change between calibration
+  and flight) plus 0.3 arc-min per frame (vibration);
 - flight marker positions when not rendered: 0.5 px per axis (vibration, turbulence at 350-500 m).
 Together these give eps_proj ~ 4 px for a 5-camera frame, as tab:pose_methods.
 """

@@ -8,7 +8,12 @@ rule dataset_report:
             category="Dataset",
         ),
         summary=f"{REPORTS}/dataset_summary.csv",
+    params:
+        dataset_dir=folder_of("manifest"),
+        reports=folder_of("summary"),
     log:
         f"{LOGS}/dataset_report.log",
+    conda:
+        "../envs/dmais.yaml"
     shell:
-        "dmais summarize {DATASET_DIR} --out {REPORTS} > {log} 2>&1"
+        "dmais summarize {params.dataset_dir} --out {params.reports} > {log} 2>&1"

@@ -5,8 +5,12 @@ if config.get("simulate"):
             config=config["simulate"],
         output:
             manifest=f"{DATASET_DIR}/dataset.yaml",
+        params:
+            dataset_dir=folder_of("manifest"),
         log:
             f"{LOGS}/simulate.log",
         threads: workflow.cores
+        conda:
+            "../envs/dmais.yaml"
         shell:
-            "dmais simulate {input.config} --out {DATASET_DIR} --jobs {threads} > {log} 2>&1"
+            "dmais simulate {input.config} --out {params.dataset_dir} --jobs {threads} > {log} 2>&1"
