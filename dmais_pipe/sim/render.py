@@ -1,18 +1,24 @@
 """Synthetic 8-bit camera images of planar checkerboard marker boards, geometrically exact.
 
-Rendering is by inverse mapping: every sample point of a pixel is undistorted with the camera's
-own model (`Camera.undistort_normalized`), turned into a ray, intersected with the board plane and
-coloured by the checkerboard cell it hits. A pixel's value is the mean of its samples, i.e. its
-area coverage, so edges and X-corners sit exactly where `Camera.project` puts them (up to the
-1 / supersampling^2 quantization of the coverage).
+Rendering is by inverse mapping: pixel corners (and, where needed, sample points inside pixels)
+are undistorted with the camera's own model (`Camera.undistort_normalized`), turned into rays,
+intersected with the board plane and coloured by the checkerboard cell they hit. A pixel's value
+is its area coverage, so edges and X-corners sit exactly where `Camera.project` puts them.
 
-Work is limited to each board's projected bounding box. Inside it a coarse pass evaluates the
-pattern at the pixel corners only; pixels whose four corners disagree, and the pixels around every
-projected vertex of the pattern (cell corners, X-corners, outline corners), are supersampled with
-an s x s "n-rooks" pattern (all s^2 sample abscissae distinct and all ordinates distinct, so even an
-axis-aligned edge is resolved to 1 / s^2 of a pixel). A straight edge crossing a pixel always
-separates at least one of its corners from the others, so away from vertices the corner test misses
-nothing; boards whose cells are smaller than a few pixels are supersampled everywhere.
+Work is limited to each board's projected bounding box (the visible outline projected densely,
+with distortion, padded by 2 px). Inside it a first pass evaluates the pattern at every pixel
+corner. Pixels whose four corners agree are uniform: a straight edge crossing a pixel always
+separates one of its corners from the others, and the pixels around every projected pattern vertex
+are examined regardless (a narrow wedge of an X-corner can slip between corners). The mixed pixels
+are then split by the lines of the pattern's grid (cell lines and outline) that cross them:
+
+- one line, or one line of each direction (edges, X-corners, T-junctions, outline corners): the
+  exact area on each side, computed from the lines, which are straight in undistorted normalized
+  coordinates; the only approximation is the distortion's curvature over one pixel (< 1e-3 px even
+  for a strong wide-angle model);
+- anything else (several parallel lines in one pixel, cells smaller than a few pixels, the
+  horizon of a board crossing the camera plane, the fold of a d < 0 model): s x s rays per pixel
+  (`RenderSettings.supersampling`) in a multi-jittered pattern, area within ~1 / s^2.
 
 `coverage_image` is the noise-free, blur-free, vignetting-free rendering on a flat background;
 `render_image` paints the same boards over a fractal texture and adds illumination jitter, optical
@@ -22,6 +28,7 @@ pixel is (0, 0); pixel (i, j) covers [j - 0.5, j + 0.5] x [i - 0.5, i + 0.5]).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import cv2
@@ -36,11 +43,11 @@ _BACKGROUND, _BLACK, _WHITE = 0, 1, 2
 _MAX_CHUNK_POINTS = 1 << 19  # sample points per vectorized chunk (~ tens of MB of temporaries)
 _MIN_COS = 0.05  # boards seen more edge-on than this are skipped
 _BBOX_PAD_PX = 2
-_VERTEX_RADIUS_PX = 1  # supersample the (2r+1)^2 pixels around every projected pattern vertex
-_MIN_CELL_PX = 3.0  # below this projected cell size the whole bounding box is supersampled
+_VERTEX_RADIUS_PX = 1  # examine the (2r+1)^2 pixels around every projected pattern vertex
+_MIN_CELL_PX = 3.0  # below this projected cell size every pixel of the bounding box is examined
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MarkerBoard:
     """A planar board of cols x rows checkerboard cells in the world; its X-corners are the inner corners.
 
@@ -62,7 +69,19 @@ class MarkerBoard:
 
     def __post_init__(self):
         for name in ("origin", "axis_u", "axis_v"):
-            object.__setattr__(self, name, np.asarray(getattr(self, name), dtype=float).reshape(3))
+            value = np.array(getattr(self, name), dtype=float).reshape(3)
+            value.flags.writeable = False
+            object.__setattr__(self, name, value)
+
+    def _key(self) -> tuple:
+        return (tuple(self.origin), tuple(self.axis_u), tuple(self.axis_v), self.cols, self.rows,
+                self.cell_u, self.cell_v, self.polarity, self.margin)
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, MarkerBoard) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
 
     @property
     def normal(self) -> np.ndarray:
@@ -115,12 +134,13 @@ class MarkerBoard:
 class RenderSettings:
     """Image formation parameters; levels and noise in DN of the 8-bit output."""
 
-    supersampling: int = 4  # s x s samples per pixel on pixels whose footprint crosses an edge
+    supersampling: int = 4  # s x s rays per pixel where the exact area split does not apply
     blur_sigma_px: float = 0.8  # Gaussian optical PSF
     black_level: float = 35.0  # DN of black cells (before vignetting/noise)
     white_level: float = 205.0  # DN of white cells
     background_mean: float = 110.0
     background_contrast: float = 25.0  # std of the fractal texture in DN
+    background_roughness: float = 0.5  # octave amplitude ~ spacing**roughness: 1 smooth clouds, 0 white noise
     vignetting: float = 0.15  # relative falloff at the farthest image corner
     read_noise_dn: float = 1.5  # Gaussian read noise
     shot_noise_gain: float = 0.05  # shot-noise variance per DN: var = gain * signal
@@ -207,6 +227,7 @@ class _BoardInCamera:
         return a, b
 
 
+@functools.lru_cache(maxsize=64)
 def _image_normalized_bounds(camera: Camera) -> tuple[float, float, float, float]:
     """(x_min, x_max, y_min, y_max) of the undistorted normalized coordinates of the whole image."""
     n = 257
@@ -228,7 +249,7 @@ def _image_normalized_bounds(camera: Camera) -> tuple[float, float, float, float
     x_max, y_max = xy.max(axis=0)
     # A little slack: the border is sampled, and bounding boxes are padded anyway.
     sx, sy = 4.0 / camera.fx, 4.0 / camera.fy
-    return x_min - sx, x_max + sx, y_min - sy, y_max + sy
+    return float(x_min - sx), float(x_max + sx), float(y_min - sy), float(y_max + sy)
 
 
 def _clip_polygon(polygon: np.ndarray, normal: np.ndarray, offset: float) -> np.ndarray:
@@ -317,9 +338,6 @@ def board_pixel_bbox(camera: Camera, cam_from_world: Rigid3, board: MarkerBoard)
 # ------------------------------------------------------------------------------ coverage
 
 
-SAMPLING_MODE = "multijitter"
-
-
 def _splitmix64(x: np.ndarray) -> np.ndarray:
     """Vectorized splitmix64 finalizer of uint64 values."""
     x = x + np.uint64(0x9E3779B97F4A7C15)
@@ -336,20 +354,16 @@ def _pixel_uniforms(px: np.ndarray, py: np.ndarray, count: int) -> np.ndarray:
 
 
 def _sample_offsets(px: np.ndarray, py: np.ndarray, s: int) -> np.ndarray:
-    """(m, s*s, 2) sample offsets from the centres of pixels (px, py), in (-0.5, 0.5)."""
+    """(m, s*s, 2) sample offsets from the centres of pixels (px, py), in (-0.5, 0.5).
+
+    Multi-jittered sampling (Chiu, Shirley, Wang 1994): one sample per s x s sub-cell and all s^2
+    abscissae (and ordinates) in distinct 1/s^2 strips, so an axis-aligned edge is resolved to
+    1/s^2; the pattern is shuffled per pixel by a hash of its coordinates, so errors do not
+    correlate between pixels and the image stays a deterministic function of the scene.
+    """
     n = s * s
     i, j = np.meshgrid(np.arange(s), np.arange(s), indexing="ij")
     i, j = i.ravel(), j.ravel()
-    if SAMPLING_MODE == "lattice":
-        ox = (i * s + j + 0.5) / n - 0.5
-        oy = (j * s + i + 0.5) / n - 0.5
-        return np.broadcast_to(np.stack([ox, oy], axis=1), (len(px), n, 2))
-    if SAMPLING_MODE == "korobov":
-        a = {4: 7}.get(s, 1)
-        k = np.arange(n)
-        ox = (k + 0.5) / n - 0.5
-        oy = ((k * 5) % n + 0.5) / n - 0.5
-        return np.broadcast_to(np.stack([ox, oy], axis=1), (len(px), n, 2))
     u = _pixel_uniforms(px, py, 4 * n).reshape(len(px), 4, s, s)
     fine_x = np.argsort(u[:, 0], axis=2)  # fine_x[m, i] permutation over j
     fine_y = np.argsort(u[:, 1], axis=2)  # fine_y[m, j] permutation over i
@@ -361,12 +375,11 @@ def _sample_offsets(px: np.ndarray, py: np.ndarray, s: int) -> np.ndarray:
 
 
 def _forced_mask(camera: Camera, cam_from_world: Rigid3, board: MarkerBoard, bbox) -> np.ndarray | bool:
-    """Pixels of the bbox (ny, nx) to supersample regardless of the corner test, or True for all."""
+    """Pixels of the bbox (ny, nx) to treat as mixed regardless of the corner test, or True for all."""
     x0, y0, x1, y1 = bbox
     vertices = board.vertex_coordinates()
     uv = camera.project(cam_from_world.apply(board.to_world(vertices)))
-    # Small projected cells could hide a whole cell between pixel corners: supersample everything.
-    half_u, half_v = board.half_size
+    # Small projected cells could hide a whole cell between pixel corners: examine everything.
     grid = uv[: (board.cols + 1) * (board.rows + 1)].reshape(board.rows + 1, board.cols + 1, 2)
     edges = np.concatenate([
         np.linalg.norm(np.diff(grid, axis=0), axis=2).ravel(),
@@ -385,14 +398,85 @@ def _forced_mask(camera: Camera, cam_from_world: Rigid3, board: MarkerBoard, bbo
     return mask
 
 
+def _linear_area_fraction(c: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Fraction of the pixel square [-0.5, 0.5]^2 where the linear function c + p x + q y < 0.
+
+    The distribution of p X + q Y for X, Y uniform is trapezoidal; this is its CDF at -c.
+    """
+    h1 = np.minimum(np.abs(p), np.abs(q))
+    h2 = np.maximum(np.maximum(np.abs(p), np.abs(q)), 1e-300)
+    t = -c
+    half_sum, half_diff = 0.5 * (h1 + h2), 0.5 * (h2 - h1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        low = (t + half_sum) ** 2 / (2.0 * h1 * h2)
+        high = 1.0 - (half_sum - t) ** 2 / (2.0 * h1 * h2)
+    fraction = np.where(t < -half_diff, low, np.where(t > half_diff, high, 0.5 + t / h2))
+    return np.clip(np.where(t <= -half_sum, 0.0, np.where(t >= half_sum, 1.0, fraction)), 0.0, 1.0)
+
+
+def _line_function(h: np.ndarray, plane: _BoardInCamera, line: np.ndarray, x4: np.ndarray, y4: np.ndarray):
+    """(c, p, q), each (m,): g = c + p x + q y over the pixel square [-0.5, 0.5]^2 (x right, y down),
+    negative on the low side of the board line {a = line} (h = ha) or {b = line} (h = hb).
+
+    The line is exactly straight in normalized coordinates, where g(r) = sign(n.o) (h - line n) . r;
+    x4, y4 (4, m) are the normalized coordinates of the pixel corners (top-left, top-right,
+    bottom-left, bottom-right), and g is linear over the pixel up to the distortion's curvature.
+    """
+    hh = h[None, :] - line[:, None] * plane.n[None, :]
+    g4 = np.sign(plane.no) * (hh[:, 0] * x4 + hh[:, 1] * y4 + hh[:, 2])
+    c = g4.mean(axis=0)
+    p = 0.5 * ((g4[1] - g4[0]) + (g4[3] - g4[2]))
+    q = 0.5 * ((g4[2] - g4[0]) + (g4[3] - g4[1]))
+    return c, p, q
+
+
+def _clipped_square_area(half_planes) -> np.ndarray:
+    """Area (m,) of the pixel square [-0.5, 0.5]^2 where every c + p x + q y < 0 (vectorized
+    Sutherland-Hodgman; polygons are padded by repeating their first vertex)."""
+    c0 = half_planes[0][0]
+    m = len(c0)
+    poly = np.broadcast_to(np.array([[-0.5, -0.5], [0.5, -0.5], [0.5, 0.5], [-0.5, 0.5]]), (m, 4, 2)).copy()
+    rows = np.arange(m)[:, None]
+    for c, p, q in half_planes:
+        value = c[:, None] + p[:, None] * poly[:, :, 0] + q[:, None] * poly[:, :, 1]
+        nxt = np.roll(poly, -1, axis=1)
+        value_next = np.roll(value, -1, axis=1)
+        inside, inside_next = value < 0, value_next < 0
+        crossing = inside != inside_next
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = np.where(crossing, value / (value - value_next), 0.0)
+        cut = poly + t[:, :, None] * (nxt - poly)
+        candidates = np.stack([poly, cut], axis=2).reshape(m, -1, 2)
+        keep = np.stack([inside, crossing], axis=2).reshape(m, -1)
+        order = np.argsort(~keep, axis=1, kind="stable")
+        candidates = candidates[rows, order]
+        count = keep.sum(axis=1)
+        pad = np.arange(candidates.shape[1])[None, :] >= count[:, None]
+        poly = np.where(pad[:, :, None], candidates[:, :1], candidates)
+    x, y = poly[:, :, 0], poly[:, :, 1]
+    return 0.5 * np.abs(np.sum(x * np.roll(y, -1, axis=1) - np.roll(x, -1, axis=1) * y, axis=1))
+
+
 def _paint_board(image: np.ndarray, camera: Camera, cam_from_world: Rigid3, plane: _BoardInCamera,
                  bbox, black: float, white: float, supersampling: int) -> None:
-    """Composite one board over `image` (float32, in place) by area coverage within `bbox`."""
+    """Composite one board over `image` (float32, in place) by area coverage within `bbox`.
+
+    Pass 1 maps every pixel corner to board coordinates (a, b). Pixels whose corners all have the
+    same colour (and that are not next to a pattern vertex) are uniform. Mixed pixels crossed by
+    one line of the pattern's grid, or by one a-line and one b-line (X-corners, T-junctions, outline
+    corners), get their exact area split: the lines are straight in undistorted normalized
+    coordinates, whose map from the pixel is affine up to the distortion's curvature over one pixel
+    (< 1e-3 px even for strong wide-angle distortion); one line's area is closed-form, two lines'
+    is a clipped square. The remaining mixed pixels (several parallel lines in one pixel, the
+    horizon, the fold of a d < 0 model) are supersampled with s x s rays.
+    """
     x0, y0, x1, y1 = bbox
     nx, ny = x1 - x0, y1 - y0
     forced = _forced_mask(camera, cam_from_world, plane.board, bbox)
     s = max(int(supersampling), 1)
     n_samples = s * s
+    lines_a, lines_b = plane.edge_lines()
+    delta = 1e-6 * min(np.diff(lines_a).min(), np.diff(lines_b).min())
     xs = np.arange(x0, x1 + 1, dtype=float) - 0.5  # pixel-corner abscissae
     rows_per_chunk = max(1, _MAX_CHUNK_POINTS // (nx + 1))
     pixels_per_chunk = max(1, _MAX_CHUNK_POINTS // n_samples)
@@ -400,8 +484,12 @@ def _paint_board(image: np.ndarray, camera: Camera, cam_from_world: Rigid3, plan
         r1 = min(ny, r0 + rows_per_chunk)
         ys = np.arange(y0 + r0, y0 + r1 + 1, dtype=float) - 0.5
         gu, gv = np.meshgrid(xs, ys)
-        codes = plane.codes(camera.undistort_normalized(np.column_stack([gu.ravel(), gv.ravel()])))
-        codes = codes.reshape(len(ys), len(xs))
+        xy = camera.undistort_normalized(np.column_stack([gu.ravel(), gv.ravel()]))
+        a, b, valid = plane.board_coordinates(xy)
+        grid_shape = (len(ys), len(xs))
+        codes = plane.codes_ab(a, b, valid).reshape(grid_shape)
+        a, b, valid = a.reshape(grid_shape), b.reshape(grid_shape), valid.reshape(grid_shape)
+        gx, gy = xy[:, 0].reshape(grid_shape), xy[:, 1].reshape(grid_shape)
         c00 = codes[:-1, :-1]
         mixed = (c00 != codes[:-1, 1:]) | (c00 != codes[1:, :-1]) | (c00 != codes[1:, 1:])
         if forced is True:
@@ -411,6 +499,63 @@ def _paint_board(image: np.ndarray, camera: Camera, cam_from_world: Rigid3, plan
         black_fraction = (c00 == _BLACK).astype(np.float32)
         white_fraction = (c00 == _WHITE).astype(np.float32)
         iy, ix = np.nonzero(mixed)
+        if len(iy):
+            # Corner values, order: top-left, top-right, bottom-left, bottom-right.
+            a4 = np.stack([a[iy, ix], a[iy, ix + 1], a[iy + 1, ix], a[iy + 1, ix + 1]])
+            b4 = np.stack([b[iy, ix], b[iy, ix + 1], b[iy + 1, ix], b[iy + 1, ix + 1]])
+            v4 = valid[iy, ix] & valid[iy, ix + 1] & valid[iy + 1, ix] & valid[iy + 1, ix + 1]
+            a4 = np.where(v4, a4, 0.0)
+            b4 = np.where(v4, b4, 0.0)
+            a_lo, a_hi = a4.min(axis=0), a4.max(axis=0)
+            b_lo, b_hi = b4.min(axis=0), b4.max(axis=0)
+            first_a = np.searchsorted(lines_a, a_lo, side="right")
+            first_b = np.searchsorted(lines_b, b_lo, side="right")
+            count_a = np.searchsorted(lines_a, a_hi, side="left") - first_a
+            count_b = np.searchsorted(lines_b, b_hi, side="left") - first_b
+            # Exact areas where one line, or one a-line and one b-line, cross the pixel; no line
+            # at all (a pixel examined because it is near a vertex) leaves it uniform.
+            exact = v4 & (count_a <= 1) & (count_b <= 1) & (count_a + count_b >= 1)
+            uniform = v4 & (count_a == 0) & (count_b == 0)
+            k = np.nonzero(exact)[0]
+            if len(k):
+                py, px = iy[k], ix[k]
+                x4 = np.stack([gx[py, px], gx[py, px + 1], gx[py + 1, px], gx[py + 1, px + 1]])
+                y4 = np.stack([gy[py, px], gy[py, px + 1], gy[py + 1, px], gy[py + 1, px + 1]])
+                has_a, has_b = count_a[k] == 1, count_b[k] == 1
+                line_a = lines_a[np.minimum(first_a[k], len(lines_a) - 1)]
+                line_b = lines_b[np.minimum(first_b[k], len(lines_b) - 1)]
+                g_a = _line_function(plane.ha, plane, line_a, x4, y4)
+                g_b = _line_function(plane.hb, plane, line_b, x4, y4)
+                low_a = np.where(has_a, _linear_area_fraction(*g_a), 1.0)
+                low_b = np.where(has_b, _linear_area_fraction(*g_b), 1.0)
+                low_ab = low_a * low_b
+                both = np.nonzero(has_a & has_b)[0]
+                if len(both):
+                    low_ab[both] = _clipped_square_area([tuple(g[both] for g in g_a), tuple(g[both] for g in g_b)])
+                # The (up to) four regions: low/high side of the a-line x low/high side of the b-line.
+                a_mid, b_mid = a4[:, k].mean(axis=0), b4[:, k].mean(axis=0)
+                side_a = [np.where(has_a, line_a - delta, a_mid), np.where(has_a, line_a + delta, a_mid)]
+                side_b = [np.where(has_b, line_b - delta, b_mid), np.where(has_b, line_b + delta, b_mid)]
+                areas = {(0, 0): low_ab, (1, 0): low_b - low_ab, (0, 1): low_a - low_ab,
+                         (1, 1): 1.0 - low_a - low_b + low_ab}
+                black_k = np.zeros(len(k))
+                white_k = np.zeros(len(k))
+                ones = np.ones(len(k), dtype=bool)
+                for (ia, ib), area in areas.items():
+                    code = plane.codes_ab(side_a[ia], side_b[ib], ones)
+                    area = np.clip(area, 0.0, 1.0)
+                    black_k += area * (code == _BLACK)
+                    white_k += area * (code == _WHITE)
+                black_fraction[py, px] = black_k
+                white_fraction[py, px] = white_k
+            k = np.nonzero(uniform)[0]
+            if len(k):
+                # Its corners may still disagree when one lies exactly on a line: use the centre.
+                code = plane.codes_ab(a4[:, k].mean(axis=0), b4[:, k].mean(axis=0), np.ones(len(k), dtype=bool))
+                black_fraction[iy[k], ix[k]] = code == _BLACK
+                white_fraction[iy[k], ix[k]] = code == _WHITE
+            rest = np.nonzero(~exact & ~uniform)[0]
+            iy, ix = iy[rest], ix[rest]
         for p0 in range(0, len(iy), pixels_per_chunk):
             py, px = iy[p0: p0 + pixels_per_chunk], ix[p0: p0 + pixels_per_chunk]
             offsets = _sample_offsets(px + x0, py + y0 + r0, s)
@@ -473,8 +618,11 @@ def coverage_image(camera: Camera, cam_from_world: Rigid3, boards, settings: Ren
 
 
 def fractal_background(height: int, width: int, rng: np.random.Generator, mean: float, contrast: float,
-                       finest_px: int = 4) -> np.ndarray:
-    """(height, width) float32 multi-octave value noise with 1/f amplitudes, mean `mean`, std ~`contrast`.
+                       finest_px: int = 4, roughness: float = 1.0) -> np.ndarray:
+    """(height, width) float32 multi-octave value noise, mean `mean`, std ~`contrast`.
+
+    Octave amplitudes grow as spacing**roughness: 1 gives 1/f smooth clouds, smaller values keep
+    more fine detail (grass, gravel, field edges) for detectors to cope with.
 
     Built coarse to fine: each octave's random grid is added to the cubic upsampling of the sum of
     the coarser ones, so only the last step works at full size.
@@ -490,7 +638,7 @@ def fractal_background(height: int, width: int, rng: np.random.Generator, mean: 
     texture = None
     for spacing in spacings:
         shape = (height // spacing + 2, width // spacing + 2)
-        octave = rng.standard_normal(shape, dtype=np.float32) * np.float32(spacing / spacings[0])
+        octave = rng.standard_normal(shape, dtype=np.float32) * np.float32((spacing / spacings[0]) ** roughness)
         if texture is None:
             texture = octave
         else:
@@ -527,7 +675,7 @@ def render_image(camera: Camera, cam_from_world: Rigid3, boards, rng: np.random.
     factors = np.clip(1.0 + settings.illumination_jitter * jitter_rng.standard_normal(len(boards)), 0.7, 1.3)
     levels = np.column_stack([settings.black_level * factors, settings.white_level * factors])
     image = fractal_background(camera.height, camera.width, texture_rng, settings.background_mean,
-                               settings.background_contrast)
+                               settings.background_contrast, roughness=settings.background_roughness)
     _paint_boards(image, camera, cam_from_world, boards, levels, settings)
     if settings.blur_sigma_px > 0:
         image = cv2.GaussianBlur(image, (0, 0), settings.blur_sigma_px, borderType=cv2.BORDER_REFLECT)
