@@ -272,9 +272,15 @@ def nominal_rig_pose(config: dict, site_center: np.ndarray, rng: np.random.Gener
 
 
 def ground_markers_for(config: dict, rig: Rig, rig_from_world: Rigid3, site: str, site_center: np.ndarray,
-                       rng: np.random.Generator, first_index: int) -> list[Marker]:
-    """Flat 2 m markers on the terrain, `markers_per_camera` inside each camera's footprint."""
+                       rng: np.random.Generator, existing: list[Marker]) -> list[Marker]:
+    """Flat 2 m markers on the terrain, `markers_per_camera` inside each camera's footprint.
+
+    New markers' centres stay 2.5 marker sizes from each other and from the site's `existing`
+    markers, so that no two boards overlap whatever their spin.
+    """
     fl = config["flight"]
+    taken = [m.board.origin for m in existing]
+    min_gap = 2.5 * config["marker_size_m"]
     markers = []
     for name, camera in rig.cameras.items():
         cam_from_world = rig.cam_from_rig[name] * rig_from_world
@@ -285,9 +291,11 @@ def ground_markers_for(config: dict, rig: Rig, rig_from_world: Rigid3, site: str
             uv = _random_pixel(camera, fl["marker_margin_frac"], rng)
             point = _terrain_hit(config, site_center, cam_from_world, camera, uv)
             size_px = camera.fx * config["marker_size_m"] / np.linalg.norm(point - cam_from_world.center)
-            if all(np.hypot(*(uv - other)) > 3.0 * size_px for other in placed):
+            apart = all(np.hypot(*(uv - other)) > 3.0 * size_px for other in placed)
+            if apart and all(np.linalg.norm(point - other) > min_gap for other in taken):
                 placed.append(uv)
-                index = first_index + len(markers)
+                taken.append(point)
+                index = len(existing) + len(markers) + 1
                 markers.append(_ground_marker(config, site, site_center, point, rng, f"G{site}{index:03d}"))
     return markers
 
@@ -333,7 +341,7 @@ def flight_frames(config: dict, rig: Rig, rng: np.random.Generator) -> tuple[lis
         for group in spec["groups"]:
             nominal = nominal_rig_pose(config, site_center, rng)
             site_markers = [m for m in markers if m.group == site]
-            markers += ground_markers_for(config, rig, nominal, site, site_center, rng, len(site_markers) + 1)
+            markers += ground_markers_for(config, rig, nominal, site, site_center, rng, site_markers)
             frames += _group_frames(config, rig, nominal, site, str(group), rng)
     return frames, markers
 
