@@ -36,6 +36,13 @@ def _cmd_summarize(args) -> None:
     print(summarize(args.dataset, args.out))
 
 
+def _cmd_intrinsics(args) -> None:
+    from .calib.intrinsics import run_intrinsics
+
+    for path in run_intrinsics(args.dataset, args.out):
+        print(path)
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -51,6 +58,11 @@ def _parser() -> argparse.ArgumentParser:
     validate.add_argument("dataset", type=Path)
     validate.add_argument("--skip-images", action="store_true", help="do not decode the image files")
     validate.set_defaults(run=_cmd_validate)
+
+    intrinsics = commands.add_parser("intrinsics", help="calibrate every camera's intrinsics from the field")
+    intrinsics.add_argument("dataset", type=Path)
+    intrinsics.add_argument("--out", type=Path, required=True, help="results folder")
+    intrinsics.set_defaults(run=_cmd_intrinsics)
 
     summarize = commands.add_parser("summarize", help="write a dataset summary (CSV + HTML) to a report folder")
     summarize.add_argument("dataset", type=Path)

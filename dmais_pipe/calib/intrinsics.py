@@ -1,0 +1,478 @@
+"""Intrinsic calibration from a 3D (or planar) calibration field: the paper's procedure and baselines.
+
+Paper, section "Intrinsic Calibration" (eq. 2-3 model, eq. `refine`):
+
+1. priors d = 0, fx = fy = f, principal point at the image centre (W/2, H/2);
+2. PnPf per calibration image (pose + f; `calib.pnpf.solve_pnpf`), then the mean f;
+3. PnP per image with the mean f;
+4. Levenberg-Marquardt jointly over fx, fy, cx, cy, d and all image poses (eq. `refine`),
+   scipy.optimize.least_squares with an analytic Jacobian.
+
+Evaluation as the paper's tab:intrinsics: eps_calib is the RMS of the per-point reprojection
+distance over the calibration images; eps_eval the same over the held-out images after
+re-estimating only their poses with the intrinsics fixed. Parameter standard deviations come from
+the covariance (J^T J)^-1 sigma^2, sigma^2 = SSR / (2 n_obs - n_params).
+
+Baselines (`run_intrinsics` writes them to tables/intrinsics.csv beside "ours"):
+- `opencv`: cv2.calibrateCamera with the one-coefficient model (k1 = d), seeded with the image
+  centre and a nominal focal length (a non-planar field needs CALIB_USE_INTRINSIC_GUESS);
+- `dlt_lm`: Bouguet/Tsai-style, full intrinsics from a per-image normalized DLT (H&Z alg. 7.1,
+  K from the RQ decomposition of P[:, :3], averaged over images), then the same LM.
+Every method's eps_eval is computed by the same pose-only estimation on the eval images.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+from scipy.optimize import least_squares
+
+from ..camera import Camera
+from ..errors import DmaisError
+from ..files import write_csv_atomic, write_json_atomic
+from ..geometry import Rigid3
+from ._projection import exp_so3, pose_jacobian, project
+from .pnpf import solve_pnpf
+
+log = logging.getLogger(__name__)
+
+MIN_OBSERVATIONS_PER_IMAGE = 5
+MIN_CALIB_IMAGES = 2
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "d")
+METHODS = ("ours", "opencv", "dlt_lm")
+TABLE_COLUMNS = ("method", "camera", "fx", "fy", "cx", "cy", "d", "eps_calib_px", "eps_eval_px")
+
+
+@dataclass
+class IntrinsicsResult:
+    """Calibrated camera, its uncertainty and the reprojection errors of one camera."""
+
+    name: str
+    camera: Camera
+    std: dict[str, float]
+    eps_calib_px: float
+    eps_eval_px: float | None
+    n_images: int
+    n_observations: int
+    poses: dict[str, Rigid3] = field(default_factory=dict)  # cam_from_world of the calib images
+    eval_poses: dict[str, Rigid3] = field(default_factory=dict)
+    pnpf_focal_px: dict[str, float] = field(default_factory=dict)
+    skipped_images: list[str] = field(default_factory=list)
+    method: str = "ours"
+
+    def to_dict(self) -> dict:
+        """The RESULTS/intrinsics/<camera>.json layout of DESIGN.md plus per-image details."""
+        cam = self.camera
+        return {
+            "camera": self.name, "width": cam.width, "height": cam.height,
+            "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "d": cam.d,
+            "std": {k: float(v) for k, v in self.std.items()},
+            "eps_calib_px": float(self.eps_calib_px),
+            "eps_eval_px": None if self.eps_eval_px is None else float(self.eps_eval_px),
+            "n_images": int(self.n_images), "n_observations": int(self.n_observations),
+            "method": self.method,
+            "n_eval_images": len(self.eval_poses),
+            "skipped_images": list(self.skipped_images),
+            "pnpf_focal_px": {k: float(v) for k, v in self.pnpf_focal_px.items()},
+            "poses": {k: p.to_dict() for k, p in self.poses.items()},
+            "eval_poses": {k: p.to_dict() for k, p in self.eval_poses.items()},
+        }
+
+    def table_row(self) -> dict:
+        cam = self.camera
+        return {"method": self.method, "camera": self.name, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
+                "cy": cam.cy, "d": cam.d, "eps_calib_px": self.eps_calib_px,
+                "eps_eval_px": np.nan if self.eps_eval_px is None else self.eps_eval_px}
+
+
+# ------------------------------------------------------------------------------ input checks
+
+
+def _as_mapping(data, what: str) -> dict:
+    if data is None:
+        return {}
+    if isinstance(data, Mapping):
+        return dict(data)
+    if isinstance(data, Sequence) or isinstance(data, np.ndarray):
+        return {str(k): v for k, v in enumerate(data)}
+    raise DmaisError(f"{what} must be a mapping image -> array or a list of arrays")
+
+
+def _prepare(points_per_image, uv_per_image, camera: str, split: str,
+             skipped: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """{image: (X (n, 3), uv (n, 2))} checked; images with < 5 observations appended to `skipped`."""
+    points = _as_mapping(points_per_image, f"camera {camera}: {split} points")
+    pixels = _as_mapping(uv_per_image, f"camera {camera}: {split} pixels")
+    if set(points) != set(pixels):
+        raise DmaisError(f"camera {camera}: {split} points and pixels name different images")
+    data = {}
+    for image in points:
+        X = np.asarray(points[image], dtype=float)
+        uv = np.asarray(pixels[image], dtype=float)
+        if X.ndim != 2 or X.shape[1] != 3 or uv.shape != (len(X), 2):
+            raise DmaisError(f"camera {camera}, image {image}: expected points (n, 3) and pixels (n, 2), "
+                             f"got {X.shape} and {uv.shape}")
+        bad = ~(np.isfinite(X).all(axis=1) & np.isfinite(uv).all(axis=1))
+        if bad.any():
+            row = int(np.flatnonzero(bad)[0])
+            raise DmaisError(f"camera {camera}, image {image}: observation {row} is not finite "
+                             f"(point {X[row].tolist()}, pixel {uv[row].tolist()})")
+        if len(X) < MIN_OBSERVATIONS_PER_IMAGE:
+            skipped.append(str(image))
+            continue
+        data[str(image)] = (X, uv)
+    return data
+
+
+# ------------------------------------------------------------------------------ least squares
+
+
+def _rms(residuals: np.ndarray) -> float:
+    """RMS of per-point reprojection distances from stacked (u, v) residuals."""
+    r = np.asarray(residuals).reshape(-1, 2)
+    return float(np.sqrt(np.mean(np.sum(r**2, axis=1)))) if len(r) else float("nan")
+
+
+def refine_pose(camera: Camera, X: np.ndarray, uv: np.ndarray, pose: Rigid3) -> tuple[Rigid3, np.ndarray]:
+    """LM over one cam_from_world with intrinsics fixed; returns (pose, residuals (n, 2))."""
+    R0 = pose.R
+    args = (camera.fx, camera.fy, camera.cx, camera.cy, camera.d)
+
+    def fun(p):
+        return (project(X, exp_so3(p[:3]) @ R0, p[3:], *args) - uv).ravel()
+
+    def jac(p):
+        R = exp_so3(p[:3]) @ R0
+        _, J_cam, _ = project(X, R, p[3:], *args, jacobian=True)
+        return pose_jacobian(X, R, p[:3], J_cam).reshape(-1, 6)
+
+    sol = least_squares(fun, np.concatenate([np.zeros(3), pose.t]), jac=jac, method="lm",
+                        x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=100)
+    return Rigid3(exp_so3(sol.x[:3]) @ R0, sol.x[3:]), sol.fun.reshape(-1, 2)
+
+
+def estimate_pose(camera: Camera, X: np.ndarray, uv: np.ndarray, guess: Rigid3 | None = None) -> tuple[Rigid3, np.ndarray]:
+    """PnP with known intrinsics: SQPnP on undistorted normalized points, then LM on pixels.
+
+    Returns (cam_from_world, residuals (n, 2)). `guess` (e.g. a PnPf pose) is polished as well and
+    the better of the two kept.
+    """
+    xy = camera.undistort_normalized(uv)
+    ok = np.isfinite(xy).all(axis=1)
+    candidates = [] if guess is None else [guess]
+    if ok.sum() >= 4:
+        try:
+            success, rvec, tvec = cv2.solvePnP(X[ok].astype(np.float64), xy[ok].astype(np.float64), np.eye(3),
+                                               None, flags=cv2.SOLVEPNP_SQPNP)
+            if success:
+                candidates.append(Rigid3(cv2.Rodrigues(rvec)[0], tvec.ravel()))
+        except cv2.error as error:
+            log.debug("SQPnP failed: %s", error)
+    best = None
+    for pose in candidates:
+        refined, residuals = refine_pose(camera, X, uv, pose)
+        if np.all(np.isfinite(residuals)) and (best is None or _rms(residuals) < _rms(best[1])):
+            best = (refined, residuals)
+    if best is None:
+        raise DmaisError("pose estimation failed")
+    return best
+
+
+def bundle_adjust(camera: Camera, poses: dict[str, Rigid3], data: dict[str, tuple[np.ndarray, np.ndarray]]):
+    """LM over (fx, fy, cx, cy, d) and every pose (eq. `refine`).
+
+    Returns (camera, poses, residuals (N, 2), covariance of the intrinsics (5, 5)).
+    """
+    names = list(data)
+    R0 = [poses[k].R for k in names]
+    sizes = [len(data[k][0]) for k in names]
+    rows = np.cumsum([0] + [2 * s for s in sizes])
+    n_params = 5 + 6 * len(names)
+    x0 = np.concatenate([[camera.fx, camera.fy, camera.cx, camera.cy, camera.d]]
+                        + [np.concatenate([np.zeros(3), poses[k].t]) for k in names])
+
+    def fun(p):
+        out = np.empty(rows[-1])
+        for i, k in enumerate(names):
+            X, uv = data[k]
+            q = p[5 + 6 * i: 11 + 6 * i]
+            out[rows[i]:rows[i + 1]] = (project(X, exp_so3(q[:3]) @ R0[i], q[3:], *p[:5]) - uv).ravel()
+        return out
+
+    def jac(p):
+        J = np.zeros((rows[-1], n_params))
+        for i, k in enumerate(names):
+            X, _ = data[k]
+            q = p[5 + 6 * i: 11 + 6 * i]
+            R = exp_so3(q[:3]) @ R0[i]
+            _, J_cam, J_intr = project(X, R, q[3:], *p[:5], jacobian=True)
+            J[rows[i]:rows[i + 1], :5] = J_intr.reshape(-1, 5)
+            J[rows[i]:rows[i + 1], 5 + 6 * i: 11 + 6 * i] = pose_jacobian(X, R, q[:3], J_cam).reshape(-1, 6)
+        return J
+
+    sol = least_squares(fun, x0, jac=jac, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                        max_nfev=200)
+    p = sol.x
+    fitted = Camera(fx=p[0], fy=p[1], cx=p[2], cy=p[3], d=p[4], width=camera.width, height=camera.height)
+    new_poses = {k: Rigid3(exp_so3(p[5 + 6 * i: 8 + 6 * i]) @ R0[i], p[8 + 6 * i: 11 + 6 * i])
+                 for i, k in enumerate(names)}
+    J = jac(p)
+    dof = max(rows[-1] - n_params, 1)
+    sigma2 = float(sol.fun @ sol.fun) / dof
+    # Scale columns before inverting: fx ~ 1e4 and rotations ~ 1e-3 differ by many orders.
+    scale = np.linalg.norm(J, axis=0)
+    scale[scale == 0] = 1.0
+    Js = J / scale
+    try:
+        cov = np.linalg.pinv(Js.T @ Js) / np.outer(scale, scale) * sigma2
+    except np.linalg.LinAlgError:
+        cov = np.full((n_params, n_params), np.nan)
+    return fitted, new_poses, sol.fun.reshape(-1, 2), cov[:5, :5]
+
+
+# ------------------------------------------------------------------------------ the procedure
+
+
+def _evaluate(camera: Camera, eval_data: dict, name: str) -> tuple[float | None, dict[str, Rigid3]]:
+    """eps_eval: pose-only estimation per eval image with `camera` fixed; RMS over all their points."""
+    if not eval_data:
+        return None, {}
+    residuals, poses = [], {}
+    for image, (X, uv) in eval_data.items():
+        try:
+            poses[image], r = estimate_pose(camera, X, uv)
+        except DmaisError:
+            raise DmaisError(f"camera {name}, eval image {image}: pose estimation failed") from None
+        residuals.append(r)
+    return _rms(np.vstack(residuals)), poses
+
+
+def _centre(data_sets) -> np.ndarray:
+    points = [X for data in data_sets for X, _ in data.values()]
+    return np.vstack(points).mean(axis=0) if points else np.zeros(3)
+
+
+def _shift(data: dict, centre: np.ndarray) -> dict:
+    return {k: (X - centre, uv) for k, (X, uv) in data.items()}
+
+
+def _world_poses(poses: dict[str, Rigid3], centre: np.ndarray) -> dict[str, Rigid3]:
+    """Poses of centred points (X - centre) back to the world: t_world = t - R centre."""
+    return {k: Rigid3(p.R, p.t - p.R @ centre) for k, p in poses.items()}
+
+
+def _load_inputs(points_world_per_image, uv_per_image, eval_points_world_per_image, eval_uv_per_image,
+                 name: str, min_images: int, warn: bool = True):
+    skipped: list[str] = []
+    calib = _prepare(points_world_per_image, uv_per_image, name, "calib", skipped)
+    evals = _prepare(eval_points_world_per_image, eval_uv_per_image, name, "eval", skipped)
+    if skipped and warn:
+        log.warning("camera %s: skipping %d image(s) with fewer than %d observations: %s", name, len(skipped),
+                    MIN_OBSERVATIONS_PER_IMAGE, ", ".join(skipped))
+    if len(calib) < min_images:
+        raise DmaisError(f"camera {name}: {len(calib)} usable calibration image(s) (with at least "
+                         f"{MIN_OBSERVATIONS_PER_IMAGE} observations), needs at least {min_images}")
+    centre = _centre([calib, evals])
+    return _shift(calib, centre), _shift(evals, centre), centre, skipped
+
+
+def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, skipped, pnpf_focal=None):
+    eps_eval, eval_poses = _evaluate(camera, evals, name)
+    std = dict(zip(INTRINSIC_NAMES, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()))
+    return IntrinsicsResult(
+        name=name, camera=camera, std=std, eps_calib_px=_rms(residuals), eps_eval_px=eps_eval,
+        n_images=len(calib), n_observations=sum(len(X) for X, _ in calib.values()),
+        poses=_world_poses(poses, centre), eval_poses=_world_poses(eval_poses, centre),
+        pnpf_focal_px=pnpf_focal or {}, skipped_images=skipped, method=method)
+
+
+def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: int, *,
+                     eval_points_world_per_image=None, eval_uv_per_image=None, name: str = "camera",
+                     min_images: int = MIN_CALIB_IMAGES) -> IntrinsicsResult:
+    """The paper's intrinsic calibration of one camera (priors, PnPf, mean f, PnP, LM over everything).
+
+    points_world_per_image / uv_per_image: {image: (n, 3)} and {image: (n, 2)} (or lists) of the
+    calibration images; the eval_* pair likewise for held-out images (eps_eval; optional).
+    Images with fewer than 5 observations are skipped with one warning. Raises DmaisError naming
+    the camera when fewer than `min_images` calibration images are usable.
+    """
+    calib, evals, centre, skipped = _load_inputs(points_world_per_image, uv_per_image,
+                                                 eval_points_world_per_image, eval_uv_per_image, name, min_images)
+    principal = np.array([width / 2.0, height / 2.0])
+    pnpf, focal = {}, {}
+    for image, (X, uv) in calib.items():
+        try:
+            pnpf[image], focal[image] = solve_pnpf(X, uv, principal)
+        except DmaisError as error:
+            log.warning("camera %s, image %s: PnPf failed (%s); its pose comes from PnP only", name, image, error)
+    if not focal:
+        raise DmaisError(f"camera {name}: PnPf failed on every calibration image; cannot initialize the focal length")
+    values = np.array(list(focal.values()))
+    # The paper takes the mean; drop gross failures (> 20% from the median, e.g. a planar view
+    # nearly parallel to the image plane) so that one bad view cannot spoil it.
+    keep = np.abs(values / np.median(values) - 1.0) < 0.2
+    f0 = float(values[keep].mean())
+    log.info("camera %s: PnPf focal lengths %s px, mean %.1f px", name,
+             ", ".join(f"{v:.1f}" for v in values), f0)
+    camera0 = Camera(fx=f0, fy=f0, cx=principal[0], cy=principal[1], d=0.0, width=width, height=height)
+    poses = {}
+    for image, (X, uv) in calib.items():
+        try:
+            poses[image], _ = estimate_pose(camera0, X, uv, guess=pnpf.get(image))
+        except DmaisError:
+            raise DmaisError(f"camera {name}, image {image}: PnP failed") from None
+    camera, poses, residuals, cov = bundle_adjust(camera0, poses, calib)
+    result = _finish(name, "ours", camera, poses, residuals, cov, calib, evals, centre, skipped, focal)
+    log.info("camera %s: fx %.1f fy %.1f cx %.1f cy %.1f d %.4f, eps_calib %.4f px, eps_eval %s px", name,
+             camera.fx, camera.fy, camera.cx, camera.cy, camera.d, result.eps_calib_px,
+             "n/a" if result.eps_eval_px is None else f"{result.eps_eval_px:.4f}")
+    return result
+
+
+# ------------------------------------------------------------------------------ baselines
+
+
+def calibrate_camera_opencv(points_world_per_image, uv_per_image, width: int, height: int, focal_guess: float, *,
+                            eval_points_world_per_image=None, eval_uv_per_image=None, name: str = "camera",
+                            min_images: int = MIN_CALIB_IMAGES, warn_skipped: bool = True) -> IntrinsicsResult:
+    """OpenCV baseline: cv2.calibrateCamera with k1 only, seeded with the image centre and `focal_guess`."""
+    calib, evals, centre, skipped = _load_inputs(points_world_per_image, uv_per_image,
+                                                 eval_points_world_per_image, eval_uv_per_image, name, min_images,
+                                                 warn_skipped)
+    names = list(calib)
+    object_points = [calib[k][0].astype(np.float32).reshape(-1, 1, 3) for k in names]
+    image_points = [calib[k][1].astype(np.float32).reshape(-1, 1, 2) for k in names]
+    K0 = np.array([[focal_guess, 0, width / 2.0], [0, focal_guess, height / 2.0], [0, 0, 1]], dtype=np.float64)
+    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
+             | cv2.CALIB_FIX_K4 | cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    try:
+        _, K, dist, rvecs, tvecs, std_intr, _, _ = cv2.calibrateCameraExtended(
+            object_points, image_points, (width, height), K0, np.zeros(5), flags=flags, criteria=criteria)
+    except cv2.error as error:
+        raise DmaisError(f"camera {name}: OpenCV calibrateCamera failed: {str(error).strip()}") from None
+    camera = Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], d=float(dist.ravel()[0]), width=width,
+                    height=height)
+    poses = {k: Rigid3(cv2.Rodrigues(r)[0], t.ravel()) for k, r, t in zip(names, rvecs, tvecs)}
+    residuals = np.vstack([project(calib[k][0], poses[k].R, poses[k].t, camera.fx, camera.fy, camera.cx,
+                                   camera.cy, camera.d) - calib[k][1] for k in names])
+    s = np.asarray(std_intr).ravel()
+    cov = np.diag(np.array([s[0], s[1], s[2], s[3], s[4]]) ** 2)
+    return _finish(name, "opencv", camera, poses, residuals, cov, calib, evals, centre, skipped)
+
+
+def _dlt_intrinsics(X: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
+    """(3, 3) K from a normalized DLT of one image (H&Z alg. 7.1) and the RQ decomposition of P[:, :3]."""
+    from scipy.linalg import rq
+
+    if len(X) < 6:
+        return None
+    c2 = uv.mean(axis=0)
+    s2 = np.sqrt(2.0) / np.mean(np.linalg.norm(uv - c2, axis=1))
+    T2 = np.array([[s2, 0, -s2 * c2[0]], [0, s2, -s2 * c2[1]], [0, 0, 1]])
+    c3 = X.mean(axis=0)
+    s3 = np.sqrt(3.0) / np.mean(np.linalg.norm(X - c3, axis=1))
+    T3 = np.diag([s3, s3, s3, 1.0])
+    T3[:3, 3] = -s3 * c3
+    Xh = np.column_stack([X, np.ones(len(X))]) @ T3.T
+    x = (np.column_stack([uv, np.ones(len(uv))]) @ T2.T)[:, :2]
+    A = np.zeros((2 * len(X), 12))
+    A[0::2, 0:4] = Xh
+    A[0::2, 8:12] = -x[:, :1] * Xh
+    A[1::2, 4:8] = Xh
+    A[1::2, 8:12] = -x[:, 1:] * Xh
+    P = np.linalg.inv(T2) @ np.linalg.svd(A)[2][-1].reshape(3, 4) @ T3
+    K, _ = rq(P[:, :3])
+    K = K @ np.diag(np.sign(np.diag(K)))
+    K = K / K[2, 2]
+    return K if np.all(np.isfinite(K)) and K[0, 0] > 0 and K[1, 1] > 0 else None
+
+
+def calibrate_camera_dlt_lm(points_world_per_image, uv_per_image, width: int, height: int, *,
+                            eval_points_world_per_image=None, eval_uv_per_image=None, name: str = "camera",
+                            min_images: int = MIN_CALIB_IMAGES, warn_skipped: bool = True) -> IntrinsicsResult:
+    """Bouguet/Tsai-style baseline: full K from per-image DLT (median over images), PnP, then the same LM."""
+    calib, evals, centre, skipped = _load_inputs(points_world_per_image, uv_per_image,
+                                                 eval_points_world_per_image, eval_uv_per_image, name, min_images,
+                                                 warn_skipped)
+    Ks = [K for K in (_dlt_intrinsics(X, uv) for X, uv in calib.values()) if K is not None]
+    if not Ks:
+        raise DmaisError(f"camera {name}: the DLT failed on every calibration image")
+    K = np.median(np.array(Ks), axis=0)
+    camera0 = Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], d=0.0, width=width, height=height)
+    poses = {k: estimate_pose(camera0, X, uv)[0] for k, (X, uv) in calib.items()}
+    camera, poses, residuals, cov = bundle_adjust(camera0, poses, calib)
+    return _finish(name, "dlt_lm", camera, poses, residuals, cov, calib, evals, centre, skipped)
+
+
+# ------------------------------------------------------------------------------ the stage
+
+
+def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tuple[dict, dict]:
+    X, uv = {}, {}
+    for image in images:
+        obs = observations[observations["image"] == image]
+        X[image] = points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
+        uv[image] = obs[["u", "v"]].to_numpy(dtype=float)
+    return X, uv
+
+
+def run_intrinsics(dataset_dir, results_dir, methods: Sequence[str] = METHODS) -> list[Path]:
+    """`dmais intrinsics DATASET --out RESULTS`: every camera with intrinsics images.
+
+    Writes RESULTS/intrinsics/<camera>.json ("ours") and RESULTS/tables/intrinsics.csv (one row per
+    method and camera, tab:intrinsics); returns the written paths.
+    """
+    from ..dataset import Dataset, load_observations
+
+    unknown = set(methods) - set(METHODS)
+    if unknown or "ours" not in methods:
+        raise DmaisError(f"intrinsics methods must include 'ours' and be among {METHODS}, got {list(methods)}")
+    dataset = Dataset.load(dataset_dir)
+    results = Path(results_dir)
+    observations = load_observations(dataset, results)
+    points = dataset.points
+    written: list[Path] = []
+    rows = []
+    cameras = [c for c in dataset.cameras if len(dataset.images_of("intrinsics", c))]
+    if not cameras:
+        raise DmaisError(f"{dataset.root}: no intrinsics images")
+    for k, name in enumerate(cameras, 1):
+        spec = dataset.cameras[name]
+        calib_images = dataset.images_of("intrinsics", name, "calib")["image"].tolist()
+        eval_images = dataset.images_of("intrinsics", name, "eval")["image"].tolist()
+        log.info("intrinsics %d/%d: camera %s, %d calib + %d eval images", k, len(cameras), name,
+                 len(calib_images), len(eval_images))
+        X, uv = _per_image(observations, points, calib_images)
+        eX, euv = _per_image(observations, points, eval_images)
+        common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name)
+        ours = calibrate_camera(X, uv, spec.width, spec.height, **common)
+        written.append(write_json_atomic(results / "intrinsics" / f"{name}.json", ours.to_dict()))
+        rows.append(ours.table_row())
+        if "opencv" in methods:
+            focal = spec.focal_px or float(np.mean(list(ours.pnpf_focal_px.values())))
+            try:
+                rows.append(calibrate_camera_opencv(X, uv, spec.width, spec.height, focal, warn_skipped=False,
+                                                    **common).table_row())
+            except DmaisError as error:
+                log.warning("%s", error)
+                rows.append({"method": "opencv", "camera": name})
+        if "dlt_lm" in methods:
+            try:
+                rows.append(calibrate_camera_dlt_lm(X, uv, spec.width, spec.height, warn_skipped=False,
+                                                    **common).table_row())
+            except DmaisError as error:
+                log.warning("%s", error)
+                rows.append({"method": "dlt_lm", "camera": name})
+    table = pd.DataFrame(rows, columns=list(TABLE_COLUMNS))
+    order = {m: i for i, m in enumerate(METHODS)}
+    table = table.sort_values(["camera", "method"], key=lambda s: s.map(order) if s.name == "method" else s,
+                              kind="stable")
+    written.append(write_csv_atomic(results / "tables" / "intrinsics.csv", table))
+    return written

@@ -1,0 +1,233 @@
+"""Intrinsic calibration (paper: PnPf -> mean f -> PnP -> LM, eq. refine) against truth and OpenCV."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from scipy.spatial.transform import Rotation
+
+from dmais_pipe.calib.intrinsics import (
+    calibrate_camera, calibrate_camera_dlt_lm, calibrate_camera_opencv, run_intrinsics,
+)
+from dmais_pipe.camera import Camera
+from dmais_pipe.errors import DmaisError
+from dmais_pipe.geometry import Rigid3, rotation_error
+from dmais_pipe.rig import Rig
+from dmais_pipe.sim.simulate import simulate
+
+SIM = {
+    "name": "intrinsics-small",
+    "seed": 11,
+    "intrinsics": {"calib_images_per_camera": 6, "eval_images_per_camera": 2},
+    "flight": {"frames_per_group": 1},
+    "render": {"intrinsics": False, "extrinsics": False, "flight": False},
+}
+JSON_KEYS = {"camera", "width", "height", "fx", "fy", "cx", "cy", "d", "std", "eps_calib_px", "eps_eval_px",
+             "n_images", "n_observations"}
+
+# An ordinary wide-angle camera with strong barrel distortion.
+WIDE = Camera(fx=505.0, fy=502.0, cx=317.5, cy=243.0, d=-0.3, width=640, height=480)
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    root = tmp_path_factory.mktemp("intrinsics")
+    (root / "sim.yaml").write_text(yaml.safe_dump(SIM))
+    dataset = simulate(root / "sim.yaml", root / "dataset")
+    results = root / "results"
+    written = run_intrinsics(dataset, results)
+    return dataset, results, written
+
+
+def test_run_intrinsics_writes_json_and_table(simulated):
+    dataset, results, written = simulated
+    names = ["C0", "C1", "C2", "C3", "C4"]
+    assert set(written) == {results / "intrinsics" / f"{c}.json" for c in names} | {results / "tables" / "intrinsics.csv"}
+    for name in names:
+        data = json.loads((results / "intrinsics" / f"{name}.json").read_text())
+        assert JSON_KEYS <= set(data)
+        assert data["camera"] == name and (data["width"], data["height"]) == (4096, 3000)
+        assert data["n_images"] == 6 and set(data["std"]) == {"fx", "fy", "cx", "cy", "d"}
+        assert all(0 < v < np.inf for v in data["std"].values())
+    table = pd.read_csv(results / "tables" / "intrinsics.csv")
+    assert list(table.columns) == ["method", "camera", "fx", "fy", "cx", "cy", "d", "eps_calib_px", "eps_eval_px"]
+    assert len(table) == 15 and set(table["method"]) == {"ours", "opencv", "dlt_lm"}
+
+
+def test_focal_within_0_15_percent_and_eval_no_worse_than_opencv(simulated):
+    dataset, results, _ = simulated
+    truth = Rig.load(dataset / "truth" / "rig.json").cameras
+    table = pd.read_csv(results / "tables" / "intrinsics.csv").set_index(["method", "camera"])
+    for name, camera in truth.items():
+        ours = table.loc[("ours", name)]
+        assert abs(ours.fx / camera.fx - 1) < 0.0015, name
+        assert abs(ours.fy / camera.fy - 1) < 0.0015, name
+        assert abs(ours.cx - camera.cx) < 40 and abs(ours.cy - camera.cy) < 40, name
+        assert abs(ours.d - camera.d) < 0.5, name
+        assert 0.15 < ours.eps_calib_px < 0.6 and 0.15 < ours.eps_eval_px < 0.6, name
+        opencv = table.loc[("opencv", name)]
+        # Both minimise the same cost; when OpenCV converges they agree to ~1e-4 px, so allow 0.1 %.
+        assert ours.eps_eval_px <= opencv.eps_eval_px * 1.001, name
+
+
+def test_calib_poses_match_truth(simulated):
+    dataset, results, _ = simulated
+    truth = pd.read_csv(dataset / "truth" / "images.csv").set_index("image")
+    data = json.loads((results / "intrinsics" / "C0.json").read_text())
+    for image, pose in {**data["poses"], **data["eval_poses"]}.items():
+        row = truth.loc[image]
+        true = Rigid3.from_quat([row.qw, row.qx, row.qy, row.qz], [row.tx, row.ty, row.tz])
+        # the attitude error follows the principal-point error (15 px at f = 45000 px is 1.1 arc-min)
+        assert np.degrees(rotation_error(np.array(pose["R"]), true.R)) * 60 < 3.0  # arc-min
+        assert np.linalg.norm(Rigid3.from_dict(pose).center - true.center) < 1.0  # metres, at 130-280 m
+
+
+# ------------------------------------------------------------------------------ planar and wide-angle
+
+
+def board_views(camera: Camera, n_views: int, rng, noise: float = 0.1):
+    """A 10 x 7 chessboard (z = 0, 3 cm squares) seen tilted by 20-45 deg from 0.35-0.6 m."""
+    gx, gy = np.meshgrid(np.arange(10) * 0.03, np.arange(7) * 0.03)
+    board = np.column_stack([gx.ravel() - 0.135, gy.ravel() - 0.09, np.zeros(gx.size)])
+    points, pixels, poses = {}, {}, {}
+    while len(points) < n_views:
+        tilt = np.radians(rng.uniform(20, 45))
+        axis_angle = rng.uniform(0, 2 * np.pi)
+        R = (Rotation.from_rotvec(tilt * np.array([np.cos(axis_angle), np.sin(axis_angle), 0.0]))
+             * Rotation.from_euler("z", rng.uniform(-np.pi, np.pi))).as_matrix()
+        depth = rng.uniform(0.35, 0.6)
+        t = np.array([rng.uniform(-0.12, 0.12) * depth / 0.5, rng.uniform(-0.08, 0.08) * depth / 0.5, depth])
+        pose = Rigid3(R, t)
+        uv = camera.project(pose.apply(board))
+        keep = np.isfinite(uv).all(axis=1) & camera.in_image(np.nan_to_num(uv, nan=-1e9), margin=2)
+        if keep.sum() < 30:
+            continue
+        name = f"view{len(points)}"
+        points[name] = board[keep]
+        pixels[name] = uv[keep] + rng.normal(scale=noise, size=(keep.sum(), 2))
+        poses[name] = pose
+    return points, pixels, poses
+
+
+def field_views(camera: Camera, n_views: int, rng, noise: float = 0.1):
+    """A 3D field (random points in a 3 x 2 x 1.5 m box) seen from 2.5-4 m."""
+    field = rng.uniform([-1.5, -1.0, -0.75], [1.5, 1.0, 0.75], size=(120, 3))
+    points, pixels = {}, {}
+    while len(points) < n_views:
+        R = Rotation.from_euler("xyz", rng.uniform(-0.4, 0.4, 3)).as_matrix()
+        t = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(2.5, 4.0)])
+        uv = camera.project(field @ R.T + t)
+        keep = np.isfinite(uv).all(axis=1) & camera.in_image(np.nan_to_num(uv, nan=-1e9), margin=2)
+        if keep.sum() < 30:
+            continue
+        name = f"view{len(points)}"
+        points[name] = field[keep]
+        pixels[name] = uv[keep] + rng.normal(scale=noise, size=(keep.sum(), 2))
+    return points, pixels
+
+
+def assert_close_to(camera: Camera, truth: Camera, focal_rel: float, centre_px: float, d_abs: float):
+    assert abs(camera.fx / truth.fx - 1) < focal_rel and abs(camera.fy / truth.fy - 1) < focal_rel
+    assert abs(camera.cx - truth.cx) < centre_px and abs(camera.cy - truth.cy) < centre_px
+    assert abs(camera.d - truth.d) < d_abs
+
+
+def test_planar_chessboard_wide_angle_matches_truth_and_opencv():
+    rng = np.random.default_rng(21)
+    points, pixels, poses = board_views(WIDE, 12, rng)
+    calib = {k: points[k] for k in list(points)[:10]}
+    evals = {k: points[k] for k in list(points)[10:]}
+    result = calibrate_camera(calib, {k: pixels[k] for k in calib}, WIDE.width, WIDE.height,
+                              eval_points_world_per_image=evals, eval_uv_per_image={k: pixels[k] for k in evals},
+                              name="wide")
+    assert_close_to(result.camera, WIDE, focal_rel=0.003, centre_px=1.0, d_abs=0.005)
+    # 0.1 px per axis: the RMS point distance is ~0.1 * sqrt(2) = 0.14 px
+    assert 0.11 < result.eps_calib_px < 0.16 and 0.08 < result.eps_eval_px < 0.2
+    for name, pose in result.poses.items():
+        assert np.degrees(rotation_error(pose.R, poses[name].R)) < 0.1
+    # OpenCV's planar calibration (Zhang init) with the same model reaches the same optimum.
+    opencv = calibrate_camera_opencv(calib, {k: pixels[k] for k in calib}, WIDE.width, WIDE.height, 400.0)
+    for key in ("fx", "fy", "cx", "cy"):
+        assert getattr(result.camera, key) == pytest.approx(getattr(opencv.camera, key), abs=3 * result.std[key])
+    assert result.camera.d == pytest.approx(opencv.camera.d, abs=3 * result.std["d"])
+    assert result.eps_calib_px == pytest.approx(opencv.eps_calib_px, rel=1e-3)
+    # the reported standard deviations are the actual errors' size
+    for key in ("fx", "fy", "cx", "cy", "d"):
+        assert abs(getattr(result.camera, key) - getattr(WIDE, key)) < 5 * result.std[key], key
+
+
+def test_3d_field_wide_angle_and_dlt_baseline():
+    rng = np.random.default_rng(4)
+    points, pixels = field_views(WIDE, 6, rng)
+    result = calibrate_camera(points, pixels, WIDE.width, WIDE.height, name="wide3d")
+    assert_close_to(result.camera, WIDE, focal_rel=0.003, centre_px=1.0, d_abs=0.005)
+    dlt = calibrate_camera_dlt_lm(points, pixels, WIDE.width, WIDE.height, name="wide3d")
+    assert dlt.camera.fx == pytest.approx(result.camera.fx, rel=1e-6)
+    assert dlt.eps_calib_px == pytest.approx(result.eps_calib_px, rel=1e-6)
+
+
+def test_noise_free_recovers_exactly():
+    rng = np.random.default_rng(8)
+    points, pixels = field_views(WIDE, 4, rng, noise=0.0)
+    result = calibrate_camera(points, pixels, WIDE.width, WIDE.height)
+    assert_close_to(result.camera, WIDE, focal_rel=1e-8, centre_px=1e-5, d_abs=1e-8)
+    assert result.eps_calib_px < 1e-6
+
+
+# ------------------------------------------------------------------------------ bad input
+
+
+def test_too_few_images_names_the_camera():
+    rng = np.random.default_rng(2)
+    points, pixels = field_views(WIDE, 2, rng)
+    with pytest.raises(DmaisError, match="camera CX: 1 usable calibration image"):
+        calibrate_camera({"a": points["view0"]}, {"a": pixels["view0"]}, 640, 480, name="CX")
+    with pytest.raises(DmaisError, match="camera CX: 0 usable"):
+        calibrate_camera({}, {}, 640, 480, name="CX")
+
+
+def test_images_with_few_observations_are_skipped_with_one_warning(caplog):
+    rng = np.random.default_rng(3)
+    points, pixels = field_views(WIDE, 4, rng)
+    for name in ("tiny1", "tiny2"):
+        points[name], pixels[name] = points["view0"][:4], pixels["view0"][:4]
+    points["tiny_eval"], pixels["tiny_eval"] = points["view1"][:3], pixels["view1"][:3]
+    with caplog.at_level(logging.WARNING, logger="dmais_pipe.calib.intrinsics"):
+        result = calibrate_camera({k: points[k] for k in list(points)[:-1]}, {k: pixels[k] for k in list(points)[:-1]},
+                                  640, 480, eval_points_world_per_image={"tiny_eval": points["tiny_eval"]},
+                                  eval_uv_per_image={"tiny_eval": pixels["tiny_eval"]}, name="CW")
+    warnings = [r for r in caplog.records if r.levelno == logging.WARNING]
+    assert len(warnings) == 1
+    assert all(name in warnings[0].getMessage() for name in ("CW", "tiny1", "tiny2", "tiny_eval"))
+    assert result.n_images == 4 and result.skipped_images == ["tiny1", "tiny2", "tiny_eval"]
+    assert result.eps_eval_px is None
+
+
+def test_non_finite_observation_names_the_row():
+    rng = np.random.default_rng(3)
+    points, pixels = field_views(WIDE, 3, rng)
+    pixels["view1"][7, 0] = np.inf
+    with pytest.raises(DmaisError, match="camera CN, image view1: observation 7 is not finite"):
+        calibrate_camera(points, pixels, 640, 480, name="CN")
+
+
+def test_dataset_with_non_finite_observation_is_rejected_naming_the_line(simulated, tmp_path):
+    dataset, _, _ = simulated
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)
+    obs = (copy / "observations.csv").read_text().splitlines()
+    fields = obs[3].split(",")
+    fields[-1] = "nan"
+    obs[3] = ",".join(fields)
+    (copy / "observations.csv").write_text("\n".join(obs) + "\n")
+    with pytest.raises(DmaisError, match=r"observations.csv, line 4"):
+        run_intrinsics(copy, tmp_path / "results")
+    assert not (tmp_path / "results" / "tables").exists()
