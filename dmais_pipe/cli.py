@@ -43,6 +43,22 @@ def _cmd_intrinsics(args) -> None:
         print(path)
 
 
+def _cmd_markers(args) -> None:
+    from .markers import run_markers
+
+    print(run_markers(args.dataset, args.out, jobs=args.jobs))
+
+
+def _cmd_bench_markers(args) -> None:
+    from .markers.bench import bench_markers, summary
+
+    frame = bench_markers(args.dataset, args.csv, rig_path=args.rig)
+    print(frame.to_string(index=False, float_format=lambda x: f"{x:.4g}"))
+    for key, value in summary(frame).items():
+        print(f"{key}: {value}")
+    print(f"per-image CSV: {args.csv}")
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -59,6 +75,12 @@ def _parser() -> argparse.ArgumentParser:
     validate.add_argument("--skip-images", action="store_true", help="do not decode the image files")
     validate.set_defaults(run=_cmd_validate)
 
+    markers = commands.add_parser("markers", help="detect, refine and identify the markers of every image")
+    markers.add_argument("dataset", type=Path)
+    markers.add_argument("--out", type=Path, required=True, help="results folder")
+    markers.add_argument("--jobs", type=int, default=1, help="images processed in parallel")
+    markers.set_defaults(run=_cmd_markers)
+
     intrinsics = commands.add_parser("intrinsics", help="calibrate every camera's intrinsics from the field")
     intrinsics.add_argument("dataset", type=Path)
     intrinsics.add_argument("--out", type=Path, required=True, help="results folder")
@@ -68,6 +90,13 @@ def _parser() -> argparse.ArgumentParser:
     summarize.add_argument("dataset", type=Path)
     summarize.add_argument("--out", type=Path, required=True, help="report folder, e.g. reports/demo")
     summarize.set_defaults(run=_cmd_summarize)
+    bench = commands.add_parser("bench", help="benchmarks: print a table and write CSV")
+    benches = bench.add_subparsers(dest="bench", required=True)
+    bench_markers = benches.add_parser("markers", help="marker extraction on a rendered dataset with truth")
+    bench_markers.add_argument("dataset", type=Path, nargs="?", default=Path("data/demo"))
+    bench_markers.add_argument("--rig", type=Path, help="rig.json used to identify flight markers (e.g. truth/rig.json)")
+    bench_markers.add_argument("--csv", type=Path, default=Path("reports/bench/markers.csv"))
+    bench_markers.set_defaults(run=_cmd_bench_markers)
     return parser
 
 

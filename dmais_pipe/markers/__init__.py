@@ -1,0 +1,8 @@
+"""Diagonal markers: detection, sub-pixel refinement and identification (point ids)."""
+
+from .detect import detect
+from .identify import identify
+from .refine import refine
+from .stage import predicted_projections, process_image, run_markers
+
+__all__ = ["detect", "identify", "predicted_projections", "process_image", "refine", "run_markers"]

@@ -1,0 +1,212 @@
+"""`dmais markers`: detect, refine and identify diagonal markers in every image of a dataset.
+
+Writes RESULTS/markers/<image>.csv (u, v, score, point_id; point_id empty when unidentified) for
+every image with a file, and RESULTS/observations.csv (image, camera, point_id, u, v): the
+identified detections plus the dataset's own observations.csv rows (images listed there skip
+extraction, DESIGN.md).
+
+Predicted projections for identification come from the priors:
+- calibration images (intrinsics, extrinsics): images.csv prior centre + prior attitude
+  (cam_from_world) with RESULTS/intrinsics/<camera>.json if it exists, else a nominal pinhole
+  (dataset.yaml focal_px, principal point at the image centre, no distortion);
+- flight images: frames.csv POS position + INS attitude (rig_from_world) and the rig of
+  RESULTS/rig.json; without a rig (before `dmais extrinsics`) flight detections stay unidentified.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..camera import Camera
+from ..dataset import Dataset
+from ..errors import DatasetError, DmaisError
+from ..files import write_csv_atomic
+from ..geometry import Rigid3
+from ..rig import Rig
+from .detect import detect
+from .identify import identify
+
+log = logging.getLogger(__name__)
+
+MARKERS_DIR = "markers"
+OBSERVATIONS = "observations.csv"
+MARKER_COLUMNS = ["u", "v", "score", "point_id"]
+OBSERVATION_COLUMNS = ["image", "camera", "point_id", "u", "v"]
+PREDICTION_MARGIN_PX = 3000.0  # keep predictions this far outside the image (attitude prior errors)
+
+
+def _nominal_camera(dataset: Dataset, camera: str, results_dir: Path | None) -> Camera | None:
+    if results_dir is not None:
+        path = Path(results_dir) / "intrinsics" / f"{camera}.json"
+        if path.exists():
+            try:
+                data = json.loads(path.read_text())
+                return Camera(float(data["fx"]), float(data["fy"]), float(data["cx"]), float(data["cy"]),
+                              float(data.get("d", 0.0)), int(data["width"]), int(data["height"]))
+            except (KeyError, TypeError, ValueError) as error:
+                raise DmaisError(f"{path}: not a valid intrinsics file ({error})") from None
+    spec = dataset.cameras[camera]
+    if not spec.focal_px:
+        return None
+    return Camera(spec.focal_px, spec.focal_px, 0.5 * (spec.width - 1), 0.5 * (spec.height - 1), 0.0,
+                  spec.width, spec.height)
+
+
+def _load_rig(results_dir: Path | None) -> Rig | None:
+    if results_dir is None or not (Path(results_dir) / "rig.json").exists():
+        return None
+    return Rig.load(Path(results_dir) / "rig.json")
+
+
+def predicted_projections(dataset: Dataset, image: str, results_dir=None, rig: Rig | None = None):
+    """(uv (m, 2), point ids (m,)) of the known points predicted in `image` from the priors, or None
+    when the priors (or a camera model) are missing. Only points in front of the camera and within
+    PREDICTION_MARGIN_PX of the image are kept."""
+    row = dataset.images[dataset.images["image"] == image].iloc[0]
+    camera_name = row["camera"]
+    if row["stage"] == "flight":
+        rig = rig if rig is not None else _load_rig(results_dir)
+        frames = dataset.frames[dataset.frames["frame"] == row["placement"]]
+        if rig is None or camera_name not in rig.cameras or frames.empty:
+            return None
+        frame = frames.iloc[0]
+        q = frame[["prior_qw", "prior_qx", "prior_qy", "prior_qz"]].to_numpy(dtype=float)
+        centre = frame[["pos_x", "pos_y", "pos_z"]].to_numpy(dtype=float)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(centre))):
+            return None
+        rig_from_world = Rigid3.from_quat(q, np.zeros(3))
+        rig_from_world = Rigid3.from_quat(q, -rig_from_world.R @ centre)
+        cam_from_world = rig.cam_from_rig[camera_name] * rig_from_world
+        camera = rig.cameras[camera_name]
+        points = dataset.ground_points if len(dataset.ground_points) else dataset.points
+    else:
+        q = row[["prior_qw", "prior_qx", "prior_qy", "prior_qz"]].to_numpy(dtype=float)
+        centre = row[["prior_x", "prior_y", "prior_z"]].to_numpy(dtype=float)
+        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(centre))):
+            return None
+        R = Rigid3.from_quat(q, np.zeros(3)).R
+        cam_from_world = Rigid3(R, -R @ centre)
+        camera = _nominal_camera(dataset, camera_name, results_dir)
+        points = dataset.control_points
+        if camera is None:
+            return None
+    xyz = points[["x", "y", "z"]].to_numpy(dtype=float)
+    uv = camera.project(cam_from_world.apply(xyz))
+    m = PREDICTION_MARGIN_PX
+    keep = (np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > -m) & (uv[:, 0] < camera.width + m)
+            & (uv[:, 1] > -m) & (uv[:, 1] < camera.height + m))
+    return uv[keep], points.index.to_numpy(dtype=object)[keep]
+
+
+# ------------------------------------------------------------------------------ per image
+
+_WORKER: dict = {}
+
+
+def _worker_dataset(dataset_dir: str) -> Dataset:
+    if _WORKER.get("dir") != dataset_dir:
+        _WORKER["dir"] = dataset_dir
+        _WORKER["dataset"] = Dataset.load(dataset_dir)
+    return _WORKER["dataset"]
+
+
+def process_image(dataset: Dataset, image: str, results_dir=None, rig: Rig | None = None) -> pd.DataFrame:
+    """Detections of one image with ids: DataFrame u, v, score, point_id ('' when unidentified)."""
+    pixels = dataset.read_image(image)
+    found = detect(pixels)
+    found["point_id"] = ""
+    prediction = predicted_projections(dataset, image, results_dir, rig)
+    if prediction is not None and len(found):
+        uv, ids = prediction
+        height, width = pixels.shape
+        found["point_id"] = identify(found[["u", "v"]].to_numpy(), uv, ids, (width, height))
+    return found[MARKER_COLUMNS]
+
+
+def _work(args):
+    dataset_dir, results_dir, image = args
+    try:
+        dataset = _worker_dataset(dataset_dir)
+        started = time.perf_counter()
+        frame = process_image(dataset, image, results_dir)
+        write_csv_atomic(Path(results_dir) / MARKERS_DIR / f"{image}.csv", frame)
+        return image, frame, time.perf_counter() - started, None
+    except DatasetError as error:
+        return image, None, 0.0, ("dataset", error.path, error.message, error.line)
+    except DmaisError as error:
+        return image, None, 0.0, ("dmais", str(error))
+
+
+def run_markers(dataset_dir, results_dir, jobs: int = 1) -> Path:
+    """Detect, refine and identify markers in every image with a file; returns RESULTS/observations.csv.
+
+    jobs: worker processes (1: in this process). Raises the dataset's DatasetError naming a missing
+    or undecodable image.
+    """
+    dataset_dir, results_dir = str(Path(dataset_dir).absolute()), Path(results_dir).absolute()
+    dataset = Dataset.load(dataset_dir)
+    given = set(dataset.observations["image"])
+    todo = [image for image, path in zip(dataset.images["image"], dataset.images["path"])
+            if path and image not in given]
+    # Fail before any work on a missing file: the dataset's own error names it.
+    for image in todo:
+        if dataset.image_path(image) is None or not dataset.image_path(image).is_file():
+            dataset.read_image(image)
+    camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
+    tasks = [(dataset_dir, str(results_dir), image) for image in todo]
+    results = {}
+    total = len(tasks)
+    started = time.perf_counter()
+
+    def collect(item, k):
+        image, frame, seconds, error = item
+        if error is not None:
+            if pool is not None:
+                pool.terminate()
+            if error[0] == "dataset":
+                raise DatasetError(error[1], error[2], error[3])
+            raise DmaisError(error[1])
+        results[image] = frame
+        identified = int((frame["point_id"] != "").sum())
+        log.info("markers %d/%d %s: %d detected, %d identified (%.2f s)", k, total, image, len(frame),
+                 identified, seconds)
+
+    pool = None
+    if jobs > 1 and total > 1:
+        _WORKER["dataset"] = dataset  # inherited by forked workers
+        _WORKER["dir"] = dataset_dir
+        ctx = multiprocessing.get_context("fork") if "fork" in multiprocessing.get_all_start_methods() else None
+        pool = (ctx or multiprocessing).Pool(min(jobs, total))
+        try:
+            for k, item in enumerate(pool.imap_unordered(_work, tasks), 1):
+                collect(item, k)
+        finally:
+            pool.close()
+            pool.join()
+    else:
+        _WORKER["dataset"] = dataset
+        _WORKER["dir"] = dataset_dir
+        for k, task in enumerate(tasks, 1):
+            collect(_work(task), k)
+    log.info("markers: %d images in %.1f s", total, time.perf_counter() - started)
+
+    rows = []
+    for image in todo:
+        frame = results[image]
+        ok = frame[frame["point_id"] != ""]
+        rows.append(pd.DataFrame({"image": image, "camera": camera_of[image], "point_id": ok["point_id"],
+                                  "u": ok["u"], "v": ok["v"]}))
+    own = dataset.observations
+    if len(own):
+        rows.append(pd.DataFrame({"image": own["image"], "camera": own["image"].map(camera_of),
+                                  "point_id": own["point_id"], "u": own["u"], "v": own["v"]}))
+    observations = (pd.concat(rows, ignore_index=True) if rows
+                    else pd.DataFrame({c: pd.Series(dtype=float if c in "uv" else object) for c in OBSERVATION_COLUMNS}))
+    return write_csv_atomic(results_dir / OBSERVATIONS, observations[OBSERVATION_COLUMNS])
