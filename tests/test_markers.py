@@ -15,6 +15,7 @@ from dmais_pipe.errors import DatasetError
 from dmais_pipe.files import write_png_atomic
 from dmais_pipe.geometry import Rigid3
 from dmais_pipe.markers import detect, identify, refine, run_markers
+from dmais_pipe.markers.stage import verify_with_pose
 from dmais_pipe.sim.render import MarkerBoard, RenderSettings, render_image
 
 SMALL = Camera(2000.0, 2000.0, 319.7, 239.4, 0.0, 640, 480)
@@ -332,3 +333,22 @@ def test_run_markers_missing_or_corrupt_image(tmp_path):
     (tmp_path / "data" / "images" / "i1.png").write_bytes(b"not a png")
     with pytest.raises(DatasetError, match="i1.*cannot be decoded"):
         run_markers(tmp_path / "data", tmp_path / "results", jobs=2)
+
+
+def test_pose_verification_drops_swapped_ids_and_keeps_the_rest():
+    camera = Camera(44300.0, 44350.0, 2060.0, 1490.0, 2.5, 4096, 3000)
+    rng = np.random.default_rng(5)
+    points = field(rng)
+    table = pd.DataFrame(points, columns=["x", "y", "z"], index=[f"P{k:03d}" for k in range(len(points))])
+    uv = camera.project(points)
+    seen = np.flatnonzero(camera.in_image(uv, margin=20))
+    ids = table.index.to_numpy(dtype=object)[seen]
+    detections = uv[seen] + rng.normal(0, 0.05, (len(seen), 2))
+    verified = verify_with_pose(detections, ids, table, (2047.5, 1499.5))
+    np.testing.assert_array_equal(verified, ids)  # distortion of a d = 2.5 camera stays inside the gate
+    swapped = ids.copy()
+    swapped[[0, 1]] = swapped[[1, 0]]
+    verified = verify_with_pose(detections, swapped, table, (2047.5, 1499.5))
+    assert not np.any((verified != "") & (verified != ids))  # no wrong id survives
+    assert np.count_nonzero(verified == ids) >= len(ids) - 2
+    assert np.all(verify_with_pose(detections[:3], ids[:3], table, (2047.5, 1499.5)) == "")  # too few to verify
