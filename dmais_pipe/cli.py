@@ -50,12 +50,15 @@ def _cmd_markers(args) -> None:
 
 
 def _cmd_bench_markers(args) -> None:
+    import pandas as pd
+
     from .markers.bench import bench_markers, summary
 
     frame = bench_markers(args.dataset, args.csv, rig_path=args.rig)
-    print(frame.to_string(index=False, float_format=lambda x: f"{x:.4g}"))
-    for key, value in summary(frame).items():
-        print(f"{key}: {value}")
+    stage = frame["image"].str.split("_").str[0]
+    table = {name: summary(group) for name, group in frame.groupby(stage)}
+    table["all"] = summary(frame)
+    print(pd.DataFrame(table).to_string(float_format=lambda x: f"{x:.4g}"))
     print(f"per-image CSV: {args.csv}")
 
 
