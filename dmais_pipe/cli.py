@@ -62,6 +62,13 @@ def _cmd_bench_markers(args) -> None:
     print(f"per-image CSV: {args.csv}")
 
 
+def _cmd_extrinsics(args) -> None:
+    from .calib.extrinsics import run_extrinsics
+
+    for path in run_extrinsics(args.dataset, args.out, use_priors=not args.no_priors):
+        print(path)
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -88,6 +95,12 @@ def _parser() -> argparse.ArgumentParser:
     intrinsics.add_argument("dataset", type=Path)
     intrinsics.add_argument("--out", type=Path, required=True, help="results folder")
     intrinsics.set_defaults(run=_cmd_intrinsics)
+
+    extrinsics = commands.add_parser("extrinsics", help="calibrate the rig (cam_from_rig) from the placements")
+    extrinsics.add_argument("dataset", type=Path)
+    extrinsics.add_argument("--out", type=Path, required=True, help="results folder (with intrinsics/)")
+    extrinsics.add_argument("--no-priors", action="store_true", help="write rig.json from the run without RTK priors")
+    extrinsics.set_defaults(run=_cmd_extrinsics)
 
     summarize = commands.add_parser("summarize", help="write a dataset summary (CSV + HTML) to a report folder")
     summarize.add_argument("dataset", type=Path)

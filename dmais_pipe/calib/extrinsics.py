@@ -1,0 +1,254 @@
+"""Extrinsic calibration of the rig (paper, section "Extrinsic Calibration", eq. avg_T and eq. min).
+
+1. Localization of every `extrinsics` image in the world (`calib.localize`): with an RTK camera-centre
+   prior, rotation with the centre held at the prior then pose refinement with a soft centre prior;
+   without, PnP.
+2. Initial extrinsics per placement j with the reference camera 0: rig_from_cam_i^j =
+   cam0_from_world^j (cam_i_from_world^j)^-1 (the paper's T = P0 Pi^-1 with P = cam_from_world);
+   rotations averaged by Markley's method, translations by the mean (eq. avg_T).
+3. Joint refinement of the extrinsics and of rig_from_world per placement (eq. min) with control
+   points and intrinsics constant, plus soft camera-centre priors when used (`calib.rig_ba`).
+
+`run_extrinsics` runs the calibration with and without the priors (the paper's comparison,
+tab:extrinsics_R and tab:extrinsics_t) and writes RESULTS/rig.json from the requested case.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..camera import Camera
+from ..errors import DmaisError
+from ..files import write_csv_atomic
+from ..geometry import Rigid3, average_rotations, euler_zyx_from_rotation
+from ..rig import Rig
+from .localize import DEFAULT_CENTER_SIGMA_M, DEFAULT_PIXEL_SIGMA_PX, localize_image
+from .rig_ba import ImageBlock, RigBAResult, refine_rig
+
+log = logging.getLogger(__name__)
+
+MIN_REFERENCE_POINTS = 6  # a placement whose reference image has fewer is skipped
+MIN_POINTS = 4  # other images with fewer observations are skipped
+PRIOR_CENTER = ("prior_x", "prior_y", "prior_z")
+
+
+@dataclass
+class ExtrinsicsResult:
+    rig: Rig
+    ba: RigBAResult
+    initial_rig_from_cam: dict[str, Rigid3]
+    localized: dict[str, Rigid3]  # image -> cam_from_world from step 1
+    skipped_placements: list[str]
+    use_priors: bool
+
+    def extra(self) -> dict:
+        """Keys stored beside the rig in rig.json."""
+        return {
+            "use_priors": self.use_priors,
+            "rms_px": {c: float(v) for c, v in self.ba.rms_px.items()},
+            "std": self.ba.std,
+            "n_observations": {c: int(v) for c, v in self.ba.n_observations.items()},
+            "sigma0": self.ba.sigma0,
+            "placements": sorted(self.ba.rig_from_world),
+            "skipped_placements": self.skipped_placements,
+            "rig_from_world": {j: p.to_dict() for j, p in self.ba.rig_from_world.items()},
+        }
+
+
+def initial_extrinsics(poses: dict[str, dict[str, Rigid3]], reference: str) -> dict[str, Rigid3]:
+    """rig_from_cam per camera from cam_from_world poses {placement: {camera: pose}} (eq. avg_T).
+
+    Only placements holding the reference camera contribute. Raises DmaisError for a camera never
+    localized together with the reference camera.
+    """
+    samples: dict[str, list[Rigid3]] = {}
+    for placement, by_camera in poses.items():
+        if reference not in by_camera:
+            continue
+        ref = by_camera[reference]
+        for camera, pose in by_camera.items():
+            samples.setdefault(camera, []).append(ref * pose.inverse())
+    cameras = {c for by_camera in poses.values() for c in by_camera}
+    alone = sorted(cameras - set(samples))
+    if alone:
+        raise DmaisError(f"camera(s) {', '.join(alone)} never seen together with the reference camera {reference} "
+                         "in a usable placement; their extrinsics cannot be calibrated")
+    out = {}
+    for camera, transforms in samples.items():
+        R = average_rotations(np.array([T.R for T in transforms]))
+        t = np.mean([T.t for T in transforms], axis=0)
+        out[camera] = Rigid3(R, t)
+    out[reference] = Rigid3.identity()
+    return out
+
+
+def calibrate_extrinsics(cameras: dict[str, Camera], reference: str, images: pd.DataFrame,
+                         observations: pd.DataFrame, points: pd.DataFrame, *, use_priors: bool = True,
+                         center_sigma: float = DEFAULT_CENTER_SIGMA_M,
+                         pixel_sigma: float | dict[str, float] = DEFAULT_PIXEL_SIGMA_PX) -> ExtrinsicsResult:
+    """The paper's extrinsic calibration.
+
+    images: rows with image, camera, placement and optionally prior_x, prior_y, prior_z;
+    observations: image, point_id, u, v; points: indexed by point_id with x, y, z;
+    cameras: intrinsics of every camera of `images`. Returns the calibrated rig and the details.
+    """
+    if reference not in cameras:
+        raise DmaisError(f"reference camera {reference} has no intrinsics")
+    unknown = sorted(set(images["camera"]) - set(cameras))
+    if unknown:
+        raise DmaisError(f"camera(s) {', '.join(unknown)} have extrinsics images but no intrinsics")
+    sig = {c: float(pixel_sigma[c]) if isinstance(pixel_sigma, dict) else float(pixel_sigma) for c in cameras}
+    by_image = {k: g for k, g in observations.groupby("image", sort=False)}
+    has_prior_cols = all(c in images.columns for c in PRIOR_CENTER)
+    blocks: list[ImageBlock] = []
+    skipped: list[str] = []
+    for placement, rows in images.groupby("placement", sort=True):
+        ref_rows = rows[rows["camera"] == reference]
+        n_ref = sum(len(by_image.get(i, ())) for i in ref_rows["image"])
+        if n_ref < MIN_REFERENCE_POINTS:
+            log.warning("extrinsics: skipping placement %s: the reference camera %s sees %d point(s), needs %d",
+                        placement, reference, n_ref, MIN_REFERENCE_POINTS)
+            skipped.append(str(placement))
+            continue
+        for row in rows.itertuples(index=False):
+            obs = by_image.get(row.image)
+            if obs is None or len(obs) < MIN_POINTS:
+                log.warning("extrinsics: skipping image %s (%d observations)", row.image,
+                            0 if obs is None else len(obs))
+                continue
+            prior = None
+            if has_prior_cols:
+                prior = np.array([getattr(row, c) for c in PRIOR_CENTER], dtype=float)
+                if not np.all(np.isfinite(prior)):
+                    prior = None
+            X = points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
+            blocks.append(ImageBlock(str(row.image), str(row.camera), str(placement), X,
+                                     obs[["u", "v"]].to_numpy(dtype=float), prior))
+    if not blocks:
+        raise DmaisError("extrinsics: no usable placement")
+    alone = sorted(set(images["camera"]) - {b.camera for b in blocks} - {reference})
+    if alone:
+        raise DmaisError(f"camera(s) {', '.join(alone)} never seen together with the reference camera {reference} "
+                         "in a usable placement; their extrinsics cannot be calibrated")
+
+    localized: dict[str, Rigid3] = {}
+    poses: dict[str, dict[str, Rigid3]] = {}
+    for k, b in enumerate(blocks, 1):
+        prior = b.center_prior if use_priors else None
+        try:
+            pose, res = localize_image(cameras[b.camera], b.X, b.uv, prior, center_sigma=center_sigma,
+                                       pixel_sigma=sig[b.camera])
+        except DmaisError as error:
+            raise DmaisError(f"extrinsics: image {b.image}: localization failed ({error})") from None
+        localized[b.image] = pose
+        poses.setdefault(b.placement, {})[b.camera] = pose
+        log.debug("localized %d/%d: %s rms %.3f px", k, len(blocks), b.image,
+                  float(np.sqrt(np.mean(np.sum(res**2, axis=1)))))
+    initial = initial_extrinsics(poses, reference)
+    rig_from_world0 = {j: by_camera[reference] for j, by_camera in poses.items()}
+    ba = refine_rig(cameras, reference, blocks, initial, rig_from_world0, pixel_sigma=sig,
+                    center_sigma=center_sigma, use_priors=use_priors)
+    names = [c for c in cameras if c in ba.rig_from_cam]
+    rig = Rig({c: cameras[c] for c in names}, {c: ba.rig_from_cam[c].inverse() for c in names}, reference)
+    for c in names:
+        log.info("extrinsics (%s priors): %s rms %.3f px, centre %s m", "with" if use_priors else "without", c,
+                 ba.rms_px.get(c, float("nan")), np.round(ba.rig_from_cam[c].t, 4).tolist())
+    return ExtrinsicsResult(rig, ba, initial, localized, skipped, use_priors)
+
+
+# ------------------------------------------------------------------------------ tables
+
+
+def _wrap_deg(a: np.ndarray) -> np.ndarray:
+    return (np.asarray(a) + 180.0) % 360.0 - 180.0
+
+
+def extrinsics_tables(known: Rig, unknown: Rig) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """tab:extrinsics_R and tab:extrinsics_t: rig_from_cam as ZYX Euler angles (deg) and centres (m).
+
+    `known` / `unknown`: the rigs calibrated with and without the camera-centre priors. eps_R is the
+    distance between the two Euler-angle triples (deg, as the paper), eps_t between the centres (m).
+    The reference camera is left out.
+    """
+    rows_R, rows_t = [], []
+    for name in known.camera_names:
+        if name == known.reference_camera or name not in unknown.cameras:
+            continue
+        a = known.cam_from_rig[name].inverse()
+        b = unknown.cam_from_rig[name].inverse()
+        ea = np.degrees(euler_zyx_from_rotation(a.R))
+        eb = np.degrees(euler_zyx_from_rotation(b.R))
+        rows_R.append({"camera": name, **{f"known_{k}_deg": v for k, v in zip("zyx", ea)},
+                       **{f"unknown_{k}_deg": v for k, v in zip("zyx", eb)},
+                       "eps_R_deg": float(np.linalg.norm(_wrap_deg(ea - eb)))})
+        rows_t.append({"camera": name, **{f"known_{k}_m": v for k, v in zip("xyz", a.t)},
+                       **{f"unknown_{k}_m": v for k, v in zip("xyz", b.t)},
+                       "eps_t_m": float(np.linalg.norm(a.t - b.t))})
+    return pd.DataFrame(rows_R), pd.DataFrame(rows_t)
+
+
+# ------------------------------------------------------------------------------ the stage
+
+
+def _load_intrinsics(results: Path, names) -> dict[str, tuple[Camera, float | None]]:
+    cameras = {}
+    for name in names:
+        path = results / "intrinsics" / f"{name}.json"
+        if not path.is_file():
+            raise DmaisError(f"{path}: missing; run `dmais intrinsics` first")
+        try:
+            data = json.loads(path.read_text())
+            cameras[name] = (Camera.from_dict(data), data.get("eps_calib_px"))
+        except (KeyError, TypeError, ValueError) as error:
+            raise DmaisError(f"{path}: not a valid intrinsics file ({error})") from None
+    return cameras
+
+
+def run_extrinsics(dataset_dir, results_dir, use_priors: bool = True,
+                   center_sigma: float = DEFAULT_CENTER_SIGMA_M) -> list[Path]:
+    """`dmais extrinsics DATASET --out RESULTS`.
+
+    Writes RESULTS/rig.json (calibrated with the camera-centre priors when `use_priors` and the
+    images carry them), RESULTS/extrinsics/rig_{known,unknown}.json for both cases and, when both
+    cases can run, RESULTS/tables/extrinsics_R.csv and extrinsics_t.csv. Returns the written paths.
+    """
+    from ..dataset import Dataset, load_observations
+
+    dataset = Dataset.load(dataset_dir)
+    results = Path(results_dir)
+    images = dataset.images_of("extrinsics")
+    if images.empty:
+        raise DmaisError(f"{dataset.root}: no extrinsics images")
+    observations = load_observations(dataset, results)
+    observations = observations[observations["image"].isin(set(images["image"]))]
+    names = [c for c in dataset.cameras if c in set(images["camera"]) or c == dataset.reference_camera]
+    loaded = _load_intrinsics(results, names)
+    cameras = {c: cam for c, (cam, _) in loaded.items()}
+    # Per-axis pixel sigma from the intrinsic calibration's RMS point distance (eps / sqrt 2).
+    pixel_sigma = {c: (float(eps) / np.sqrt(2.0) if eps and np.isfinite(eps) and eps > 0 else DEFAULT_PIXEL_SIGMA_PX)
+                   for c, (_, eps) in loaded.items()}
+    has_priors = bool(images[list(PRIOR_CENTER)].notna().all(axis=1).any())
+    cases = [True, False] if has_priors else [False]
+    if use_priors and not has_priors:
+        log.warning("extrinsics: no camera-centre priors in %s; calibrating without", dataset.root / "images.csv")
+    written: list[Path] = []
+    out: dict[bool, ExtrinsicsResult] = {}
+    for case in cases:
+        log.info("extrinsics: calibrating %s camera-centre priors", "with" if case else "without")
+        out[case] = calibrate_extrinsics(cameras, dataset.reference_camera, images, observations, dataset.points,
+                                         use_priors=case, center_sigma=center_sigma, pixel_sigma=pixel_sigma)
+        label = "known" if case else "unknown"
+        written.append(out[case].rig.save(results / "extrinsics" / f"rig_{label}.json", **out[case].extra()))
+    chosen = out[use_priors and has_priors]
+    written.insert(0, chosen.rig.save(results / "rig.json", **chosen.extra()))
+    if len(out) == 2:
+        table_R, table_t = extrinsics_tables(out[True].rig, out[False].rig)
+        written.append(write_csv_atomic(results / "tables" / "extrinsics_R.csv", table_R, float_format="%.6f"))
+        written.append(write_csv_atomic(results / "tables" / "extrinsics_t.csv", table_t, float_format="%.6f"))
+    return written
