@@ -354,7 +354,7 @@ def _empty_points() -> pd.DataFrame:
 def _read_images(path: Path, root: Path, cameras: dict[str, CameraSpec]) -> tuple[pd.DataFrame, _Table]:
     """images.csv as a DataFrame (columns IMAGE_COLUMNS, PRIOR_CENTER, PRIOR_QUAT, extras) and its table."""
     table = _read_table(path, IMAGE_COLUMNS, PRIOR_CENTER + PRIOR_QUAT)
-    image = table.required_text("image")
+    table.required_text("image")  # validates: every row has an image id
     table.first_rows(["image"], "image id")
     camera = table.required_text("camera")
     table.check(~np.isin(camera, list(cameras)),

@@ -15,7 +15,6 @@ tab:extrinsics_R and tab:extrinsics_t) and writes RESULTS/rig.json from the requ
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -28,6 +27,7 @@ from ..errors import DmaisError
 from ..files import write_csv_atomic
 from ..geometry import Rigid3, average_rotations, euler_zyx_from_rotation
 from ..rig import Rig
+from .intrinsics import intrinsics_path, load_intrinsics
 from .localize import DEFAULT_CENTER_SIGMA_M, DEFAULT_PIXEL_SIGMA_PX, localize_image
 from .rig_ba import ImageBlock, RigBAResult, refine_rig
 
@@ -199,14 +199,8 @@ def extrinsics_tables(known: Rig, unknown: Rig) -> tuple[pd.DataFrame, pd.DataFr
 def _load_intrinsics(results: Path, names) -> dict[str, tuple[Camera, float | None]]:
     cameras = {}
     for name in names:
-        path = results / "intrinsics" / f"{name}.json"
-        if not path.is_file():
-            raise DmaisError(f"{path}: missing; run `dmais intrinsics` first")
-        try:
-            data = json.loads(path.read_text())
-            cameras[name] = (Camera.from_dict(data), data.get("eps_calib_px"))
-        except (KeyError, TypeError, ValueError) as error:
-            raise DmaisError(f"{path}: not a valid intrinsics file ({error})") from None
+        camera, record = load_intrinsics(intrinsics_path(results, name))
+        cameras[name] = (camera, record.get("eps_calib_px"))
     return cameras
 
 

@@ -23,6 +23,7 @@ Every method's eps_eval is computed by the same pose-only estimation on the eval
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -414,6 +415,24 @@ def calibrate_camera_dlt_lm(points_world_per_image, uv_per_image, width: int, he
 # ------------------------------------------------------------------------------ the stage
 
 
+def intrinsics_path(results_dir, camera: str) -> Path:
+    """RESULTS/intrinsics/<camera>.json."""
+    return Path(results_dir) / "intrinsics" / f"{camera}.json"
+
+
+def load_intrinsics(path) -> tuple[Camera, dict]:
+    """The Camera of an intrinsics JSON written by `run_intrinsics`, and the whole record."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+        return Camera.from_dict(data), data
+    except FileNotFoundError:
+        raise DmaisError(f"{path}: missing; run `dmais intrinsics` first") from None
+    except (KeyError, TypeError, ValueError) as error:
+        raise DmaisError(f"{path}: not a valid intrinsics file ({error})") from None
+
+
+
 def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tuple[dict, dict]:
     X, uv = {}, {}
     for image in images:
@@ -453,7 +472,7 @@ def run_intrinsics(dataset_dir, results_dir, methods: Sequence[str] = METHODS) -
         eX, euv = _per_image(observations, points, eval_images)
         common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name)
         ours = calibrate_camera(X, uv, spec.width, spec.height, **common)
-        written.append(write_json_atomic(results / "intrinsics" / f"{name}.json", ours.to_dict()))
+        written.append(write_json_atomic(intrinsics_path(results, name), ours.to_dict()))
         rows.append(ours.table_row())
         if "opencv" in methods:
             focal = spec.focal_px or float(np.mean(list(ours.pnpf_focal_px.values())))

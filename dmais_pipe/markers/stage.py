@@ -21,7 +21,6 @@ a neighbouring marker hundreds of pixels away, fails it.
 
 from __future__ import annotations
 
-import json
 import logging
 import multiprocessing
 import time
@@ -36,6 +35,7 @@ from ..errors import DatasetError, DmaisError
 from ..files import write_csv_atomic
 from ..geometry import Rigid3
 from ..rig import Rig
+from ..calib.intrinsics import intrinsics_path, load_intrinsics
 from ..calib.pnpf import solve_pnpf
 from .detect import detect
 from .identify import identify
@@ -51,15 +51,8 @@ VERIFY_GATE_PX = 40.0
 
 
 def _nominal_camera(dataset: Dataset, camera: str, results_dir: Path | None) -> Camera | None:
-    if results_dir is not None:
-        path = Path(results_dir) / "intrinsics" / f"{camera}.json"
-        if path.exists():
-            try:
-                data = json.loads(path.read_text())
-                return Camera(float(data["fx"]), float(data["fy"]), float(data["cx"]), float(data["cy"]),
-                              float(data.get("d", 0.0)), int(data["width"]), int(data["height"]))
-            except (KeyError, TypeError, ValueError) as error:
-                raise DmaisError(f"{path}: not a valid intrinsics file ({error})") from None
+    if results_dir is not None and intrinsics_path(results_dir, camera).exists():
+        return load_intrinsics(intrinsics_path(results_dir, camera))[0]
     spec = dataset.cameras[camera]
     if not spec.focal_px:
         return None
