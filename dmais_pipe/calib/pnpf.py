@@ -62,28 +62,29 @@ def _check_inputs(points_world, uv, principal_point):
     return X, m, c
 
 
+def _projective_dlt(points_h: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(3, k) matrix P with x ~ P p for homogeneous points p (n, k) and pixels x (n, 2).
+
+    Two rows per correspondence of the homogeneous DLT (Hartley & Zisserman alg. 4.1 / 7.1);
+    the solution is the right singular vector of the smallest singular value.
+    """
+    n, k = points_h.shape
+    A = np.zeros((2 * n, 3 * k))
+    A[0::2, 0:k] = points_h
+    A[0::2, 2 * k:] = -x[:, :1] * points_h
+    A[1::2, k:2 * k] = points_h
+    A[1::2, 2 * k:] = -x[:, 1:] * points_h
+    return np.linalg.svd(A)[2][-1].reshape(3, k)
+
+
 def _dlt(Xw: np.ndarray, x: np.ndarray):
     """Homogeneous DLT: (3, 4) P with x ~ P [Xw; 1] for whitened points Xw (n, 3) and pixels x (n, 2)."""
-    n = len(Xw)
-    Xh = np.column_stack([Xw, np.ones(n)])
-    A = np.zeros((2 * n, 12))
-    A[0::2, 0:4] = Xh
-    A[0::2, 8:12] = -x[:, :1] * Xh
-    A[1::2, 4:8] = Xh
-    A[1::2, 8:12] = -x[:, 1:] * Xh
-    return np.linalg.svd(A)[2][-1].reshape(3, 4)
+    return _projective_dlt(np.column_stack([Xw, np.ones(len(Xw))]), x)
 
 
 def _homography(a: np.ndarray, x: np.ndarray) -> np.ndarray:
     """(3, 3) H with x ~ H [a; 1] for plane points a (n, 2) and pixels x (n, 2)."""
-    n = len(a)
-    ah = np.column_stack([a, np.ones(n)])
-    A = np.zeros((2 * n, 9))
-    A[0::2, 0:3] = ah
-    A[0::2, 6:9] = -x[:, :1] * ah
-    A[1::2, 3:6] = ah
-    A[1::2, 6:9] = -x[:, 1:] * ah
-    return np.linalg.svd(A)[2][-1].reshape(3, 3)
+    return _projective_dlt(np.column_stack([a, np.ones(len(a))]), x)
 
 
 def _nearest_rotation(M: np.ndarray) -> np.ndarray:
