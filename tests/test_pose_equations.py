@@ -206,9 +206,11 @@ def test_generated_equations_are_reproducible(tmp_path):
         pytest.skip("sympy is not installed: cannot regenerate dmais_pipe/pose/_equations.py")
     from dmais_pipe.pose import generate
 
-    out = generate.main(["--out", str(tmp_path / "_equations.py")])
-    stored = Path(generate.__file__).with_name("_equations.py")
-    assert out.read_text() == stored.read_text(), "run `python -m dmais_pipe.pose.generate`"
+    out, template = generate.main(["--out", str(tmp_path / "_equations.py"),
+                                   "--template-out", str(tmp_path / "_template.json")])
+    folder = Path(generate.__file__).parent
+    assert out.read_text() == (folder / "_equations.py").read_text(), "run `python -m dmais_pipe.pose.generate`"
+    assert template.read_text() == (folder / "_template.json").read_text(), "run `python -m dmais_pipe.pose.generate`"
 
 
 # (e) bad input -------------------------------------------------------------------------------
