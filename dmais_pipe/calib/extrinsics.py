@@ -7,15 +7,18 @@
    cam0_from_world^j (cam_i_from_world^j)^-1 (the paper's T = P0 Pi^-1 with P = cam_from_world);
    rotations averaged by Markley's method, translations by the mean (eq. avg_T).
 3. Joint refinement of the extrinsics and of rig_from_world per placement (eq. min) with control
-   points and intrinsics constant, plus soft camera-centre priors when used (`calib.rig_ba`).
+   points and intrinsics constant, plus soft camera-centre priors when used (`calib.rig_ba`: pycolmap's
+   rig bundle adjuster by default, or our scipy Levenberg-Marquardt; both reach the same optimum).
 
 `run_extrinsics` runs the calibration with and without the priors (the paper's comparison,
-tab:extrinsics_R and tab:extrinsics_t) and writes RESULTS/rig.json from the requested case.
+tab:extrinsics_R, tab:extrinsics_t and the layout figure fig:extrinsics) and writes RESULTS/rig.json
+and the COLMAP rig config RESULTS/rig_config.json from the requested case.
 """
 
 from __future__ import annotations
 
 import logging
+import posixpath
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,18 +27,31 @@ import pandas as pd
 
 from ..camera import Camera
 from ..errors import DmaisError
-from ..files import write_csv_atomic
+from ..files import write_csv_atomic, write_json_atomic
 from ..geometry import Rigid3, average_rotations, euler_zyx_from_rotation
 from ..rig import Rig
 from .intrinsics import intrinsics_path, load_intrinsics
 from .localize import DEFAULT_CENTER_SIGMA_M, DEFAULT_PIXEL_SIGMA_PX, localize_image
-from .rig_ba import ImageBlock, RigBAResult, refine_rig
+from .rig_ba import BACKENDS, ImageBlock, RigBAResult, refine
 
 log = logging.getLogger(__name__)
 
 MIN_REFERENCE_POINTS = 6  # a placement whose reference image has fewer is skipped
 MIN_POINTS = 4  # other images with fewer observations are skipped
 PRIOR_CENTER = ("prior_x", "prior_y", "prior_z")
+DEFAULT_BACKEND = "pycolmap"  # rig refinement: "pycolmap" or "scipy" (calib.rig_ba); both reach the same optimum
+RIG_CONFIG = "rig_config.json"  # COLMAP rig config beside rig.json
+LAYOUT_FIGURE = Path("figures") / "extrinsics_layout.svg"
+LAYOUT_LABELS = ("with camera-centre priors (known)", "without priors (unknown)")
+
+
+class CameraNotLinkedError(DmaisError):
+    """Cameras never imaged in a usable placement together with the reference camera."""
+
+    def __init__(self, cameras: list[str], reference: str):
+        self.cameras, self.reference = list(cameras), reference
+        super().__init__(f"camera(s) {', '.join(self.cameras)} never seen together with the reference camera "
+                         f"{reference} in a usable placement; their extrinsics cannot be calibrated")
 
 
 @dataclass
@@ -51,6 +67,7 @@ class ExtrinsicsResult:
         """Keys stored beside the rig in rig.json."""
         return {
             "use_priors": self.use_priors,
+            "backend": self.ba.backend,
             "rms_px": {c: float(v) for c, v in self.ba.rms_px.items()},
             "std": self.ba.std,
             "n_observations": {c: int(v) for c, v in self.ba.n_observations.items()},
@@ -64,8 +81,8 @@ class ExtrinsicsResult:
 def initial_extrinsics(poses: dict[str, dict[str, Rigid3]], reference: str) -> dict[str, Rigid3]:
     """rig_from_cam per camera from cam_from_world poses {placement: {camera: pose}} (eq. avg_T).
 
-    Only placements holding the reference camera contribute. Raises DmaisError for a camera never
-    localized together with the reference camera.
+    Only placements holding the reference camera contribute. Raises CameraNotLinkedError for a camera
+    never localized together with the reference camera.
     """
     samples: dict[str, list[Rigid3]] = {}
     for placement, by_camera in poses.items():
@@ -77,8 +94,7 @@ def initial_extrinsics(poses: dict[str, dict[str, Rigid3]], reference: str) -> d
     cameras = {c for by_camera in poses.values() for c in by_camera}
     alone = sorted(cameras - set(samples))
     if alone:
-        raise DmaisError(f"camera(s) {', '.join(alone)} never seen together with the reference camera {reference} "
-                         "in a usable placement; their extrinsics cannot be calibrated")
+        raise CameraNotLinkedError(alone, reference)
     out = {}
     for camera, transforms in samples.items():
         R = average_rotations(np.array([T.R for T in transforms]))
@@ -91,13 +107,19 @@ def initial_extrinsics(poses: dict[str, dict[str, Rigid3]], reference: str) -> d
 def calibrate_extrinsics(cameras: dict[str, Camera], reference: str, images: pd.DataFrame,
                          observations: pd.DataFrame, points: pd.DataFrame, *, use_priors: bool = True,
                          center_sigma: float = DEFAULT_CENTER_SIGMA_M,
-                         pixel_sigma: float | dict[str, float] = DEFAULT_PIXEL_SIGMA_PX) -> ExtrinsicsResult:
+                         pixel_sigma: float | dict[str, float] = DEFAULT_PIXEL_SIGMA_PX,
+                         backend: str = DEFAULT_BACKEND) -> ExtrinsicsResult:
     """The paper's extrinsic calibration.
 
     images: rows with image, camera, placement and optionally prior_x, prior_y, prior_z;
     observations: image, point_id, u, v; points: indexed by point_id with x, y, z;
-    cameras: intrinsics of every camera of `images`. Returns the calibrated rig and the details.
+    cameras: intrinsics of every camera of `images`; backend: rig refinement, "pycolmap" or "scipy".
+    A placement whose reference image has fewer than MIN_REFERENCE_POINTS observations is skipped
+    with a warning; a camera left without a placement shared with the reference raises
+    CameraNotLinkedError. Returns the calibrated rig and the details.
     """
+    if backend not in BACKENDS:
+        raise DmaisError(f"extrinsics: unknown backend {backend!r}; use one of {', '.join(BACKENDS)}")
     if reference not in cameras:
         raise DmaisError(f"reference camera {reference} has no intrinsics")
     unknown = sorted(set(images["camera"]) - set(cameras))
@@ -134,8 +156,7 @@ def calibrate_extrinsics(cameras: dict[str, Camera], reference: str, images: pd.
         raise DmaisError("extrinsics: no usable placement")
     alone = sorted(set(images["camera"]) - {b.camera for b in blocks} - {reference})
     if alone:
-        raise DmaisError(f"camera(s) {', '.join(alone)} never seen together with the reference camera {reference} "
-                         "in a usable placement; their extrinsics cannot be calibrated")
+        raise CameraNotLinkedError(alone, reference)
 
     localized: dict[str, Rigid3] = {}
     poses: dict[str, dict[str, Rigid3]] = {}
@@ -152,8 +173,8 @@ def calibrate_extrinsics(cameras: dict[str, Camera], reference: str, images: pd.
                   float(np.sqrt(np.mean(np.sum(res**2, axis=1)))))
     initial = initial_extrinsics(poses, reference)
     rig_from_world0 = {j: by_camera[reference] for j, by_camera in poses.items()}
-    ba = refine_rig(cameras, reference, blocks, initial, rig_from_world0, pixel_sigma=sig,
-                    center_sigma=center_sigma, use_priors=use_priors)
+    ba = refine(backend, cameras, reference, blocks, initial, rig_from_world0, pixel_sigma=sig,
+                center_sigma=center_sigma, use_priors=use_priors)
     names = [c for c in cameras if c in ba.rig_from_cam]
     rig = Rig({c: cameras[c] for c in names}, {c: ba.rig_from_cam[c].inverse() for c in names}, reference)
     for c in names:
@@ -205,12 +226,14 @@ def _load_intrinsics(results: Path, names) -> dict[str, tuple[Camera, float | No
 
 
 def run_extrinsics(dataset_dir, results_dir, use_priors: bool = True,
-                   center_sigma: float = DEFAULT_CENTER_SIGMA_M) -> list[Path]:
+                   center_sigma: float = DEFAULT_CENTER_SIGMA_M, backend: str = DEFAULT_BACKEND) -> list[Path]:
     """`dmais extrinsics DATASET --out RESULTS`.
 
     Writes RESULTS/rig.json (calibrated with the camera-centre priors when `use_priors` and the
-    images carry them), RESULTS/extrinsics/rig_{known,unknown}.json for both cases and, when both
-    cases can run, RESULTS/tables/extrinsics_R.csv and extrinsics_t.csv. Returns the written paths.
+    images carry them) and its COLMAP twin RESULTS/rig_config.json, RESULTS/extrinsics/
+    rig_{known,unknown}.json for both cases and, when both cases can run, RESULTS/tables/
+    extrinsics_R.csv, extrinsics_t.csv and RESULTS/figures/extrinsics_layout.svg. `backend` picks
+    the rig refinement ("pycolmap" or "scipy", `calib.rig_ba`). Returns the written paths.
     """
     from ..dataset import Dataset, load_observations
 
@@ -236,13 +259,73 @@ def run_extrinsics(dataset_dir, results_dir, use_priors: bool = True,
     for case in cases:
         log.info("extrinsics: calibrating %s camera-centre priors", "with" if case else "without")
         out[case] = calibrate_extrinsics(cameras, dataset.reference_camera, images, observations, dataset.points,
-                                         use_priors=case, center_sigma=center_sigma, pixel_sigma=pixel_sigma)
+                                         use_priors=case, center_sigma=center_sigma, pixel_sigma=pixel_sigma,
+                                         backend=backend)
         label = "known" if case else "unknown"
         written.append(out[case].rig.save(results / "extrinsics" / f"rig_{label}.json", **out[case].extra()))
     chosen = out[use_priors and has_priors]
     written.insert(0, chosen.rig.save(results / "rig.json", **chosen.extra()))
+    prefixes = image_prefixes(dataset.images, chosen.rig.camera_names)
+    written.insert(1, write_json_atomic(results / RIG_CONFIG, colmap_rig_config(chosen.rig, prefixes)))
     if len(out) == 2:
-        table_R, table_t = extrinsics_tables(out[True].rig, out[False].rig)
-        written.append(write_csv_atomic(results / "tables" / "extrinsics_R.csv", table_R, float_format="%.6f"))
-        written.append(write_csv_atomic(results / "tables" / "extrinsics_t.csv", table_t, float_format="%.6f"))
+        written += _write_comparison(results, out[True].rig, out[False].rig)
     return written
+
+
+def _write_comparison(results: Path, known: Rig, unknown: Rig) -> list[Path]:
+    """tab:extrinsics_R, tab:extrinsics_t and the layout figure of both cases."""
+    from ..report.layout import write_layout_svg
+
+    table_R, table_t = extrinsics_tables(known, unknown)
+    return [write_csv_atomic(results / "tables" / "extrinsics_R.csv", table_R, float_format="%.6f"),
+            write_csv_atomic(results / "tables" / "extrinsics_t.csv", table_t, float_format="%.6f"),
+            write_layout_svg(results / LAYOUT_FIGURE, [known, unknown], list(LAYOUT_LABELS),
+                             title="Camera layout in the rig frame (fig:extrinsics)")]
+
+
+# ------------------------------------------------------------------------------ COLMAP rig config
+
+
+def colmap_rig_config(rig: Rig, prefixes: dict[str, str] | None = None) -> list[dict]:
+    """The rig in the JSON layout `pycolmap.read_rig_config` reads: [{"cameras": [...]}].
+
+    One entry per camera, the reference first with "ref_sensor": true, the others with
+    cam_from_rig as "cam_from_rig_rotation" (w, x, y, z) and "cam_from_rig_translation" (m); every
+    entry also carries the intrinsics as an OPENCV camera (fx, fy, cx, cy, k1 = d, k2 = p1 = p2 = 0,
+    exactly our model). `prefixes`: image-name prefix per camera (default "<camera>/").
+    """
+    prefixes = prefixes or {}
+    order = [rig.reference_camera] + [c for c in rig.camera_names if c != rig.reference_camera]
+    cameras = []
+    for name in order:
+        cam = rig.cameras[name]
+        entry = {"image_prefix": prefixes.get(name, f"{name}/")}
+        if name == rig.reference_camera:
+            entry["ref_sensor"] = True
+        else:
+            cam_from_rig = rig.cam_from_rig[name]
+            entry["cam_from_rig_rotation"] = [float(q) for q in cam_from_rig.quat]
+            entry["cam_from_rig_translation"] = [float(t) for t in cam_from_rig.t]
+        entry["camera_model_name"] = "OPENCV"
+        entry["camera_params"] = [cam.fx, cam.fy, cam.cx, cam.cy, cam.d, 0.0, 0.0, 0.0]
+        cameras.append(entry)
+    return [{"cameras": cameras}]
+
+
+def image_prefixes(images: pd.DataFrame, names) -> dict[str, str]:
+    """Per camera, the folder holding all its image files ("images/C0/"), when every camera has its own.
+
+    images: rows with camera and path ('' when the dataset has no file). Falls back to "<camera>/"
+    for every camera when some camera has no file or two cameras share a folder (COLMAP matches
+    images to rig cameras by these name prefixes).
+    """
+    prefixes = {}
+    for name in names:
+        paths = [p for p in images.loc[images["camera"] == name, "path"] if isinstance(p, str) and p]
+        folder = posixpath.commonpath([posixpath.dirname(p) for p in paths]) if paths else ""
+        prefixes[name] = folder + "/" if folder else ""
+    values = list(prefixes.values())
+    clash = any(a.startswith(b) for i, a in enumerate(values) for j, b in enumerate(values) if i != j)
+    if "" in values or clash:
+        return {name: f"{name}/" for name in names}
+    return prefixes
