@@ -24,7 +24,7 @@ costs nothing in n: H' = K^T H K and g' = K^T g with r = K r', K = blockdiag(P^T
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 
@@ -372,12 +372,14 @@ def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tupl
     return candidates, _select(cost, front)
 
 
-def solve_generalized_pose(origins, directions, points) -> GeneralizedPose:
+def solve_generalized_pose(origins, directions, points, refine: bool = False, sigma: float | None = None) -> GeneralizedPose:
     """Globally optimal generalized absolute pose (see the module docstring).
 
     origins: (n, 3) ray origins v_i in the rig frame; directions: (n, 3) ray directions f_i in
     the rig frame (any length > 0); points: (n, 3) world points M_i; n >= 3, not collinear.
-    Returns a GeneralizedPose with x_rig = R @ M + t.
+    refine: polish the solution on the angular reprojection error (`refine.refine_pose`) and
+    return its (6, 6) covariance of (rotation increment, t); sigma: the angular noise (radians)
+    for that covariance, else estimated from the residuals. Returns x_rig = R @ M + t.
     """
     origins, directions, points = validate_correspondences(origins, directions, points)
     stats = pose_statistics(origins, directions, points)
@@ -385,4 +387,26 @@ def solve_generalized_pose(origins, directions, points) -> GeneralizedPose:
     if not candidates:
         raise PoseError("pose: the solver found no real solution (degenerate geometry?)")
     solution = candidates[best]
-    return GeneralizedPose(R=solution.R, t=solution.t, cost=solution.cost, candidates=candidates, n_points=stats.n)
+    pose = GeneralizedPose(R=solution.R, t=solution.t, cost=solution.cost, candidates=candidates, n_points=stats.n)
+    if not refine:
+        return pose
+    from .refine import refine_pose
+
+    refined = refine_pose(origins, directions, points, pose.R, pose.t, sigma=sigma)
+    cost = float(np.sum(np.cross(directions, points @ refined.R.T + refined.t - origins) ** 2))
+    return replace(pose, R=refined.R, t=refined.t, cost=cost, covariance=refined.covariance)
+
+
+def solve_batch(problems, refine: bool = False) -> list[GeneralizedPose | PoseError]:
+    """Solve many frames in one call: problems is an iterable of (origins, directions, points).
+
+    Returns one GeneralizedPose per frame, or the PoseError that frame raised (so one bad frame
+    does not lose the others).
+    """
+    results: list[GeneralizedPose | PoseError] = []
+    for origins, directions, points in problems:
+        try:
+            results.append(solve_generalized_pose(origins, directions, points, refine=refine))
+        except PoseError as error:
+            results.append(error)
+    return results

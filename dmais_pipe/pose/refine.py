@@ -1,0 +1,201 @@
+"""Non-linear refinement of a generalized absolute pose on angular (tangent-plane) ray errors.
+
+Residual of correspondence i for a pose (R, t) (x_rig = R @ M + t): with p_i = R M_i + t - v_i
+the vector from the ray origin to the transformed world point and u_i = p_i / ||p_i||,
+
+    r_i = B_i u_i   (2,),   B_i = [b1_i; b2_i] (2, 3) a fixed orthonormal basis of the plane
+                            orthogonal to the unit direction f_i (`tangent_bases`).
+
+||r_i|| = sin(angle between p_i and f_i), i.e. radians for small errors; the sign of the depth
+alpha_i = f_i . p_i is not seen by r_i (see `ray_errors` for a test that rejects alpha_i <= 0).
+
+Parameters of the Gauss-Newton / Levenberg-Marquardt iteration, in this order,
+
+    x = (omega (3), delta_t (3)):   R <- exp(omega) R,   t <- t + delta_t,
+
+a left (rig-frame) rotation increment and an additive translation increment. With
+q_i = R M_i the analytic Jacobian is
+
+    d r_i / d p_i = B_i (I - u_i u_i^T) / ||p_i||,   d p_i / d omega = -[q_i]x,   d p_i / d t = I.
+
+The covariance of the estimate in the same order, cov(omega, t) = s^2 (J^T J)^-1 (6, 6), where
+omega is the error rotation R_true = exp(omega) R_estimate, and s^2 is sigma^2 when sigma
+(radians, per residual component) is given, otherwise the a-posteriori variance of unit weight
+sum ||r_i||^2 / (2 n - 6).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..calib._projection import exp_so3
+from . import PoseError
+from .statistics import validate_correspondences
+
+#: Iteration limit of `refine_pose`.
+MAX_ITERATIONS = 50
+#: Stop when the step is below this (radians for omega, relative to the scene size for t).
+STEP_TOLERANCE = 1e-12
+#: Stop when the cost decreases by less than this fraction.
+COST_TOLERANCE = 1e-14
+
+
+@dataclass(frozen=True)
+class RefinedPose:
+    """Result of `refine_pose`.
+
+    R (3, 3), t (3,): the refined pose, x_rig = R @ M + t. covariance (6, 6): of
+    (omega, t) with R_true = exp(omega) R (module docstring). residual_rms: sqrt(sum_i ||r_i||^2
+    / n), the RMS angular error per ray in radians. n_iterations: iterations performed.
+    converged: a stopping tolerance was met before the iteration limit.
+    """
+
+    R: np.ndarray
+    t: np.ndarray
+    covariance: np.ndarray
+    residual_rms: float
+    n_iterations: int
+    converged: bool
+
+
+def tangent_bases(directions: np.ndarray) -> np.ndarray:
+    """(n, 2, 3) orthonormal bases [b1; b2] of the planes orthogonal to unit directions (n, 3).
+
+    b1 = f x a / ||f x a|| with a the coordinate axis least aligned with f, b2 = f x b1.
+    """
+    f = np.asarray(directions, dtype=float)
+    axis = np.zeros_like(f)
+    axis[np.arange(len(f)), np.argmin(np.abs(f), axis=1)] = 1.0
+    b1 = np.cross(f, axis)
+    b1 /= np.linalg.norm(b1, axis=1)[:, None]
+    b2 = np.cross(f, b1)
+    return np.stack([b1, b2], axis=1)
+
+
+def angular_residuals(origins, bases, points, R, t) -> np.ndarray:
+    """(n, 2) residuals r_i = B_i (R M_i + t - v_i) / ||.|| (radians for small errors).
+
+    origins: (n, 3); bases: (n, 2, 3) from `tangent_bases`; points: (n, 3); R (3, 3), t (3,).
+    """
+    p = points @ R.T + t - origins
+    u = p / np.linalg.norm(p, axis=1)[:, None]
+    return np.einsum("nij,nj->ni", bases, u)
+
+
+def ray_errors(origins, directions, points, R, t) -> np.ndarray:
+    """(n,) angular error in radians of each correspondence, inf where the point is behind its ray.
+
+    The error is ||r_i|| = sin of the angle between R M_i + t - v_i and f_i (the norm of the
+    `angular_residuals`, basis-independent); points with depth alpha_i = f_i . p_i <= 0 get inf.
+    """
+    p = points @ R.T + t - origins
+    norm = np.linalg.norm(p, axis=1)
+    alpha = np.einsum("ij,ij->i", p, directions)
+    sine = np.linalg.norm(np.cross(p, directions), axis=1) / np.where(norm > 0, norm, 1.0)
+    return np.where((alpha > 0) & (norm > 0), sine, np.inf)
+
+
+def _jacobian(origins, bases, points, R, t) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (2n,) and Jacobian (2n, 6) with respect to (omega, delta_t)."""
+    q = points @ R.T
+    p = q + t - origins
+    norm = np.linalg.norm(p, axis=1)
+    u = p / norm[:, None]
+    r = np.einsum("nij,nj->ni", bases, u)
+    # d r / d p = B (I - u u^T) / ||p|| = (B - (B u) u^T) / ||p||
+    dr_dp = (bases - r[:, :, None] * u[:, None, :]) / norm[:, None, None]
+    J = np.empty((len(points), 2, 6))
+    J[:, :, :3] = np.cross(q[:, None, :], dr_dp)  # row^T (-[q]x) = -(row x q) = q x row
+    J[:, :, 3:] = dr_dp
+    return r.reshape(-1), J.reshape(-1, 6)
+
+
+def refine_pose(origins, directions, points, R, t, sigma: float | None = None,
+                max_iterations: int = MAX_ITERATIONS) -> RefinedPose:
+    """Levenberg-Marquardt refinement of (R, t) on the angular ray residuals (module docstring).
+
+    origins: (n, 3) ray origins v_i; directions: (n, 3) ray directions f_i (normalized here);
+    points: (n, 3) world points M_i; R (3, 3), t (3,): the starting pose, x_rig = R @ M + t.
+    sigma: a-priori standard deviation of one residual component in radians, or None to use the
+    a-posteriori estimate (needs n >= 4; for n == 3 the covariance is NaN). Parameter order of
+    the covariance: (omega_x, omega_y, omega_z, t_x, t_y, t_z).
+    """
+    v, f, M = validate_correspondences(origins, directions, points)
+    R, t = _checked_pose(R, t)
+    if sigma is not None and not (np.isfinite(sigma) and sigma > 0):
+        raise PoseError(f"refine_pose: sigma must be a positive number of radians, got {sigma}")
+    bases = tangent_bases(f)
+    R, t, r, J, n_iterations, converged = _levenberg_marquardt(v, bases, M, R, t, max_iterations)
+    n = len(M)
+    cost = float(r @ r)
+    if sigma is not None:
+        variance = float(sigma) ** 2
+    else:
+        variance = cost / (2 * n - 6) if n > 3 else np.nan
+    return RefinedPose(
+        R=R, t=t, covariance=variance * _inverse_normal_matrix(J), residual_rms=float(np.sqrt(cost / n)),
+        n_iterations=n_iterations, converged=converged,
+    )
+
+
+def _checked_pose(R, t) -> tuple[np.ndarray, np.ndarray]:
+    R = np.asarray(R, dtype=float)
+    t = np.asarray(t, dtype=float)
+    if R.shape != (3, 3) or t.shape != (3,):
+        raise PoseError(f"refine_pose: R must be (3, 3) and t (3,), got {R.shape} and {t.shape}")
+    if not (np.isfinite(R).all() and np.isfinite(t).all()):
+        raise PoseError("refine_pose: the starting pose is not finite")
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise PoseError("refine_pose: R is not a rotation matrix")
+    U, _, Vt = np.linalg.svd(R)  # re-orthonormalize
+    return U @ Vt, t
+
+
+def _levenberg_marquardt(v, bases, M, R, t, max_iterations):
+    """Iterate from (R, t); returns R, t, residuals, Jacobian at the solution, iterations, converged."""
+    size = 1.0 + float(np.abs(M - M.mean(axis=0)).max() + np.abs(t).max())
+    damping = 1e-6
+    r, J = _jacobian(v, bases, M, R, t)
+    cost = float(r @ r)
+    for iteration in range(1, max_iterations + 1):
+        JtJ, Jtr = J.T @ J, J.T @ r
+        while True:
+            step = _damped_step(JtJ, Jtr, damping)
+            R_new, t_new = exp_so3(step[:3]) @ R, t + step[3:]
+            r_new, J_new = _jacobian(v, bases, M, R_new, t_new)
+            cost_new = float(r_new @ r_new)
+            if cost_new <= cost or damping > 1e12:
+                break
+            damping *= 10.0
+        if not cost_new <= cost:
+            return R, t, r, J, iteration, True  # no descent left: at the minimum up to rounding
+        decrease = cost - cost_new
+        R, t, r, J, cost = R_new, t_new, r_new, J_new, cost_new
+        damping = max(damping / 10.0, 1e-12)
+        small_step = max(np.abs(step[:3]).max(), np.abs(step[3:]).max() / size) < STEP_TOLERANCE
+        if small_step or decrease <= COST_TOLERANCE * cost:
+            return R, t, r, J, iteration, True
+    return R, t, r, J, max_iterations, False
+
+
+def _damped_step(JtJ, Jtr, damping) -> np.ndarray:
+    A = JtJ + damping * np.diag(np.maximum(np.diag(JtJ), 1e-300))
+    try:
+        return -np.linalg.solve(A, Jtr)
+    except np.linalg.LinAlgError:
+        return -np.linalg.lstsq(A, Jtr, rcond=None)[0]
+
+
+def _inverse_normal_matrix(J) -> np.ndarray:
+    """(J^T J)^-1 (6, 6), or NaN if the pose is not observable (rank-deficient Jacobian)."""
+    JtJ = J.T @ J
+    scale = np.sqrt(np.diag(JtJ))
+    if not (scale > 0).all():
+        return np.full((6, 6), np.nan)
+    normalized = JtJ / np.outer(scale, scale)  # unit diagonal: the test ignores the units of x
+    if np.linalg.cond(normalized) > 1e12:
+        return np.full((6, 6), np.nan)
+    inverse = np.linalg.inv(normalized) / np.outer(scale, scale)
+    return 0.5 * (inverse + inverse.T)
