@@ -69,6 +69,36 @@ def _cmd_extrinsics(args) -> None:
         print(path)
 
 
+def _cmd_pose(args) -> None:
+    from .pose.stage import run_pose
+
+    cameras = [c for c in args.cameras.split(",") if c] if args.cameras else None
+    groups = [g for g in args.groups.split(",") if g] if args.groups else None
+    print(run_pose(args.dataset, args.out, cameras=cameras, robust=args.robust, refine=args.refine,
+                   groups=groups, out=args.csv))
+
+
+def _cmd_evaluate(args) -> None:
+    from .evaluate import run_evaluate
+
+    for path in run_evaluate(args.dataset, args.out):
+        print(path)
+
+
+def _cmd_report(args) -> None:
+    from .report.html import write_report
+    from .report.paper import write_paper_comparisons
+
+    write_paper_comparisons(args.out, args.out / "tables")
+    print(write_report(args.dataset, args.out, args.html, benchmarks_dir=args.benchmarks))
+
+
+def _cmd_bench_pose(args) -> None:
+    from .pose.bench import bench_pose
+
+    bench_pose(args.csv, repeats=args.repeats, batch_frames=args.batch_frames)
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -102,6 +132,28 @@ def _parser() -> argparse.ArgumentParser:
     extrinsics.add_argument("--no-priors", action="store_true", help="write rig.json from the run without RTK priors")
     extrinsics.set_defaults(run=_cmd_extrinsics)
 
+    pose = commands.add_parser("pose", help="estimate the rig pose of every flight frame")
+    pose.add_argument("dataset", type=Path)
+    pose.add_argument("--out", type=Path, required=True, help="results folder (with rig.json)")
+    pose.add_argument("--cameras", help="comma-separated camera subset, e.g. C0,C1,C2 (default: all)")
+    pose.add_argument("--groups", help="comma-separated frame groups to solve (default: all)")
+    pose.add_argument("--robust", action="store_true", help="RANSAC against wrong correspondences first")
+    pose.add_argument("--refine", action="store_true", help="polish on the reprojection error")
+    pose.add_argument("--csv", type=Path, help="output CSV (default: RESULTS/poses.csv or poses_<label>.csv)")
+    pose.set_defaults(run=_cmd_pose)
+
+    evaluate = commands.add_parser("evaluate", help="pose errors against the POS reference (and truth), tables")
+    evaluate.add_argument("dataset", type=Path)
+    evaluate.add_argument("--out", type=Path, required=True, help="results folder (with poses.csv)")
+    evaluate.set_defaults(run=_cmd_evaluate)
+
+    report = commands.add_parser("report", help="write the self-contained HTML report")
+    report.add_argument("dataset", type=Path)
+    report.add_argument("--out", type=Path, required=True, help="results folder")
+    report.add_argument("--html", type=Path, required=True, help="report file, e.g. reports/demo/report.html")
+    report.add_argument("--benchmarks", type=Path, help="folder of snakemake benchmark files (stage times)")
+    report.set_defaults(run=_cmd_report)
+
     summarize = commands.add_parser("summarize", help="write a dataset summary (CSV + HTML) to a report folder")
     summarize.add_argument("dataset", type=Path)
     summarize.add_argument("--out", type=Path, required=True, help="report folder, e.g. reports/demo")
@@ -113,6 +165,11 @@ def _parser() -> argparse.ArgumentParser:
     bench_markers.add_argument("--rig", type=Path, help="rig.json used to identify flight markers (e.g. truth/rig.json)")
     bench_markers.add_argument("--csv", type=Path, default=Path("reports/bench/markers.csv"))
     bench_markers.set_defaults(run=_cmd_bench_markers)
+    bench_pose = benches.add_parser("pose", help="pose solver time vs points (tab:time_points) and batch throughput")
+    bench_pose.add_argument("--csv", type=Path, default=Path("reports/bench/pose_time_points.csv"))
+    bench_pose.add_argument("--repeats", type=int, default=200, help="solves per point count and method")
+    bench_pose.add_argument("--batch-frames", type=int, default=200, help="frames in the batch-throughput run")
+    bench_pose.set_defaults(run=_cmd_bench_pose)
     return parser
 
 

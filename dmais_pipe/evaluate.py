@@ -1,0 +1,395 @@
+"""`dmais evaluate DATASET --out RESULTS`: accuracy of the flight poses (paper, "Pose Estimation Results").
+
+Per frame of RESULTS/poses.csv (and of every camera-subset file RESULTS/poses_<label>.csv):
+
+- eps_pos_m: distance between the estimated rig centre and the POS reference position after the
+  POS lever-arm calibration. The paper calibrates the lever arm "by calculating the average offset
+  between the estimated position provided by the DMAIS and the position reported by the POS"; we
+  take that mean offset (estimate minus POS, a world-frame 3-vector) per frame group, because the
+  lever arm rotates with the rig and every group hovers with its own heading, and subtract it
+  before taking distances. The offsets are computed once from poses.csv (the full rig, the
+  hardware calibration) and applied unchanged to the camera subsets, so that a subset's bias
+  counts as error; a group absent from poses.csv uses the subset's own mean. A group with a single
+  frame has eps_pos = 0 by construction (logged as a warning).
+- eps_ang_arcmin = eps_proj_px x angular resolution, the angular size of one pixel, 1 / f rad with
+  f the mean focal length ((fx + fy) / 2, RESULTS/rig.json) of the cameras the frame used.
+- with simulator truth (DATASET/truth/frames.csv): true_pos_err_m, the distance between the
+  estimated and the true rig centre, and true_ang_err_arcmin, the angle of R_est R_true^T.
+
+Outputs: RESULTS/evaluation.csv and evaluation_<label>.csv (the poses columns + the errors),
+RESULTS/tables/pose_methods.csv (tab:pose_methods: per group mean and sample std (ddof = 1) of
+eps_pos, eps_ang, eps_proj and the mean time) and, when subset files exist, RESULTS/tables/conf.csv
+(tab:conf: per group and subset label the means of eps_pos, eps_ang, eps_proj). A subset label is
+the digits of the camera indexes in rig order (C0..C4): 0, 01, 012, 1234, 01234.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from collections.abc import Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .dataset import Dataset, _read_table, _Table
+from .errors import DatasetError
+from .files import write_csv_atomic
+from .geometry import Rigid3, rotation_error, rotation_from_quat
+from .rig import Rig
+
+log = logging.getLogger(__name__)
+
+POSES = "poses.csv"
+EVALUATION = "evaluation.csv"
+RIG = "rig.json"
+TRUTH_FRAMES = "frames.csv"
+SUBSET_FILE = re.compile(r"^poses_(\d+)\.csv$")
+QUAT = ("qw", "qx", "qy", "qz")
+TRANSLATION = ("tx", "ty", "tz")
+CENTER = ("x", "y", "z")
+POS = ("pos_x", "pos_y", "pos_z")
+POSE_COLUMNS = ("frame", "group", "cameras", "n_points", *QUAT, *TRANSLATION, *CENTER, "eps_proj_px", "time_ms")
+TRUTH_COLUMNS = ("frame", "group", *QUAT, *TRANSLATION, *CENTER)
+ERROR_COLUMNS = ("eps_pos_m", "eps_ang_arcmin")
+TRUE_ERROR_COLUMNS = ("true_pos_err_m", "true_ang_err_arcmin")
+ARCMIN_PER_RAD = 180.0 * 60.0 / np.pi
+ALL_GROUPS = "all"
+
+
+class ResultsError(DatasetError):
+    """A malformed results file (written by an earlier stage or by hand), naming the file and line."""
+
+
+# ------------------------------------------------------------------------------ pure metrics
+
+
+def group_offsets(estimated, reference, groups) -> dict[str, np.ndarray]:
+    """Mean offset (3,) estimated - reference per group: the lever-arm calibration.
+
+    estimated, reference: (n, 3) positions; groups: (n,) group labels.
+    """
+    delta = np.asarray(estimated, dtype=float) - np.asarray(reference, dtype=float)
+    groups = np.asarray(groups).astype(str)
+    return {g: delta[groups == g].mean(axis=0) for g in _ordered(np.unique(groups))}
+
+
+def position_errors(estimated, reference, groups, offsets: dict[str, np.ndarray] | None = None) -> np.ndarray:
+    """(n,) distances |estimated - reference - offset[group]| (m).
+
+    estimated, reference: (n, 3); groups: (n,). `offsets` (group -> (3,)) default to the mean
+    offsets of these rows (`group_offsets`); a group missing from `offsets` uses its own mean.
+    """
+    estimated = np.asarray(estimated, dtype=float)
+    reference = np.asarray(reference, dtype=float)
+    groups = np.asarray(groups).astype(str)
+    own = group_offsets(estimated, reference, groups)
+    offsets = {**own, **(offsets or {})}
+    offset = np.array([offsets[g] for g in groups]).reshape(-1, 3)
+    return np.linalg.norm(estimated - reference - offset, axis=1)
+
+
+def angular_resolution_arcmin(focal_px) -> np.ndarray:
+    """Angular size of one pixel (arc-min), 1 / f rad, for focal lengths f (px), scalar or (n,)."""
+    return ARCMIN_PER_RAD / np.asarray(focal_px, dtype=float)
+
+
+def angular_errors(eps_proj_px, focal_px) -> np.ndarray:
+    """eps_ang (arc-min) = eps_proj (px) x angular resolution; both (n,) or scalars."""
+    return np.asarray(eps_proj_px, dtype=float) * angular_resolution_arcmin(focal_px)
+
+
+def mean_focal_px(rig: Rig, cameras: Sequence[str]) -> float:
+    """Mean of (fx + fy) / 2 over the named cameras of `rig`."""
+    return float(np.mean([(rig.cameras[c].fx + rig.cameras[c].fy) / 2.0 for c in cameras]))
+
+
+def true_errors(quat_est, center_est, quat_true, center_true) -> tuple[np.ndarray, np.ndarray]:
+    """Position error (n,) in metres and attitude error (n,) in arc-min against the truth.
+
+    quat_*: (n, 4) rig_from_world (w, x, y, z); center_*: (n, 3) rig centres in the world. The
+    attitude error is the angle of R_est R_true^T.
+    """
+    position = np.linalg.norm(np.asarray(center_est, float) - np.asarray(center_true, float), axis=1)
+    R_est = rotation_from_quat(np.asarray(quat_est, float).reshape(-1, 4))
+    R_true = rotation_from_quat(np.asarray(quat_true, float).reshape(-1, 4))
+    return position, rotation_error(R_est, R_true) * ARCMIN_PER_RAD
+
+
+def subset_cameras(label: str, rig: Rig) -> list[str]:
+    """Camera names of a subset label (digits = indexes in rig order): '012' -> ['C0', 'C1', 'C2']."""
+    names = rig.camera_names
+    bad = [d for d in label if int(d) >= len(names)]
+    if not label or bad:
+        raise ValueError(f"subset label {label!r}: the rig has cameras 0..{len(names) - 1} ({', '.join(names)})")
+    return [names[int(d)] for d in label]
+
+
+# ------------------------------------------------------------------------------ tables
+
+
+def pose_methods_table(evaluation: pd.DataFrame) -> pd.DataFrame:
+    """tab:pose_methods: one row per group and one for all frames (group 'all').
+
+    evaluation: the columns of evaluation.csv. Columns: group, n_frames, eps_pos_mean_m,
+    eps_pos_std_m, eps_ang_mean_arcmin, eps_ang_std_arcmin, eps_proj_mean_px, eps_proj_std_px,
+    time_mean_ms [, true_pos_err_mean_m, true_pos_err_median_m, true_ang_err_mean_arcmin,
+    true_ang_err_median_arcmin]. Standard deviations are sample ones (ddof = 1).
+    """
+    rows = [_pose_methods_row(g, rows) for g, rows in _groups_and_all(evaluation)]
+    return pd.DataFrame(rows)
+
+
+def _pose_methods_row(group: str, rows: pd.DataFrame) -> dict:
+    row = {"group": group, "n_frames": len(rows)}
+    for name, column, unit in (("eps_pos", "eps_pos_m", "m"), ("eps_ang", "eps_ang_arcmin", "arcmin"),
+                               ("eps_proj", "eps_proj_px", "px")):
+        row[f"{name}_mean_{unit}"] = rows[column].mean()
+        row[f"{name}_std_{unit}"] = rows[column].std(ddof=1)
+    row["time_mean_ms"] = rows["time_ms"].mean()
+    if TRUE_ERROR_COLUMNS[0] in rows:
+        row.update(true_pos_err_mean_m=rows["true_pos_err_m"].mean(),
+                   true_pos_err_median_m=rows["true_pos_err_m"].median(),
+                   true_ang_err_mean_arcmin=rows["true_ang_err_arcmin"].mean(),
+                   true_ang_err_median_arcmin=rows["true_ang_err_arcmin"].median())
+    return row
+
+
+def conf_table(evaluations: dict[str, pd.DataFrame], rig: Rig) -> pd.DataFrame:
+    """tab:conf in long form: one row per group (and 'all') and subset label.
+
+    evaluations: label -> evaluation table of poses_<label>.csv. Columns: group, subset, cameras
+    (names joined by '+'), n_frames, eps_pos_mean_m, eps_ang_mean_arcmin, eps_proj_mean_px
+    [, true_pos_err_mean_m, true_ang_err_mean_arcmin].
+    """
+    rows = []
+    labels = sorted(evaluations, key=lambda label: (len(label), label))
+    for label in labels:
+        for group, part in _groups_and_all(evaluations[label]):
+            row = {"group": group, "subset": label, "cameras": "+".join(subset_cameras(label, rig)),
+                   "n_frames": len(part), "eps_pos_mean_m": part["eps_pos_m"].mean(),
+                   "eps_ang_mean_arcmin": part["eps_ang_arcmin"].mean(),
+                   "eps_proj_mean_px": part["eps_proj_px"].mean()}
+            if TRUE_ERROR_COLUMNS[0] in part:
+                row.update(true_pos_err_mean_m=part["true_pos_err_m"].mean(),
+                           true_ang_err_mean_arcmin=part["true_ang_err_arcmin"].mean())
+            rows.append(row)
+    table = pd.DataFrame(rows)
+    order = {g: k for k, g in enumerate(_ordered(table["group"].unique()))}
+    return table.sort_values(["group", "subset"], key=lambda s: s.map(order) if s.name == "group" else
+                             s.map({label: k for k, label in enumerate(labels)}), kind="stable").reset_index(drop=True)
+
+
+def _groups_and_all(evaluation: pd.DataFrame):
+    """(group, rows) per group in natural order, then ('all', every row)."""
+    groups = _ordered(evaluation["group"].astype(str).unique())
+    for group in groups:
+        yield group, evaluation[evaluation["group"].astype(str) == group]
+    yield ALL_GROUPS, evaluation
+
+
+def _ordered(groups) -> list[str]:
+    """Group labels in natural order: numbers numerically, then text; 'all' last."""
+    def key(g: str):
+        return (g == ALL_GROUPS, not g.isdigit(), int(g) if g.isdigit() else 0, g)
+    return sorted((str(g) for g in groups), key=key)
+
+
+# ------------------------------------------------------------------------------ reading results
+
+
+def read_poses(path: str | Path, dataset: Dataset, rig: Rig, allowed_cameras: Sequence[str] | None = None
+               ) -> pd.DataFrame:
+    """A poses CSV (POSE_COLUMNS + extras) checked against the dataset and the rig.
+
+    Numbers must be finite; frames must be frames of the dataset with the same group; cameras
+    (names joined by '+') must be cameras of the rig (and of `allowed_cameras` when given).
+    Raises ResultsError naming the file and line. Returns typed columns, extras as strings.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ResultsError(path, "missing; run `dmais pose` first")
+    with _as_results_error():
+        table = _read_table(path, POSE_COLUMNS)
+        if len(table) == 0:
+            raise ResultsError(path, "has no rows; no frame to evaluate")
+        frame = _checked_frames(table, dataset)
+        cameras = _checked_cameras(table, rig, allowed_cameras)
+        numbers = {c: table.floats(c) for c in POSE_COLUMNS[3:]}
+        n_points = numbers["n_points"]
+        table.check((n_points != np.round(n_points)) | (n_points < 0),
+                    lambda row: f"column n_points: {n_points[row]:g} is not a count")
+    columns = {"frame": frame, "group": table.text("group"), "cameras": cameras,
+               **numbers, "n_points": n_points.astype(int)}
+    out = pd.DataFrame(columns)
+    for extra in table.extra_columns(POSE_COLUMNS):
+        out[extra] = table.text(extra)
+    return out
+
+
+def _checked_frames(table: _Table, dataset: Dataset) -> np.ndarray:
+    frame = table.required_text("frame")
+    table.first_rows(["frame"], "frame")
+    group_of = dict(zip(dataset.frames["frame"], dataset.frames["group"]))
+    table.check([f not in group_of for f in frame],
+                lambda row: f"frame {frame[row]!r} is not a frame of {dataset.root / 'frames.csv'}")
+    group = table.text("group")
+    table.check([group_of[f] != g for f, g in zip(frame, group)],
+                lambda row: f"frame {frame[row]!r}: group {group[row]!r}, frames.csv says {group_of[frame[row]]!r}")
+    return frame
+
+
+def _checked_cameras(table: _Table, rig: Rig, allowed: Sequence[str] | None) -> np.ndarray:
+    cameras = table.required_text("cameras")
+    names = [c.split("+") for c in cameras]
+    table.check([any(n not in rig.cameras for n in row) for row in names],
+                lambda row: f"cameras {cameras[row]!r}: not all are cameras of the rig ({', '.join(rig.camera_names)})")
+    if allowed is not None:
+        table.check([any(n not in allowed for n in row) for row in names],
+                    lambda row: f"cameras {cameras[row]!r}: this subset file may use only {'+'.join(allowed)}")
+    return cameras
+
+
+def read_truth_frames(dataset: Dataset) -> pd.DataFrame | None:
+    """truth/frames.csv indexed by frame (TRUTH_COLUMNS as floats), None without truth."""
+    path = dataset.truth_dir / TRUTH_FRAMES
+    if not path.is_file():
+        return None
+    table = _read_table(path, TRUTH_COLUMNS)
+    columns = {"frame": table.required_text("frame"), "group": table.text("group")}
+    columns.update({c: table.floats(c) for c in TRUTH_COLUMNS[2:]})
+    return pd.DataFrame(columns).set_index("frame")
+
+
+@contextmanager
+def _as_results_error():
+    """Turn a DatasetError of the shared CSV reader into a ResultsError (same file, line, message)."""
+    try:
+        yield
+    except ResultsError:
+        raise
+    except DatasetError as error:
+        raise ResultsError(error.path, error.message, error.line) from None
+
+
+# ------------------------------------------------------------------------------ evaluation
+
+
+def evaluate_poses(poses: pd.DataFrame, dataset: Dataset, rig: Rig, truth: pd.DataFrame | None = None,
+                   offsets: dict[str, np.ndarray] | None = None) -> pd.DataFrame:
+    """poses (read_poses) + eps_pos_m, eps_ang_arcmin [+ true_pos_err_m, true_ang_err_arcmin].
+
+    offsets: lever-arm offsets per group (group_offsets); default the mean offsets of `poses`.
+    truth: read_truth_frames(dataset); frames it lacks raise ResultsError.
+    """
+    pos = dataset.frames.set_index("frame").loc[poses["frame"], list(POS)].to_numpy(dtype=float)
+    centers = poses[list(CENTER)].to_numpy(dtype=float)
+    focal = np.array([mean_focal_px(rig, c.split("+")) for c in poses["cameras"]])
+    out = poses.copy()
+    out["eps_pos_m"] = position_errors(centers, pos, poses["group"], offsets)
+    out["eps_ang_arcmin"] = angular_errors(poses["eps_proj_px"], focal)
+    if truth is not None:
+        missing = sorted(set(poses["frame"]) - set(truth.index))
+        if missing:
+            raise ResultsError(dataset.truth_dir / TRUTH_FRAMES, f"has no row for frame(s) {', '.join(missing[:5])}")
+        rows = truth.loc[poses["frame"]]
+        out["true_pos_err_m"], out["true_ang_err_arcmin"] = true_errors(
+            poses[list(QUAT)], centers, rows[list(QUAT)], rows[list(CENTER)])
+    _warn_single_frame_groups(poses)
+    return out
+
+
+def _warn_single_frame_groups(poses: pd.DataFrame) -> None:
+    counts = poses["group"].value_counts()
+    single = sorted(counts[counts < 2].index)
+    if single:
+        log.warning("group(s) %s have one frame: their lever-arm offset is that frame's, so eps_pos = 0",
+                    ", ".join(single))
+
+
+def subset_files(results_dir: str | Path) -> dict[str, Path]:
+    """label -> RESULTS/poses_<label>.csv, labels sorted by length then value."""
+    found = {}
+    for path in Path(results_dir).glob("poses_*.csv"):
+        match = SUBSET_FILE.match(path.name)
+        if match:
+            found[match.group(1)] = path
+    return dict(sorted(found.items(), key=lambda item: (len(item[0]), item[0])))
+
+
+def run_evaluate(dataset_dir: str | Path, results_dir: str | Path) -> list[Path]:
+    """`dmais evaluate DATASET --out RESULTS`; returns the written paths (see the module docstring)."""
+    dataset = Dataset.load(dataset_dir)
+    results = Path(results_dir)
+    rig = Rig.load(results / RIG)
+    truth = read_truth_frames(dataset)
+    poses = read_poses(results / POSES, dataset, rig)
+    pos = dataset.frames.set_index("frame").loc[poses["frame"], list(POS)].to_numpy(dtype=float)
+    offsets = group_offsets(poses[list(CENTER)].to_numpy(dtype=float), pos, poses["group"])
+    for group, offset in offsets.items():
+        log.info("lever-arm offset (estimate - POS) of group %s: (%.3f, %.3f, %.3f) m", group, *offset)
+    evaluation = evaluate_poses(poses, dataset, rig, truth, offsets)
+    written = [write_csv_atomic(results / EVALUATION, evaluation)]
+    table = pose_methods_table(evaluation)
+    written.append(write_csv_atomic(results / "tables" / "pose_methods.csv", table))
+    subsets = {}
+    for label, path in subset_files(results).items():
+        try:
+            allowed = subset_cameras(label, rig)
+        except ValueError as error:
+            raise ResultsError(path, str(error)) from None
+        subsets[label] = evaluate_poses(read_poses(path, dataset, rig, allowed), dataset, rig, truth, offsets)
+        written.append(write_csv_atomic(results / f"evaluation_{label}.csv", subsets[label]))
+    if subsets:
+        written.append(write_csv_atomic(results / "tables" / "conf.csv", conf_table(subsets, rig)))
+    elif (results / "tables" / "conf.csv").exists():
+        log.info("no poses_<label>.csv: removing the stale %s", results / "tables" / "conf.csv")
+        (results / "tables" / "conf.csv").unlink()
+    _log_summary(table)
+    return written
+
+
+def _log_summary(table: pd.DataFrame) -> None:
+    for row in table.itertuples(index=False):
+        log.info("group %s: %d frames, eps_pos %.3f m, eps_ang %.3f', eps_proj %.3f px, %.2f ms", row.group,
+                 row.n_frames, row.eps_pos_mean_m, row.eps_ang_mean_arcmin, row.eps_proj_mean_px, row.time_mean_ms)
+
+
+# ------------------------------------------------------------------------------ residuals
+
+
+def reprojection_residuals(dataset: Dataset, rig: Rig, poses: pd.DataFrame, observations: pd.DataFrame
+                           ) -> pd.DataFrame:
+    """Flight residuals observed - projected (px) of the frames in `poses`, cameras the pose used.
+
+    poses: as read_poses (frame, cameras, qw..qz, tx..tz); observations: image, camera, point_id,
+    u, v (load_observations). Returns one row per observation: frame, camera, image, point_id,
+    u, v, du, dv (NaN where the point does not project into the camera).
+    """
+    flight = dataset.images_of("flight")
+    frame_of = dict(zip(flight["image"], flight["placement"]))
+    obs = observations[observations["image"].isin(frame_of.keys())].copy()
+    obs["frame"] = obs["image"].map(frame_of)
+    points = dataset.points
+    parts = []
+    by_frame = {frame: rows for frame, rows in obs.groupby("frame", sort=False)}
+    for pose in poses.itertuples(index=False):
+        rows = by_frame.get(pose.frame)
+        if rows is None:
+            continue
+        rig_from_world = Rigid3.from_quat([pose.qw, pose.qx, pose.qy, pose.qz], [pose.tx, pose.ty, pose.tz])
+        for camera in pose.cameras.split("+"):
+            mine = rows[rows["camera"] == camera]
+            if mine.empty:
+                continue
+            X = points.loc[mine["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
+            projected = rig.project(camera, rig_from_world, X)
+            parts.append(mine.assign(du=mine["u"].to_numpy() - projected[:, 0],
+                                     dv=mine["v"].to_numpy() - projected[:, 1]))
+    columns = ["frame", "camera", "image", "point_id", "u", "v", "du", "dv"]
+    if not parts:
+        return pd.DataFrame({c: pd.Series([], dtype=float if c in ("u", "v", "du", "dv") else object)
+                             for c in columns})
+    return pd.concat(parts, ignore_index=True)[columns]

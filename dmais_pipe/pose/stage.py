@@ -1,0 +1,146 @@
+"""`dmais pose DATASET --out RESULTS`: every flight frame through the generalized solver.
+
+Reads RESULTS/rig.json (extrinsics stage), the identified observations (RESULTS/observations.csv or
+the dataset's) and the ground points; writes RESULTS/poses.csv (all cameras) or
+RESULTS/poses_<label>.csv for a camera subset, label = the digits of the cameras' positions in the
+rig (e.g. 012), with the DESIGN.md columns
+
+    frame, group, cameras, n_points, qw, qx, qy, qz, tx, ty, tz, x, y, z, eps_proj_px, time_ms
+
+(rig_from_world, rig centre x, y, z in the world, eps_proj_px the RMS reprojection distance over the
+frame's observations, time_ms the wall time of the solve alone). Frames with fewer than 3 usable
+observations, or that the solver rejects, are left out with a warning naming them.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..dataset import Dataset, load_observations
+from ..errors import DmaisError
+from ..files import write_csv_atomic
+from ..geometry import Rigid3, quat_from_rotation
+from ..rig import Rig
+from . import PoseError
+from .robust import solve_robust
+from .solver import solve_generalized_pose
+
+log = logging.getLogger(__name__)
+
+COLUMNS = ["frame", "group", "cameras", "n_points", "qw", "qx", "qy", "qz", "tx", "ty", "tz",
+           "x", "y", "z", "eps_proj_px", "time_ms"]
+#: RANSAC threshold of --robust, in pixels (converted with each camera's focal length).
+ROBUST_THRESHOLD_PX = 20.0
+
+
+def subset_label(rig: Rig, cameras: list[str]) -> str:
+    """Digits of the cameras' positions in the rig, e.g. ['C0', 'C2'] -> '02'."""
+    names = rig.camera_names
+    return "".join(str(names.index(c)) for c in sorted(cameras, key=names.index))
+
+
+def poses_path(results_dir, rig: Rig, cameras: list[str]) -> Path:
+    """RESULTS/poses.csv for all cameras, RESULTS/poses_<label>.csv for a subset."""
+    if sorted(cameras) == sorted(rig.camera_names):
+        return Path(results_dir) / "poses.csv"
+    return Path(results_dir) / f"poses_{subset_label(rig, cameras)}.csv"
+
+
+def _cameras(rig: Rig, requested: list[str] | None) -> list[str]:
+    if not requested:
+        return rig.camera_names
+    unknown = sorted(set(requested) - set(rig.camera_names))
+    if unknown:
+        raise DmaisError(f"pose: unknown camera(s) {unknown}; the rig has {rig.camera_names}")
+    return [c for c in rig.camera_names if c in requested]
+
+
+def reprojection_rms(rig: Rig, pose: Rigid3, cameras: np.ndarray, uv: np.ndarray, points: np.ndarray) -> float:
+    """RMS distance (px) between observed pixels uv (n, 2) and the projections of points (n, 3)."""
+    squared = []
+    for name in np.unique(cameras):
+        mask = cameras == name
+        predicted = rig.project(str(name), pose, points[mask])
+        squared.append(np.sum((predicted - uv[mask]) ** 2, axis=1))
+    return float(np.sqrt(np.mean(np.concatenate(squared))))
+
+
+def solve_frame(rig: Rig, cameras: np.ndarray, uv: np.ndarray, points: np.ndarray, robust: bool, refine: bool):
+    """Pose of one frame from observations of `cameras` (n,) at pixels uv (n, 2) of points (n, 3).
+
+    Returns (Rigid3 rig_from_world, solve time in ms, mask of the observations used).
+    """
+    origins, directions = rig.rays_of(cameras, uv)
+    start = time.perf_counter()
+    if robust:
+        focal = np.mean([rig.cameras[str(c)].fx for c in np.unique(cameras)])
+        result = solve_robust(origins, directions, points, ROBUST_THRESHOLD_PX / focal, refine=refine)
+        R, t, used = result.R, result.t, result.inliers
+    else:
+        result = solve_generalized_pose(origins, directions, points, refine=refine)
+        R, t, used = result.R, result.t, np.ones(len(points), dtype=bool)
+    elapsed = (time.perf_counter() - start) * 1e3
+    return Rigid3(R, t), elapsed, used
+
+
+def _frame_row(frame: str, group: str, cameras_used: list[str], pose: Rigid3, n: int, eps: float, ms: float) -> dict:
+    q = quat_from_rotation(pose.R)
+    centre = pose.center
+    return {"frame": frame, "group": group, "cameras": "+".join(cameras_used), "n_points": n,
+            "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3], "tx": pose.t[0], "ty": pose.t[1], "tz": pose.t[2],
+            "x": centre[0], "y": centre[1], "z": centre[2], "eps_proj_px": eps, "time_ms": ms}
+
+
+def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
+                   robust: bool = False, refine: bool = False, groups: list[str] | None = None) -> pd.DataFrame:
+    """poses.csv rows (COLUMNS) for every flight frame (of `groups`, if given)."""
+    flight = dataset.images_of("flight")
+    flight = flight[flight["camera"].isin(cameras)]
+    frame_of = dict(zip(flight["image"], flight["placement"].astype(str)))
+    obs = observations[observations["image"].isin(frame_of)].copy()
+    obs["frame"] = obs["image"].map(frame_of)
+    points = dataset.points
+    obs = obs[obs["point_id"].isin(points.index)]
+    frames = dataset.frames.set_index("frame") if "frame" in dataset.frames else pd.DataFrame()
+    rows, skipped = [], []
+    for frame, group_obs in obs.groupby("frame", sort=True):
+        group = str(frames.loc[frame, "group"]) if frame in frames.index else ""
+        if groups and group not in groups:
+            continue
+        X = points.loc[group_obs["point_id"], ["x", "y", "z"]].to_numpy(float)
+        uv = group_obs[["u", "v"]].to_numpy(float)
+        cams = group_obs["camera"].to_numpy(str)
+        try:
+            pose, ms, used = solve_frame(rig, cams, uv, X, robust, refine)
+        except PoseError as error:
+            skipped.append(f"{frame} ({error})")
+            continue
+        eps = reprojection_rms(rig, pose, cams[used], uv[used], X[used])
+        used_cameras = [c for c in cameras if c in set(cams[used])]
+        rows.append(_frame_row(str(frame), group, used_cameras, pose, int(used.sum()), eps, ms))
+    if skipped:
+        log.warning("pose: %d frame(s) skipped: %s", len(skipped), "; ".join(skipped))
+    return pd.DataFrame(rows, columns=COLUMNS)
+
+
+def run_pose(dataset_dir, results_dir, cameras: list[str] | None = None, robust: bool = False,
+             refine: bool = False, groups: list[str] | None = None, out: Path | None = None) -> Path:
+    """Estimate every flight frame's pose; write poses.csv (or poses_<label>.csv). Returns the path."""
+    dataset = Dataset.load(dataset_dir)
+    rig_path = Path(results_dir) / "rig.json"
+    if not rig_path.is_file():
+        raise DmaisError(f"{rig_path}: missing; run `dmais extrinsics` first")
+    rig = Rig.load(rig_path)
+    chosen = _cameras(rig, cameras)
+    table = estimate_poses(dataset, rig, load_observations(dataset, results_dir), chosen, robust, refine, groups)
+    if table.empty:
+        raise DmaisError(f"pose: no flight frame of {dataset_dir} could be solved with cameras {chosen}")
+    path = out or poses_path(results_dir, rig, chosen)
+    write_csv_atomic(path, table)
+    log.info("pose: %d frames -> %s (median %.2f ms per solve)", len(table), path, table["time_ms"].median())
+    return path

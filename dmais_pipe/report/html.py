@@ -1,0 +1,521 @@
+"""`report.html`: one self-contained page for a reader who did not run the pipeline.
+
+Every figure is inline SVG drawn with matplotlib (no external file); every section is an <h2>
+with a stable id (SECTIONS). A section whose inputs are missing says what is missing instead of
+failing the report. All text taken from files is HTML-escaped.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+import logging
+from collections.abc import Callable
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from matplotlib.figure import Figure
+
+from ..dataset import Dataset, load_observations
+from ..errors import DmaisError
+from ..evaluate import (
+    ALL_GROUPS,
+    EVALUATION,
+    POSES,
+    RIG,
+    TRUE_ERROR_COLUMNS,
+    pose_methods_table,
+    read_poses,
+    reprojection_residuals,
+)
+from ..files import write_text_atomic
+from ..rig import Rig
+from .dataset import rig_table, summary_table
+from .paper import PAPER_TABLES, paper_comparisons, read_table
+
+log = logging.getLogger(__name__)
+
+SECTIONS = (
+    ("dataset", "Dataset"),
+    ("intrinsics", "Intrinsics per camera"),
+    ("rig", "Rig layout"),
+    ("residuals", "Reprojection residuals per camera"),
+    ("frames", "Per-frame pose errors"),
+    ("subsets", "Camera subsets"),
+    ("runtime", "Runtime versus number of points"),
+    ("stages", "Processing time per stage"),
+    ("paper", "Comparison with the paper"),
+)
+LAYOUT_FIGURE = Path("figures") / "extrinsics_layout.svg"
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "d")
+RATIO_LIMITS = (0.5, 2.0)
+_MAX_TABLE_ROWS = 400
+
+
+class MissingInput(Exception):
+    """A section's input is absent; the message says which and how to make it."""
+
+
+# ------------------------------------------------------------------------------ the page
+
+
+def write_report(dataset_dir: str | Path, results_dir: str | Path, out_html: str | Path,
+                 benchmarks_dir: str | Path | None = None, paper_dir: str | Path | None = None) -> Path:
+    """Write the HTML report of RESULTS (with DATASET) to `out_html` atomically; returns its path.
+
+    benchmarks_dir: folder of snakemake benchmark files (*.tsv, searched recursively), optional.
+    paper_dir: the published tables (default config/paper_tables).
+    """
+    context = _Context(Path(dataset_dir), Path(results_dir), benchmarks_dir, paper_dir)
+    builders = {"dataset": _dataset_section, "intrinsics": _intrinsics_section, "rig": _rig_section,
+                "residuals": _residuals_section, "frames": _frames_section, "subsets": _subsets_section,
+                "runtime": _runtime_section, "stages": _stages_section, "paper": _paper_section}
+    sections = [(key, title, _build(builders[key], context, key)) for key, title in SECTIONS]
+    title = f"DMAIS report: {context.name}"
+    return write_text_atomic(out_html, _page(title, context.intro(), sections))
+
+
+class _Context:
+    """Paths and lazily loaded inputs shared by the sections; loading raises MissingInput."""
+
+    def __init__(self, dataset_dir: Path, results: Path, benchmarks_dir, paper_dir):
+        self.dataset_dir, self.results = dataset_dir, results
+        self.benchmarks_dir = None if benchmarks_dir is None else Path(benchmarks_dir)
+        self.paper_dir = paper_dir
+
+    @property
+    def name(self) -> str:
+        try:
+            return self.dataset.name
+        except (MissingInput, DmaisError):
+            return self.dataset_dir.name
+
+    def intro(self) -> str:
+        return (f"Dataset <code>{_esc(self.dataset_dir)}</code>, results <code>{_esc(self.results)}</code>. "
+                "Units: metres, pixels, arc-minutes (&prime;); eps_pos is the distance to the POS reference "
+                "after the lever-arm calibration, eps_ang = eps_proj &times; angular resolution.")
+
+    @cached_property
+    def dataset(self) -> Dataset:
+        return Dataset.load(self.dataset_dir)
+
+    @cached_property
+    def rig(self) -> Rig:
+        return Rig.load(self.require(RIG, "run `dmais extrinsics`"))
+
+    @cached_property
+    def truth_rig(self) -> Rig | None:
+        """The simulator's rig, None for a real dataset (or one that cannot be loaded)."""
+        try:
+            path = self.dataset.truth_dir / "rig.json"
+            return Rig.load(path) if path.is_file() else None
+        except DmaisError:
+            return None
+
+    def require(self, relative: str | Path, hint: str) -> Path:
+        path = self.results / relative
+        if not path.exists():
+            raise MissingInput(f"{path} is missing ({hint}).")
+        return path
+
+    def table(self, name: str, hint: str) -> pd.DataFrame:
+        keys = PAPER_TABLES[name].keys if name in PAPER_TABLES else ()
+        return read_table(self.require(Path("tables") / f"{name}.csv", hint), keys)
+
+
+def _build(builder: Callable[[_Context], str], context: _Context, key: str) -> str:
+    try:
+        return builder(context)
+    except MissingInput as missing:
+        return _missing(str(missing))
+    except DmaisError as error:
+        log.warning("report section %s: %s", key, error)
+        return _missing(f"This section could not be drawn: {error}")
+    except (KeyError, ValueError, pd.errors.ParserError, pd.errors.EmptyDataError) as error:
+        # A malformed table (missing column, unparsable value) must not cost the whole report.
+        log.warning("report section %s: malformed input", key, exc_info=True)
+        return _missing(f"This section could not be drawn from malformed input: {type(error).__name__}: {error}")
+
+
+def _page(title: str, intro: str, sections: list[tuple[str, str, str]]) -> str:
+    toc = "".join(f'<li><a href="#{key}">{_esc(name)}</a></li>' for key, name, _ in sections)
+    body = "\n".join(f'<section><h2 id="{key}">{_esc(name)}</h2>\n{content}\n</section>'
+                     for key, name, content in sections)
+    style = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222;line-height:1.4}"
+             "table{border-collapse:collapse;margin:0.5em 0}td,th{padding:2px 8px;border-bottom:1px solid #ddd;"
+             "text-align:right}th{background:#f4f4f4}.missing{color:#a33;font-style:italic}"
+             "figure{margin:1em 0}figcaption{font-size:90%;color:#555}svg{max-width:100%;height:auto}"
+             "pre{background:#f7f7f7;padding:0.5em}")
+    return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{_esc(title)}</title>"
+            f"<style>{style}</style></head>\n<body><h1>{_esc(title)}</h1>\n<p>{intro}</p>\n"
+            f"<nav><ul>{toc}</ul></nav>\n{body}\n</body></html>\n")
+
+
+# ------------------------------------------------------------------------------ sections
+
+
+def _dataset_section(ctx: _Context) -> str:
+    dataset = ctx.dataset
+    parts = [f"<pre>{_esc(dataset.summary())}</pre>", _table(summary_table(dataset))]
+    if ctx.truth_rig is not None:
+        parts.append("<p>Simulated dataset: ground truth under <code>truth/</code> is used for the true errors "
+                     "below (never by the pipeline's estimation).</p>")
+    return "\n".join(parts)
+
+
+def _intrinsics_section(ctx: _Context) -> str:
+    folder = ctx.require("intrinsics", "run `dmais intrinsics`")
+    records = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
+    if not records:
+        raise MissingInput(f"{folder} holds no <camera>.json (run `dmais intrinsics`).")
+    parts = ["<p>Calibrated intrinsics (eq. 2-3 model) &plusmn; one standard deviation from the "
+             "covariance of the final Levenberg-Marquardt; eps_calib / eps_eval are RMS reprojection "
+             "distances on the calibration / held-out images.</p>", _table(intrinsics_table(records))]
+    truth = ctx.truth_rig
+    if truth is not None:
+        parts += ["<p>Calibrated minus true values (simulator):</p>", _table(_intrinsics_vs_truth(records, truth))]
+    baselines = ctx.results / "tables" / "intrinsics.csv"
+    if baselines.is_file():
+        parts += ["<p>All methods (tab:intrinsics layout):</p>", _table(pd.read_csv(baselines))]
+    return "\n".join(parts)
+
+
+def intrinsics_table(records: list[dict]) -> pd.DataFrame:
+    """One row per camera JSON record: value &plusmn; std of fx, fy, cx, cy, d, the errors and counts."""
+    rows = []
+    for r in records:
+        std = r.get("std") or {}
+        row = {"camera": r.get("camera", "?")}
+        for name in INTRINSIC_NAMES:
+            row[name] = _pm(r.get(name), std.get(name), 4 if name == "d" else 1)
+        row.update(eps_calib_px=r.get("eps_calib_px"), eps_eval_px=r.get("eps_eval_px"),
+                   n_images=r.get("n_images"), n_observations=r.get("n_observations"))
+        rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _pm(value, std, decimals: int) -> str:
+    if value is None:
+        return ""
+    text = f"{value:.{decimals}f}"
+    return text if std is None else f"{text} ± {std:.{max(decimals, 2)}g}"
+
+
+def _intrinsics_vs_truth(records: list[dict], truth: Rig) -> pd.DataFrame:
+    rows = []
+    for r in records:
+        camera = truth.cameras.get(r.get("camera"))
+        if camera is not None:
+            rows.append({"camera": r["camera"],
+                         **{f"{n} - truth": r[n] - getattr(camera, n) for n in INTRINSIC_NAMES if n in r}})
+    return pd.DataFrame(rows)
+
+
+def _rig_section(ctx: _Context) -> str:
+    parts = []
+    layout = ctx.results / LAYOUT_FIGURE
+    if layout.is_file():
+        parts.append(_figure(_svg_file(layout), "Camera centres and optical axes in the rig frame, calibrated with "
+                             "and without the RTK camera-centre priors."))
+    else:
+        rigs = _rig_variants(ctx)
+        if not rigs:
+            raise MissingInput(f"{ctx.results / RIG} is missing (run `dmais extrinsics`).")
+        parts.append(_figure(_svg(rig_layout_figure(rigs)), "Camera centres (dots) and optical axes (lines) in the "
+                             "rig frame (C0's; z drawn downwards, the way the cameras look); " + ", ".join(rigs) + "."))
+    if (ctx.results / RIG).is_file():
+        parts += ["<p>rig.json: rig_from_cam as ZYX Euler angles (deg) and camera centres (m).</p>",
+                  _table(rig_table(ctx.rig))]
+    for name, caption in (("extrinsics_R", "Relative rotations with known / unknown initial positions "
+                           "(tab:extrinsics_R)"), ("extrinsics_t", "Relative translations (tab:extrinsics_t)")):
+        path = ctx.results / "tables" / f"{name}.csv"
+        if path.is_file():
+            parts += [f"<p>{_esc(caption)}:</p>", _table(pd.read_csv(path))]
+    return "\n".join(parts)
+
+
+def _rig_variants(ctx: _Context) -> dict[str, Rig]:
+    """Rigs to draw: with and without priors when both exist, else rig.json; plus the truth."""
+    rigs = {}
+    for label, path in (("with priors", "extrinsics/rig_known.json"), ("without priors", "extrinsics/rig_unknown.json")):
+        if (ctx.results / path).is_file():
+            rigs[label] = Rig.load(ctx.results / path)
+    if not rigs and (ctx.results / RIG).is_file():
+        rigs["rig.json"] = ctx.rig
+    if rigs and ctx.truth_rig is not None:
+        rigs["truth"] = ctx.truth_rig
+    return rigs
+
+
+def _residuals_section(ctx: _Context) -> str:
+    poses_path = ctx.require(POSES, "run `dmais pose`")
+    poses = read_poses(poses_path, ctx.dataset, ctx.rig)
+    observations = load_observations(ctx.dataset, ctx.results)
+    residuals = reprojection_residuals(ctx.dataset, ctx.rig, poses, observations).dropna(subset=["du", "dv"])
+    if residuals.empty:
+        raise MissingInput("No flight observation belongs to a frame of poses.csv.")
+    cameras = [c for c in ctx.rig.camera_names if c in set(residuals["camera"])]
+    caption = ("Top: observed minus projected marker positions over each sensor (colour = distance, px); "
+               "bottom: histogram of the distances. Projections use rig.json and poses.csv.")
+    return "\n".join([_figure(_svg(residual_figure(residuals, ctx.rig, cameras)), caption),
+                      _table(residual_table(residuals, cameras))])
+
+
+def residual_table(residuals: pd.DataFrame, cameras: list[str]) -> pd.DataFrame:
+    """Per camera: observations, RMS / median / max distance (px), mean du, dv (px)."""
+    rows = []
+    for camera in cameras:
+        r = residuals[residuals["camera"] == camera]
+        d = np.hypot(r["du"], r["dv"])
+        rows.append({"camera": camera, "observations": len(r), "rms_px": float(np.sqrt(np.mean(d**2))),
+                     "median_px": float(np.median(d)), "max_px": float(d.max()),
+                     "mean_du_px": float(r["du"].mean()), "mean_dv_px": float(r["dv"].mean())})
+    return pd.DataFrame(rows)
+
+
+def _frames_section(ctx: _Context) -> str:
+    evaluation = pd.read_csv(ctx.require(EVALUATION, "run `dmais evaluate`"), dtype={"frame": str, "group": str})
+    parts = [_figure(_svg(frame_errors_figure(evaluation)),
+                     "Errors of every frame in file order, coloured by flight group. eps_pos after removing each "
+                     "group's mean offset to the POS (the lever arm)."
+                     + (" True errors against the simulator's truth in the last panels." if
+                        TRUE_ERROR_COLUMNS[0] in evaluation else ""))]
+    table_path = ctx.results / "tables" / "pose_methods.csv"
+    table = read_table(table_path, ["group"]) if table_path.is_file() else pose_methods_table(evaluation)
+    parts += ["<p>Per group mean and standard deviation (tab:pose_methods):</p>", _table(table)]
+    if len(evaluation) <= _MAX_TABLE_ROWS:
+        parts += ["<details><summary>Every frame</summary>", _table(evaluation), "</details>"]
+    return "\n".join(parts)
+
+
+def _subsets_section(ctx: _Context) -> str:
+    conf = ctx.table("conf", "run `dmais pose --cameras ...` per subset, then `dmais evaluate`")
+    caption = ("Mean errors per camera subset (label = camera indexes, e.g. 012 = C0, C1, C2) and flight group; "
+               "log scale.")
+    return "\n".join([_figure(_svg(subset_figure(conf)), caption), _table(conf_wide(conf))])
+
+
+def conf_wide(conf: pd.DataFrame) -> pd.DataFrame:
+    """tab:conf's layout: rows (group, metric), one column per subset label."""
+    metrics = [c for c in ("eps_pos_mean_m", "eps_ang_mean_arcmin", "eps_proj_mean_px") if c in conf]
+    long = conf.melt(id_vars=["group", "subset"], value_vars=metrics, var_name="metric")
+    labels = list(dict.fromkeys(conf["subset"]))
+    wide = long.pivot_table(index=["group", "metric"], columns="subset", values="value", sort=False)
+    return wide.reindex(columns=labels).reset_index().rename_axis(columns=None)
+
+
+def _runtime_section(ctx: _Context) -> str:
+    table = ctx.table("time_points", "run the runtime benchmark")
+    return "\n".join([_figure(_svg(runtime_figure(table)), "Mean solve time against the number of 2D-3D "
+                              "correspondences (tab:time_points)."), _table(table)])
+
+
+def _stages_section(ctx: _Context) -> str:
+    if ctx.benchmarks_dir is None:
+        raise MissingInput("Not available: no benchmark folder was given (snakemake `benchmark:` files).")
+    table = benchmark_table(ctx.benchmarks_dir)
+    if table.empty:
+        raise MissingInput(f"Not available: {ctx.benchmarks_dir} holds no benchmark *.tsv file.")
+    return "\n".join([_figure(_svg(stage_figure(table)), "Total wall time per stage (sum over its jobs)."),
+                      _table(table)])
+
+
+def benchmark_table(folder: str | Path) -> pd.DataFrame:
+    """Per stage: jobs, total / mean / max wall time (s), max RSS (MB) from snakemake benchmark files.
+
+    The stage is a file's first folder below `folder`, or its name without .tsv when it lies directly
+    in `folder`. Columns: stage, jobs, total_s, mean_s, max_s, max_rss_mb.
+    """
+    folder = Path(folder)
+    rows = []
+    for path in sorted(folder.rglob("*.tsv")):
+        relative = path.relative_to(folder)
+        stage = relative.parts[0] if len(relative.parts) > 1 else path.stem
+        frame = pd.read_csv(path, sep="\t")
+        if "s" not in frame or frame.empty:
+            continue
+        rss = frame["max_rss"] if "max_rss" in frame else pd.Series([np.nan])
+        rows.append({"stage": stage, "s": float(frame["s"].mean()), "rss": pd.to_numeric(rss, errors="coerce").max()})
+    if not rows:
+        return pd.DataFrame(columns=["stage", "jobs", "total_s", "mean_s", "max_s", "max_rss_mb"])
+    runs = pd.DataFrame(rows)
+    table = runs.groupby("stage", sort=False).agg(jobs=("s", "size"), total_s=("s", "sum"), mean_s=("s", "mean"),
+                                                  max_s=("s", "max"), max_rss_mb=("rss", "max"))
+    return table.reset_index()
+
+
+def _paper_section(ctx: _Context) -> str:
+    comparisons = paper_comparisons(ctx.results, ctx.paper_dir)
+    if not comparisons:
+        raise MissingInput(f"No table of {ctx.results / 'tables'} has a published counterpart yet.")
+    low, high = RATIO_LIMITS
+    parts = [f"<p>Our tables beside the paper's published numbers (ratio = ours / paper). Rows flagged "
+             f"differ by more than a factor {high:g}. Our Bouguet-style baseline (dlt_lm) is compared with the "
+             "paper's Bouguet row; angles near &plusmn;180&deg; or 0 make ratios meaningless, see the "
+             "difference column.</p>"]
+    for name, table in comparisons.items():
+        flagged = table.assign(flag=np.where((table["ratio"] < low) | (table["ratio"] > high), "!", ""))
+        parts += [f"<h3>{_esc(name)}</h3>", _table(flagged)]
+    return "\n".join(parts)
+
+
+# ------------------------------------------------------------------------------ figures
+
+
+def rig_layout_figure(rigs: dict[str, Rig]):
+    """3D view per rig: camera centres and optical axes (rig frame, metres)."""
+    fig = Figure(figsize=(4.2 * len(rigs), 4.2))
+    for k, (label, rig) in enumerate(rigs.items(), 1):
+        ax = fig.add_subplot(1, len(rigs), k, projection="3d")
+        centres = np.array([rig.camera_center(c) for c in rig.camera_names])
+        extent = max(float(np.ptp(centres, axis=0).max()), 0.1)
+        for name, centre in zip(rig.camera_names, centres):
+            axis = rig.cam_from_rig[name].R[2] * 0.6 * extent  # optical axis (camera z) in the rig frame
+            ax.plot(*zip(centre, centre + axis), color="tab:blue")
+            ax.scatter(*centre, color="tab:red", s=12)
+            ax.text(*centre, f" {name}", fontsize=8)
+        middle, half = (centres.max(axis=0) + centres.min(axis=0)) / 2, 0.8 * extent
+        ax.set(xlim=(middle[0] - half, middle[0] + half), ylim=(middle[1] - half, middle[1] + half),
+               zlim=(middle[2] + half, middle[2] - half))  # z inverted: the cameras look down
+        ax.set_box_aspect((1, 1, 1))
+        ax.set_title(label, fontsize=10)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.set_zlabel("z (m)")
+    fig.tight_layout()
+    return fig
+
+
+def residual_figure(residuals: pd.DataFrame, rig: Rig, cameras: list[str]):
+    """Per camera: residual distance over the sensor (top) and its histogram (bottom)."""
+    fig = Figure(figsize=(3.0 * len(cameras) + 0.5, 5.6))
+    axes = fig.subplots(2, len(cameras), squeeze=False)
+    distance = np.hypot(residuals["du"], residuals["dv"])
+    top = float(np.nanpercentile(distance, 99)) or 1.0
+    for k, camera in enumerate(cameras):
+        mine = residuals["camera"] == camera
+        cam = rig.cameras[camera]
+        ax = axes[0, k]
+        points = ax.scatter(residuals.loc[mine, "u"], residuals.loc[mine, "v"], c=distance[mine], s=6,
+                            cmap="viridis", vmin=0, vmax=top, rasterized=True)
+        ax.set_xlim(-0.5, cam.width - 0.5)
+        ax.set_ylim(cam.height - 0.5, -0.5)
+        ax.set_aspect("equal")
+        ax.set_title(camera, fontsize=10)
+        ax.set_xlabel("u (px)", fontsize=8)
+        axes[1, k].hist(distance[mine], bins=30, range=(0, top), color="tab:blue")
+        axes[1, k].set_xlabel("distance (px)", fontsize=8)
+    fig.colorbar(points, ax=axes[0, :].tolist(), shrink=0.8, label="px")
+    return fig
+
+
+def frame_errors_figure(evaluation: pd.DataFrame):
+    """eps_pos, eps_ang, eps_proj (and the true errors) per frame, coloured by group."""
+    panels = [("eps_pos_m", "eps_pos (m)"), ("eps_ang_arcmin", "eps_ang (′)"), ("eps_proj_px", "eps_proj (px)")]
+    panels += [(c, label) for c, label in zip(TRUE_ERROR_COLUMNS, ("true position error (m)",
+                                                                   "true attitude error (′)")) if c in evaluation]
+    fig = Figure(figsize=(9, 1.9 * len(panels) + 0.4))
+    axes = fig.subplots(len(panels), 1, sharex=True, squeeze=False)[:, 0]
+    evaluation = evaluation.reset_index(drop=True)  # the index is the frame's position in the file
+    for ax, (column, label) in zip(axes, panels):
+        for group, rows in evaluation.groupby(evaluation["group"].astype(str), sort=False):
+            ax.plot(rows.index, rows[column], marker="o", ms=3, lw=0.8, label=f"group {group}")
+        ax.set_ylabel(label, fontsize=8)
+    axes[0].legend(fontsize=7, ncol=6)
+    axes[-1].set_xlabel("frame (file order)")
+    fig.tight_layout()
+    return fig
+
+
+def subset_figure(conf: pd.DataFrame):
+    """Grouped bars per subset label (x) and group (bars), one panel per metric, log scale."""
+    metrics = [(c, label) for c, label in (("eps_pos_mean_m", "eps_pos (m)"), ("eps_ang_mean_arcmin", "eps_ang (′)"),
+                                           ("eps_proj_mean_px", "eps_proj (px)")) if c in conf]
+    labels = list(dict.fromkeys(conf["subset"]))
+    groups = [g for g in dict.fromkeys(conf["group"]) if g != ALL_GROUPS] or [ALL_GROUPS]
+    width = 0.8 / len(groups)
+    fig = Figure(figsize=(4 * len(metrics), 3.4))
+    axes = fig.subplots(1, len(metrics), squeeze=False)[0]
+    x = np.arange(len(labels))
+    for ax, (column, name) in zip(axes, metrics):
+        for k, group in enumerate(groups):
+            rows = conf[conf["group"] == group].set_index("subset").reindex(labels)
+            ax.bar(x + (k - (len(groups) - 1) / 2) * width, rows[column].to_numpy(dtype=float), width,
+                   label=f"group {group}")
+        ax.set_xticks(x, [f"#{label}" for label in labels])
+        ax.set_yscale("log")
+        ax.set_title(name, fontsize=10)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def runtime_figure(table: pd.DataFrame):
+    """Time (ms) against n_points for every *_ms column."""
+    fig = Figure(figsize=(6, 3.6))
+    ax = fig.subplots()
+    n = pd.to_numeric(table["n_points"], errors="coerce")
+    for column in [c for c in table.columns if c.endswith("_ms")]:
+        ax.plot(n, table[column], marker="o", label=column.removesuffix("_ms"))
+    ax.set_xlabel("points")
+    ax.set_ylabel("time (ms)")
+    ax.legend()
+    fig.tight_layout()
+    return fig
+
+
+def stage_figure(table: pd.DataFrame):
+    """Horizontal bars: total wall time per stage (s)."""
+    fig = Figure(figsize=(6, 0.4 * len(table) + 1.2))
+    ax = fig.subplots()
+    ax.barh(table["stage"].astype(str), table["total_s"], color="tab:green")
+    ax.invert_yaxis()
+    ax.set_xlabel("wall time (s)")
+    fig.tight_layout()
+    return fig
+
+
+# ------------------------------------------------------------------------------ HTML helpers
+
+
+def _svg(fig) -> str:
+    """The figure as an inline <svg> element (text kept as text)."""
+    import matplotlib
+
+    buffer = io.StringIO()
+    with matplotlib.rc_context({"svg.fonttype": "none", "svg.hashsalt": "dmais"}):
+        fig.savefig(buffer, format="svg", bbox_inches="tight")
+    text = buffer.getvalue()
+    return text[text.index("<svg"):]
+
+
+def _svg_file(path: Path) -> str:
+    """An SVG file as an <img> with a data URI (scripts in it cannot run, its ids cannot clash)."""
+    data = base64.b64encode(path.read_bytes()).decode("ascii")
+    return f'<img alt="{_esc(path.name)}" src="data:image/svg+xml;base64,{data}">'
+
+
+def _figure(content: str, caption: str) -> str:
+    return f"<figure>{content}<figcaption>{_esc(caption)}</figcaption></figure>"
+
+
+def _table(frame: pd.DataFrame) -> str:
+    return frame.to_html(index=False, border=0, escape=True, na_rep="", float_format=_number)
+
+
+def _number(x: float) -> str:
+    """4 significant digits, but large values (focal lengths, coordinates) to 0.1 without exponent."""
+    return f"{x:.1f}" if 1e4 <= abs(x) < 1e9 else f"{x:.4g}"
+
+
+def _missing(message: str) -> str:
+    return f'<p class="missing">{_esc(message)}</p>'
+
+
+def _esc(value) -> str:
+    return html.escape(str(value), quote=True)
+

@@ -1,0 +1,252 @@
+"""Pose evaluation: lever-arm removal, eps_ang conversion, truth errors, tables and bad inputs."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from dmais_pipe.errors import DmaisError
+from dmais_pipe.evaluate import (
+    ResultsError,
+    angular_errors,
+    angular_resolution_arcmin,
+    group_offsets,
+    mean_focal_px,
+    position_errors,
+    run_evaluate,
+    subset_cameras,
+    true_errors,
+)
+from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
+from dmais_pipe.rig import Rig
+from dmais_pipe.sim.simulate import simulate
+
+SIM = {
+    "name": "evaluate-small",
+    "seed": 5,
+    "intrinsics": {"calib_images_per_camera": 2, "eval_images_per_camera": 1},
+    "flight": {"frames_per_group": 3},
+    "render": {"intrinsics": False, "extrinsics": False, "flight": False},
+}
+ALL = "C0+C1+C2+C3+C4"
+ARCMIN = np.radians(1.0 / 60.0)
+SHIFT = np.array([0.03, -0.04, 0.0])  # every estimated centre is off the truth by 5 cm
+TILT_ARCMIN = 1.5  # every estimated attitude is off the truth by 1.5'
+
+
+def poses_from_truth(dataset, cameras: str = ALL, shift=SHIFT, tilt_arcmin: float = TILT_ARCMIN) -> pd.DataFrame:
+    """poses.csv rows: the true poses moved by `shift` (m) and turned by `tilt_arcmin` about x."""
+    truth = pd.read_csv(dataset / "truth" / "frames.csv", dtype={"frame": str, "group": str})
+    turn = rotation_from_euler_zyx([0.0, 0.0, tilt_arcmin * ARCMIN])
+    rows = []
+    for k, r in enumerate(truth.itertuples(index=False)):
+        true = Rigid3.from_quat([r.qw, r.qx, r.qy, r.qz], [r.tx, r.ty, r.tz])
+        center = true.center + shift
+        R = turn @ true.R
+        pose = Rigid3(R, -R @ center)
+        rows.append({"frame": r.frame, "group": r.group, "cameras": cameras, "n_points": 40,
+                     **dict(zip(("qw", "qx", "qy", "qz"), quat_from_rotation(R))),
+                     **dict(zip(("tx", "ty", "tz"), pose.t)), **dict(zip("xyz", center)),
+                     "eps_proj_px": 3.0 + 0.1 * k, "time_ms": 0.4 + 0.01 * k})
+    return pd.DataFrame(rows)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("evaluate")
+    (root / "sim.yaml").write_text(yaml.safe_dump(SIM))
+    return simulate(root / "sim.yaml", root / "dataset")
+
+
+@pytest.fixture()
+def results(dataset, tmp_path):
+    out = tmp_path / "results"
+    out.mkdir()
+    shutil.copy(dataset / "truth" / "rig.json", out / "rig.json")
+    poses_from_truth(dataset).to_csv(out / "poses.csv", index=False)
+    return out
+
+
+def read(path) -> pd.DataFrame:
+    return pd.read_csv(path, dtype={"frame": str, "group": str, "subset": str})
+
+
+# ------------------------------------------------------------------------------ pure functions
+
+
+def test_position_errors_remove_the_mean_offset_per_group():
+    # A constant lever-arm offset per group plus known per-frame deviations.
+    groups = np.array(["a", "a", "b", "b", "b"])
+    reference = np.arange(15, dtype=float).reshape(5, 3) * 10.0
+    offset = {"a": np.array([0.15, -0.08, 0.32]), "b": np.array([-0.3, 0.2, 0.1])}
+    deviation = np.array([[0.1, 0, 0], [-0.1, 0, 0], [0, 0.3, 0], [0, 0, 0], [0, 0, 0]])
+    estimated = reference + np.array([offset[g] for g in groups]) + deviation
+    # by hand: group a's deviations have mean 0 -> 0.1, 0.1; group b's mean is (0, 0.1, 0) -> 0.2, 0.1, 0.1
+    np.testing.assert_allclose(position_errors(estimated, reference, groups), [0.1, 0.1, 0.2, 0.1, 0.1], atol=1e-12)
+    offsets = group_offsets(estimated, reference, groups)
+    np.testing.assert_allclose(offsets["a"], offset["a"], atol=1e-12)
+    np.testing.assert_allclose(offsets["b"], offset["b"] + [0, 0.1, 0], atol=1e-12)
+    # Given offsets (the full rig's) are used as they are: group a with b's offset removed is off by their difference.
+    given = {"a": offset["a"] + [0.0, 0.0, 0.5]}
+    np.testing.assert_allclose(position_errors(estimated, reference, groups, given)[:2],
+                               np.hypot(0.1, 0.5), atol=1e-12)
+
+
+def test_angular_resolution_and_eps_ang():
+    # One pixel at f = 45000 px is 1/45000 rad = 0.0763944' ; 4 px -> 0.30558'.
+    assert angular_resolution_arcmin(45000.0) == pytest.approx(180 * 60 / np.pi / 45000.0)
+    assert angular_errors(4.0, 45000.0) == pytest.approx(0.3055775, rel=1e-6)
+    np.testing.assert_allclose(angular_errors([1.0, 2.0], [36000.0, 36000.0]),
+                               [0.0954930, 0.1909859], rtol=1e-6)
+
+
+def test_mean_focal_and_subset_labels(dataset):
+    rig = Rig.load(dataset / "truth" / "rig.json")
+    c0, c1 = rig.cameras["C0"], rig.cameras["C1"]
+    assert mean_focal_px(rig, ["C0", "C1"]) == pytest.approx((c0.fx + c0.fy + c1.fx + c1.fy) / 4)
+    assert subset_cameras("012", rig) == ["C0", "C1", "C2"]
+    assert subset_cameras("1234", rig) == ["C1", "C2", "C3", "C4"]
+    with pytest.raises(ValueError, match="0..4"):
+        subset_cameras("05", rig)
+
+
+def test_true_errors():
+    R = rotation_from_euler_zyx([0.3, -0.2, 2.0])
+    turned = rotation_from_euler_zyx([0.0, 2 * ARCMIN, 0.0]) @ R
+    position, attitude = true_errors([quat_from_rotation(turned)], [[1.0, 2.0, 3.0]],
+                                     [quat_from_rotation(R)], [[1.3, 2.4, 3.0]])
+    np.testing.assert_allclose(position, [0.5])
+    np.testing.assert_allclose(attitude, [2.0], rtol=1e-6)
+
+
+# ------------------------------------------------------------------------------ the stage
+
+
+def test_run_evaluate_writes_errors_and_tables(dataset, results):
+    written = run_evaluate(dataset, results)
+    assert results / "evaluation.csv" in written and results / "tables" / "pose_methods.csv" in written
+    assert not (results / "tables" / "conf.csv").exists()  # no subset file
+    evaluation = read(results / "evaluation.csv")
+    poses = read(results / "poses.csv")
+    assert list(evaluation.columns) == list(poses.columns) + [
+        "eps_pos_m", "eps_ang_arcmin", "true_pos_err_m", "true_ang_err_arcmin"]
+
+    # eps_pos by hand: estimate - POS minus its group mean.
+    frames = read(dataset / "frames.csv").set_index("frame").loc[evaluation["frame"]]
+    delta = evaluation[["x", "y", "z"]].to_numpy() - frames[["pos_x", "pos_y", "pos_z"]].to_numpy()
+    expected = np.empty(len(delta))
+    for group in evaluation["group"].unique():
+        mine = (evaluation["group"] == group).to_numpy()
+        expected[mine] = np.linalg.norm(delta[mine] - delta[mine].mean(axis=0), axis=1)
+    np.testing.assert_allclose(evaluation["eps_pos_m"], expected, atol=1e-9)
+    # The lever arm (0.37 m) is gone: what remains is the POS noise (2-3 cm per axis).
+    assert np.linalg.norm(delta, axis=1).min() > 0.3
+    assert evaluation["eps_pos_m"].max() < 0.15
+
+    rig = Rig.load(results / "rig.json")
+    focal = np.mean([(c.fx + c.fy) / 2 for c in rig.cameras.values()])
+    np.testing.assert_allclose(evaluation["eps_ang_arcmin"], evaluation["eps_proj_px"] / focal / ARCMIN, rtol=1e-9)
+    np.testing.assert_allclose(evaluation["true_pos_err_m"], 0.05, atol=1e-6)
+    np.testing.assert_allclose(evaluation["true_ang_err_arcmin"], TILT_ARCMIN, rtol=1e-5)
+
+    table = read(results / "tables" / "pose_methods.csv")
+    assert table["group"].tolist() == ["1", "2", "3", "4", "5", "all"]
+    assert table["n_frames"].tolist() == [3, 3, 3, 3, 3, 15]
+    by_group = evaluation.groupby("group")
+    np.testing.assert_allclose(table["eps_pos_mean_m"][:5], by_group["eps_pos_m"].mean(), rtol=1e-9)
+    np.testing.assert_allclose(table["eps_pos_std_m"][:5], by_group["eps_pos_m"].std(ddof=1), rtol=1e-9)
+    np.testing.assert_allclose(table["eps_proj_mean_px"][:5], by_group["eps_proj_px"].mean(), rtol=1e-9)
+    np.testing.assert_allclose(table["time_mean_ms"].iloc[-1], evaluation["time_ms"].mean(), rtol=1e-9)
+    np.testing.assert_allclose(table["true_pos_err_median_m"], 0.05, atol=1e-6)
+    for column in ("eps_ang_std_arcmin", "eps_proj_std_px", "true_ang_err_mean_arcmin"):
+        assert column in table
+
+
+def test_subsets_use_the_full_rigs_lever_arm_and_fill_conf(dataset, results):
+    bias = np.array([0.5, 0.0, 0.0])
+    poses_from_truth(dataset, cameras="C0", shift=SHIFT + bias).to_csv(results / "poses_0.csv", index=False)
+    poses_from_truth(dataset).to_csv(results / "poses_01234.csv", index=False)
+    written = run_evaluate(dataset, results)
+    assert {results / "evaluation_0.csv", results / "evaluation_01234.csv", results / "tables" / "conf.csv"} <= set(written)
+    full = read(results / "evaluation.csv")
+    single = read(results / "evaluation_0.csv")
+    # Same frames, every estimate moved by `bias`: the full rig's offsets leave the bias in the error.
+    frames = read(dataset / "frames.csv").set_index("frame").loc[full["frame"]]
+    delta = full[["x", "y", "z"]].to_numpy() - frames[["pos_x", "pos_y", "pos_z"]].to_numpy()
+    mean = full.assign(dx=delta[:, 0], dy=delta[:, 1], dz=delta[:, 2]).groupby("group")[["dx", "dy", "dz"]].transform("mean")
+    np.testing.assert_allclose(single["eps_pos_m"], np.linalg.norm(delta - mean.to_numpy() + bias, axis=1), atol=1e-9)
+    rig = Rig.load(results / "rig.json")
+    c0 = rig.cameras["C0"]
+    np.testing.assert_allclose(single["eps_ang_arcmin"], single["eps_proj_px"] / ((c0.fx + c0.fy) / 2) / ARCMIN)
+
+    conf = read(results / "tables" / "conf.csv")
+    assert conf["subset"].tolist()[:2] == ["0", "01234"]
+    assert set(conf["group"]) == {"1", "2", "3", "4", "5", "all"}
+    assert len(conf) == 12
+    assert conf.loc[conf["subset"] == "0", "cameras"].unique().tolist() == ["C0"]
+    assert conf.loc[conf["subset"] == "01234", "cameras"].unique().tolist() == [ALL]
+    table = read(results / "tables" / "pose_methods.csv").set_index("group")
+    everything = conf[conf["subset"] == "01234"].set_index("group")
+    np.testing.assert_allclose(everything.loc[table.index, "eps_pos_mean_m"], table["eps_pos_mean_m"], rtol=1e-9)
+    np.testing.assert_allclose(everything.loc[table.index, "eps_proj_mean_px"], table["eps_proj_mean_px"], rtol=1e-9)
+
+    # Without subset files a rerun leaves no stale conf table behind.
+    (results / "poses_0.csv").unlink()
+    (results / "poses_01234.csv").unlink()
+    run_evaluate(dataset, results)
+    assert not (results / "tables" / "conf.csv").exists()
+
+
+# ------------------------------------------------------------------------------ bad inputs
+
+
+def test_missing_poses(dataset, results):
+    (results / "poses.csv").unlink()
+    with pytest.raises(ResultsError, match=r"poses\.csv: missing"):
+        run_evaluate(dataset, results)
+
+
+def test_missing_rig(dataset, results):
+    (results / "rig.json").unlink()
+    with pytest.raises(DmaisError, match="rig.json"):
+        run_evaluate(dataset, results)
+
+
+@pytest.mark.parametrize("column, value, message", [
+    ("frame", "nope", r"line 3: frame 'nope' is not a frame of"),
+    ("eps_proj_px", "nan", r"line 3: column eps_proj_px: 'nan' is not a finite number"),
+    ("x", "", r"line 3: column x is empty"),
+    ("group", "9", r"line 3: frame '\w+': group '9', frames.csv says"),
+    ("cameras", "C0+C9", r"line 3: cameras 'C0\+C9': not all are cameras of the rig"),
+    ("n_points", "2.5", r"line 3: column n_points: 2.5 is not a count"),
+])
+def test_bad_poses_name_file_and_line(dataset, results, column, value, message):
+    poses = pd.read_csv(results / "poses.csv", dtype=str, keep_default_na=False)
+    poses.loc[1, column] = value
+    poses.to_csv(results / "poses.csv", index=False)
+    with pytest.raises(ResultsError, match=rf"poses\.csv, {message}"):
+        run_evaluate(dataset, results)
+
+
+def test_duplicate_and_empty_poses(dataset, results):
+    poses = pd.read_csv(results / "poses.csv", dtype=str)
+    pd.concat([poses, poses.iloc[:1]]).to_csv(results / "poses.csv", index=False)
+    with pytest.raises(ResultsError, match="duplicate frame"):
+        run_evaluate(dataset, results)
+    poses.iloc[:0].to_csv(results / "poses.csv", index=False)
+    with pytest.raises(ResultsError, match="has no rows"):
+        run_evaluate(dataset, results)
+
+
+def test_bad_subset_files(dataset, results):
+    poses_from_truth(dataset, cameras="C0+C1").to_csv(results / "poses_0.csv", index=False)
+    with pytest.raises(ResultsError, match=r"poses_0\.csv, line 2: cameras 'C0\+C1': this subset file may use only C0"):
+        run_evaluate(dataset, results)
+    (results / "poses_0.csv").unlink()
+    poses_from_truth(dataset, cameras="C0").to_csv(results / "poses_07.csv", index=False)
+    with pytest.raises(ResultsError, match=r"poses_07\.csv: subset label '07'"):
+        run_evaluate(dataset, results)

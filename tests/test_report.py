@@ -1,0 +1,264 @@
+"""HTML report (sections, self-containment, escaping, missing inputs) and the paper comparisons."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from html.parser import HTMLParser
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from dmais_pipe.calib.extrinsics import extrinsics_tables
+from dmais_pipe.calib.intrinsics import TABLE_COLUMNS
+from dmais_pipe.evaluate import conf_table, pose_methods_table, run_evaluate
+from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
+from dmais_pipe.report.html import SECTIONS, benchmark_table, write_report
+from dmais_pipe.report.paper import PAPER_DIR, PAPER_TABLES, compare_with_paper, write_paper_comparisons
+from dmais_pipe.rig import Rig
+from dmais_pipe.sim.simulate import simulate
+
+SIM = {
+    "name": "report-small",
+    "seed": 9,
+    "intrinsics": {"calib_images_per_camera": 2, "eval_images_per_camera": 1},
+    "flight": {"frames_per_group": 2},
+    "render": {"intrinsics": False, "extrinsics": False, "flight": False},
+}
+SECTION_IDS = [key for key, _ in SECTIONS]
+
+
+class Page(HTMLParser):
+    """Section ids in order, the 'missing' notes and figures (svg, img) per section, every src, the tags."""
+
+    def __init__(self):
+        super().__init__()
+        self.ids, self.missing, self.figures, self.srcs, self.tags = [], {}, {}, [], []
+        self._in_missing = False
+
+    def handle_starttag(self, tag, attrs):
+        attrs = dict(attrs)
+        self.tags.append(tag)
+        if tag == "h2":
+            self.ids.append(attrs.get("id"))
+        if "src" in attrs:
+            self.srcs.append(attrs["src"])
+        if tag in ("svg", "img") and self.ids:
+            self.figures[self.ids[-1]] = self.figures.get(self.ids[-1], 0) + 1
+        self._in_missing = tag == "p" and attrs.get("class") == "missing"
+
+    def handle_endtag(self, tag):
+        if tag == "p":
+            self._in_missing = False
+
+    def handle_data(self, data):
+        if self._in_missing and self.ids:
+            self.missing[self.ids[-1]] = self.missing.get(self.ids[-1], "") + data
+
+
+def parse(path) -> Page:
+    page = Page()
+    page.feed(path.read_text(encoding="utf-8"))
+    page.close()
+    return page
+
+
+def poses_from_truth(dataset, cameras: str) -> pd.DataFrame:
+    """poses.csv rows at the true poses, centres moved by 2 cm."""
+    truth = pd.read_csv(dataset / "truth" / "frames.csv", dtype={"frame": str, "group": str})
+    rows = []
+    for k, r in enumerate(truth.itertuples(index=False)):
+        pose = Rigid3.from_quat([r.qw, r.qx, r.qy, r.qz], [r.tx, r.ty, r.tz])
+        center = pose.center + [0.02, 0.0, 0.0]
+        rows.append({"frame": r.frame, "group": r.group, "cameras": cameras, "n_points": 40,
+                     **dict(zip(("qw", "qx", "qy", "qz"), pose.quat)),
+                     **dict(zip(("tx", "ty", "tz"), -pose.R @ center)), **dict(zip("xyz", center)),
+                     "eps_proj_px": 4.0 + 0.1 * k, "time_ms": 0.5})
+    return pd.DataFrame(rows)
+
+
+def write_results(dataset, results) -> None:
+    """Every input of the report, written directly with known values."""
+    truth = Rig.load(dataset / "truth" / "rig.json")
+    truth.save(results / "rig.json")
+    poses_from_truth(dataset, "C0+C1+C2+C3+C4").to_csv(results / "poses.csv", index=False)
+    for label in ("0", "012", "01234"):
+        names = "+".join(truth.camera_names[int(d)] for d in label)
+        poses_from_truth(dataset, names).to_csv(results / f"poses_{label}.csv", index=False)
+    run_evaluate(dataset, results)
+    rows = []
+    for name, camera in truth.cameras.items():
+        record = {"camera": name, **camera.to_dict(), "std": {"fx": 2.5, "fy": 2.4, "cx": 1.1, "cy": 0.9, "d": 0.01},
+                  "eps_calib_px": 0.12, "eps_eval_px": 0.15, "n_images": 3, "n_observations": 90}
+        (results / "intrinsics").mkdir(exist_ok=True)
+        (results / "intrinsics" / f"{name}.json").write_text(json.dumps(record))
+        rows.append({"method": "ours", **{k: record[k] for k in TABLE_COLUMNS[1:]}})
+        rows.append({"method": "dlt_lm", **{k: record[k] for k in TABLE_COLUMNS[1:]}})
+    pd.DataFrame(rows, columns=list(TABLE_COLUMNS)).to_csv(results / "tables" / "intrinsics.csv", index=False)
+    unknown = Rig(truth.cameras, {n: Rigid3(p.R, p.t + [0.3, -0.2, 1.0]) if n != "C0" else p
+                                  for n, p in truth.cam_from_rig.items()}, "C0")
+    truth.save(results / "extrinsics" / "rig_known.json")
+    unknown.save(results / "extrinsics" / "rig_unknown.json")
+    table_R, table_t = extrinsics_tables(truth, unknown)
+    table_R.to_csv(results / "tables" / "extrinsics_R.csv", index=False)
+    table_t.to_csv(results / "tables" / "extrinsics_t.csv", index=False)
+    pd.DataFrame({"n_points": [10, 50, 100], "ours_ms": [0.2, 0.3, 0.4], "pycolmap_ms": [0.5, 0.6, 0.8],
+                  "paper_ms": [0.34, 0.44, 0.55]}).to_csv(results / "tables" / "time_points.csv", index=False)
+
+
+def write_benchmarks(folder) -> None:
+    header = "s\th:m:s\tmax_rss\tmax_vms\tmax_uss\tmax_pss\tio_in\tio_out\tmean_load\tcpu_time\n"
+    for relative, seconds, rss in (("markers/img1.tsv", 2.0, 100.0), ("markers/img2.tsv", 4.0, 150.0),
+                                   ("intrinsics/C0.tsv", 10.0, 300.0), ("evaluate.tsv", 0.5, 80.0)):
+        path = folder / relative
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(header + f"{seconds}\t0:00:0{int(seconds)}\t{rss}\t0\t0\t0\t0\t0\t0\t{seconds}\n")
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    root = tmp_path_factory.mktemp("report")
+    (root / "sim.yaml").write_text(yaml.safe_dump(SIM))
+    return simulate(root / "sim.yaml", root / "dataset")
+
+
+@pytest.fixture(scope="module")
+def results(dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("results")
+    write_results(dataset, out)
+    return out
+
+
+# ------------------------------------------------------------------------------ the report
+
+
+def test_report_has_every_section_and_is_self_contained(dataset, results, tmp_path):
+    write_benchmarks(tmp_path / "benchmarks")
+    out = write_report(dataset, results, tmp_path / "report" / "report.html", benchmarks_dir=tmp_path / "benchmarks")
+    page = parse(out)
+    assert page.ids == SECTION_IDS
+    assert page.missing == {}, page.missing
+    assert set(page.figures) == {"rig", "residuals", "frames", "subsets", "runtime", "stages"}
+    assert all(src.startswith("data:") for src in page.srcs)
+    assert "script" not in page.tags and "link" not in page.tags
+    text = out.read_text()
+    for expected in ("C4", "eps_pos_mean_m", "true_ang_err_arcmin", "#012", "extrinsics_R",
+                     "markers", "± 2.5"):
+        assert expected in text, expected
+
+
+def test_missing_inputs_make_sections_say_so(dataset, tmp_path):
+    empty = tmp_path / "results"
+    empty.mkdir()
+    out = write_report(tmp_path / "no-dataset", empty, tmp_path / "report.html")
+    page = parse(out)
+    assert page.ids == SECTION_IDS
+    assert set(page.missing) == set(SECTION_IDS)
+    assert "is not a dataset directory" in page.missing["dataset"]
+    assert "intrinsics is missing" in page.missing["intrinsics"]
+    assert "rig.json is missing" in page.missing["rig"]
+    assert "evaluation.csv is missing" in page.missing["frames"]
+    assert "conf.csv is missing" in page.missing["subsets"]
+    assert "no benchmark folder" in page.missing["stages"]
+    # With the dataset but still no results: the dataset section is drawn.
+    page = parse(write_report(dataset, empty, tmp_path / "report2.html"))
+    assert "dataset" not in page.missing and "poses.csv is missing" in page.missing["residuals"]
+    # A malformed table costs its section only.
+    pd.DataFrame({"frame": ["x"], "eps_pos_m": [0.1]}).to_csv(empty / "evaluation.csv", index=False)
+    page = parse(write_report(dataset, empty, tmp_path / "report3.html"))
+    assert page.ids == SECTION_IDS and "malformed input: KeyError" in page.missing["frames"]
+
+
+def test_layout_figure_is_embedded_and_text_escaped(dataset, results, tmp_path):
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    manifest = yaml.safe_load((copy / "dataset.yaml").read_text())
+    manifest["name"] = "<script>alert(1)</script>"
+    (copy / "dataset.yaml").write_text(yaml.safe_dump(manifest))
+    mine = tmp_path / "results"
+    shutil.copytree(results, mine)
+    evaluation = pd.read_csv(mine / "evaluation.csv", dtype=str, keep_default_na=False)
+    evaluation["note"] = "<b>bold</b> & co"
+    evaluation.to_csv(mine / "evaluation.csv", index=False)
+    (mine / "figures").mkdir()
+    (mine / "figures" / "extrinsics_layout.svg").write_text(
+        '<svg xmlns="http://www.w3.org/2000/svg" width="10" height="10"><circle r="4"/></svg>')
+    out = write_report(copy, mine, tmp_path / "report.html")
+    text = out.read_text()
+    assert "<script" not in text and "<b>bold" not in text
+    assert "&lt;script&gt;alert(1)&lt;/script&gt;" in text and "&lt;b&gt;bold&lt;/b&gt; &amp; co" in text
+    page = parse(out)
+    assert any(src.startswith("data:image/svg+xml;base64,") for src in page.srcs)
+    assert page.ids == SECTION_IDS
+
+
+def test_benchmark_table(tmp_path):
+    write_benchmarks(tmp_path)
+    table = benchmark_table(tmp_path).set_index("stage")
+    assert set(table.index) == {"markers", "intrinsics", "evaluate"}
+    assert table.loc["markers", "jobs"] == 2 and table.loc["markers", "total_s"] == 6.0
+    assert table.loc["markers", "mean_s"] == 3.0 and table.loc["markers", "max_rss_mb"] == 150.0
+    assert benchmark_table(tmp_path / "nothing").empty
+
+
+# ------------------------------------------------------------------------------ the paper
+
+
+def test_compare_with_paper_side_by_side():
+    ours = pd.DataFrame({"group": ["1", "1", "all"], "subset": ["012", "0", "012"], "cameras": ["a", "b", "c"],
+                         "eps_pos_mean_m": [0.1, 2.0, 0.3], "n_frames": [3, 3, 6]})
+    paper = pd.DataFrame({"group": [1, 1, 2], "subset": ["0", "012", "0"], "eps_pos_mean_m": [1.0, 0.05, 0.9]})
+    table = compare_with_paper(ours, paper, ["group", "subset"])
+    assert list(table.columns) == ["group", "subset", "quantity", "ours", "paper", "ratio", "difference"]
+    assert table["quantity"].unique().tolist() == ["eps_pos_mean_m"]  # n_frames: the paper has none
+    rows = {(g, s): r for g, s, r in zip(table["group"], table["subset"], table.itertuples())}
+    assert rows["1", "012"].ratio == pytest.approx(2.0) and rows["1", "0"].ratio == pytest.approx(2.0)
+    assert rows["1", "012"].difference == pytest.approx(0.05)
+    assert np.isnan(rows["all", "012"].paper) and np.isnan(rows["2", "0"].ours)
+    assert list(rows)[:3] == [("1", "012"), ("1", "0"), ("all", "012")]  # ours first, in our order
+    mapped = compare_with_paper(pd.DataFrame({"n_points": [10, 50], "ours_ms": [0.17, 0.22]}),
+                                pd.DataFrame({"n_points": [10, 50], "paper_ms": [0.34, 0.44]}),
+                                ["n_points"], {"ours_ms": "paper_ms"})
+    np.testing.assert_allclose(mapped["ratio"], [0.5, 0.5])
+
+
+def test_paper_tables_have_our_columns_and_the_published_numbers(dataset):
+    def published(name):
+        return pd.read_csv(PAPER_DIR / f"{name}.csv", dtype={k: str for k in PAPER_TABLES[name].keys})
+
+    intrinsics = published("intrinsics")
+    assert list(intrinsics.columns) == list(TABLE_COLUMNS) and len(intrinsics) == 20
+    assert intrinsics.set_index(["method", "camera"]).loc[("ours", "C4"), "eps_eval_px"] == 0.6303
+    rig = Rig.load(dataset / "truth" / "rig.json")
+    table_R, table_t = extrinsics_tables(rig, rig)
+    assert list(published("extrinsics_R").columns) == list(table_R.columns)
+    assert list(published("extrinsics_t").columns) == list(table_t.columns)
+    assert published("extrinsics_t").set_index("camera").loc["C1", "eps_t_m"] == 3.432
+    evaluation = pd.DataFrame({"frame": ["a", "b"], "group": ["1", "1"], "eps_pos_m": [0.1, 0.2],
+                               "eps_ang_arcmin": [0.3, 0.4], "eps_proj_px": [4.0, 5.0], "time_ms": [0.5, 0.6]})
+    pose_methods = published("pose_methods")
+    assert set(pose_methods.columns) <= set(pose_methods_table(evaluation).columns)
+    assert pose_methods["group"].tolist() == ["1", "2", "3", "4", "5"]
+    conf = published("conf")
+    assert set(conf.columns) <= set(conf_table({"0": evaluation}, rig).columns)
+    assert conf["subset"].unique().tolist() == ["0", "01", "012", "1234", "01234"]
+    assert conf.set_index(["group", "subset"]).loc[("5", "0"), "eps_proj_mean_px"] == 91.832
+    assert published("time_points")["paper_ms"].tolist() == [0.34, 0.44, 0.55, 0.75, 0.96, 1.14, 1.36]
+
+
+def test_write_paper_comparisons(results, tmp_path):
+    written = write_paper_comparisons(results, tmp_path)
+    assert {p.name for p in written} == {f"{name}_vs_paper.csv" for name in PAPER_TABLES}
+    intrinsics = pd.read_csv(tmp_path / "intrinsics_vs_paper.csv")
+    # our dlt_lm baseline meets the paper's Bouguet row; BabelCalib has no counterpart of ours
+    bouguet = intrinsics[(intrinsics["method"] == "bouguet") & (intrinsics["quantity"] == "fx")]
+    assert bouguet["ours"].notna().all() and bouguet["paper"].notna().all()
+    assert intrinsics.loc[intrinsics["method"] == "babelcalib", "ours"].isna().all()
+    conf = pd.read_csv(tmp_path / "conf_vs_paper.csv", dtype={"subset": str, "group": str})
+    row = conf[(conf["group"] == "1") & (conf["subset"] == "012") & (conf["quantity"] == "eps_proj_mean_px")]
+    assert len(row) == 1 and row["paper"].item() == 4.398
+    assert row["ratio"].item() == pytest.approx(row["ours"].item() / 4.398)
+    time_points = pd.read_csv(tmp_path / "time_points_vs_paper.csv")
+    assert time_points["ratio"].iloc[0] == pytest.approx(0.2 / 0.34)
