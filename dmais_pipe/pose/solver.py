@@ -14,27 +14,28 @@ For generalized rays (origins v_i, unit directions f_i, rig frame) and world poi
 
 Cayley's blind spot: q = tan(angle / 2) axis is infinite at 180 degrees, and a down-looking rig
 over a z-up world is a 180-degree rotation at every yaw. The problem is therefore solved in a
-pre-rotated world M' = P M (R = R' P): P is the rotation of the octahedral group (24 axis-aligned
-rotations, none farther than 62.8 deg from any rotation) with the least cost, which keeps the
-sought R' well inside the Cayley ball on informative data; when the winner still lies beyond
-120 deg in that frame, the problem is solved once more in the frame of the winner. Changing frame
-costs nothing in n: H' = K^T H K and g' = K^T g with r = K r', K = blockdiag(P^T, P^T, P^T).
+pre-rotated world M' = P M (R = R' P), with P near the sought rotation so that R' stays near
+q = 0, where the roots are most accurate: P is a local minimum of the cost with most points in
+front, descended from the most promising rotations of the octahedral group (`solving_frame`).
+When the solution still lies beyond 120 deg in that frame, the problem is solved once more in the
+frame of the solution. Changing frame costs nothing in n: H' = K^T H K and g' = K^T g with
+r = K r', K = blockdiag(P^T, P^T, P^T).
 """
 
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
 
 from ..geometry import rotation_from_cayley, skew
-from .equations import COEFFICIENTS, MONOMIALS, N_MONOMIALS, evaluate_equations
 from . import PoseError
+from .equations import MONOMIALS, coefficients_of, evaluate_equations
 from .statistics import PoseStatistics, pose_statistics, validate_correspondences
-from .template import Template
+from .template import Template, template_entries
 
 TEMPLATE_PATH = Path(__file__).with_name("_template.json")
 #: Roots whose imaginary part is below this (relative to 1 + |q|) are polished as real ones:
@@ -85,7 +86,7 @@ class GeneralizedPose:
     cost: float
     candidates: list[Candidate]
     n_points: int
-    covariance: np.ndarray | None = field(default=None)
+    covariance: np.ndarray | None = None
 
 
 # ------------------------------------------------------------------------------ runtime template
@@ -112,15 +113,7 @@ def runtime() -> _Runtime:
     """The template of `_template.json` prepared for the solver (loaded once)."""
     template = Template.from_json(TEMPLATE_PATH.read_text())
     m, n_columns = template.shape
-    column = {mono: j for j, mono in enumerate(template.columns)}
-    target, source = [], []
-    monomials = [tuple(int(x) for x in mono) for mono in MONOMIALS]
-    for i, (e, mult) in enumerate(template.rows):
-        for k, mono in enumerate(monomials):
-            j = column.get((mono[0] + mult[0], mono[1] + mult[1], mono[2] + mult[2]))
-            if j is not None:
-                target.append(i * n_columns + j)
-                source.append(e * N_MONOMIALS + k)
+    target, source = template_entries(template.rows, template.columns)
     basis = {mono: j for j, mono in enumerate(template.basis)}
     reducible = {mono: j for j, mono in enumerate(template.reducible)}
     unit = tuple(int(i == template.action_variable) for i in range(3))
@@ -138,8 +131,8 @@ def runtime() -> _Runtime:
         m=m,
         n_columns=n_columns,
         n_reducible=template.n_reducible,
-        target=np.array(target),
-        source=np.array(source),
+        target=target,
+        source=source,
         shift_rows=np.array(shift_rows),
         shift_cols=np.array(shift_cols),
         reduced_rows=np.array(reduced_rows),
@@ -225,7 +218,6 @@ def _octahedral_group() -> np.ndarray:
 
 
 OCTAHEDRAL = _octahedral_group()
-_UPPER = np.triu_indices(9)
 
 
 def _in_frame(H: np.ndarray, g: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -234,15 +226,10 @@ def _in_frame(H: np.ndarray, g: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, 
     return K.T @ H @ K, K.T @ g
 
 
-def equation_coefficients_hg(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """(6, n_monomials) coefficients of eq. EF6 for statistics H (9, 9) and g (9,)."""
-    return (COEFFICIENTS @ np.concatenate([H[_UPPER], g])).reshape(6, N_MONOMIALS)
-
-
-def _real_roots(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Polished real Cayley parameters (k, 3) of the stationary points, and the coefficients used."""
-    scale = np.trace(H)
-    coeffs = equation_coefficients_hg(H / scale, g / scale)
+def _real_roots(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Polished real Cayley parameters (k, 3) of the stationary points for statistics H, g."""
+    trace = np.trace(H)
+    coeffs = coefficients_of(H / trace, g / trace)
     with np.errstate(divide="ignore", invalid="ignore"):
         q = roots(coeffs[None])[0]
     size = 1.0 + np.abs(q).max(axis=1)
@@ -251,25 +238,24 @@ def _real_roots(H: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     # a complex pair polished as if real converges to a minimum of |equations|, not to a root
     scale = np.abs(coeffs).sum(axis=1) * np.maximum(1.0, np.abs(q).max(axis=1, initial=0.0))[:, None] ** 4
     residual = np.abs(evaluate_equations(coeffs, q)).reshape(-1, 6) / scale
-    return q[residual.max(axis=1, initial=0.0) < ROOT_TOLERANCE], coeffs
+    return q[residual.max(axis=1, initial=0.0) < ROOT_TOLERANCE]
 
 
 def _solve_in_frame(stats: PoseStatistics, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rotations (k, 3, 3) in the original frame, their costs (k,) and Cayley parameters in frame P."""
-    H, g = _in_frame(stats.H, stats.g, P)
-    q, _ = _real_roots(H, g)
+    q = _real_roots(*_in_frame(stats.H, stats.g, P))
     R = rotation_from_cayley(q).reshape(-1, 3, 3) @ P
     return R, np.atleast_1d(stats.cost(R)), q
 
 
-def _unique(R: np.ndarray, cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Candidates sorted by cost, duplicate rotations (e.g. polished conjugate pairs) removed."""
+def _unique(R: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    """Indices of the candidates sorted by cost, duplicate rotations (e.g. polished conjugate
+    pairs) removed."""
     order = np.argsort(cost)
-    R, cost = R[order], cost[order]
+    R = R[order]
     same = np.abs(R[:, None] - R[None]).reshape(len(R), len(R), 9).max(axis=2) < DUPLICATE_TOLERANCE
     first = np.argmax(same, axis=1)  # index of the first (cheapest) rotation equal to each
-    keep = first == np.arange(len(R))
-    return R[keep], cost[keep]
+    return order[first == np.arange(len(R))]
 
 
 _GENERATORS = np.array([skew(e) for e in np.eye(3)])  # [e_k]x, (3, 3, 3)
@@ -348,6 +334,7 @@ def _select(cost: np.ndarray, front: np.ndarray) -> int:
 def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tuple[list[Candidate], int]:
     """All real stationary candidates, least cost first, and the index of the solution among them.
 
+    There is always at least one: the solving frame, a descended local minimum, is a candidate.
     origins, directions, points: the validated correspondences that `stats` summarises.
     """
     # Solve where the sought rotation is near q = 0: the roots are most accurate there (a
@@ -358,18 +345,17 @@ def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tupl
     P = solving_frame(stats, origins, directions, points)
     R, cost, q = _solve_in_frame(stats, P)
     R, cost, q = np.concatenate([R, P[None]]), np.append(cost, stats.cost(P)), np.vstack([q, np.zeros(3)])
-    best = _select(cost, front_fraction(R, stats.translation(R), origins, directions, points)) if len(cost) else -1
-    if best < 0 or np.linalg.norm(q[best]) > np.tan(MAX_FRAME_ANGLE / 2):
-        R2, cost2, _ = _solve_in_frame(stats, R[best] if best >= 0 else OCTAHEDRAL[1])
-        R, cost = np.concatenate([R, R2]), np.concatenate([cost, cost2])
-    R, cost = _unique(R, cost)
-    if len(R) == 0:
-        return [], -1
     t = stats.translation(R)
     front = front_fraction(R, t, origins, directions, points)
-    candidates = [Candidate(R=R[i], t=t[i], cost=max(float(cost[i]), 0.0), in_front=float(front[i]))
-                  for i in range(len(R))]
-    return candidates, _select(cost, front)
+    best = _select(cost, front)
+    if np.linalg.norm(q[best]) > np.tan(MAX_FRAME_ANGLE / 2):
+        R2, cost2, _ = _solve_in_frame(stats, R[best])
+        t2 = stats.translation(R2)
+        R, cost, t = np.concatenate([R, R2]), np.concatenate([cost, cost2]), np.concatenate([t, t2])
+        front = np.concatenate([front, front_fraction(R2, t2, origins, directions, points)])
+    keep = _unique(R, cost)
+    candidates = [Candidate(R=R[i], t=t[i], cost=max(float(cost[i]), 0.0), in_front=float(front[i])) for i in keep]
+    return candidates, _select(cost[keep], front[keep])
 
 
 def solve_generalized_pose(origins, directions, points, refine: bool = False, sigma: float | None = None) -> GeneralizedPose:
@@ -384,8 +370,6 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
     origins, directions, points = validate_correspondences(origins, directions, points)
     stats = pose_statistics(origins, directions, points)
     candidates, best = solve_statistics(stats, origins, directions, points)
-    if not candidates:
-        raise PoseError("pose: the solver found no real solution (degenerate geometry?)")
     solution = candidates[best]
     pose = GeneralizedPose(R=solution.R, t=solution.t, cost=solution.cost, candidates=candidates, n_points=stats.n)
     if not refine:

@@ -153,20 +153,30 @@ def expansion(degree: int) -> list[tuple[int, Monomial]]:
     return [(e, mult) for mult in multipliers for e in range(6)]
 
 
-def coefficient_matrix(coeffs: np.ndarray, rows, columns) -> np.ndarray:
-    """Integer template matrix (len(rows), len(columns)) of `coeffs` (6, n_monomials) mod PRIME.
+def template_entries(rows, columns) -> tuple[np.ndarray, np.ndarray]:
+    """Where each equation coefficient lands in a template: flat indices (k,) into the
+    (len(rows), len(columns)) template and flat indices (k,) into the (6, n_monomials) coefficients.
 
     Terms that fall in a monomial missing from `columns` are dropped (see step 3 above).
     """
     index = {mono: j for j, mono in enumerate(columns)}
-    matrix = np.zeros((len(rows), len(columns)), dtype=np.int64)
     equation_monomials = [tuple(int(x) for x in m) for m in MONOMIALS]
+    target, source = [], []
     for i, (e, mult) in enumerate(rows):
         for k, mono in enumerate(equation_monomials):
             j = index.get(_add(mono, mult))
             if j is not None:
-                matrix[i, j] = coeffs[e, k]
-    return matrix
+                target.append(i * len(columns) + j)
+                source.append(e * len(equation_monomials) + k)
+    return np.array(target, dtype=np.int64), np.array(source, dtype=np.int64)
+
+
+def coefficient_matrix(coeffs: np.ndarray, rows, columns) -> np.ndarray:
+    """Integer template matrix (len(rows), len(columns)) of `coeffs` (6, n_monomials) mod PRIME."""
+    target, source = template_entries(rows, columns)
+    matrix = np.zeros(len(rows) * len(columns), dtype=np.int64)
+    matrix[target] = np.asarray(coeffs).reshape(-1)[source]
+    return matrix.reshape(len(rows), len(columns))
 
 
 def standard_monomials(coeffs: np.ndarray, degree: int = EXPANSION_DEGREE + 1) -> list[Monomial]:
