@@ -716,3 +716,15 @@ def load_observations(dataset: Dataset, results: str | Path | None) -> pd.DataFr
     observations = dataset.observations.copy()
     observations.insert(1, "camera", observations["image"].map(camera_of).astype(str))
     return observations
+
+
+def flight_observations(dataset: Dataset, observations: pd.DataFrame, cameras=None) -> pd.DataFrame:
+    """The rows of `observations` (load_observations) on flight images, of `cameras` if given,
+    with a `frame` column: the image's placement in images.csv."""
+    flight = dataset.images_of("flight")
+    if cameras is not None:
+        flight = flight[flight["camera"].isin(cameras)]
+    frame_of = dict(zip(flight["image"], flight["placement"]))
+    chosen = observations[observations["image"].isin(frame_of)].copy()
+    chosen["frame"] = chosen["image"].map(frame_of)
+    return chosen

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .dataset import Dataset, _read_table, _Table
+from .dataset import Dataset, _read_table, _Table, flight_observations
 from .errors import DatasetError
 from .files import write_csv_atomic
 from .geometry import Rigid3, rotation_error, rotation_from_quat
@@ -368,10 +368,7 @@ def reprojection_residuals(dataset: Dataset, rig: Rig, poses: pd.DataFrame, obse
     u, v (load_observations). Returns one row per observation: frame, camera, image, point_id,
     u, v, du, dv (NaN where the point does not project into the camera).
     """
-    flight = dataset.images_of("flight")
-    frame_of = dict(zip(flight["image"], flight["placement"]))
-    obs = observations[observations["image"].isin(frame_of.keys())].copy()
-    obs["frame"] = obs["image"].map(frame_of)
+    obs = flight_observations(dataset, observations)
     points = dataset.points
     parts = []
     by_frame = {frame: rows for frame, rows in obs.groupby("frame", sort=False)}

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from scipy.spatial.transform import Rotation
 
 from ..files import write_csv_atomic
 from ..geometry import rotation_error
@@ -28,18 +29,19 @@ AXES_DEG = ((0, 0), (45, 0), (45, 90), (45, 180), (45, 270))
 
 
 def _cam_from_rig(k: int):
-    from scipy.spatial.transform import Rotation
-
     tilt, azimuth = AXES_DEG[k]
     R = Rotation.from_euler("zx", np.deg2rad([azimuth, tilt])).as_matrix().T
     centre = 0.1 * np.array([np.cos(k), np.sin(k), 0.0]) if k else np.zeros(3)
     return R, -R @ centre
 
 
+def _bearings(uv: np.ndarray) -> np.ndarray:
+    """Camera-frame ray directions (n, 3), unnormalized, of ideal pinhole pixels uv (n, 2)."""
+    return np.column_stack([(uv - [(WIDTH - 1) / 2, (HEIGHT - 1) / 2]) / FOCAL_PX, np.ones(len(uv))])
+
+
 def dmais_frame(rng, n_points: int):
     """One frame: camera index (n,), pixels (n, 2), world points (n, 3), true (R, t)."""
-    from scipy.spatial.transform import Rotation
-
     world_from_rig = Rotation.from_euler("zxy", [rng.uniform(0, 2 * np.pi), np.pi + rng.uniform(-0.05, 0.05),
                                                  rng.uniform(-0.05, 0.05)]).as_matrix()
     centre = np.array([5e5, 4e6, 350.0]) + rng.uniform(-50, 50, 3)
@@ -49,8 +51,7 @@ def dmais_frame(rng, n_points: int):
     for k in range(5):
         R_c, t_c = _cam_from_rig(k)
         m = cams == k
-        bearing = np.column_stack([(uv[m] - [(WIDTH - 1) / 2, (HEIGHT - 1) / 2]) / FOCAL_PX, np.ones(m.sum())])
-        direction = (bearing @ R_c) @ world_from_rig.T
+        direction = (_bearings(uv[m]) @ R_c) @ world_from_rig.T
         origin = centre + world_from_rig @ (-R_c.T @ t_c)
         depth = (rng.uniform(-10, 10, m.sum()) - origin[2]) / direction[:, 2]
         points[m] = origin + depth[:, None] * direction
@@ -63,8 +64,7 @@ def _rays(cams, uv):
     for k in range(5):
         R_c, t_c = _cam_from_rig(k)
         m = cams == k
-        bearing = np.column_stack([(uv[m] - [(WIDTH - 1) / 2, (HEIGHT - 1) / 2]) / FOCAL_PX, np.ones(m.sum())])
-        directions[m] = bearing @ R_c
+        directions[m] = _bearings(uv[m]) @ R_c
         origins[m] = -R_c.T @ t_c
     return origins, directions
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..dataset import Dataset, load_observations
+from ..dataset import Dataset, flight_observations, load_observations
 from ..errors import DmaisError
 from ..files import write_csv_atomic
 from ..geometry import Rigid3, quat_from_rotation
@@ -99,17 +99,12 @@ def _frame_row(frame: str, group: str, cameras_used: list[str], pose: Rigid3, n:
 def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
                    robust: bool = False, refine: bool = False, groups: list[str] | None = None) -> pd.DataFrame:
     """poses.csv rows (COLUMNS) for every flight frame (of `groups`, if given)."""
-    flight = dataset.images_of("flight")
-    flight = flight[flight["camera"].isin(cameras)]
-    frame_of = dict(zip(flight["image"], flight["placement"].astype(str)))
-    obs = observations[observations["image"].isin(frame_of)].copy()
-    obs["frame"] = obs["image"].map(frame_of)
+    obs = flight_observations(dataset, observations, cameras)
     points = dataset.points
-    obs = obs[obs["point_id"].isin(points.index)]
-    frames = dataset.frames.set_index("frame") if "frame" in dataset.frames else pd.DataFrame()
+    group_of = dict(zip(dataset.frames["frame"], dataset.frames["group"]))  # the loader checks every frame is there
     rows, skipped = [], []
     for frame, group_obs in obs.groupby("frame", sort=True):
-        group = str(frames.loc[frame, "group"]) if frame in frames.index else ""
+        group = str(group_of[frame])
         if groups and group not in groups:
             continue
         X = points.loc[group_obs["point_id"], ["x", "y", "z"]].to_numpy(float)
