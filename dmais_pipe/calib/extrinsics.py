@@ -32,7 +32,7 @@ from ..geometry import Rigid3, average_rotations, euler_zyx_from_rotation
 from ..rig import Rig
 from .intrinsics import intrinsics_path, load_intrinsics
 from .localize import DEFAULT_CENTER_SIGMA_M, DEFAULT_PIXEL_SIGMA_PX, localize_image
-from .rig_ba import BACKENDS, ImageBlock, RigBAResult, refine
+from .rig_ba import BACKENDS, ImageBlock, RigBAResult, opencv_params, refine
 
 log = logging.getLogger(__name__)
 
@@ -298,7 +298,6 @@ def colmap_rig_config(rig: Rig, prefixes: dict[str, str] | None = None) -> list[
     order = [rig.reference_camera] + [c for c in rig.camera_names if c != rig.reference_camera]
     cameras = []
     for name in order:
-        cam = rig.cameras[name]
         entry = {"image_prefix": prefixes.get(name, f"{name}/")}
         if name == rig.reference_camera:
             entry["ref_sensor"] = True
@@ -307,7 +306,7 @@ def colmap_rig_config(rig: Rig, prefixes: dict[str, str] | None = None) -> list[
             entry["cam_from_rig_rotation"] = [float(q) for q in cam_from_rig.quat]
             entry["cam_from_rig_translation"] = [float(t) for t in cam_from_rig.t]
         entry["camera_model_name"] = "OPENCV"
-        entry["camera_params"] = [cam.fx, cam.fy, cam.cx, cam.cy, cam.d, 0.0, 0.0, 0.0]
+        entry["camera_params"] = opencv_params(rig.cameras[name])
         cameras.append(entry)
     return [{"cameras": cameras}]
 

@@ -34,7 +34,7 @@ from scipy.optimize import least_squares
 
 from ..camera import Camera
 from ..errors import DmaisError
-from ..geometry import Rigid3
+from ..geometry import Rigid3, skew
 from ._projection import exp_so3, left_jacobian, project
 
 log = logging.getLogger(__name__)
@@ -69,10 +69,6 @@ class RigBAResult:
     prior_residuals_m: dict[str, np.ndarray] = field(default_factory=dict)
     sigma0: float = float("nan")  # a posteriori standard deviation of unit weight
     backend: str = "scipy"
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def _skews(v: np.ndarray) -> np.ndarray:
@@ -186,7 +182,7 @@ class _RigProblem:
                 J[r0:r0 + n2, kc + 3:kc + 6] = (J_cam @ -RcT).reshape(-1, 3)
             if prior:
                 rr = slice(r0 + n2, r0 + nr)
-                J[rr, kj:kj + 3] = Rj.T @ _skew(c) @ left_jacobian(psi) / self.center_sigma
+                J[rr, kj:kj + 3] = Rj.T @ skew(c) @ left_jacobian(psi) / self.center_sigma
                 J[rr, kj + 3:kj + 6] = np.eye(3) / self.center_sigma
                 if b.camera != self.reference:
                     J[rr, kc + 3:kc + 6] = Rj.T / self.center_sigma
@@ -302,11 +298,17 @@ class _ColmapScene:
     point_ids: list[int]  # (m,) their 3D point ids
 
 
+def opencv_params(camera: Camera, sigma: float = 1.0) -> list[float]:
+    """COLMAP OPENCV parameters (fx, fy, cx, cy, k1 = d, k2 = p1 = p2 = 0: exactly our model), with
+    the pixel-valued ones divided by sigma."""
+    return [camera.fx / sigma, camera.fy / sigma, camera.cx / sigma, camera.cy / sigma, camera.d, 0.0, 0.0, 0.0]
+
+
 def _colmap_camera(camera: Camera, camera_id: int, sigma: float):
     """OPENCV camera (k1 = d, k2 = p1 = p2 = 0) with pixels scaled by 1 / sigma, so residuals are whitened."""
     import pycolmap
 
-    params = [camera.fx / sigma, camera.fy / sigma, camera.cx / sigma, camera.cy / sigma, camera.d, 0.0, 0.0, 0.0]
+    params = opencv_params(camera, sigma)
     return pycolmap.Camera(camera_id=camera_id, model="OPENCV", width=max(1, round(camera.width / sigma)),
                            height=max(1, round(camera.height / sigma)), params=params)
 
