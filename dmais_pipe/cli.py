@@ -37,16 +37,24 @@ def _cmd_summarize(args) -> None:
 
 
 def _cmd_intrinsics(args) -> None:
-    from .calib.intrinsics import run_intrinsics
+    from .calib.intrinsics import run_intrinsics, write_intrinsics_table
 
-    for path in run_intrinsics(args.dataset, args.out):
+    if args.table:
+        print(write_intrinsics_table(args.dataset, args.out))
+        return
+    for path in run_intrinsics(args.dataset, args.out, cameras=args.camera):
         print(path)
 
 
 def _cmd_markers(args) -> None:
-    from .markers import run_markers
+    from .markers.stage import collect_observations, run_markers, run_markers_image
 
-    print(run_markers(args.dataset, args.out, jobs=args.jobs))
+    if args.image:
+        print(run_markers_image(args.dataset, args.out, args.image))
+    elif args.collect:
+        print(collect_observations(args.dataset, args.out, args.collect))
+    else:
+        print(run_markers(args.dataset, args.out, jobs=args.jobs))
 
 
 def _cmd_bench_markers(args) -> None:
@@ -70,10 +78,13 @@ def _cmd_extrinsics(args) -> None:
 
 
 def _cmd_pose(args) -> None:
-    from .pose.stage import run_pose
+    from .pose.stage import merge_poses, run_pose
 
     cameras = [c for c in args.cameras.split(",") if c] if args.cameras else None
     groups = [g for g in args.groups.split(",") if g] if args.groups else None
+    if args.merge:
+        print(merge_poses(args.dataset, args.out, args.merge, cameras=cameras, out=args.csv))
+        return
     print(run_pose(args.dataset, args.out, cameras=cameras, robust=args.robust, refine=args.refine,
                    groups=groups, out=args.csv))
 
@@ -119,11 +130,19 @@ def _parser() -> argparse.ArgumentParser:
     markers.add_argument("dataset", type=Path)
     markers.add_argument("--out", type=Path, required=True, help="results folder")
     markers.add_argument("--jobs", type=int, default=1, help="images processed in parallel")
+    one = markers.add_mutually_exclusive_group()
+    one.add_argument("--image", help="only this image -> RESULTS/markers/<image>.csv (one workflow job)")
+    one.add_argument("--collect", choices=("intrinsics", "extrinsics", "flight"),
+                     help="only gather the stage's marker files -> RESULTS/observations/<stage>.csv")
     markers.set_defaults(run=_cmd_markers)
 
     intrinsics = commands.add_parser("intrinsics", help="calibrate every camera's intrinsics from the field")
     intrinsics.add_argument("dataset", type=Path)
     intrinsics.add_argument("--out", type=Path, required=True, help="results folder")
+    only = intrinsics.add_mutually_exclusive_group()
+    only.add_argument("--camera", action="append", help="calibrate only this camera (repeatable); no table")
+    only.add_argument("--table", action="store_true",
+                      help="only write tables/intrinsics.csv from the cameras' intrinsics/<camera>.methods.csv")
     intrinsics.set_defaults(run=_cmd_intrinsics)
 
     extrinsics = commands.add_parser("extrinsics", help="calibrate the rig (cam_from_rig) from the placements")
@@ -140,6 +159,8 @@ def _parser() -> argparse.ArgumentParser:
     pose.add_argument("--robust", action="store_true", help="RANSAC against wrong correspondences first")
     pose.add_argument("--refine", action="store_true", help="polish on the reprojection error")
     pose.add_argument("--csv", type=Path, help="output CSV (default: RESULTS/poses.csv or poses_<label>.csv)")
+    pose.add_argument("--merge", type=Path, nargs="+", metavar="PART",
+                      help="only concatenate per-group pose files of --cameras into the output CSV")
     pose.set_defaults(run=_cmd_pose)
 
     evaluate = commands.add_parser("evaluate", help="pose errors against the POS reference (and truth), tables")

@@ -37,6 +37,7 @@ OBSERVATIONS = "observations.csv"
 TRUTH = "truth"
 
 STAGES = ("intrinsics", "extrinsics", "flight")
+STAGE_OBSERVATIONS_DIR = "observations"
 SPLITS = ("calib", "eval")
 DEFAULT_MARKER_SIZE_M = 2.0
 
@@ -704,15 +705,28 @@ def _is_missing(value) -> bool:
     return value is None or (isinstance(value, float) and math.isnan(value))
 
 
+def stage_observations_path(results: str | Path, stage: str) -> Path:
+    """RESULTS/observations/<stage>.csv: the identified observations of one stage's images."""
+    return Path(results) / STAGE_OBSERVATIONS_DIR / f"{stage}.csv"
+
+
 def load_observations(dataset: Dataset, results: str | Path | None) -> pd.DataFrame:
     """Observations (image, camera, point_id, u, v + extras) used downstream.
 
-    From `results/observations.csv` when it exists (validated against `dataset`, errors naming that
-    file), otherwise the dataset's own observations with `camera` taken from images.csv.
+    The first source found wins, each validated against `dataset` with errors naming its file:
+    1. RESULTS/observations/<stage>.csv, the union over the stages that have one: the workflow
+       collects each stage's per-image markers there (`dmais markers --collect STAGE`);
+    2. RESULTS/observations.csv, written by `dmais markers` over the whole dataset;
+    3. the dataset's own observations, with `camera` taken from images.csv.
     """
     camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
-    if results is not None and (Path(results) / OBSERVATIONS).exists():
-        return _read_observations(Path(results) / OBSERVATIONS, camera_of, dataset.points.index, with_camera=True)
+    if results is not None:
+        paths = [p for p in (stage_observations_path(results, s) for s in STAGES) if p.exists()]
+        if not paths and (Path(results) / OBSERVATIONS).exists():
+            paths = [Path(results) / OBSERVATIONS]
+        if paths:
+            tables = [_read_observations(p, camera_of, dataset.points.index, with_camera=True) for p in paths]
+            return pd.concat(tables, ignore_index=True) if len(tables) > 1 else tables[0]
     observations = dataset.observations.copy()
     observations.insert(1, "camera", observations["image"].map(camera_of).astype(str))
     return observations

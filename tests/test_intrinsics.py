@@ -12,7 +12,7 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from dmais_pipe.calib.intrinsics import (
-    calibrate_camera, calibrate_camera_dlt_lm, calibrate_camera_opencv, run_intrinsics,
+    calibrate_camera, calibrate_camera_dlt_lm, calibrate_camera_opencv, run_intrinsics, write_intrinsics_table,
 )
 from dmais_pipe.camera import Camera
 from dmais_pipe.errors import DmaisError
@@ -44,10 +44,32 @@ def simulated(tmp_path_factory):
     return dataset, results, written
 
 
+def test_per_camera_runs_and_table_equal_one_run(simulated, tmp_path):
+    dataset, results, _ = simulated
+    for camera in ("C3", "C0", "C1", "C2", "C4"):
+        run_intrinsics(dataset, tmp_path, cameras=[camera])
+    assert not (tmp_path / "tables" / "intrinsics.csv").exists()
+    pd.testing.assert_frame_equal(pd.read_csv(write_intrinsics_table(dataset, tmp_path)),
+                                  pd.read_csv(results / "tables" / "intrinsics.csv"))
+    assert (json.loads((tmp_path / "intrinsics" / "C3.json").read_text())
+            == json.loads((results / "intrinsics" / "C3.json").read_text()))
+
+
+def test_table_names_a_camera_not_calibrated_yet(simulated, tmp_path):
+    dataset, _, _ = simulated
+    run_intrinsics(dataset, tmp_path, cameras=["C0"])
+    with pytest.raises(DmaisError, match="C1.methods.csv"):
+        write_intrinsics_table(dataset, tmp_path)
+    with pytest.raises(DmaisError, match="C9"):
+        run_intrinsics(dataset, tmp_path, cameras=["C9"])
+
+
 def test_run_intrinsics_writes_json_and_table(simulated):
     dataset, results, written = simulated
     names = ["C0", "C1", "C2", "C3", "C4"]
-    assert set(written) == {results / "intrinsics" / f"{c}.json" for c in names} | {results / "tables" / "intrinsics.csv"}
+    assert set(written) == ({results / "intrinsics" / f"{c}.json" for c in names}
+                            | {results / "intrinsics" / f"{c}.methods.csv" for c in names}
+                            | {results / "tables" / "intrinsics.csv"})
     for name in names:
         data = json.loads((results / "intrinsics" / f"{name}.json").read_text())
         assert JSON_KEYS <= set(data)

@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from dmais_pipe.errors import DmaisError
-from dmais_pipe.pose.stage import COLUMNS, run_pose
+from dmais_pipe.pose.stage import COLUMNS, merge_poses, run_pose
 from dmais_pipe.sim.simulate import simulate
 
 SIM = {
@@ -48,3 +48,22 @@ def test_poses_of_every_frame_match_the_truth(dataset, tmp_path):
     assert set(pd.read_csv(subset)["cameras"]) <= {"C0+C2", "C0", "C2"}
     with pytest.raises(DmaisError, match="unknown camera"):
         run_pose(dataset, tmp_path, cameras=["C9"])
+
+
+def test_per_group_jobs_merge_into_the_same_poses(dataset, tmp_path):
+    shutil.copy(dataset / "truth" / "rig.json", tmp_path / "rig.json")
+    whole = pd.read_csv(run_pose(dataset, tmp_path, cameras=["C0", "C1"]), dtype={"frame": str, "group": str})
+    groups = sorted(set(whole["group"]))
+    assert len(groups) > 1
+    parts = [run_pose(dataset, tmp_path, cameras=["C0", "C1"], groups=[g], out=tmp_path / "parts" / f"{g}.csv")
+             for g in groups]
+    (tmp_path / "poses_01.csv").unlink()
+    merged = merge_poses(dataset, tmp_path, parts[::-1], cameras=["C1", "C0"])
+    assert merged == tmp_path / "poses_01.csv"
+    columns = [c for c in COLUMNS if c != "time_ms"]
+    pd.testing.assert_frame_equal(pd.read_csv(merged, dtype={"frame": str, "group": str})[columns], whole[columns])
+    with pytest.raises(DmaisError, match="more than one"):
+        merge_poses(dataset, tmp_path, [parts[0], parts[0]], cameras=["C0", "C1"])
+    pd.read_csv(parts[0]).drop(columns="time_ms").to_csv(tmp_path / "bad.csv", index=False)
+    with pytest.raises(DmaisError, match="bad.csv: columns"):
+        merge_poses(dataset, tmp_path, [tmp_path / "bad.csv"])

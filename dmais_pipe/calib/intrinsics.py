@@ -442,11 +442,27 @@ def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tupl
     return X, uv
 
 
-def run_intrinsics(dataset_dir, results_dir, methods: Sequence[str] = METHODS) -> list[Path]:
-    """`dmais intrinsics DATASET --out RESULTS`: every camera with intrinsics images.
+def methods_path(results_dir, camera: str) -> Path:
+    """RESULTS/intrinsics/<camera>.methods.csv: one camera's rows of tables/intrinsics.csv."""
+    return Path(results_dir) / "intrinsics" / f"{camera}.methods.csv"
 
-    Writes RESULTS/intrinsics/<camera>.json ("ours") and RESULTS/tables/intrinsics.csv (one row per
-    method and camera, tab:intrinsics); returns the written paths.
+
+def calibrated_cameras(dataset) -> list[str]:
+    """The dataset's cameras that have intrinsics images, in manifest order."""
+    cameras = [c for c in dataset.cameras if len(dataset.images_of("intrinsics", c))]
+    if not cameras:
+        raise DmaisError(f"{dataset.root}: no intrinsics images")
+    return cameras
+
+
+def run_intrinsics(dataset_dir, results_dir, methods: Sequence[str] = METHODS,
+                   cameras: Sequence[str] | None = None) -> list[Path]:
+    """`dmais intrinsics DATASET --out RESULTS [--camera C]`: calibrate cameras with intrinsics images.
+
+    Writes RESULTS/intrinsics/<camera>.json ("ours") and <camera>.methods.csv (that camera's row of
+    every method) per camera; with `cameras` None (every camera) also RESULTS/tables/intrinsics.csv
+    (tab:intrinsics). The workflow calibrates one camera per job and then writes the table with
+    `write_intrinsics_table`. Returns the written paths.
     """
     from ..dataset import Dataset, load_observations
 
@@ -455,43 +471,59 @@ def run_intrinsics(dataset_dir, results_dir, methods: Sequence[str] = METHODS) -
         raise DmaisError(f"intrinsics methods must include 'ours' and be among {METHODS}, got {list(methods)}")
     dataset = Dataset.load(dataset_dir)
     results = Path(results_dir)
+    available = calibrated_cameras(dataset)
+    chosen = available if cameras is None else list(cameras)
+    missing = [c for c in chosen if c not in available]
+    if missing:
+        raise DmaisError(f"intrinsics: camera(s) {missing} have no intrinsics images in {dataset.root / 'images.csv'}"
+                         f" (cameras with some: {available})")
     observations = load_observations(dataset, results)
-    points = dataset.points
     written: list[Path] = []
-    rows = []
-    cameras = [c for c in dataset.cameras if len(dataset.images_of("intrinsics", c))]
-    if not cameras:
-        raise DmaisError(f"{dataset.root}: no intrinsics images")
-    for k, name in enumerate(cameras, 1):
-        spec = dataset.cameras[name]
-        calib_images = dataset.images_of("intrinsics", name, "calib")["image"].tolist()
-        eval_images = dataset.images_of("intrinsics", name, "eval")["image"].tolist()
-        log.info("intrinsics %d/%d: camera %s, %d calib + %d eval images", k, len(cameras), name,
-                 len(calib_images), len(eval_images))
-        X, uv = _per_image(observations, points, calib_images)
-        eX, euv = _per_image(observations, points, eval_images)
-        common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name)
-        ours = calibrate_camera(X, uv, spec.width, spec.height, **common)
-        written.append(write_json_atomic(intrinsics_path(results, name), ours.to_dict()))
-        rows.append(ours.table_row())
-        if "opencv" in methods:
-            focal = spec.focal_px or float(np.mean(list(ours.pnpf_focal_px.values())))
-            try:
-                rows.append(calibrate_camera_opencv(X, uv, spec.width, spec.height, focal, warn_skipped=False,
-                                                    **common).table_row())
-            except DmaisError as error:
-                log.warning("%s", error)
-                rows.append({"method": "opencv", "camera": name})
-        if "dlt_lm" in methods:
-            try:
-                rows.append(calibrate_camera_dlt_lm(X, uv, spec.width, spec.height, warn_skipped=False,
-                                                    **common).table_row())
-            except DmaisError as error:
-                log.warning("%s", error)
-                rows.append({"method": "dlt_lm", "camera": name})
-    table = pd.DataFrame(rows, columns=list(TABLE_COLUMNS))
+    for k, name in enumerate(chosen, 1):
+        log.info("intrinsics %d/%d: camera %s", k, len(chosen), name)
+        written += _calibrate_dataset_camera(dataset, observations, name, methods, results)
+    if cameras is None:
+        written.append(write_intrinsics_table(dataset_dir, results_dir))
+    return written
+
+
+def _calibrate_dataset_camera(dataset, observations: pd.DataFrame, name: str, methods: Sequence[str],
+                              results: Path) -> list[Path]:
+    """Our calibration of one camera (JSON) and every method's table row (CSV)."""
+    spec = dataset.cameras[name]
+    calib_images = dataset.images_of("intrinsics", name, "calib")["image"].tolist()
+    eval_images = dataset.images_of("intrinsics", name, "eval")["image"].tolist()
+    log.info("camera %s: %d calib + %d eval images", name, len(calib_images), len(eval_images))
+    X, uv = _per_image(observations, dataset.points, calib_images)
+    eX, euv = _per_image(observations, dataset.points, eval_images)
+    common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name)
+    ours = calibrate_camera(X, uv, spec.width, spec.height, **common)
+    rows = [ours.table_row()]
+    baselines = {"opencv": lambda: calibrate_camera_opencv(
+                     X, uv, spec.width, spec.height, spec.focal_px or float(np.mean(list(ours.pnpf_focal_px.values()))),
+                     warn_skipped=False, **common),
+                 "dlt_lm": lambda: calibrate_camera_dlt_lm(X, uv, spec.width, spec.height, warn_skipped=False, **common)}
+    for method in [m for m in METHODS if m in methods and m != "ours"]:
+        try:
+            rows.append(baselines[method]().table_row())
+        except DmaisError as error:
+            log.warning("%s", error)
+            rows.append({"method": method, "camera": name})
+    return [write_json_atomic(intrinsics_path(results, name), ours.to_dict()),
+            write_csv_atomic(methods_path(results, name), pd.DataFrame(rows, columns=list(TABLE_COLUMNS)))]
+
+
+def write_intrinsics_table(dataset_dir, results_dir) -> Path:
+    """RESULTS/tables/intrinsics.csv from every calibrated camera's <camera>.methods.csv."""
+    from ..dataset import Dataset
+
+    dataset = Dataset.load(dataset_dir)
+    paths = [methods_path(results_dir, c) for c in calibrated_cameras(dataset)]
+    absent = [str(p) for p in paths if not p.is_file()]
+    if absent:
+        raise DmaisError(f"intrinsics table: missing {absent}; run `dmais intrinsics --camera` for those cameras")
+    table = pd.concat([pd.read_csv(p, dtype={"method": str, "camera": str}) for p in paths], ignore_index=True)
     order = {m: i for i, m in enumerate(METHODS)}
     table = table.sort_values(["camera", "method"], key=lambda s: s.map(order) if s.name == "method" else s,
                               kind="stable")
-    written.append(write_csv_atomic(results / "tables" / "intrinsics.csv", table))
-    return written
+    return write_csv_atomic(Path(results_dir) / "tables" / "intrinsics.csv", table[list(TABLE_COLUMNS)])

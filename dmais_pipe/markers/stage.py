@@ -3,12 +3,14 @@
 Writes RESULTS/markers/<image>.csv (u, v, score, point_id; point_id empty when unidentified) for
 every image with a file, and RESULTS/observations.csv (image, camera, point_id, u, v): the
 identified detections plus the dataset's own observations.csv rows (images listed there skip
-extraction, DESIGN.md).
+extraction, DESIGN.md). The workflow instead runs one job per image (`run_markers_image`) and
+collects each stage into RESULTS/observations/<stage>.csv (`collect_observations`).
 
 Predicted projections for identification come from the priors:
-- calibration images (intrinsics, extrinsics): images.csv prior centre + prior attitude
-  (cam_from_world) with RESULTS/intrinsics/<camera>.json if it exists, else a nominal pinhole
-  (dataset.yaml focal_px, principal point at the image centre, no distortion);
+- calibration images: images.csv prior centre + prior attitude (cam_from_world) with, for
+  extrinsics images, RESULTS/intrinsics/<camera>.json if it exists, else (and always for
+  intrinsics images) a nominal pinhole (dataset.yaml focal_px, principal point at the image
+  centre, no distortion);
 - flight images: frames.csv POS position + INS attitude (rig_from_world) and the rig of
   RESULTS/rig.json; without a rig (before `dmais extrinsics`) flight detections stay unidentified.
 
@@ -30,7 +32,7 @@ import numpy as np
 import pandas as pd
 
 from ..camera import Camera
-from ..dataset import Dataset
+from ..dataset import Dataset, stage_observations_path
 from ..errors import DatasetError, DmaisError
 from ..files import write_csv_atomic
 from ..geometry import Rigid3
@@ -94,7 +96,9 @@ def predicted_projections(dataset: Dataset, image: str, results_dir=None, rig: R
             return None
         R = Rigid3.from_quat(q, np.zeros(3)).R
         cam_from_world = Rigid3(R, -R @ centre)
-        camera = _nominal_camera(dataset, camera_name, results_dir)
+        # Intrinsics images are the calibration's input: identified with the nominal camera only,
+        # so that their ids never depend on an earlier calibration.
+        camera = _nominal_camera(dataset, camera_name, results_dir if row["stage"] == "extrinsics" else None)
         points = dataset.control_points
         if camera is None:
             return None
@@ -182,14 +186,11 @@ def run_markers(dataset_dir, results_dir, jobs: int = 1) -> Path:
     """
     dataset_dir, results_dir = str(Path(dataset_dir).absolute()), Path(results_dir).absolute()
     dataset = Dataset.load(dataset_dir)
-    given = set(dataset.observations["image"])
-    todo = [image for image, path in zip(dataset.images["image"], dataset.images["path"])
-            if path and image not in given]
+    todo = images_to_extract(dataset)
     # Fail before any work on a missing file: the dataset's own error names it.
     for image in todo:
         if dataset.image_path(image) is None or not dataset.image_path(image).is_file():
             dataset.read_image(image)
-    camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
     tasks = [(dataset_dir, str(results_dir), image) for image in todo]
     results = {}
     total = len(tasks)
@@ -227,16 +228,61 @@ def run_markers(dataset_dir, results_dir, jobs: int = 1) -> Path:
             collect(_work(task), k)
     log.info("markers: %d images in %.1f s", total, time.perf_counter() - started)
 
+    return write_csv_atomic(results_dir / OBSERVATIONS, observation_table(dataset, todo, results))
+
+
+def observation_table(dataset: Dataset, images: list[str], markers: dict[str, pd.DataFrame],
+                      stage: str | None = None) -> pd.DataFrame:
+    """OBSERVATION_COLUMNS rows: the identified markers of `images` (image -> markers frame) and the
+    dataset's own observations (of `stage`'s images only, when given)."""
+    camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
     rows = []
-    for image in todo:
-        frame = results[image]
-        ok = frame[frame["point_id"] != ""]
+    for image in images:
+        ok = markers[image][markers[image]["point_id"] != ""]
         rows.append(pd.DataFrame({"image": image, "camera": camera_of[image], "point_id": ok["point_id"],
                                   "u": ok["u"], "v": ok["v"]}))
     own = dataset.observations
+    if stage is not None:
+        own = own[own["image"].isin(dataset.images_of(stage)["image"])]
     if len(own):
         rows.append(pd.DataFrame({"image": own["image"], "camera": own["image"].map(camera_of),
                                   "point_id": own["point_id"], "u": own["u"], "v": own["v"]}))
-    observations = (pd.concat(rows, ignore_index=True) if rows
-                    else pd.DataFrame({c: pd.Series(dtype=float if c in "uv" else object) for c in OBSERVATION_COLUMNS}))
-    return write_csv_atomic(results_dir / OBSERVATIONS, observations[OBSERVATION_COLUMNS])
+    if not rows:
+        return pd.DataFrame({c: pd.Series(dtype=float if c in "uv" else object) for c in OBSERVATION_COLUMNS})
+    return pd.concat(rows, ignore_index=True)[OBSERVATION_COLUMNS]
+
+
+def images_to_extract(dataset: Dataset, stage: str | None = None) -> list[str]:
+    """Images (of `stage`, if given) with a file and no observations given by the dataset."""
+    images = dataset.images if stage is None else dataset.images_of(stage)
+    given = set(dataset.observations["image"])
+    return [image for image, path in zip(images["image"], images["path"]) if path and image not in given]
+
+
+def run_markers_image(dataset_dir, results_dir, image: str) -> Path:
+    """One image's detections with ids -> RESULTS/markers/<image>.csv (the workflow's per-image job)."""
+    dataset = Dataset.load(dataset_dir)
+    if image not in images_to_extract(dataset):
+        raise DmaisError(f"markers: {image!r} is not an image of {dataset.root / 'images.csv'} with a file "
+                         "and no given observations")
+    started = time.perf_counter()
+    found = process_image(dataset, image, results_dir)
+    log.info("markers %s: %d detected, %d identified (%.2f s)", image, len(found),
+             int((found["point_id"] != "").sum()), time.perf_counter() - started)
+    return write_csv_atomic(Path(results_dir) / MARKERS_DIR / f"{image}.csv", found)
+
+
+def collect_observations(dataset_dir, results_dir, stage: str) -> Path:
+    """RESULTS/observations/<stage>.csv from the stage's RESULTS/markers/<image>.csv files and the
+    dataset's own observations of that stage (`load_observations` reads it)."""
+    dataset = Dataset.load(dataset_dir)
+    images = images_to_extract(dataset, stage)
+    paths = {image: Path(results_dir) / MARKERS_DIR / f"{image}.csv" for image in images}
+    absent = [str(p) for p in paths.values() if not p.is_file()]
+    if absent:
+        raise DmaisError(f"markers: {len(absent)} marker file(s) of stage {stage} missing, e.g. {absent[0]}; "
+                         "run `dmais markers --image` for them")
+    markers = {image: pd.read_csv(path, dtype={"point_id": str}, keep_default_na=False)
+               for image, path in paths.items()}
+    table = observation_table(dataset, images, markers, stage)
+    return write_csv_atomic(stage_observations_path(results_dir, stage), table)

@@ -139,3 +139,27 @@ def run_pose(dataset_dir, results_dir, cameras: list[str] | None = None, robust:
     write_csv_atomic(path, table)
     log.info("pose: %d frames -> %s (median %.2f ms per solve)", len(table), path, table["time_ms"].median())
     return path
+
+
+def merge_poses(dataset_dir, results_dir, parts: list[Path], cameras: list[str] | None = None,
+                out: Path | None = None) -> Path:
+    """Concatenate per-group pose files (the workflow's jobs, `run_pose(groups=[g], out=part)`) of
+    one camera set into poses.csv or poses_<label>.csv. Returns the path."""
+    rig = Rig.load(Path(results_dir) / "rig.json")
+    tables = []
+    for part in parts:
+        table = pd.read_csv(part, dtype={"frame": str, "group": str, "cameras": str})
+        if list(table.columns) != COLUMNS:
+            raise DmaisError(f"{part}: columns {list(table.columns)}, expected {COLUMNS}")
+        tables.append(table)
+    if not tables:
+        raise DmaisError("pose: no per-group pose file to merge")
+    merged = pd.concat(tables, ignore_index=True)
+    repeated = merged["frame"][merged["frame"].duplicated()]
+    if len(repeated):
+        raise DmaisError(f"pose: frame {repeated.iloc[0]!r} appears in more than one of {[str(p) for p in parts]}")
+    unknown = sorted(set(merged["frame"]) - set(Dataset.load(dataset_dir).frames["frame"].astype(str)))
+    if unknown:
+        raise DmaisError(f"pose: frame(s) {unknown[:5]} of the pose files are not in {dataset_dir}/frames.csv")
+    path = out or poses_path(results_dir, rig, _cameras(rig, cameras))
+    return write_csv_atomic(path, merged.sort_values("frame", kind="stable"))
