@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import xml.etree.ElementTree as ET
 
 import cv2
@@ -14,13 +15,16 @@ import pytest
 import yaml
 from scipy.spatial.transform import Rotation
 
+from dmais_pipe import cli
 from dmais_pipe.calib import rig_ba
 from dmais_pipe.calib.extrinsics import (
+    DEFAULT_BACKEND,
     LAYOUT_FIGURE,
     LAYOUT_LABELS,
     RIG_CONFIG,
     CameraNotLinkedError,
     calibrate_extrinsics,
+    colmap_rig_config,
     image_prefixes,
     initial_extrinsics,
     run_extrinsics,
@@ -30,6 +34,7 @@ from dmais_pipe.calib.localize import kabsch_rotation, localize_image, rotation_
 from dmais_pipe.camera import Camera
 from dmais_pipe.dataset import Dataset, load_observations
 from dmais_pipe.errors import DmaisError
+from dmais_pipe.files import write_json_atomic
 from dmais_pipe.geometry import Rigid3, rotation_error
 from dmais_pipe.rig import Rig
 from dmais_pipe.sim.simulate import simulate
@@ -236,7 +241,9 @@ def test_pycolmap_and_scipy_backends_agree(calibrated, use_priors):
         for key in ("rotation_deg", "center_m"):
             np.testing.assert_allclose(out["pycolmap"].std[camera][key], out["scipy"].std[camera][key],
                                        rtol=1e-6, atol=1e-12)
-        assert out["pycolmap"].rms_px[camera] == pytest.approx(out["scipy"].rms_px[camera], rel=1e-9)
+        # per-camera RMS moves along the cost's flat directions: measured up to 3.8e-9 relative (the total, sigma0,
+        # agrees to 3e-13), so 1e-7
+        assert out["pycolmap"].rms_px[camera] == pytest.approx(out["scipy"].rms_px[camera], rel=1e-7)
 
 
 def test_pycolmap_backend_checks_its_solution(calibrated, monkeypatch, caplog):
@@ -251,6 +258,25 @@ def test_pycolmap_backend_checks_its_solution(calibrated, monkeypatch, caplog):
     assert result.backend == "scipy"
     rotation, distance = _pose_differences(result, reference)
     assert rotation < 1e-12 and distance < 1e-12  # the same scipy solve
+
+
+def test_cli_backend_switch(calibrated, tmp_path):
+    """`dmais extrinsics --backend scipy` reaches the default (pycolmap) run's rig; the switch offers every backend."""
+    dataset, results, _ = calibrated
+    command = ["extrinsics", str(dataset), "--out", str(tmp_path)]
+    assert cli._parser().parse_args(command).backend == DEFAULT_BACKEND == "pycolmap"
+    for backend in rig_ba.BACKENDS:
+        assert cli._parser().parse_args(command + ["--backend", backend]).backend == backend
+    with pytest.raises(SystemExit):
+        cli._parser().parse_args(command + ["--backend", "ceres"])
+    shutil.copytree(results / "intrinsics", tmp_path / "intrinsics")
+    assert cli.main(["extrinsics", str(dataset), "--out", str(tmp_path), "--backend", "scipy"]) == 0
+    assert json.loads((tmp_path / "rig.json").read_text())["backend"] == "scipy"
+    assert json.loads((results / "rig.json").read_text())["backend"] == "pycolmap"
+    ours, default = Rig.load(tmp_path / "rig.json"), Rig.load(results / "rig.json")
+    for camera in default.camera_names:
+        assert rotation_error(ours.cam_from_rig[camera].R, default.cam_from_rig[camera].R) < 1e-8
+        assert np.linalg.norm(ours.camera_center(camera) - default.camera_center(camera)) < 1e-6
 
 
 def test_unknown_backend_is_an_error(calibrated):
@@ -274,7 +300,9 @@ def test_colmap_rig_config_round_trips(calibrated):
     for entry in entries:
         name = entry.image_prefix.rstrip("/")
         camera = rig.cameras[name]
-        np.testing.assert_allclose(entry.camera.params, [camera.fx, camera.fy, camera.cx, camera.cy, camera.d, 0, 0, 0],
+        # COLMAP's pixel convention: the top-left pixel's centre is at (0.5, 0.5), ours at (0, 0)
+        np.testing.assert_allclose(entry.camera.params,
+                                   [camera.fx, camera.fy, camera.cx + 0.5, camera.cy + 0.5, camera.d, 0, 0, 0],
                                    rtol=1e-15)
         if entry.ref_sensor:
             continue
@@ -282,6 +310,24 @@ def test_colmap_rig_config_round_trips(calibrated):
         np.testing.assert_allclose(entry.cam_from_rig.rotation.matrix(), expected.R, atol=1e-12)
         np.testing.assert_allclose(entry.cam_from_rig.translation, expected.t, atol=1e-15)
         assert np.linalg.norm(expected.t) > 0.05  # a real lever arm, not a default
+
+
+def test_colmap_rig_config_uses_colmap_pixel_convention(tmp_path):
+    """A principal point at our image centre ((W - 1) / 2) is pycolmap's own image centre (W / 2) in the config,
+    and the config's camera projects every point half a pixel right of and below our projection."""
+    W, H = 4096, 3000
+    centred = Camera(fx=45000.0, fy=44900.0, cx=(W - 1) / 2, cy=(H - 1) / 2, d=2.5, width=W, height=H)
+    off = Camera(fx=44000.0, fy=44100.0, cx=2031.25, cy=1517.75, d=-1.5, width=W, height=H)
+    tilt = Rotation.from_euler("y", 45, degrees=True).as_matrix()
+    rig = Rig({"A": centred, "B": off}, {"A": Rigid3.identity(), "B": Rigid3(tilt, [0.1, 0.0, -0.05])}, "A")
+    path = write_json_atomic(tmp_path / RIG_CONFIG, colmap_rig_config(rig))
+    entries = {e.image_prefix: e.camera for e in pycolmap.read_rig_config(path)[0].cameras}
+    default = pycolmap.Camera.create_from_model_name(1, "OPENCV", 45000.0, W, H)
+    assert (entries["A/"].principal_point_x, entries["A/"].principal_point_y) == (
+        default.principal_point_x, default.principal_point_y)
+    X = np.random.default_rng(3).uniform([-2.0, -1.5, 90.0], [2.0, 1.5, 110.0], size=(50, 3))
+    for prefix, camera in (("A/", centred), ("B/", off)):
+        np.testing.assert_allclose(entries[prefix].img_from_cam(X), camera.project(X) + 0.5, atol=1e-9)
 
 
 def test_image_prefixes():

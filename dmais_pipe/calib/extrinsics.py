@@ -292,7 +292,9 @@ def colmap_rig_config(rig: Rig, prefixes: dict[str, str] | None = None) -> list[
     One entry per camera, the reference first with "ref_sensor": true, the others with
     cam_from_rig as "cam_from_rig_rotation" (w, x, y, z) and "cam_from_rig_translation" (m); every
     entry also carries the intrinsics as an OPENCV camera (fx, fy, cx, cy, k1 = d, k2 = p1 = p2 = 0,
-    exactly our model). `prefixes`: image-name prefix per camera (default "<camera>/").
+    exactly our model) with the principal point in COLMAP's pixel convention (ours + 0.5: COLMAP puts
+    the centre of the top-left pixel at (0.5, 0.5), we at (0, 0)). `prefixes`: image-name prefix per
+    camera (default "<camera>/").
     """
     prefixes = prefixes or {}
     order = [rig.reference_camera] + [c for c in rig.camera_names if c != rig.reference_camera]

@@ -16,8 +16,9 @@ Two solvers minimise this same cost:
   analytic dense Jacobian; the problem has 6 (n_cameras - 1) + 6 n_placements unknowns, a few dozen.
 - `refine_rig_pycolmap` (backend "pycolmap"): a `pycolmap.Reconstruction` with one `Rig` (reference
   sensor = reference camera), one `Frame` per placement, the control points as constant 3D points
-  and constant OPENCV cameras (k1 = d, k2 = p1 = p2 = 0: exactly our model), refined by pycolmap's
-  Ceres bundle adjuster; with priors, by its pose-prior bundle adjuster (`pycolmap.PosePrior`,
+  and constant OPENCV cameras (k1 = d, k2 = p1 = p2 = 0: exactly our model; principal point and
+  keypoints both in COLMAP's pixel convention, ours + 0.5, so residuals are unchanged), refined by
+  pycolmap's Ceres bundle adjuster; with priors, by its pose-prior bundle adjuster (`pycolmap.PosePrior`,
   covariance center_sigma^2 I). See that function for the two adaptations this needs.
 
 Both report the standard deviations from our own Jacobian at their optimum (Gauss-Newton covariance
@@ -44,6 +45,7 @@ BACKENDS = ("pycolmap", "scipy")
 # and 1.5e-10; a dropped prior term or moved control points give metres and ~0.4).
 MAX_POINT_MOTION_M = 1e-6
 MAX_GRADIENT_COSINE = 1e-6
+COLMAP_PIXEL_OFFSET = 0.5  # COLMAP pixel = ours + 0.5 (see colmap_pixels)
 
 
 @dataclass
@@ -298,10 +300,20 @@ class _ColmapScene:
     point_ids: list[int]  # (m,) their 3D point ids
 
 
+def colmap_pixels(uv: np.ndarray) -> np.ndarray:
+    """Our pixel coordinates (n, 2) in COLMAP's convention (n, 2).
+
+    We follow OpenCV (the centre of the top-left pixel is (0, 0)); COLMAP puts the image's top-left
+    corner at (0, 0), so that pixel's centre is at (0.5, 0.5).
+    """
+    return np.asarray(uv, dtype=float) + COLMAP_PIXEL_OFFSET
+
+
 def opencv_params(camera: Camera, sigma: float = 1.0) -> list[float]:
-    """COLMAP OPENCV parameters (fx, fy, cx, cy, k1 = d, k2 = p1 = p2 = 0: exactly our model), with
-    the pixel-valued ones divided by sigma."""
-    return [camera.fx / sigma, camera.fy / sigma, camera.cx / sigma, camera.cy / sigma, camera.d, 0.0, 0.0, 0.0]
+    """COLMAP OPENCV parameters (fx, fy, cx, cy, k1 = d, k2 = p1 = p2 = 0: exactly our model) in COLMAP's
+    pixel convention (cx, cy shifted by `colmap_pixels`), with the pixel-valued ones divided by sigma."""
+    cx, cy = colmap_pixels([camera.cx, camera.cy])
+    return [camera.fx / sigma, camera.fy / sigma, cx / sigma, cy / sigma, camera.d, 0.0, 0.0, 0.0]
 
 
 def _colmap_camera(camera: Camera, camera_id: int, sigma: float):
@@ -369,7 +381,8 @@ def _build_scene(cameras: dict[str, Camera], reference: str, blocks: list[ImageB
     frame_ids = {j: k + 1 for k, j in enumerate(sorted({b.placement for b in blocks}))}
     image_ids = list(range(1, len(blocks) + 1))
     for j, fid in frame_ids.items():
-        images = [pycolmap.Image(name=b.image, keypoints=b.uv / sig[b.camera], camera_id=camera_ids[b.camera],
+        images = [pycolmap.Image(name=b.image, keypoints=colmap_pixels(b.uv) / sig[b.camera],
+                                 camera_id=camera_ids[b.camera],
                                  image_id=image_id) for b, image_id in zip(blocks, image_ids) if b.placement == j]
         _add_frame(rec, fid, 1, rig_from_world[j], images)
 
