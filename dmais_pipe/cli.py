@@ -73,7 +73,7 @@ def _cmd_bench_markers(args) -> None:
 def _cmd_extrinsics(args) -> None:
     from .calib.extrinsics import run_extrinsics
 
-    for path in run_extrinsics(args.dataset, args.out, use_priors=not args.no_priors):
+    for path in run_extrinsics(args.dataset, args.out, use_priors=not args.no_priors, backend=args.backend):
         print(path)
 
 
@@ -149,6 +149,8 @@ def _parser() -> argparse.ArgumentParser:
     extrinsics.add_argument("dataset", type=Path)
     extrinsics.add_argument("--out", type=Path, required=True, help="results folder (with intrinsics/)")
     extrinsics.add_argument("--no-priors", action="store_true", help="write rig.json from the run without RTK priors")
+    extrinsics.add_argument("--backend", choices=("pycolmap", "scipy"), default="pycolmap",
+                            help="rig bundle adjuster (both reach the same optimum; default: pycolmap)")
     extrinsics.set_defaults(run=_cmd_extrinsics)
 
     pose = commands.add_parser("pose", help="estimate the rig pose of every flight frame")
