@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..calib._projection import exp_so3
+from ..geometry import skew
 from . import PoseError
 from .statistics import validate_correspondences
 
@@ -127,17 +128,43 @@ def refine_pose(origins, directions, points, R, t, sigma: float | None = None,
     if sigma is not None and not (np.isfinite(sigma) and sigma > 0):
         raise PoseError(f"refine_pose: sigma must be a positive number of radians, got {sigma}")
     bases = tangent_bases(f)
-    R, t, r, J, n_iterations, converged = _levenberg_marquardt(v, bases, M, R, t, max_iterations)
+    # Solve about the points' centroid m (t' = t + R m): with map coordinates (|M| ~ 1e6 m) the
+    # rotation and translation steps are so correlated that the iteration would stall early.
+    m = M.mean(axis=0)
+    R, t_centred, r, J, n_iterations, converged = _levenberg_marquardt(v, bases, M - m, R, t + R @ m,
+                                                                       max_iterations)
     n = len(M)
     cost = float(r @ r)
     if sigma is not None:
         variance = float(sigma) ** 2
     else:
         variance = cost / (2 * n - 6) if n > 3 else np.nan
+    # back to (omega, t): t = t' - exp(omega) R m, so delta_t = delta_t' + [R m]x omega
+    T = np.eye(6)
+    T[3:, :3] = skew(R @ m)
     return RefinedPose(
-        R=R, t=t, covariance=variance * _inverse_normal_matrix(J), residual_rms=float(np.sqrt(cost / n)),
-        n_iterations=n_iterations, converged=converged,
+        R=R, t=t_centred - R @ m, covariance=variance * T @ _inverse_normal_matrix(J) @ T.T,
+        residual_rms=float(np.sqrt(cost / n)), n_iterations=n_iterations, converged=converged,
     )
+
+
+def cramer_rao_bound(origins, directions, points, R, t, sigma: float) -> tuple[float, float]:
+    """Cramer-Rao bound of a generalized pose at (R, t): (position, attitude) RMS errors (m, rad).
+
+    The bound for any unbiased estimator when every angular residual component has independent
+    Gaussian noise of `sigma` radians: cov = sigma^2 (J^T J)^-1 at the pose (module docstring). The
+    rig centre c = -R^T t moves by dc = -R^T ([t]x omega + delta_t), so its covariance is
+    G cov G^T with G = -R^T [[t]x, I]. Returns sqrt(trace) of the centre covariance (m) and of the
+    omega block (rad); NaN where the pose is not observable.
+    """
+    v, f, M = validate_correspondences(origins, directions, points)
+    R, t = _checked_pose(R, t)
+    if not (np.isfinite(sigma) and sigma > 0):
+        raise PoseError(f"cramer_rao_bound: sigma must be a positive number of radians, got {sigma}")
+    _, J = _jacobian(v, tangent_bases(f), M, R, t)
+    covariance = sigma**2 * _inverse_normal_matrix(J)
+    G = -R.T @ np.hstack([skew(t), np.eye(3)])
+    return float(np.sqrt(np.trace(G @ covariance @ G.T))), float(np.sqrt(np.trace(covariance[:3, :3])))
 
 
 def _checked_pose(R, t) -> tuple[np.ndarray, np.ndarray]:
