@@ -238,6 +238,40 @@ def test_non_finite_observation_names_the_row():
         calibrate_camera(points, pixels, 640, 480, name="CN")
 
 
+def test_stage_skips_sparse_images_and_names_a_camera_without_enough(simulated, tmp_path, caplog):
+    """Through run_intrinsics: C1 loses two calib images (4 and 1 observations left) and an eval image (3): one
+    warning lists them and C1 is calibrated on the rest; C2 keeps one usable calib image: an error naming C2."""
+    dataset, _, _ = simulated
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)
+    images = pd.read_csv(copy / "images.csv")
+    obs = pd.read_csv(copy / "observations.csv")
+
+    def of(camera, split):
+        return images.loc[(images.camera == camera) & (images["split"] == split), "image"].tolist()
+
+    c1, c1_eval, c2 = of("C1", "calib"), of("C1", "eval"), of("C2", "calib")
+    keep = {c1[0]: 4, c1[1]: 1, c1_eval[0]: 3, **{image: 4 for image in c2[1:]}}
+    rank = obs.groupby("image").cumcount()
+    obs[rank < obs["image"].map(keep).fillna(np.inf)].to_csv(copy / "observations.csv", index=False)
+    results = tmp_path / "results"
+    with caplog.at_level(logging.WARNING, logger="dmais_pipe.calib.intrinsics"):
+        with pytest.raises(DmaisError, match=r"camera C2: 1 usable calibration image\(s\)"):
+            run_intrinsics(copy, results)
+    sparse = [r.getMessage() for r in caplog.records if "fewer than 5 observations" in r.getMessage()]
+    c1_warnings = [m for m in sparse if m.startswith("camera C1:")]
+    assert len(c1_warnings) == 1 and "3 image(s)" in c1_warnings[0], sparse
+    assert all(image in c1_warnings[0] for image in (c1[0], c1[1], c1_eval[0]))
+    assert not any(m.startswith(("camera C0:", "camera C3:", "camera C4:")) for m in sparse)
+    data = json.loads((results / "intrinsics" / "C1.json").read_text())
+    assert sorted(data["skipped_images"]) == sorted([c1[0], c1[1], c1_eval[0]])
+    assert data["n_images"] == len(c1) - 2 and data["n_eval_images"] == len(c1_eval) - 1
+    assert not (results / "intrinsics" / "C2.json").exists()
+    assert not (results / "tables" / "intrinsics.csv").exists()
+
+
 def test_dataset_with_non_finite_observation_is_rejected_naming_the_line(simulated, tmp_path):
     dataset, _, _ = simulated
     import shutil
