@@ -14,7 +14,9 @@ Per frame of RESULTS/poses.csv (and of every camera-subset file RESULTS/poses_<l
 - eps_ang_arcmin = eps_proj_px x angular resolution, the angular size of one pixel, 1 / f rad with
   f the mean focal length ((fx + fy) / 2, RESULTS/rig.json) of the cameras the frame used.
 - with simulator truth (DATASET/truth/frames.csv): true_pos_err_m, the distance between the
-  estimated and the true rig centre, and true_ang_err_arcmin, the angle of R_est R_true^T.
+  estimated and the true rig centre, and true_ang_err_arcmin, the angle of R_est R_true^T; and
+  crb_pos_m, crb_ang_arcmin, the Cramer-Rao bound of the same frame's geometry at the true pose for
+  pixel noise of the frame's eps_proj (`cramer_rao_errors`).
 
 Outputs: RESULTS/evaluation.csv and evaluation_<label>.csv (the poses columns + the errors),
 RESULTS/tables/pose_methods.csv (tab:pose_methods: per group mean and sample std (ddof = 1) of
@@ -34,10 +36,11 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .dataset import Dataset, _read_table, _Table, flight_observations
+from .dataset import Dataset, _read_table, _Table, flight_observations, load_observations
 from .errors import DatasetError
 from .files import write_csv_atomic
 from .geometry import Rigid3, rotation_error, rotation_from_quat
+from .pose.refine import cramer_rao_bound
 from .rig import Rig
 
 log = logging.getLogger(__name__)
@@ -136,7 +139,8 @@ def pose_methods_table(evaluation: pd.DataFrame) -> pd.DataFrame:
     evaluation: the columns of evaluation.csv. Columns: group, n_frames, eps_pos_mean_m,
     eps_pos_std_m, eps_ang_mean_arcmin, eps_ang_std_arcmin, eps_proj_mean_px, eps_proj_std_px,
     time_mean_ms [, true_pos_err_mean_m, true_pos_err_median_m, true_ang_err_mean_arcmin,
-    true_ang_err_median_arcmin]. Standard deviations are sample ones (ddof = 1).
+    true_ang_err_median_arcmin [, crb_pos_median_m, crb_ang_median_arcmin]]. Standard deviations
+    are sample ones (ddof = 1).
     """
     rows = [_pose_methods_row(g, rows) for g, rows in _groups_and_all(evaluation)]
     return pd.DataFrame(rows)
@@ -154,6 +158,8 @@ def _pose_methods_row(group: str, rows: pd.DataFrame) -> dict:
                    true_pos_err_median_m=rows["true_pos_err_m"].median(),
                    true_ang_err_mean_arcmin=rows["true_ang_err_arcmin"].mean(),
                    true_ang_err_median_arcmin=rows["true_ang_err_arcmin"].median())
+    if "crb_pos_m" in rows:
+        row.update(crb_pos_median_m=rows["crb_pos_m"].median(), crb_ang_median_arcmin=rows["crb_ang_arcmin"].median())
     return row
 
 
@@ -278,11 +284,14 @@ def _as_results_error():
 
 
 def evaluate_poses(poses: pd.DataFrame, dataset: Dataset, rig: Rig, truth: pd.DataFrame | None = None,
-                   offsets: dict[str, np.ndarray] | None = None) -> pd.DataFrame:
-    """poses (read_poses) + eps_pos_m, eps_ang_arcmin [+ true_pos_err_m, true_ang_err_arcmin].
+                   offsets: dict[str, np.ndarray] | None = None, observations: pd.DataFrame | None = None
+                   ) -> pd.DataFrame:
+    """poses (read_poses) + eps_pos_m, eps_ang_arcmin [+ true_pos_err_m, true_ang_err_arcmin
+    [+ crb_pos_m, crb_ang_arcmin]].
 
     offsets: lever-arm offsets per group (group_offsets); default the mean offsets of `poses`.
     truth: read_truth_frames(dataset); frames it lacks raise ResultsError.
+    observations: load_observations(dataset, RESULTS); with truth, adds the Cramer-Rao bound.
     """
     pos = dataset.frames.set_index("frame").loc[poses["frame"], list(POS)].to_numpy(dtype=float)
     centers = poses[list(CENTER)].to_numpy(dtype=float)
@@ -297,8 +306,39 @@ def evaluate_poses(poses: pd.DataFrame, dataset: Dataset, rig: Rig, truth: pd.Da
         rows = truth.loc[poses["frame"]]
         out["true_pos_err_m"], out["true_ang_err_arcmin"] = true_errors(
             poses[list(QUAT)], centers, rows[list(QUAT)], rows[list(CENTER)])
+        if observations is not None:
+            out["crb_pos_m"], out["crb_ang_arcmin"] = cramer_rao_errors(dataset, rig, poses, rows, observations)
     _warn_single_frame_groups(poses)
     return out
+
+
+def cramer_rao_errors(dataset: Dataset, rig: Rig, poses: pd.DataFrame, truth_rows: pd.DataFrame,
+                      observations: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame of `poses`: the Cramer-Rao bound (RMS position error in m, attitude in arc-min) at the
+    true pose (truth_rows, aligned with poses) for the frame's observations of the cameras it used.
+
+    The noise is the frame's own: independent Gaussian pixel errors whose RMS distance is eps_proj,
+    i.e. eps_proj / sqrt(2) px per coordinate, as an angle through the cameras' mean focal length.
+    The simulator's flight errors are not all of that kind (survey and in-flight mounting errors are
+    shared by many rays), so the bound is what pixel noise alone would allow.
+    """
+    obs = flight_observations(dataset, observations)
+    by_frame = {frame: rows for frame, rows in obs.groupby("frame", sort=False)}
+    bounds = np.full((len(poses), 2), np.nan)
+    for k, (pose, true) in enumerate(zip(poses.itertuples(index=False), truth_rows.itertuples(index=False))):
+        cameras = pose.cameras.split("+")
+        rows = by_frame.get(pose.frame)
+        rows = rows[rows["camera"].isin(cameras)] if rows is not None else None
+        if rows is None or len(rows) < 3 or not pose.eps_proj_px > 0:
+            continue
+        origins, directions = rig.rays_of(rows["camera"].to_numpy(str), rows[["u", "v"]].to_numpy(float))
+        points = dataset.points.loc[rows["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
+        R = rotation_from_quat([true.qw, true.qx, true.qy, true.qz])
+        sigma = pose.eps_proj_px / np.sqrt(2.0) / mean_focal_px(rig, cameras)
+        position, attitude = cramer_rao_bound(origins, directions, points, R, np.array([true.tx, true.ty, true.tz]),
+                                              sigma)
+        bounds[k] = position, attitude * ARCMIN_PER_RAD
+    return bounds[:, 0], bounds[:, 1]
 
 
 def _warn_single_frame_groups(poses: pd.DataFrame) -> None:
@@ -330,7 +370,8 @@ def run_evaluate(dataset_dir: str | Path, results_dir: str | Path) -> list[Path]
     offsets = group_offsets(poses[list(CENTER)].to_numpy(dtype=float), pos, poses["group"])
     for group, offset in offsets.items():
         log.info("lever-arm offset (estimate - POS) of group %s: (%.3f, %.3f, %.3f) m", group, *offset)
-    evaluation = evaluate_poses(poses, dataset, rig, truth, offsets)
+    observations = load_observations(dataset, results) if truth is not None else None
+    evaluation = evaluate_poses(poses, dataset, rig, truth, offsets, observations)
     written = [write_csv_atomic(results / EVALUATION, evaluation)]
     table = pose_methods_table(evaluation)
     written.append(write_csv_atomic(results / "tables" / "pose_methods.csv", table))
@@ -340,7 +381,8 @@ def run_evaluate(dataset_dir: str | Path, results_dir: str | Path) -> list[Path]
             allowed = subset_cameras(label, rig)
         except ValueError as error:
             raise ResultsError(path, str(error)) from None
-        subsets[label] = evaluate_poses(read_poses(path, dataset, rig, allowed), dataset, rig, truth, offsets)
+        subsets[label] = evaluate_poses(read_poses(path, dataset, rig, allowed), dataset, rig, truth, offsets,
+                                        observations)
         written.append(write_csv_atomic(results / f"evaluation_{label}.csv", subsets[label]))
     if subsets:
         written.append(write_csv_atomic(results / "tables" / "conf.csv", conf_table(subsets, rig)))

@@ -9,11 +9,13 @@ import pandas as pd
 import pytest
 import yaml
 
+from dmais_pipe.dataset import Dataset, load_observations
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.evaluate import (
     ResultsError,
     angular_errors,
     angular_resolution_arcmin,
+    cramer_rao_errors,
     group_offsets,
     mean_focal_px,
     position_errors,
@@ -133,7 +135,7 @@ def test_run_evaluate_writes_errors_and_tables(dataset, results):
     evaluation = read(results / "evaluation.csv")
     poses = read(results / "poses.csv")
     assert list(evaluation.columns) == list(poses.columns) + [
-        "eps_pos_m", "eps_ang_arcmin", "true_pos_err_m", "true_ang_err_arcmin"]
+        "eps_pos_m", "eps_ang_arcmin", "true_pos_err_m", "true_ang_err_arcmin", "crb_pos_m", "crb_ang_arcmin"]
 
     # eps_pos by hand: estimate - POS minus its group mean.
     frames = read(dataset / "frames.csv").set_index("frame").loc[evaluation["frame"]]
@@ -162,6 +164,15 @@ def test_run_evaluate_writes_errors_and_tables(dataset, results):
     np.testing.assert_allclose(table["eps_proj_mean_px"][:5], by_group["eps_proj_px"].mean(), rtol=1e-9)
     np.testing.assert_allclose(table["time_mean_ms"].iloc[-1], evaluation["time_ms"].mean(), rtol=1e-9)
     np.testing.assert_allclose(table["true_pos_err_median_m"], 0.05, atol=1e-6)
+    # the bound scales with the frame's pixel noise: same geometry, noise doubled -> bound doubled
+    doubled = evaluation.assign(eps_proj_px=2 * evaluation["eps_proj_px"])
+    truth = read(dataset / "truth" / "frames.csv").set_index("frame").loc[evaluation["frame"]]
+    observations = load_observations(Dataset.load(dataset), results)
+    position, attitude = cramer_rao_errors(Dataset.load(dataset), rig, doubled, truth, observations)
+    np.testing.assert_allclose(position, 2 * evaluation["crb_pos_m"], rtol=1e-6)
+    np.testing.assert_allclose(attitude, 2 * evaluation["crb_ang_arcmin"], rtol=1e-6)
+    assert (evaluation["crb_pos_m"] > 0).all() and (evaluation["crb_ang_arcmin"] > 0).all()
+    assert "crb_pos_median_m" in table and "crb_ang_median_arcmin" in table
     for column in ("eps_ang_std_arcmin", "eps_proj_std_px", "true_ang_err_mean_arcmin"):
         assert column in table
 
