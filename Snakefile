@@ -10,9 +10,14 @@ validate(config, "workflow/schemas/config.schema.yaml")
 include: "workflow/rules/common.smk"
 include: "workflow/rules/simulate.smk"
 include: "workflow/rules/dataset.smk"
+include: "workflow/rules/markers.smk"
+include: "workflow/rules/calibration.smk"
+include: "workflow/rules/pose.smk"
+include: "workflow/rules/report.smk"
 
 
 rule all:
     input:
         rules.dataset_report.output.html,
+        rules.report.output.html,
     default_target: True

@@ -97,11 +97,14 @@ def _cmd_evaluate(args) -> None:
 
 
 def _cmd_report(args) -> None:
+    from .files import copy_atomic
     from .report.html import write_report
     from .report.paper import write_paper_comparisons
 
     write_paper_comparisons(args.out, args.out / "tables")
     print(write_report(args.dataset, args.out, args.html, benchmarks_dir=args.benchmarks))
+    for table in sorted((args.out / "tables").glob("*.csv")):  # the CSV tables beside the HTML
+        print(copy_atomic(table, args.html.parent / "tables" / table.name))
 
 
 def _cmd_bench_pose(args) -> None:

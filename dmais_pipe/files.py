@@ -35,6 +35,11 @@ def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
     return path
 
 
+def copy_atomic(source: str | Path, target: str | Path) -> Path:
+    """Copy the file `source` to `target` atomically."""
+    return write_bytes_atomic(target, Path(source).read_bytes())
+
+
 def write_text_atomic(path: str | Path, text: str) -> Path:
     return write_bytes_atomic(path, text.encode("utf-8"))
 

@@ -1,6 +1,6 @@
 if config.get("simulate"):
 
-    rule simulate:
+    checkpoint simulate:
         input:
             config=config["simulate"],
         output:

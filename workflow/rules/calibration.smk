@@ -1,0 +1,59 @@
+rule intrinsics:
+    input:
+        manifest=lambda wildcards: dataset_ready(),
+        observations=f"{RESULTS}/observations/intrinsics.csv",
+    output:
+        json=f"{RESULTS}/intrinsics/{{camera}}.json",
+        methods=f"{RESULTS}/intrinsics/{{camera}}.methods.csv",
+    params:
+        dataset_dir=folder_of("manifest"),
+        results=folder_of("json", up=1),
+    log:
+        f"{LOGS}/intrinsics/{{camera}}.log",
+    benchmark:
+        f"{BENCHMARKS}/intrinsics/{{camera}}.tsv"
+    conda:
+        DMAIS_ENV
+    shell:
+        "dmais intrinsics {params.dataset_dir} --out {params.results} --camera {wildcards.camera} > {log} 2>&1"
+
+
+rule intrinsics_table:
+    input:
+        manifest=lambda wildcards: dataset_ready(),
+        methods=lambda wildcards: expand(f"{RESULTS}/intrinsics/{{camera}}.methods.csv", camera=calibrated_cameras()),
+    output:
+        csv=f"{RESULTS}/tables/intrinsics.csv",
+    params:
+        dataset_dir=folder_of("manifest"),
+        results=folder_of("csv", up=1),
+    log:
+        f"{LOGS}/intrinsics_table.log",
+    conda:
+        DMAIS_ENV
+    shell:
+        "dmais intrinsics {params.dataset_dir} --out {params.results} --table > {log} 2>&1"
+
+
+rule extrinsics:
+    input:
+        manifest=lambda wildcards: dataset_ready(),
+        intrinsics=lambda wildcards: expand(f"{RESULTS}/intrinsics/{{camera}}.json", camera=calibrated_cameras()),
+        intrinsics_observations=f"{RESULTS}/observations/intrinsics.csv",
+        observations=f"{RESULTS}/observations/extrinsics.csv",
+    output:
+        rig=f"{RESULTS}/rig.json",
+        rig_config=f"{RESULTS}/rig_config.json",
+        rotations=f"{RESULTS}/tables/extrinsics_R.csv",
+        translations=f"{RESULTS}/tables/extrinsics_t.csv",
+    params:
+        dataset_dir=folder_of("manifest"),
+        results=folder_of("rig"),
+    log:
+        f"{LOGS}/extrinsics.log",
+    benchmark:
+        f"{BENCHMARKS}/extrinsics.tsv"
+    conda:
+        DMAIS_ENV
+    shell:
+        "dmais extrinsics {params.dataset_dir} --out {params.results} > {log} 2>&1"

@@ -1,0 +1,63 @@
+rule pose_group:
+    input:
+        manifest=lambda wildcards: dataset_ready(),
+        rig=f"{RESULTS}/rig.json",
+        observations=f"{RESULTS}/observations/flight.csv",
+    output:
+        csv=f"{RESULTS}/poses/{{subset}}/{{group}}.csv",
+    wildcard_constraints:
+        subset=r"all|\d+",
+    params:
+        dataset_dir=folder_of("manifest"),
+        results=folder_of("csv", up=2),
+        cameras=lambda wildcards: ",".join(subset_cameras(wildcards.subset)),
+        flags=pose_flags(),
+    log:
+        f"{LOGS}/pose/{{subset}}/{{group}}.log",
+    benchmark:
+        f"{BENCHMARKS}/pose/{{subset}}_{{group}}.tsv"
+    conda:
+        DMAIS_ENV
+    shell:
+        "dmais pose {params.dataset_dir} --out {params.results} --cameras {params.cameras} "
+        "--groups {wildcards.group} --csv {output.csv} {params.flags} > {log} 2>&1"
+
+
+rule poses:
+    input:
+        manifest=lambda wildcards: dataset_ready(),
+        rig=f"{RESULTS}/rig.json",
+        parts=pose_parts("all"),
+    output:
+        csv=f"{RESULTS}/poses.csv",
+    params:
+        dataset_dir=folder_of("manifest"),
+        results=folder_of("csv"),
+    log:
+        f"{LOGS}/poses.log",
+    conda:
+        DMAIS_ENV
+    shell:
+        "dmais pose {params.dataset_dir} --out {params.results} --merge {input.parts} --csv {output.csv} > {log} 2>&1"
+
+
+rule poses_subset:
+    input:
+        manifest=lambda wildcards: dataset_ready(),
+        rig=f"{RESULTS}/rig.json",
+        parts=pose_parts(None),
+    output:
+        csv=f"{RESULTS}/poses_{{subset}}.csv",
+    wildcard_constraints:
+        subset=r"\d+",
+    params:
+        dataset_dir=folder_of("manifest"),
+        results=folder_of("csv"),
+        cameras=lambda wildcards: ",".join(subset_cameras(wildcards.subset)),
+    log:
+        f"{LOGS}/poses_{{subset}}.log",
+    conda:
+        DMAIS_ENV
+    shell:
+        "dmais pose {params.dataset_dir} --out {params.results} --cameras {params.cameras} --merge {input.parts} "
+        "--csv {output.csv} > {log} 2>&1"
