@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import shutil
 import xml.etree.ElementTree as ET
 
@@ -19,6 +20,7 @@ from dmais_pipe import cli
 from dmais_pipe.calib import rig_ba
 from dmais_pipe.calib.extrinsics import (
     DEFAULT_BACKEND,
+    EXTRINSICS_NOTE,
     LAYOUT_FIGURE,
     LAYOUT_LABELS,
     RIG_CONFIG,
@@ -104,9 +106,10 @@ def test_tables_known_and_unknown(calibrated):
     table_t = pd.read_csv(results / "tables" / "extrinsics_t.csv")
     assert list(table_R["camera"]) == ["C1", "C2", "C3", "C4"] == list(table_t["camera"])
     assert list(table_R.columns) == ["camera", "known_z_deg", "known_y_deg", "known_x_deg", "unknown_z_deg",
-                                     "unknown_y_deg", "unknown_x_deg", "eps_R_deg"]
+                                     "unknown_y_deg", "unknown_x_deg", "eps_R_deg", "known_std_deg",
+                                     "unknown_std_deg", "note"]
     assert list(table_t.columns) == ["camera", "known_x_m", "known_y_m", "known_z_m", "unknown_x_m", "unknown_y_m",
-                                     "unknown_z_m", "eps_t_m"]
+                                     "unknown_z_m", "eps_t_m", "known_std_m", "unknown_std_m", "note"]
     # the known column is the truth's (tab:extrinsics_R "known" column, rig_from_cam ZYX Euler)
     truth = {"C1": (-179.811, -0.152, 46.233), "C3": (0.150, -0.047, 44.038)}
     for camera, angles in truth.items():
@@ -116,6 +119,37 @@ def test_tables_known_and_unknown(calibrated):
     unknown = Rig.load(results / "extrinsics" / "rig_unknown.json")
     assert json.loads((results / "extrinsics" / "rig_unknown.json").read_text())["use_priors"] is False
     assert unknown.camera_names == ["C0", "C1", "C2", "C3", "C4"]
+
+
+def test_tables_carry_standard_deviations_and_the_note(calibrated):
+    """Each row relates eps to the bundle adjustment's standard deviations; the note gives this run's numbers."""
+    dataset, results, written = calibrated
+    table_t = pd.read_csv(results / "tables" / "extrinsics_t.csv").set_index("camera")
+    table_R = pd.read_csv(results / "tables" / "extrinsics_R.csv").set_index("camera")
+    for label in ("known", "unknown"):
+        data = json.loads((results / "extrinsics" / f"rig_{label}.json").read_text())
+        for camera, row in table_t.iterrows():
+            assert row[f"{label}_std_m"] == pytest.approx(np.linalg.norm(data["std"][camera]["center_m"]), abs=1e-6)
+            assert table_R.loc[camera, f"{label}_std_deg"] == pytest.approx(
+                np.linalg.norm(data["std"][camera]["rotation_deg"]), abs=1e-6)
+    for camera, row in table_t.iterrows():
+        eps_cm, ratio, std_cm = map(float, re.fullmatch(
+            r"without priors (\S+) cm = (\S+) x the centre's std without priors \((\S+) cm\)", row.note).groups())
+        assert (eps_cm, ratio, std_cm) == pytest.approx(
+            (100 * row.eps_t_m, row.eps_t_m / row.unknown_std_m, 100 * row.unknown_std_m), abs=0.051)
+        eps_deg, _, std_deg = map(float, re.fullmatch(r"without priors (\S+) deg = (\S+) x its std \((\S+) deg\)",
+                                                      table_R.loc[camera, "note"]).groups())
+        assert (eps_deg, std_deg) == pytest.approx((table_R.loc[camera, "eps_R_deg"],
+                                                    table_R.loc[camera, "unknown_std_deg"]), abs=6e-5)
+    note_path = results / EXTRINSICS_NOTE
+    assert note_path in written
+    note = note_path.read_text()
+    low, high = map(float, re.search(r"centres move by (\S+)-(\S+) m", note).groups())
+    assert (low, high) == pytest.approx((table_t.eps_t_m.min(), table_t.eps_t_m.max()), abs=6e-4)
+    low, high = map(float, re.search(r"centre standard deviations of (\S+)-(\S+) m", note).groups())
+    assert (low, high) == pytest.approx((table_t.unknown_std_m.min(), table_t.unknown_std_m.max()), abs=6e-4)
+    # this simulator's field fixes the centres without priors to about a centimetre: eps_t is noise, not metres
+    assert (table_t.eps_t_m < 3 * table_t.unknown_std_m).all() and (table_t.unknown_std_m < 0.05).all()
 
 
 def test_localization_with_known_centre_is_exact_on_noise_free_data(calibrated):

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import logging
 import posixpath
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +27,7 @@ import pandas as pd
 
 from ..camera import Camera
 from ..errors import DmaisError
-from ..files import write_csv_atomic, write_json_atomic
+from ..files import write_csv_atomic, write_json_atomic, write_text_atomic
 from ..geometry import Rigid3, average_rotations, euler_zyx_from_rotation
 from ..rig import Rig
 from .intrinsics import intrinsics_path, load_intrinsics
@@ -42,6 +42,7 @@ PRIOR_CENTER = ("prior_x", "prior_y", "prior_z")
 DEFAULT_BACKEND = "pycolmap"  # rig refinement: "pycolmap" or "scipy" (calib.rig_ba); both reach the same optimum
 RIG_CONFIG = "rig_config.json"  # COLMAP rig config beside rig.json
 LAYOUT_FIGURE = Path("figures") / "extrinsics_layout.svg"
+EXTRINSICS_NOTE = Path("tables") / "extrinsics_note.txt"  # why the no-prior case deviates as it does
 LAYOUT_LABELS = ("with camera-centre priors (known)", "without priors (unknown)")
 
 
@@ -62,6 +63,7 @@ class ExtrinsicsResult:
     localized: dict[str, Rigid3]  # image -> cam_from_world from step 1
     skipped_placements: list[str]
     use_priors: bool
+    blocks: list[ImageBlock] = field(default_factory=list)  # the observations used, one per image
 
     def extra(self) -> dict:
         """Keys stored beside the rig in rig.json."""
@@ -180,7 +182,7 @@ def calibrate_extrinsics(cameras: dict[str, Camera], reference: str, images: pd.
     for c in names:
         log.info("extrinsics (%s priors): %s rms %.3f px, centre %s m", "with" if use_priors else "without", c,
                  ba.rms_px.get(c, float("nan")), np.round(ba.rig_from_cam[c].t, 4).tolist())
-    return ExtrinsicsResult(rig, ba, initial, localized, skipped, use_priors)
+    return ExtrinsicsResult(rig, ba, initial, localized, skipped, use_priors, blocks)
 
 
 # ------------------------------------------------------------------------------ tables
@@ -214,6 +216,68 @@ def extrinsics_tables(known: Rig, unknown: Rig) -> tuple[pd.DataFrame, pd.DataFr
     return pd.DataFrame(rows_R), pd.DataFrame(rows_t)
 
 
+def observation_depths(result: ExtrinsicsResult) -> dict[str, np.ndarray]:
+    """Per image, the depth (m) of each observed control point in its camera at the refined poses: {image: (n,)}."""
+    depths = {}
+    for b in result.blocks:
+        cam_from_world = result.ba.rig_from_cam[b.camera].inverse() * result.ba.rig_from_world[b.placement]
+        depths[b.image] = cam_from_world.apply(b.X)[:, 2]
+    return depths
+
+
+def _std_norm(result: ExtrinsicsResult, camera: str, key: str) -> float:
+    """Length of the per-axis standard deviations of one extrinsic ("rotation_deg" or "center_m")."""
+    return float(np.linalg.norm(result.ba.std.get(camera, {}).get(key, [np.nan] * 3)))
+
+
+def annotate_tables(table_R: pd.DataFrame, table_t: pd.DataFrame, known: ExtrinsicsResult,
+                    unknown: ExtrinsicsResult) -> tuple[pd.DataFrame, pd.DataFrame, str]:
+    """`extrinsics_tables` with each case's standard deviations and a note per row, plus the tables' note.
+
+    Adds known_std_deg / unknown_std_deg (length of the rotation's per-axis standard deviations) to
+    tab:extrinsics_R and known_std_m / unknown_std_m (camera centre) to tab:extrinsics_t, both from
+    the rig bundle adjustment's covariance, and a `note` column relating eps to them. Returns the
+    two tables and the note (text) that explains the deviation without priors from this run's numbers.
+    """
+    R, t = table_R.copy(), table_t.copy()
+    for frame, key, unit in ((R, "rotation_deg", "deg"), (t, "center_m", "m")):
+        for label, result in (("known", known), ("unknown", unknown)):
+            frame[f"{label}_std_{unit}"] = [_std_norm(result, c, key) for c in frame["camera"]]
+    R["note"] = [f"without priors {e:.4f} deg = {e / s:.2f} x its std ({s:.4f} deg)"
+                 for e, s in zip(R["eps_R_deg"], R["unknown_std_deg"])]
+    t["note"] = [f"without priors {100 * e:.2f} cm = {e / s:.1f} x the centre's std without priors ({100 * s:.2f} cm)"
+                 for e, s in zip(t["eps_t_m"], t["unknown_std_m"])]
+    return R, t, _prior_note(t, R, unknown)
+
+
+def _prior_note(t: pd.DataFrame, R: pd.DataFrame, unknown: ExtrinsicsResult) -> str:
+    """Why the calibration without camera-centre priors lands where it does, in this run's numbers.
+
+    t, R: the annotated tables (`annotate_tables`); unknown: the calibration without priors.
+    """
+    depths = np.concatenate(list(observation_depths(unknown).values()))
+    per_image = np.median([len(b.X) for b in unknown.blocks])
+    residuals = np.vstack(list(unknown.ba.residuals.values()))
+    rms = float(np.sqrt(np.mean(np.sum(residuals**2, axis=1))))
+    ratio = t.eps_t_m / t.unknown_std_m
+    std_max = float(t.unknown_std_m.max())
+    return (
+        f"Without the RTK camera-centre priors the camera centres move by {t.eps_t_m.min():.3f}-"
+        f"{t.eps_t_m.max():.3f} m and the rotations by {R.eps_R_deg.min():.4f}-{R.eps_R_deg.max():.4f} deg "
+        f"(the paper's tab:extrinsics_t and tab:extrinsics_R: 1.4-3.4 m and 0.05-0.36 deg). Here the "
+        f"reprojections alone already fix every centre: the bundle adjustment without priors gives centre "
+        f"standard deviations of {t.unknown_std_m.min():.3f}-{std_max:.3f} m, and the deviations are "
+        f"{ratio.min():.1f}-{ratio.max():.1f} times them: within the noise. The images see {per_image:.0f} control "
+        f"points each (median) at {depths.min():.0f}-{depths.max():.0f} m depth, with {rms:.2f} px residual RMS. "
+        f"A metre-level deviation needs centres about {1.0 / std_max:.0f} times less determined than this: a "
+        f"field with little depth spread or few points per image, or much larger image or survey errors. A "
+        f"relative focal-length error e also moves a centre by about e x {depths.mean():.0f} m along its axis "
+        f"(centimetre priors cannot pull it back while the reprojections fix the centres this well), so metres "
+        f"would need intrinsics off by ~1 %. The paper's description of its field (millimetre survey, 0.2-0.6 px "
+        f"reprojection errors in tab:intrinsics, 2 m markers 2-10 m high) does not by itself explain its deviations."
+    )
+
+
 # ------------------------------------------------------------------------------ the stage
 
 
@@ -232,7 +296,8 @@ def run_extrinsics(dataset_dir, results_dir, use_priors: bool = True,
     Writes RESULTS/rig.json (calibrated with the camera-centre priors when `use_priors` and the
     images carry them) and its COLMAP twin RESULTS/rig_config.json, RESULTS/extrinsics/
     rig_{known,unknown}.json for both cases and, when both cases can run, RESULTS/tables/
-    extrinsics_R.csv, extrinsics_t.csv and RESULTS/figures/extrinsics_layout.svg. `backend` picks
+    extrinsics_R.csv, extrinsics_t.csv (with standard deviations and a note per row, `annotate_tables`),
+    tables/extrinsics_note.txt and RESULTS/figures/extrinsics_layout.svg. `backend` picks
     the rig refinement ("pycolmap" or "scipy", `calib.rig_ba`). Returns the written paths.
     """
     from ..dataset import Dataset, load_observations
@@ -268,18 +333,20 @@ def run_extrinsics(dataset_dir, results_dir, use_priors: bool = True,
     prefixes = image_prefixes(dataset.images, chosen.rig.camera_names)
     written.insert(1, write_json_atomic(results / RIG_CONFIG, colmap_rig_config(chosen.rig, prefixes)))
     if len(out) == 2:
-        written += _write_comparison(results, out[True].rig, out[False].rig)
+        written += _write_comparison(results, out[True], out[False])
     return written
 
 
-def _write_comparison(results: Path, known: Rig, unknown: Rig) -> list[Path]:
-    """tab:extrinsics_R, tab:extrinsics_t and the layout figure of both cases."""
+def _write_comparison(results: Path, known: ExtrinsicsResult, unknown: ExtrinsicsResult) -> list[Path]:
+    """tab:extrinsics_R, tab:extrinsics_t (with standard deviations and notes), their note and the layout figure."""
     from ..report.layout import write_layout_svg
 
-    table_R, table_t = extrinsics_tables(known, unknown)
+    table_R, table_t, note = annotate_tables(*extrinsics_tables(known.rig, unknown.rig), known, unknown)
+    log.info("extrinsics: %s", note)
     return [write_csv_atomic(results / "tables" / "extrinsics_R.csv", table_R, float_format="%.6f"),
             write_csv_atomic(results / "tables" / "extrinsics_t.csv", table_t, float_format="%.6f"),
-            write_layout_svg(results / LAYOUT_FIGURE, [known, unknown], list(LAYOUT_LABELS),
+            write_text_atomic(results / EXTRINSICS_NOTE, note + "\n"),
+            write_layout_svg(results / LAYOUT_FIGURE, [known.rig, unknown.rig], list(LAYOUT_LABELS),
                              title="Camera layout in the rig frame (fig:extrinsics)")]
 
 
