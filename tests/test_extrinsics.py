@@ -25,8 +25,10 @@ from dmais_pipe.calib.extrinsics import (
     LAYOUT_LABELS,
     RIG_CONFIG,
     CameraNotLinkedError,
+    annotate_tables,
     calibrate_extrinsics,
     colmap_rig_config,
+    extrinsics_tables,
     image_prefixes,
     initial_extrinsics,
     run_extrinsics,
@@ -150,6 +152,18 @@ def test_tables_carry_standard_deviations_and_the_note(calibrated):
     assert (low, high) == pytest.approx((table_t.unknown_std_m.min(), table_t.unknown_std_m.max()), abs=6e-4)
     # this simulator's field fixes the centres without priors to about a centimetre: eps_t is noise, not metres
     assert (table_t.eps_t_m < 3 * table_t.unknown_std_m).all() and (table_t.unknown_std_m < 0.05).all()
+    assert "within the noise" in note
+
+
+def test_note_calls_a_deviation_beyond_the_noise_systematic(calibrated):
+    ds, cameras, images, observations = _inputs(calibrated)
+    known, unknown = (calibrate_extrinsics(cameras, "C0", images, observations, ds.points, use_priors=p)
+                      for p in (True, False))
+    moved = {c: Rigid3(T.R, T.t + [0.0, 0.0, 0.0 if c == "C0" else 0.3]) for c, T in known.rig.cam_from_rig.items()}
+    far = Rig(known.rig.cameras, moved, "C0")
+    _, table_t, note = annotate_tables(*extrinsics_tables(far, unknown.rig), known, unknown)
+    assert (table_t.eps_t_m > 0.25).all()
+    assert "more than noise: a systematic error" in note and "within the noise" not in note
 
 
 def test_localization_with_known_centre_is_exact_on_noise_free_data(calibrated):
