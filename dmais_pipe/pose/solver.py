@@ -30,31 +30,37 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from scipy.linalg.lapack import dgeev, dgesv, dgetrf, dsyevd, dtrtrs
 
-from ..geometry import rotation_from_cayley, skew
+from ..geometry import skew
 from . import PoseError
-from .equations import MONOMIALS, coefficients_of, evaluate_equations
-from .statistics import PoseStatistics, pose_statistics, validate_correspondences
+from .equations import coefficients_of
+from .statistics import PoseStatistics, statistics_of, validate_correspondences
 from .template import Template, template_entries
 
 TEMPLATE_PATH = Path(__file__).with_name("_template.json")
 #: Roots whose imaginary part is below this (relative to 1 + |q|) are polished as real ones:
 #: nearly real pairs are where a real double root lost to rounding reappears.
 IMAGINARY_TOLERANCE = 1e-1
-#: Gauss-Newton steps on the six equations for every candidate root.
-POLISH_ITERATIONS = 5
-#: A polished root is kept when every equation is below this fraction of |coefficients| max(1, |q|)^4.
-ROOT_TOLERANCE = 1e-6
+#: Newton steps on the cost (on SO(3)) that polish every candidate rotation.
+NEWTON_ITERATIONS = 3
+#: A polished rotation is stationary when its Riemannian gradient is below this fraction of
+#: trace(H) + |g|.
+STATIONARY_TOLERANCE = 1e-8
 #: Rotations closer than this (max abs entry difference) are one candidate.
 DUPLICATE_TOLERANCE = 1e-9
-#: Gauss-Newton steps that move the solving frame from the best octahedral rotation to a minimum.
+#: Gauss-Newton steps at most that move the solving frame from its start to a minimum.
 DESCENT_ITERATIONS = 30
 #: Longest descent step (radians).
 MAX_STEP = 0.5
-#: The descent stops after a step shorter than this (radians).
-STEP_TOLERANCE = 1e-10
-#: Octahedral rotations descended to find the solving frame.
-FRAME_STARTS = 3
+#: The descent stops after a step shorter than this (radians); Newton polishing continues.
+STEP_TOLERANCE = 1e-4
+#: Relative rounding level of the cost evaluated as a quadratic form (of trace H + |g| + |c|).
+COST_ROUNDING = 1e-12
+#: Newton steps at most on the secular equation of the sphere relaxation, and their relative
+#: tolerance (the relaxed rotations only start the descent).
+SPHERE_ITERATIONS = 30
+SPHERE_TOLERANCE = 1e-6
 #: Beyond this angle (|q| > tan(60 deg)) in the solving frame, the problem is solved again in
 #: the frame of the winner.
 MAX_FRAME_ANGLE = np.deg2rad(120.0)
@@ -99,10 +105,9 @@ class _Runtime:
     m: int
     n_columns: int
     n_reducible: int
-    target: np.ndarray  # flat indices into the (m, n_columns) template
+    target: np.ndarray  # flat indices into the column-major (m, n_columns) template
     source: np.ndarray  # flat indices into the (6, n_monomials) coefficients
-    shift_rows: np.ndarray  # basis rows whose x * b is a basis monomial ...
-    shift_cols: np.ndarray  # ... namely this one
+    shifts: np.ndarray  # (40, 40) action matrix rows whose x * b is a basis monomial, else zero
     reduced_rows: np.ndarray  # basis rows whose x * b is reducible ...
     reduced_index: np.ndarray  # ... namely this row of the reduced block
     unit_index: np.ndarray  # basis indices of the monomials 1, qx, qy, qz
@@ -117,12 +122,12 @@ def runtime() -> _Runtime:
     basis = {mono: j for j, mono in enumerate(template.basis)}
     reducible = {mono: j for j, mono in enumerate(template.reducible)}
     unit = tuple(int(i == template.action_variable) for i in range(3))
-    shift_rows, shift_cols, reduced_rows, reduced_index = [], [], [], []
+    shifts = np.zeros((len(basis), len(basis)))
+    reduced_rows, reduced_index = [], []
     for i, b in enumerate(template.basis):
         product = (b[0] + unit[0], b[1] + unit[1], b[2] + unit[2])
         if product in basis:
-            shift_rows.append(i)
-            shift_cols.append(basis[product])
+            shifts[i, basis[product]] = 1.0
         else:
             reduced_rows.append(i)
             reduced_index.append(reducible[product])
@@ -131,75 +136,127 @@ def runtime() -> _Runtime:
         m=m,
         n_columns=n_columns,
         n_reducible=template.n_reducible,
-        target=target,
+        target=(target % n_columns) * m + target // n_columns,
         source=source,
-        shift_rows=np.array(shift_rows),
-        shift_cols=np.array(shift_cols),
+        shifts=shifts,
         reduced_rows=np.array(reduced_rows),
         reduced_index=np.array(reduced_index),
         unit_index=np.array([basis[u] for u in units]),
     )
 
 
-def action_matrices(coeffs: np.ndarray) -> np.ndarray:
-    """Action matrices (F, 40, 40) for equation coefficients (F, 6, n_monomials).
+def action_matrix(coeffs: np.ndarray) -> np.ndarray:
+    """Action matrix (40, 40) for equation coefficients (6, n_monomials).
 
-    Row i expresses x * b_i in the basis: x * B(q) = M B(q) at every solution q.
+    Row i expresses x * b_i in the basis: x * B(q) = M B(q) at every solution q. One LU
+    factorisation of the whole template [C_E C_R | C_B] = P L [U_11 | U_12] leaves the rows of the
+    reducible monomials R alone at the bottom: U_RR R + U_RB B = 0.
     """
     rt = runtime()
-    frames = coeffs.shape[0]
-    template = np.zeros((frames, rt.m * rt.n_columns))
-    template[:, rt.target] = coeffs.reshape(frames, -1)[:, rt.source]
-    template = template.reshape(frames, rt.m, rt.n_columns)
-    eliminated = np.linalg.solve(template[:, :, : rt.m], template[:, :, rt.m :])  # (F, m, 40)
-    reduced = eliminated[:, rt.m - rt.n_reducible :]  # rows r + reduced @ B = 0, r in R
-    n_basis = rt.n_columns - rt.m
-    M = np.zeros((frames, n_basis, n_basis))
-    M[:, rt.shift_rows, rt.shift_cols] = 1.0
-    M[:, rt.reduced_rows] = -reduced[:, rt.reduced_index]
+    template = np.zeros(rt.m * rt.n_columns)
+    template[rt.target] = coeffs.reshape(-1)[rt.source]
+    lu, _, _ = dgetrf(template.reshape(rt.n_columns, rt.m).T, overwrite_a=True)
+    e = rt.m - rt.n_reducible
+    reduced, _ = dtrtrs(lu[e : rt.m, e : rt.m], lu[e : rt.m, rt.m :])
+    M = rt.shifts.copy()
+    M[rt.reduced_rows] = -reduced[rt.reduced_index]
     return M
 
 
 def roots(coeffs: np.ndarray) -> np.ndarray:
-    """All 40 complex solutions q, (F, 40, 3), of the equations with coefficients (F, 6, n_monomials)."""
+    """The complex solutions q (k, 3) of the equations with coefficients (6, n_monomials), one of
+    each complex conjugate pair (k <= 40)."""
     rt = runtime()
-    _, vectors = np.linalg.eig(action_matrices(coeffs))
-    units = vectors[:, rt.unit_index, :]  # (F, 4, 40): values of 1, qx, qy, qz
-    return np.transpose(units[:, 1:] / units[:, :1], (0, 2, 1))
+    real, imag, _, vectors, _ = dgeev(action_matrix(coeffs), compute_vl=False)
+    units = vectors[rt.unit_index].astype(complex)  # (4, 40): values of 1, qx, qy, qz
+    pairs = np.flatnonzero(imag > 0)  # LAPACK packs a pair's vector as re, im in columns j, j + 1
+    units[:, pairs] += 1j * vectors[rt.unit_index][:, pairs + 1]
+    units = units[:, imag >= 0]
+    return (units[1:] / units[:1]).T
 
 
-# ------------------------------------------------------------------------------ polishing
+# ------------------------------------------------------------------------------ cost on SO(3)
 
 
-_EXPONENTS = MONOMIALS.T  # (3, n_monomials)
+_IDENTITY = np.eye(3)
+_GENERATORS = np.array([skew(e) for e in _IDENTITY])  # [e_a]x, (3, 3, 3)
+_PRODUCTS = np.einsum("aij,bjk->abik", _GENERATORS, _GENERATORS)
+#: (G_a G_b + G_b G_a) / 2 flattened to (9, 9): second derivatives of exp([w]x) at w = 0.
+_SECOND = (0.5 * (_PRODUCTS + _PRODUCTS.transpose(1, 0, 2, 3))).reshape(9, 9)
 
 
-def _monomials_and_derivatives(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Monomial values (k, n_monomials) and their gradients (k, n_monomials, 3) at q (k, 3)."""
-    powers = q[:, :, None] ** np.arange(5)  # (k, 3, 5)
-    value = [powers[:, i, _EXPONENTS[i]] for i in range(3)]  # each (k, n_monomials)
-    lower = [powers[:, i, np.maximum(_EXPONENTS[i] - 1, 0)] * _EXPONENTS[i] for i in range(3)]
-    monomials = value[0] * value[1] * value[2]
-    gradient = np.stack(
-        [lower[0] * value[1] * value[2], value[0] * lower[1] * value[2], value[0] * value[1] * lower[2]], axis=-1
-    )
-    return monomials, gradient
+def _cayley(q: np.ndarray) -> np.ndarray:
+    """Rotations (k, 3, 3) of Cayley parameters q (k, 3), as `geometry.rotation_from_cayley`.
+
+    Cayley(w / 2) = exp([w]x) + O(|w|^3) makes the update of the descent and of Newton's method.
+    """
+    qq = np.einsum("ki,ki->k", q, q)
+    R = q[:, :, None] * q[:, None, :] + (q @ _GENERATORS.reshape(3, 9)).reshape(-1, 3, 3)
+    R *= 2.0
+    R += (1.0 - qq)[:, None, None] * _IDENTITY
+    return R / (1.0 + qq)[:, None, None]
 
 
-def polish(coeffs: np.ndarray, q: np.ndarray, iterations: int = POLISH_ITERATIONS) -> np.ndarray:
-    """Gauss-Newton on the six equations (coefficients (6, n_monomials)) from real q (k, 3)."""
-    q = np.array(q, dtype=float)
+def _derivatives(stats: PoseStatistics, R: np.ndarray, newton: bool):
+    """Half gradient (k, 3) and half Hessian (k, 3, 3) of w -> cost(exp([w]x) R) at w = 0, R (k, 3, 3).
+
+    With r = vec(R) and J (k, 3, 9) the rows d vec(G_a R): gradient J (H r - g), Gauss-Newton
+    matrix J H J^T; `newton` adds the curvature term (H r - g) . vec((G_a G_b + G_b G_a) R / 2).
+    """
+    k = len(R)
+    J = np.matmul(_GENERATORS[None], R[:, None]).reshape(k, 3, 9)
+    residual = R.reshape(k, 9) @ stats.H - stats.g  # (k, 9)
+    gradient = np.matmul(J, residual[:, :, None])[:, :, 0]
+    hessian = J @ stats.H @ J.transpose(0, 2, 1)
+    if newton:
+        curvature = np.matmul(residual.reshape(k, 3, 3), R.transpose(0, 2, 1)).reshape(k, 9) @ _SECOND.T
+        hessian += curvature.reshape(k, 3, 3)
+    return gradient, hessian
+
+
+def descend(stats: PoseStatistics, R: np.ndarray, iterations: int = DESCENT_ITERATIONS) -> np.ndarray:
+    """Damped Gauss-Newton descent of the cost on SO(3), R <- exp([w]x) R, from R (3, 3).
+
+    The Gauss-Newton matrix J^T H J is positive semi-definite, so each damped step goes downhill
+    even far from a minimum; steps are capped at MAX_STEP radians. Stops after a step shorter
+    than STEP_TOLERANCE (`polish` finishes the job). Returns the end point (3, 3).
+    """
+    R = R[None]
+    cost = stats.cost(R)
+    damping = 1e-6
+    scale = np.trace(stats.H)
     for _ in range(iterations):
-        monomials, gradient = _monomials_and_derivatives(q)
-        residual = monomials @ coeffs.T  # (k, 6)
-        J = np.einsum("em,kmi->kei", coeffs, gradient)  # (k, 6, 3)
-        JtJ = np.einsum("kei,kej->kij", J, J)
-        Jtr = np.einsum("kei,ke->ki", J, residual)
-        ok = np.abs(np.linalg.det(JtJ)) > 1e-300
-        if not ok.any():
-            break
-        q[ok] -= np.linalg.solve(JtJ[ok], Jtr[ok][:, :, None])[:, :, 0]
-    return q
+        gradient, hessian = _derivatives(stats, R, newton=False)
+        step = -dgesv(hessian[0] + damping * scale * _IDENTITY, gradient[0])[2]
+        norm = np.sqrt(step @ step)
+        trial = _cayley(step[None] * min(0.5, 0.5 * MAX_STEP / max(norm, 1e-300))) @ R
+        trial_cost = stats.cost(trial)
+        if trial_cost[0] <= cost[0]:
+            R, cost, damping = trial, trial_cost, damping / 10
+            if norm < STEP_TOLERANCE:
+                break
+        else:
+            damping *= 10
+            if damping > 1e8:
+                break
+    return R[0]
+
+
+def polish(stats: PoseStatistics, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Newton's method on the cost on SO(3) from every R (k, 3, 3): the nearby stationary points.
+
+    Returns the polished rotations (k, 3, 3) and which of them are stationary (k,): Riemannian
+    gradient below STATIONARY_TOLERANCE (trace H + |g|) before the last step. Starts that are no
+    roots (e.g. a complex pair taken as real) end elsewhere, usually not stationary, or on another
+    candidate.
+    """
+    scale = np.trace(stats.H) + np.linalg.norm(stats.g)
+    ridge = 1e-14 * scale * _IDENTITY
+    for _ in range(NEWTON_ITERATIONS):
+        gradient, hessian = _derivatives(stats, R, newton=True)
+        step = -np.linalg.solve(hessian + ridge, gradient[:, :, None])[:, :, 0]
+        R = _cayley(0.5 * step) @ R
+    return R, np.linalg.norm(gradient, axis=1) < STATIONARY_TOLERANCE * scale
 
 
 # ------------------------------------------------------------------------------ frames
@@ -222,101 +279,101 @@ OCTAHEDRAL = _octahedral_group()
 
 def _in_frame(H: np.ndarray, g: np.ndarray, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """H', g' of the problem in the world M' = P M (R = R' P)."""
-    K = np.kron(np.eye(3), P.T)
+    K = np.zeros((9, 9))  # r = K r', K = blockdiag(P^T, P^T, P^T)
+    K[0:3, 0:3] = K[3:6, 3:6] = K[6:9, 6:9] = P.T
     return K.T @ H @ K, K.T @ g
 
 
-def _real_roots(H: np.ndarray, g: np.ndarray) -> np.ndarray:
-    """Polished real Cayley parameters (k, 3) of the stationary points for statistics H, g."""
-    trace = np.trace(H)
-    coeffs = coefficients_of(H / trace, g / trace)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = roots(coeffs[None])[0]
-    size = 1.0 + np.abs(q).max(axis=1)
-    nearly_real = np.abs(q.imag).max(axis=1) < IMAGINARY_TOLERANCE * size  # False for NaN
-    q = polish(coeffs, q[nearly_real].real)
-    # a complex pair polished as if real converges to a minimum of |equations|, not to a root
-    scale = np.abs(coeffs).sum(axis=1) * np.maximum(1.0, np.abs(q).max(axis=1, initial=0.0))[:, None] ** 4
-    residual = np.abs(evaluate_equations(coeffs, q)).reshape(-1, 6) / scale
-    return q[residual.max(axis=1, initial=0.0) < ROOT_TOLERANCE]
+def _sphere_minimisers(H: np.ndarray, g: np.ndarray, radius2: float) -> np.ndarray:
+    """x and -x (2, d) for the minimiser x of x^T H x - 2 g^T x on the sphere |x|^2 = radius2.
 
-
-def _solve_in_frame(stats: PoseStatistics, P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Rotations (k, 3, 3) in the original frame, their costs (k,) and Cayley parameters in frame P."""
-    q = _real_roots(*_in_frame(stats.H, stats.g, P))
-    R = rotation_from_cayley(q).reshape(-1, 3, 3) @ P
-    return R, np.atleast_1d(stats.cost(R)), q
-
-
-def _unique(R: np.ndarray, cost: np.ndarray) -> np.ndarray:
-    """Indices of the candidates sorted by cost, duplicate rotations (e.g. polished conjugate
-    pairs) removed."""
-    order = np.argsort(cost)
-    R = R[order]
-    same = np.abs(R[:, None] - R[None]).reshape(len(R), len(R), 9).max(axis=2) < DUPLICATE_TOLERANCE
-    first = np.argmax(same, axis=1)  # index of the first (cheapest) rotation equal to each
-    return order[first == np.arange(len(R))]
-
-
-_GENERATORS = np.array([skew(e) for e in np.eye(3)])  # [e_k]x, (3, 3, 3)
-
-
-def descend(stats: PoseStatistics, R: np.ndarray, iterations: int = DESCENT_ITERATIONS) -> np.ndarray:
-    """Damped Gauss-Newton descent of the cost on SO(3), R <- exp([w]x) R, from every R (k, 3, 3).
-
-    The Gauss-Newton matrix J^T H J (J = d vec(R) / d w) is positive semi-definite, so each
-    damped step goes downhill even far from a minimum; steps are capped at MAX_STEP radians.
-    Returns the end points (k, 3, 3).
+    H (d, d) symmetric, g (d,). The trust-region subproblem: x = (H - mu I)^-1 g with mu below the
+    least eigenvalue of H, found by Newton's method on 1/|x(mu)| (More and Sorensen), which is
+    concave and so approached monotonically from mu's upper bound |b_0| / sqrt(radius2); in the
+    hard case (g without weight on the least eigenvector) x is completed along that eigenvector.
     """
-    R = np.array(R, dtype=float)
-    k = len(R)
-    cost = stats.cost(R)
-    damping = np.full(k, 1e-6)
-    scale = np.trace(stats.H)
-    active = np.ones(k, dtype=bool)
-    for _ in range(iterations):
-        J = np.einsum("aij,kjl->kail", _GENERATORS, R).reshape(k, 3, 9)  # rows: d vec(R) / d w_a
-        gradient = J @ (R.reshape(k, 9) @ stats.H - stats.g)[:, :, None]
-        hessian = J @ stats.H @ J.transpose(0, 2, 1) + (damping * scale)[:, None, None] * np.eye(3)
-        step = -np.linalg.solve(hessian, gradient)[:, :, 0]
-        norm = np.linalg.norm(step, axis=1)
-        step *= np.minimum(1.0, MAX_STEP / np.maximum(norm, 1e-300))[:, None]
-        trial = rotation_from_cayley(step / 2) @ R  # Cayley(w / 2) = exp([w]x) + O(|w|^3)
-        trial_cost = stats.cost(trial)
-        better = (trial_cost <= cost) & active
-        R[better], cost[better] = trial[better], trial_cost[better]
-        damping = np.where(better, damping / 10, damping * 10)
-        active &= ~(better & (norm < STEP_TOLERANCE)) & (damping < 1e8)
-        if not active.any():
-            break
-    return R
+    eigenvalues, vectors, _ = dsyevd(H)
+    b = vectors.T @ g
+    gap = eigenvalues - eigenvalues[0]
+    hard = np.zeros_like(b)
+    hard[1:] = b[1:] / np.maximum(gap[1:], 1e-300)
+    if hard @ hard < radius2 and abs(b[0]) <= 1e-12 * np.linalg.norm(b):
+        hard[0] = np.sqrt(radius2 - hard @ hard)
+        x = vectors @ hard
+    else:
+        shift = max(abs(b[0]), 1e-300) / np.sqrt(radius2)  # eigenvalues[0] - mu: a lower bound
+        for _ in range(SPHERE_ITERATIONS):
+            y = b / (gap + shift)
+            norm = np.sqrt(y @ y)
+            # Newton on phi(shift) = 1/|y| - 1/sqrt(radius2), d|y|/dshift = -(y . y / (gap + shift)) / |y|
+            change = (1.0 / norm - 1.0 / np.sqrt(radius2)) * norm**3 / (y @ (y / (gap + shift)))
+            shift = max(shift - change, 0.5 * shift)
+            if abs(change) <= SPHERE_TOLERANCE * shift:
+                break
+        x = vectors @ (b / (gap + shift))
+    return np.array([x, -x])
 
 
-def front_fraction(R: np.ndarray, t: np.ndarray, origins, directions, points) -> np.ndarray:
+def _rotation_nearest(X: np.ndarray) -> np.ndarray:
+    """The rotations (k, 3, 3) nearest (Frobenius) to matrices X (k, 3, 3)."""
+    U, _, Vt = np.linalg.svd(X)
+    U[:, :, 2] *= np.sign(np.linalg.det(U @ Vt))[:, None]
+    return U @ Vt
+
+
+def relaxed_rotations(stats: PoseStatistics) -> np.ndarray:
+    """Rotations (4, 3, 3) near the minimum from the sphere relaxation |vec R|^2 = 3 of eq. objfun3,
+    and from its planar version (R on the two widest principal axes of the points, which alone
+    matter for planar points, |.|^2 = 2, completed by their cross product), each with its mirror.
+    O(1).
+    """
+    trace = np.trace(stats.H)
+    full = _sphere_minimisers(stats.H / trace, stats.g / trace, 3.0).reshape(2, 3, 3)
+    axes = stats.point_axes  # M = axes @ m: R M = (R axes) m
+    H, g = _in_frame(stats.H / trace, stats.g / trace, axes.T)
+    in_plane = np.array([1, 2, 4, 5, 7, 8])  # columns 1, 2 of R axes (the widest axes)
+    columns = _sphere_minimisers(H[np.ix_(in_plane, in_plane)], g[in_plane], 2.0).reshape(2, 3, 2)
+    a, b = columns[:, :, 0], columns[:, :, 1]
+    normal = a[:, [1, 2, 0]] * b[:, [2, 0, 1]] - a[:, [2, 0, 1]] * b[:, [1, 2, 0]]
+    planar = np.concatenate([normal[:, :, None], columns], axis=2) @ axes.T
+    return _rotation_nearest(np.concatenate([full, planar]))
+
+
+def ray_sides(origins, directions, points) -> tuple[np.ndarray, np.ndarray]:
+    """What `front_fraction` needs of the correspondences: [kron(f_i, M_i), f_i] (n, 12) and
+    v_i . f_i (n,), so that the depth of point i along its ray (alpha in eq. projEq, f unit) is
+    f_i . (R M_i + t - v_i) = [vec R, t] . row_i - v_i . f_i."""
+    n = len(points)
+    kron = (directions[:, :, None] * points[:, None, :]).reshape(n, 9)
+    return np.hstack([kron, directions]), np.einsum("ni,ni->n", origins, directions)
+
+
+def front_fraction(R: np.ndarray, t: np.ndarray, sides) -> np.ndarray:
     """Fraction of points in front of their rays (alpha > 0 in eq. projEq) per pose, (k,).
 
-    R: (k, 3, 3), t: (k, 3); O(k n).
+    R: (k, 3, 3), t: (k, 3), sides: `ray_sides` of the correspondences; O(k n).
     """
-    x_rig = np.einsum("kij,nj->kni", R, points) + t[:, None, :] - origins  # (k, n, 3)
-    return (np.einsum("kni,ni->kn", x_rig, directions) > 0).mean(axis=1)
+    rows, offsets = sides
+    depth = np.hstack([R.reshape(-1, 9), t]) @ rows.T - offsets  # (k, n)
+    return (depth > 0).mean(axis=1)
 
 
-def solving_frame(stats: PoseStatistics, origins, directions, points) -> np.ndarray:
-    """Rotation P (3, 3) near the sought rotation: a local minimum of the cost with most points
-    in front, descended from the most promising rotations of the octahedral group.
+def solving_frame(stats: PoseStatistics, sides) -> np.ndarray:
+    """Rotation P (3, 3) near the sought rotation: a local minimum of the cost descended from the
+    most promising of the octahedral group and the relaxed rotations (`relaxed_rotations`).
 
     The cost alone misleads: it ignores on which side of its ray origin a point lies, and a
     "mirror" pose with the points behind the cameras, about 180 deg from the truth, often costs
     less than the octahedral rotations near the truth. So each rotation's cost is weighted by the
     fraction of points it puts behind their rays (plus 0.05, so that cost still decides among
-    rotations that put every point in front), and the best FRAME_STARTS of them are descended.
-    O(24 n).
+    rotations that put every point in front); costs below the rounding level of the quadratic
+    form count as that level, so that an exact fit and its mirror are told apart. O(28 n).
     """
-    front = front_fraction(OCTAHEDRAL, stats.translation(OCTAHEDRAL), origins, directions, points)
-    starts = np.argsort(stats.cost(OCTAHEDRAL) * (1.0 - front + 0.05))[:FRAME_STARTS]
-    ends = descend(stats, OCTAHEDRAL[starts])
-    front = front_fraction(ends, stats.translation(ends), origins, directions, points)
-    return ends[_select(stats.cost(ends), front)]
+    starts = np.concatenate([OCTAHEDRAL, relaxed_rotations(stats)])
+    front = front_fraction(starts, stats.translation(starts), sides)
+    rounding = COST_ROUNDING * (np.trace(stats.H) + np.linalg.norm(stats.g) + abs(stats.c))
+    score = np.maximum(stats.cost(starts), rounding) * (1.0 - front + 0.05)
+    return descend(stats, starts[np.argmin(score)])
 
 
 def _select(cost: np.ndarray, front: np.ndarray) -> int:
@@ -331,28 +388,71 @@ def _select(cost: np.ndarray, front: np.ndarray) -> int:
     return int(pool[np.argmin(cost[pool])])
 
 
+def _real_roots(H: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Real parts (k, 3) of the real and nearly real Cayley roots of the equations for H, g."""
+    trace = np.trace(H)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = roots(coefficients_of(H / trace, g / trace))
+    size = 1.0 + np.abs(q).max(axis=1)
+    return q[np.abs(q.imag).max(axis=1) < IMAGINARY_TOLERANCE * size].real  # False for NaN
+
+
+def _roots_in_frame(stats: PoseStatistics, P: np.ndarray) -> np.ndarray:
+    """Rotations (k, 3, 3) of the real (and nearly real) roots of the equations in the frame P."""
+    return _cayley(_real_roots(*_in_frame(stats.H, stats.g, P))) @ P
+
+
+def _unique(R: np.ndarray, cost: np.ndarray) -> np.ndarray:
+    """Indices of the candidates sorted by cost, duplicate rotations (e.g. polished conjugate
+    pairs) removed."""
+    order = np.argsort(cost)
+    R = R[order]
+    same = np.abs(R[:, None] - R[None]).reshape(len(R), len(R), 9).max(axis=2) < DUPLICATE_TOLERANCE
+    first = np.argmax(same, axis=1)  # index of the first (cheapest) rotation equal to each
+    return order[first == np.arange(len(R))]
+
+
+def _stationary(stats: PoseStatistics, R: np.ndarray) -> np.ndarray:
+    """The stationary rotations (k', 3, 3) that `polish` reaches from R (k, 3, 3)."""
+    R, stationary = polish(stats, R)
+    return R[stationary]
+
+
+def _evaluate(stats: PoseStatistics, R: np.ndarray, sides):
+    """Cost (k,), translation (k, 3) and fraction of points in front (k,) of rotations R (k, 3, 3)."""
+    t = stats.translation(R)
+    return stats.cost(R), t, front_fraction(R, t, sides)
+
+
 def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tuple[list[Candidate], int]:
     """All real stationary candidates, least cost first, and the index of the solution among them.
 
     There is always at least one: the solving frame, a descended local minimum, is a candidate.
     origins, directions, points: the validated correspondences that `stats` summarises.
     """
-    # Solve where the sought rotation is near q = 0: the roots are most accurate there (a
-    # rotation error of ~1e-16 against up to 1e-4 at 60-120 deg from the frame on narrow-FoV
-    # rigs). The descended frame is a stationary point itself and joins the candidates: where the
-    # action matrix is ill-conditioned (one narrow-FoV camera over a plane) it can be the only
-    # copy of the minimum.
-    P = solving_frame(stats, origins, directions, points)
-    R, cost, q = _solve_in_frame(stats, P)
-    R, cost, q = np.concatenate([R, P[None]]), np.append(cost, stats.cost(P)), np.vstack([q, np.zeros(3)])
-    t = stats.translation(R)
-    front = front_fraction(R, t, origins, directions, points)
+    # The descended frame is a stationary point itself and joins the candidates: where the action
+    # matrix is ill-conditioned (one narrow-FoV camera over a plane) it can be the only copy of
+    # the minimum. Solving where the sought rotation is near q = 0 also keeps it away from
+    # Cayley's blind spot.
+    sides = ray_sides(origins, directions, points)
+    P = solving_frame(stats, sides)
+    R, stationary = polish(stats, np.concatenate([P[None], _roots_in_frame(stats, P)]))
+    stationary[0] = True  # the descended frame: kept even where the roots miss it
+    R = R[stationary]
+    cost, t, front = _evaluate(stats, R, sides)
     best = _select(cost, front)
-    if np.linalg.norm(q[best]) > np.tan(MAX_FRAME_ANGLE / 2):
-        R2, cost2, _ = _solve_in_frame(stats, R[best])
-        t2 = stats.translation(R2)
-        R, cost, t = np.concatenate([R, R2]), np.concatenate([cost, cost2]), np.concatenate([t, t2])
-        front = np.concatenate([front, front_fraction(R2, t2, origins, directions, points)])
+    more = []
+    if np.trace(R[best] @ P.T) < 1.0 + 2.0 * np.cos(MAX_FRAME_ANGLE):
+        more.append(_stationary(stats, _roots_in_frame(stats, R[best])))
+    # A cheaper pose with the points behind the rays: its mirror (180 deg about the normal of
+    # the points) is where the roots of an ill-conditioned planar scene may have missed the minimum.
+    behind = (front < 0.5) & (cost < cost[best])
+    if behind.any():
+        normal = stats.point_axes[:, 0]
+        more.append(_stationary(stats, R[behind] @ (2.0 * np.outer(normal, normal) - _IDENTITY)))
+    if more:
+        R = np.concatenate([R, *more])
+        cost, t, front = _evaluate(stats, R, sides)
     keep = _unique(R, cost)
     candidates = [Candidate(R=R[i], t=t[i], cost=max(float(cost[i]), 0.0), in_front=float(front[i])) for i in keep]
     return candidates, _select(cost[keep], front[keep])
@@ -368,7 +468,7 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
     for that covariance, else estimated from the residuals. Returns x_rig = R @ M + t.
     """
     origins, directions, points = validate_correspondences(origins, directions, points)
-    stats = pose_statistics(origins, directions, points)
+    stats = statistics_of(origins, directions, points)
     candidates, best = solve_statistics(stats, origins, directions, points)
     solution = candidates[best]
     pose = GeneralizedPose(R=solution.R, t=solution.t, cost=solution.cost, candidates=candidates, n_points=stats.n)

@@ -54,7 +54,9 @@ class PoseStatistics:
     H: (9, 9) symmetric, g: (9,), c: scalar, such that cost(r) = r^T H r - 2 g^T r + c for the
     row-major r = vec(R). The translation map of eq. t is t_centred(r) = t_matrix @ r + t_offset in
     the frame of the centred world points; `centroid` (3,) is the subtracted mean of the points.
-    BtB = B^T B = sum (I - f f^T) (3, 3). n: number of correspondences.
+    BtB = B^T B = sum (I - f f^T) (3, 3). n: number of correspondences. point_axes (3, 3): a rotation
+    whose columns are the principal axes of the centred world points, least spread first (the
+    first is the normal of the best-fitting plane).
     """
 
     H: np.ndarray
@@ -65,6 +67,7 @@ class PoseStatistics:
     centroid: np.ndarray
     BtB: np.ndarray
     n: int
+    point_axes: np.ndarray
 
     def cost(self, R) -> np.ndarray | float:
         """Value of eq. objfun (t eliminated) for rotations R (3, 3) -> float or (m, 3, 3) -> (m,).
@@ -74,7 +77,7 @@ class PoseStatistics:
         """
         R = np.asarray(R, dtype=float)
         r = R.reshape(-1, 9)
-        value = np.einsum("mi,ij,mj->m", r, self.H, r) - 2.0 * (r @ self.g) + self.c
+        value = np.einsum("mi,mi->m", r @ self.H - 2.0 * self.g, r) + self.c
         return float(value[0]) if R.ndim == 2 else value
 
     def translation(self, R) -> np.ndarray:
@@ -127,10 +130,14 @@ def validate_correspondences(origins, directions, points) -> tuple[np.ndarray, n
     return origins, directions, points
 
 
-def _check_not_collinear(scatter: np.ndarray, n: int) -> None:
-    eigenvalues = np.linalg.eigvalsh(scatter)  # squared singular values of the centred points
+def _principal_axes(scatter: np.ndarray, n: int) -> np.ndarray:
+    """Eigenvectors (3, 3) of the scatter matrix of the centred points as the columns of a
+    rotation, least spread first; raises PoseError for collinear points."""
+    eigenvalues, axes = np.linalg.eigh(scatter)  # squared singular values of the centred points
     if not eigenvalues[1] > COLLINEAR_TOLERANCE**2 * eigenvalues[2]:
         raise PoseError(f"pose: the {n} world points are collinear (or coincident)")
+    axes[:, 0] *= np.sign(np.linalg.det(axes))
+    return axes
 
 
 def pose_statistics(origins, directions, points) -> PoseStatistics:
@@ -139,13 +146,18 @@ def pose_statistics(origins, directions, points) -> PoseStatistics:
     origins: (n, 3) ray origins v_i in the rig frame; directions: (n, 3) ray directions f_i in the
     rig frame (normalized here); points: (n, 3) world points M_i. O(n), vectorized.
     """
-    v, f, M = validate_correspondences(origins, directions, points)
+    return statistics_of(*validate_correspondences(origins, directions, points))
+
+
+def statistics_of(v: np.ndarray, f: np.ndarray, M: np.ndarray) -> PoseStatistics:
+    """`pose_statistics` of correspondences already checked by `validate_correspondences`:
+    origins v (n, 3), unit directions f (n, 3), world points M (n, 3)."""
     n = len(M)
     centroid = M.mean(axis=0)
     M = M - centroid
 
     scatter = M.T @ M
-    _check_not_collinear(scatter, n)
+    point_axes = _principal_axes(scatter, n)
 
     U = (f[:, :, None] * M[:, None, :]).reshape(n, 9)  # kron(f_i, M_i)
     AtA = -(U.T @ U)
@@ -172,5 +184,5 @@ def pose_statistics(origins, directions, points) -> PoseStatistics:
     g = AtD - AtB @ t_offset
     c = DtD - float(BtD @ t_offset)
     return PoseStatistics(
-        H=H, g=g, c=c, t_matrix=t_matrix, t_offset=t_offset, centroid=centroid, BtB=BtB, n=n
+        H=H, g=g, c=c, t_matrix=t_matrix, t_offset=t_offset, centroid=centroid, BtB=BtB, n=n, point_axes=point_axes
     )
