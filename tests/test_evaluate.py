@@ -203,7 +203,24 @@ def test_subsets_use_the_full_rigs_lever_arm_and_fill_conf(dataset, results):
     table = read(results / "tables" / "pose_methods.csv").set_index("group")
     everything = conf[conf["subset"] == "01234"].set_index("group")
     np.testing.assert_allclose(everything.loc[table.index, "eps_pos_mean_m"], table["eps_pos_mean_m"], rtol=1e-9)
-    np.testing.assert_allclose(everything.loc[table.index, "eps_proj_mean_px"], table["eps_proj_mean_px"], rtol=1e-9)
+    np.testing.assert_allclose(everything.loc[table.index, "eps_proj_used_mean_px"], table["eps_proj_mean_px"],
+                               rtol=1e-9)
+    # tab:conf's eps_proj: the subset's pose reprojected into every camera, checked by a plain loop
+    ds = Dataset.load(dataset)
+    observations = load_observations(ds, results)
+    image_frame = ds.images.set_index("image")["placement"]
+    for row in single.itertuples(index=False):
+        pose = Rigid3.from_quat([row.qw, row.qx, row.qy, row.qz], [row.tx, row.ty, row.tz])
+        mine = observations[observations["image"].map(image_frame) == row.frame]
+        squared = [np.sum((rig.project(o.camera, pose, ds.points.loc[[o.point_id], ["x", "y", "z"]].to_numpy())[0]
+                           - [o.u, o.v]) ** 2) for o in mine.itertuples(index=False)]
+        assert row.eps_proj_all_px == pytest.approx(np.sqrt(np.mean(squared)), rel=1e-9)
+    # the pose 0.5 m off moves the images by ~f x 0.5 / 350 = 64 px: that, not C0's 3 px, is what shows
+    assert (single["eps_proj_all_px"] > 25).all()
+    all_focal = np.mean([(c.fx + c.fy) / 2 for c in rig.cameras.values()])
+    np.testing.assert_allclose(single["eps_ang_all_arcmin"], single["eps_proj_all_px"] / all_focal / ARCMIN)
+    zero = conf[(conf["subset"] == "0") & (conf["group"] == "all")]
+    assert zero["eps_proj_mean_px"].iloc[0] == pytest.approx(single["eps_proj_all_px"].mean())
 
     # Without subset files a rerun leaves no stale conf table behind.
     (results / "poses_0.csv").unlink()
