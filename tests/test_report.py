@@ -13,10 +13,11 @@ import yaml
 
 from dmais_pipe.calib.extrinsics import extrinsics_tables
 from dmais_pipe.calib.intrinsics import TABLE_COLUMNS
+from dmais_pipe.errors import DmaisError
 from dmais_pipe.evaluate import conf_table, pose_methods_table, run_evaluate
 from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
 from dmais_pipe.report.html import SECTIONS, benchmark_table, write_report
-from dmais_pipe.report.paper import PAPER_DIR, PAPER_TABLES, compare_with_paper, write_paper_comparisons
+from dmais_pipe.report.paper import PAPER_DIR, PAPER_TABLES, compare_with_paper, paper_notes, write_paper_comparisons
 from dmais_pipe.rig import Rig
 from dmais_pipe.sim.simulate import simulate
 
@@ -262,3 +263,16 @@ def test_write_paper_comparisons(results, tmp_path):
     assert row["ratio"].item() == pytest.approx(row["ours"].item() / 4.398)
     time_points = pd.read_csv(tmp_path / "time_points_vs_paper.csv")
     assert time_points["ratio"].iloc[0] == pytest.approx(0.2 / 0.34)
+
+
+def test_paper_notes_cover_every_table_and_reach_the_report(dataset, results, tmp_path):
+    notes = paper_notes()
+    assert set(notes) == set(PAPER_TABLES) and all(len(text) > 80 for text in notes.values())
+    (results / "tables" / "extrinsics_note.txt").write_text("Without the priors the centres move by 1 cm.")
+    html = write_report(dataset, results, tmp_path / "report.html").read_text()
+    assert html.count('<p class="note">') == len(notes) + 1
+    assert "This run: Without the priors the centres move by 1 cm." in html
+    (tmp_path / "paper").mkdir()
+    (tmp_path / "paper" / "notes.yaml").write_text("intrinsic: typo\n")
+    with pytest.raises(DmaisError, match="intrinsic"):
+        paper_notes(tmp_path / "paper")

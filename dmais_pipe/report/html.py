@@ -35,7 +35,7 @@ from ..evaluate import (
 from ..files import write_text_atomic
 from ..rig import Rig
 from .dataset import rig_table, summary_table
-from .paper import PAPER_TABLES, paper_comparisons, read_table
+from .paper import PAPER_TABLES, paper_comparisons, paper_notes, read_table
 
 log = logging.getLogger(__name__)
 
@@ -357,9 +357,15 @@ def _paper_section(ctx: _Context) -> str:
              f"differ by more than a factor {high:g}. Our Bouguet-style baseline (dlt_lm) is compared with the "
              "paper's Bouguet row; angles near &plusmn;180&deg; or 0 make ratios meaningless, see the "
              "difference column.</p>"]
+    notes = paper_notes(ctx.paper_dir)
     for name, table in comparisons.items():
         flagged = table.assign(flag=np.where((table["ratio"] < low) | (table["ratio"] > high), "!", ""))
-        parts += [f"<h3>{_esc(name)}</h3>", _table(flagged)]
+        parts += [f"<h3>{_esc(name)}</h3>"]
+        parts += [f'<p class="note">{_esc(notes[name])}</p>'] if name in notes else []
+        run_note = ctx.results / "tables" / "extrinsics_note.txt"  # the extrinsics stage explains its run
+        if name == "extrinsics_t" and run_note.is_file():
+            parts.append(f'<p class="note">This run: {_esc(run_note.read_text().strip())}</p>')
+        parts.append(_table(flagged))
     return "\n".join(parts)
 
 

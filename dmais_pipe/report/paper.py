@@ -23,7 +23,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import yaml
 
+from ..errors import DmaisError
 from ..files import write_csv_atomic
 
 log = logging.getLogger(__name__)
@@ -143,6 +145,18 @@ def paper_comparisons(results_dir: str | Path, paper_dir: str | Path | None = No
         ours = _aliased(read_table(ours_path, spec.keys), spec.aliases)
         out[name] = compare_with_paper(ours, read_table(paper_path, spec.keys), spec.keys, spec.columns)
     return out
+
+
+def paper_notes(paper_dir: str | Path | None = None) -> dict[str, str]:
+    """table name -> why ours differs from the published table (`paper_dir`/notes.yaml; {} without)."""
+    path = (Path(paper_dir) if paper_dir is not None else PAPER_DIR) / "notes.yaml"
+    if not path.is_file():
+        return {}
+    notes = yaml.safe_load(path.read_text()) or {}
+    unknown = sorted(set(notes) - set(PAPER_TABLES))
+    if unknown:
+        raise DmaisError(f"{path}: notes for unknown table(s) {unknown}; tables are {sorted(PAPER_TABLES)}")
+    return {name: str(text) for name, text in notes.items()}
 
 
 def _aliased(frame: pd.DataFrame, aliases: Mapping[str, Mapping[str, str]]) -> pd.DataFrame:
