@@ -161,7 +161,9 @@ def cramer_rao_bound(origins, directions, points, R, t, sigma: float) -> tuple[f
     R, t = _checked_pose(R, t)
     if not (np.isfinite(sigma) and sigma > 0):
         raise PoseError(f"cramer_rao_bound: sigma must be a positive number of radians, got {sigma}")
-    _, J = _jacobian(v, tangent_bases(f), M, R, t)
+    m = M.mean(axis=0)  # about the centroid (t' = t + R m), as refine_pose: the centre moves alike
+    t = t + R @ m
+    _, J = _jacobian(v, tangent_bases(f), M - m, R, t)
     covariance = sigma**2 * _inverse_normal_matrix(J)
     G = -R.T @ np.hstack([skew(t), np.eye(3)])
     return float(np.sqrt(np.trace(G @ covariance @ G.T))), float(np.sqrt(np.trace(covariance[:3, :3])))
