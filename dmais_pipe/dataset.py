@@ -722,8 +722,11 @@ def load_observations(dataset: Dataset, results: str | Path | None) -> pd.DataFr
     camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
     if results is not None:
         paths = [p for p in (stage_observations_path(results, s) for s in STAGES) if p.exists()]
-        if not paths and (Path(results) / OBSERVATIONS).exists():
-            paths = [Path(results) / OBSERVATIONS]
+        whole = Path(results) / OBSERVATIONS
+        if paths and whole.exists():
+            log.warning("%s is ignored: the per-stage files %s take precedence", whole, [str(p) for p in paths])
+        if not paths and whole.exists():
+            paths = [whole]
         if paths:
             tables = [_read_observations(p, camera_of, dataset.points.index, with_camera=True) for p in paths]
             return pd.concat(tables, ignore_index=True) if len(tables) > 1 else tables[0]
