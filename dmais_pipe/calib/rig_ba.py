@@ -19,7 +19,7 @@ Two solvers minimise this same cost:
   and constant OPENCV cameras (k1 = d, k2 = p1 = p2 = 0: exactly our model; principal point and
   keypoints both in COLMAP's pixel convention, ours + 0.5, so residuals are unchanged), refined by
   pycolmap's Ceres bundle adjuster; with priors, by its pose-prior bundle adjuster (`pycolmap.PosePrior`,
-  covariance center_sigma^2 I). See that function for the two adaptations this needs.
+  covariance center_sigma^2 I). See that function for the adaptations this needs.
 
 Both report the standard deviations from our own Jacobian at their optimum (Gauss-Newton covariance
 scaled by the a posteriori variance of unit weight), so the numbers are comparable between backends.
@@ -45,6 +45,8 @@ BACKENDS = ("pycolmap", "scipy")
 # and 1.5e-10; a dropped prior term or moved control points give metres and ~0.4).
 MAX_POINT_MOTION_M = 1e-6
 MAX_GRADIENT_COSINE = 1e-6
+# RANSAC threshold of pycolmap's prior alignment: only the shadow images (exactly on their priors) are inliers
+ALIGNMENT_MAX_ERROR_M = 1e-6
 COLMAP_PIXEL_OFFSET = 0.5  # COLMAP pixel = ours + 0.5 (see colmap_pixels)
 
 
@@ -276,18 +278,6 @@ def _rigid(T) -> Rigid3:
     return Rigid3(T.rotation.matrix(), T.translation)
 
 
-def _similarity_applied(sim, rig_from_cam: dict[str, Rigid3], rig_from_world: dict[str, Rigid3]):
-    """Poses after moving the world by the similarity `sim` (pycolmap.Sim3d new_from_old), points left alone.
-
-    Camera centres C map to sim(C); rig-frame distances scale with it. Returns new
-    (rig_from_cam, rig_from_world).
-    """
-    s, Q, u = float(sim.scale), sim.rotation.matrix(), np.asarray(sim.translation)
-    cams = {c: Rigid3(T.R, s * T.t) for c, T in rig_from_cam.items()}
-    world = {j: Rigid3(T.R @ Q.T, -(T.R @ Q.T) @ (s * Q @ T.center + u)) for j, T in rig_from_world.items()}
-    return cams, world
-
-
 @dataclass
 class _ColmapScene:
     """A pycolmap.Reconstruction of the rig problem and the ids needed to read it back."""
@@ -298,6 +288,10 @@ class _ColmapScene:
     image_ids: list[int]  # per block
     points: np.ndarray  # (m, 3) unique control points
     point_ids: list[int]  # (m,) their 3D point ids
+    shadow_camera_id: int  # the unit pinhole camera of the shadow images
+    shadow_image_ids: list[int]  # per block, its shadow image (see _build_scene)
+    shadow_frame_ids: list[int]  # per block, the shadow image's frame (constant pose)
+    shadow_centres: np.ndarray  # (n_blocks, 3) the shadow images' (= the blocks' initial) camera centres
 
 
 def colmap_pixels(uv: np.ndarray) -> np.ndarray:
@@ -355,23 +349,22 @@ def _add_frame(rec, frame_id: int, rig_id: int, rig_from_world: Rigid3, images: 
     rec.register_frame(frame_id)
 
 
-def _unique_points(blocks: list[ImageBlock]) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
-    """Distinct control points (m, 3), per block the index of each observation's point, observations per point (m,)."""
+def _unique_points(blocks: list[ImageBlock]) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Distinct control points (m, 3) and, per block, the index of each observation's point."""
     points, index = np.unique(np.vstack([b.X for b in blocks]), axis=0, return_inverse=True)
     index = index.ravel()
-    block_points = np.split(index, np.cumsum([len(b.X) for b in blocks])[:-1])
-    return points, block_points, np.bincount(index, minlength=len(points))
+    return points, np.split(index, np.cumsum([len(b.X) for b in blocks])[:-1])
 
 
 def _build_scene(cameras: dict[str, Camera], reference: str, blocks: list[ImageBlock],
                  rig_from_cam: dict[str, Rigid3], rig_from_world: dict[str, Rigid3],
                  sig: dict[str, float]) -> _ColmapScene:
-    """Reconstruction with rig 1 (the cameras), one frame per placement, one image per block.
+    """Reconstruction with rig 1 (the cameras), one frame per placement, one image per block, plus shadows.
 
-    COLMAP requires every 3D point to be observed at least twice. A control point seen by a single
-    image gets a second observation in a "shadow" image (rig 2, a unit pinhole camera placed at that
-    image's initial pose, observation = its exact projection there). Shadow images are left out of the
-    adjustment, so those observations are constant zero-residual terms that change nothing.
+    Every block also gets a "shadow" image: rig 2, a unit pinhole camera at the block's initial pose,
+    held constant, observing the block's points at their exact projections. Its observations are
+    constant zero-residual terms that change nothing, but they give every control point the two
+    observations COLMAP requires, and their centres anchor the pose-prior alignment (`_solve_colmap`).
     """
     import pycolmap
 
@@ -382,46 +375,46 @@ def _build_scene(cameras: dict[str, Camera], reference: str, blocks: list[ImageB
     image_ids = list(range(1, len(blocks) + 1))
     for j, fid in frame_ids.items():
         images = [pycolmap.Image(name=b.image, keypoints=colmap_pixels(b.uv) / sig[b.camera],
-                                 camera_id=camera_ids[b.camera],
-                                 image_id=image_id) for b, image_id in zip(blocks, image_ids) if b.placement == j]
+                                 camera_id=camera_ids[b.camera], image_id=image_id)
+                  for b, image_id in zip(blocks, image_ids) if b.placement == j]
         _add_frame(rec, fid, 1, rig_from_world[j], images)
 
-    points, block_points, counts = _unique_points(blocks)
+    points, block_points = _unique_points(blocks)
     tracks = [pycolmap.Track() for _ in points]
     for image_id, idx in zip(image_ids, block_points):
         for n, i in enumerate(idx):
             tracks[i].add_element(image_id, n)
-    _add_shadow_observations(rec, blocks, block_points, counts, points, tracks, rig_from_cam, rig_from_world,
-                             first_image_id=len(blocks) + 1, first_frame_id=len(frame_ids) + 1,
-                             camera_id=len(names) + 1)
+    shadow_camera_id = len(names) + 1
+    shadow_image_ids = list(range(len(blocks) + 1, 2 * len(blocks) + 1))
+    shadow_frame_ids = list(range(len(frame_ids) + 1, len(frame_ids) + len(blocks) + 1))
+    centres = _add_shadows(rec, blocks, block_points, points, tracks, rig_from_cam, rig_from_world,
+                           shadow_image_ids, shadow_frame_ids, shadow_camera_id)
     point_ids = [rec.add_point3D(x, track) for x, track in zip(points, tracks)]
-    return _ColmapScene(rec, camera_ids, frame_ids, image_ids, points, point_ids)
+    return _ColmapScene(rec, camera_ids, frame_ids, image_ids, points, point_ids, shadow_camera_id,
+                        shadow_image_ids, shadow_frame_ids, centres)
 
 
-def _add_shadow_observations(rec, blocks, block_points, counts, points, tracks, rig_from_cam, rig_from_world, *,
-                             first_image_id: int, first_frame_id: int, camera_id: int) -> None:
-    """Second observations of control points seen once (see `_build_scene`), appended to `tracks`."""
+def _add_shadows(rec, blocks, block_points, points, tracks, rig_from_cam, rig_from_world, image_ids, frame_ids,
+                 camera_id: int) -> np.ndarray:
+    """The shadow image of every block (see `_build_scene`), appended to `tracks`; returns their centres (n, 3)."""
     import pycolmap
 
-    lonely = [(k, np.flatnonzero(counts[idx] == 1)) for k, idx in enumerate(block_points)]
-    lonely = [(k, n) for k, n in lonely if len(n)]
-    if not lonely:
-        return
     rec.add_camera(pycolmap.Camera(camera_id=camera_id, model="PINHOLE", width=1, height=1,
                                    params=[1.0, 1.0, 0.0, 0.0]))
     rig = pycolmap.Rig(rig_id=2)
     rig.add_ref_sensor(rec.cameras[camera_id].sensor_id)
     rec.add_rig(rig)
-    for m, (k, n) in enumerate(lonely):
-        b = blocks[k]
+    centres = []
+    for b, idx, image_id, frame_id in zip(blocks, block_points, image_ids, frame_ids):
         cam_from_world = rig_from_cam[b.camera].inverse() * rig_from_world[b.placement]
-        X_cam = cam_from_world.apply(points[block_points[k][n]])
-        image_id = first_image_id + m
+        X_cam = cam_from_world.apply(points[idx])
         image = pycolmap.Image(name=f"shadow of {b.image}", keypoints=X_cam[:, :2] / X_cam[:, 2:],
                                camera_id=camera_id, image_id=image_id)
-        _add_frame(rec, first_frame_id + m, 2, cam_from_world, [image])
-        for q, i in enumerate(block_points[k][n]):
+        _add_frame(rec, frame_id, 2, cam_from_world, [image])
+        for q, i in enumerate(idx):
             tracks[i].add_element(image_id, q)
+        centres.append(cam_from_world.center)
+    return np.array(centres)
 
 
 def _ba_options(max_iterations: int):
@@ -446,44 +439,42 @@ def _ba_config(scene: _ColmapScene):
     import pycolmap
 
     config = pycolmap.BundleAdjustmentConfig()
-    for image_id in scene.image_ids:
+    for image_id in scene.image_ids + scene.shadow_image_ids:
         config.add_image(image_id)
+    for frame_id in scene.shadow_frame_ids:
+        config.set_constant_rig_from_world_pose(frame_id)
     for point_id in scene.point_ids:
         config.add_constant_point(point_id)
-    for camera_id in scene.camera_ids.values():
+    for camera_id in [*scene.camera_ids.values(), scene.shadow_camera_id]:
         config.set_constant_cam_intrinsics(camera_id)
     return config
 
 
 def _pose_priors(scene: _ColmapScene, blocks: list[ImageBlock], with_prior: list[bool], center_sigma: float):
+    """pycolmap.PosePrior per block with a prior, and one at every shadow image's exact centre (none without priors)."""
     import pycolmap
 
-    priors = []
-    for b, image_id, prior in zip(blocks, scene.image_ids, with_prior):
-        if not prior:
-            continue
-        image = scene.reconstruction.images[image_id]
-        priors.append(pycolmap.PosePrior(position=np.asarray(b.center_prior, dtype=float),
-                                         position_covariance=center_sigma**2 * np.eye(3),
-                                         coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
-                                         corr_data_id=image.data_id))
+    def prior(image_id: int, position) -> object:
+        return pycolmap.PosePrior(position=np.asarray(position, dtype=float),
+                                  position_covariance=center_sigma**2 * np.eye(3),
+                                  coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN,
+                                  corr_data_id=scene.reconstruction.images[image_id].data_id)
+
+    priors = [prior(image_id, b.center_prior) for b, image_id, used in zip(blocks, scene.image_ids, with_prior)
+              if used]
+    if priors:
+        priors += [prior(image_id, c) for image_id, c in zip(scene.shadow_image_ids, scene.shadow_centres)]
     return priors
 
 
-def _prior_alignment(blocks, with_prior, rig_from_cam, rig_from_world):
-    """pycolmap.Sim3d prior_from_world of the initial camera centres to their priors (Umeyama), or None."""
-    import pycolmap
-
-    centres = [(rig_from_cam[b.camera].inverse() * rig_from_world[b.placement]).center
-               for b, prior in zip(blocks, with_prior) if prior]
-    targets = [b.center_prior for b, prior in zip(blocks, with_prior) if prior]
-    if len(centres) < 3:
-        return None
-    return pycolmap.estimate_sim3d(np.array(centres), np.array(targets, dtype=float))
-
-
 def _solve_colmap(scene: _ColmapScene, blocks, with_prior, center_sigma: float, max_iterations: int):
-    """Run pycolmap's bundle adjuster on the scene in place; returns the solver summary."""
+    """Run pycolmap's bundle adjuster on the scene in place; returns the solver summary.
+
+    With priors, `create_pose_prior_bundle_adjuster` first moves the whole reconstruction, constant
+    control points included, by a similarity aligning the image centres to their priors (RANSAC).
+    The shadow images sit exactly at their priors and every real image misses its prior by far more
+    than ALIGNMENT_MAX_ERROR_M, so the inliers are the shadows and the similarity is the identity.
+    """
     import pycolmap
 
     options, config = _ba_options(max_iterations), _ba_config(scene)
@@ -493,8 +484,7 @@ def _solve_colmap(scene: _ColmapScene, blocks, with_prior, center_sigma: float, 
     else:
         prior_options = pycolmap.PosePriorBundleAdjustmentOptions()
         prior_options.prior_position_fallback_stddev = center_sigma
-        # every prior an inlier of the (identity, see refine_rig_pycolmap) prior alignment
-        prior_options.alignment_ransac.max_error = 1e6
+        prior_options.alignment_ransac.max_error = ALIGNMENT_MAX_ERROR_M
         prior_options.alignment_ransac.random_seed = 0
         adjuster = pycolmap.create_pose_prior_bundle_adjuster(options, prior_options, config, priors,
                                                               scene.reconstruction)
@@ -522,10 +512,6 @@ def _points_moved(scene: _ColmapScene) -> float:
 def _colmap_optimum(problem: _RigProblem, max_nfev: int) -> tuple[dict[str, Rigid3], dict[str, Rigid3], float]:
     """pycolmap's optimum from problem.x0: rig_from_cam, rig_from_world and how far the control points moved (m)."""
     start_cam, start_world = problem.poses(problem.x0)
-    if any(problem.with_prior):
-        sim = _prior_alignment(problem.blocks, problem.with_prior, start_cam, start_world)
-        if sim is not None:
-            start_cam, start_world = _similarity_applied(sim, start_cam, start_world)
     scene = _build_scene(problem.cameras, problem.reference, problem.blocks, start_cam, start_world, problem.sig)
     summary = _solve_colmap(scene, problem.blocks, problem.with_prior, problem.center_sigma, max_nfev)
     log.debug("rig BA (pycolmap): %s", summary.termination_type)
@@ -546,11 +532,11 @@ def refine_rig_pycolmap(cameras: dict[str, Camera], reference: str, blocks: list
       pixels (intrinsics and observations) are scaled by 1 / pixel_sigma (the residual becomes
       pixel / sigma; the normalized coordinates and d are unchanged).
     - Camera-centre priors go through `create_pose_prior_bundle_adjuster`, which first moves the whole
-      reconstruction, constant control points included, by the similarity aligning the current camera
-      centres to the priors (with the rig turned in place the centres span a few decimetres, so this
-      similarity is far from the identity: 5 % scale and 4 deg on the simulator). Starting from poses
-      already moved by that similarity (and the points not) makes the alignment the identity, so the
-      control points stay put.
+      reconstruction, constant control points included, by the similarity aligning the image centres
+      to the priors (with the rig turned in place the centres span a few decimetres, so that
+      similarity is far from the identity: 5 % scale and 4 deg on the simulator). Constant shadow
+      images lying exactly on priors of their own make that alignment the identity (`_solve_colmap`),
+      so the control points stay put and the solve starts from our initial poses.
 
     The result is checked against our own cost (control points unmoved, gradient ~ 0). If a check
     fails, or a placement holds two images of one camera (a COLMAP frame cannot), the problem is
