@@ -6,12 +6,15 @@ cameras) are solved by ours (`solve_generalized_pose`) and by pycolmap's general
 pose (`estimate_and_refine_generalized_absolute_pose`: LO-RANSAC over GP3P + refinement) on the
 same observations, in one run; the median wall time per solve is reported with the paper's C++
 figures (config/paper_tables/time_points.csv). Batch throughput is frames per second of
-`solve_batch` over many 50-point frames.
+`solve_batch` over many 50-point frames. OpenBLAS runs single-threaded meanwhile (see
+`single_threaded_blas`).
 """
 
 from __future__ import annotations
 
+import ctypes
 import time
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -88,6 +91,26 @@ def _pycolmap_solver():
     return solve
 
 
+@contextmanager
+def single_threaded_blas():
+    """Limit the OpenBLAS copies loaded by numpy and scipy to one thread in this thread, restored after.
+
+    The solver's matrices are small (at most 118 x 158): threads gain nothing there, while on a
+    busy 2-core machine their hand-offs cost milliseconds per solve. The paper's C++ figures are
+    single-threaded too. Uses `openblas_set_num_threads_local` (OpenBLAS >= 0.3.27) of every
+    OpenBLAS in /proc/self/maps; does nothing where there is none.
+    """
+    maps = Path("/proc/self/maps")
+    paths = {line.split()[-1] for line in maps.read_text().splitlines() if "openblas" in line} if maps.exists() else set()
+    setters = [getattr(ctypes.CDLL(path), "openblas_set_num_threads_local", None) for path in sorted(paths)]
+    previous = [(setter, setter(1)) for setter in setters if setter is not None]
+    try:
+        yield
+    finally:
+        for setter, threads in previous:
+            setter(threads)
+
+
 def _median_ms(solve, frames) -> tuple[float, float]:
     """Median time per solve (ms) and median rotation error (arc-min) over frames."""
     times, errors = [], []
@@ -111,19 +134,20 @@ def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int
 
     colmap = _pycolmap_solver()
     rows = []
-    for n in POINT_COUNTS:
-        frames = [dmais_frame(rng, n) for _ in range(repeats)]
-        ours_ms, ours_err = _median_ms(ours, frames)
-        colmap_ms, colmap_err = _median_ms(colmap, frames)
-        rows.append({"n_points": n, "ours_ms": ours_ms, "pycolmap_ms": colmap_ms,
-                     "paper_ms": float(paper.get(n, np.nan)), "ours_rot_err_arcmin": ours_err,
-                     "pycolmap_rot_err_arcmin": colmap_err})
+    with single_threaded_blas():
+        for n in POINT_COUNTS:
+            frames = [dmais_frame(rng, n) for _ in range(repeats)]
+            ours_ms, ours_err = _median_ms(ours, frames)
+            colmap_ms, colmap_err = _median_ms(colmap, frames)
+            rows.append({"n_points": n, "ours_ms": ours_ms, "pycolmap_ms": colmap_ms,
+                         "paper_ms": float(paper.get(n, np.nan)), "ours_rot_err_arcmin": ours_err,
+                         "pycolmap_rot_err_arcmin": colmap_err})
+        frames = [dmais_frame(rng, 50) for _ in range(batch_frames)]
+        problems = [(*_rays(cams, uv), points) for cams, uv, points, _ in frames]
+        start = time.perf_counter()
+        solve_batch(problems)
+        throughput = batch_frames / (time.perf_counter() - start)
     table = pd.DataFrame(rows)
-    frames = [dmais_frame(rng, 50) for _ in range(batch_frames)]
-    problems = [(*_rays(cams, uv), points) for cams, uv, points, _ in frames]
-    start = time.perf_counter()
-    solve_batch(problems)
-    throughput = batch_frames / (time.perf_counter() - start)
     print(table.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
     print(f"batch: {throughput:.0f} frames/s (50 points per frame, rays precomputed, {batch_frames} frames)")
     write_csv_atomic(csv, table)

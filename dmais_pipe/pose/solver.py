@@ -7,19 +7,20 @@ For generalized rays (origins v_i, unit directions f_i, rig frame) and world poi
 2. the six optimality conditions E12 ... F23 of eq. EF6 in Cayley parameters q, degree 4 after
    multiplying by (1 + q.q)^2 (`equations.py`, generated with sympy);
 3. the elimination template (`_template.json`, built over a prime field by `template.py`):
-   one LU solve gives the 40 x 40 action matrix of the action variable on the standard-monomial
-   basis, whose eigenvectors hold the 40 (complex) solutions;
-4. real (and nearly real) roots are polished by Gauss-Newton on the six equations, mapped to
-   rotations, their translations follow from eq. t, and the least cost wins.
+   one LU factorisation gives the 40 x 40 action matrix of the action variable on the
+   standard-monomial basis, whose eigenvectors hold the 40 (complex) solutions;
+4. real (and nearly real) roots are mapped to rotations and polished by Newton's method on the
+   cost over SO(3) (which also tells true stationary points from complex pairs taken as real),
+   their translations follow from eq. t, and the least cost with most points in front wins.
 
 Cayley's blind spot: q = tan(angle / 2) axis is infinite at 180 degrees, and a down-looking rig
 over a z-up world is a 180-degree rotation at every yaw. The problem is therefore solved in a
 pre-rotated world M' = P M (R = R' P), with P near the sought rotation so that R' stays near
-q = 0, where the roots are most accurate: P is a local minimum of the cost with most points in
-front, descended from the most promising rotations of the octahedral group (`solving_frame`).
-When the solution still lies beyond 120 deg in that frame, the problem is solved once more in the
-frame of the solution. Changing frame costs nothing in n: H' = K^T H K and g' = K^T g with
-r = K r', K = blockdiag(P^T, P^T, P^T).
+q = 0: P is a local minimum of the cost descended from the most promising of the octahedral
+group and of a sphere relaxation of eq. objfun3 (`solving_frame`). When the solution still lies
+beyond 120 deg in that frame, the problem is solved once more in the frame of the solution.
+Changing frame costs nothing in n: H' = K^T H K and g' = K^T g with r = K r',
+K = blockdiag(P^T, P^T, P^T).
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ TEMPLATE_PATH = Path(__file__).with_name("_template.json")
 #: nearly real pairs are where a real double root lost to rounding reappears.
 IMAGINARY_TOLERANCE = 1e-1
 #: Newton steps on the cost (on SO(3)) that polish every candidate rotation.
-NEWTON_ITERATIONS = 3
+NEWTON_ITERATIONS = 2
 #: A polished rotation is stationary when its Riemannian gradient is below this fraction of
 #: trace(H) + |g|.
 STATIONARY_TOLERANCE = 1e-8
@@ -54,13 +55,17 @@ DESCENT_ITERATIONS = 30
 #: Longest descent step (radians).
 MAX_STEP = 0.5
 #: The descent stops after a step shorter than this (radians); Newton polishing continues.
-STEP_TOLERANCE = 1e-4
+STEP_TOLERANCE = 1e-3
 #: Relative rounding level of the cost evaluated as a quadratic form (of trace H + |g| + |c|).
 COST_ROUNDING = 1e-12
 #: Newton steps at most on the secular equation of the sphere relaxation, and their relative
 #: tolerance (the relaxed rotations only start the descent).
 SPHERE_ITERATIONS = 30
 SPHERE_TOLERANCE = 1e-6
+#: Points whose least spread is below this fraction of the middle one are (nearly) planar: the
+#: sphere relaxation then has a null space, and its planar version joins the starts (thickness
+#: below 1% of the width).
+PLANAR_SPREAD = 1e-4
 #: Beyond this angle (|q| > tan(60 deg)) in the solving frame, the problem is solved again in
 #: the frame of the winner.
 MAX_FRAME_ANGLE = np.deg2rad(120.0)
@@ -322,21 +327,22 @@ def _rotation_nearest(X: np.ndarray) -> np.ndarray:
 
 
 def relaxed_rotations(stats: PoseStatistics) -> np.ndarray:
-    """Rotations (4, 3, 3) near the minimum from the sphere relaxation |vec R|^2 = 3 of eq. objfun3,
-    and from its planar version (R on the two widest principal axes of the points, which alone
-    matter for planar points, |.|^2 = 2, completed by their cross product), each with its mirror.
-    O(1).
+    """Rotations (2 or 4, 3, 3) near the minimum from the sphere relaxation |vec R|^2 = 3 of
+    eq. objfun3 and, for (nearly) planar points, from its planar version (R on the two widest
+    principal axes of the points, which alone matter for planar points, |.|^2 = 2, completed by
+    their cross product), each with its mirror. O(1).
     """
     trace = np.trace(stats.H)
-    full = _sphere_minimisers(stats.H / trace, stats.g / trace, 3.0).reshape(2, 3, 3)
-    axes = stats.point_axes  # M = axes @ m: R M = (R axes) m
-    H, g = _in_frame(stats.H / trace, stats.g / trace, axes.T)
-    in_plane = np.array([1, 2, 4, 5, 7, 8])  # columns 1, 2 of R axes (the widest axes)
-    columns = _sphere_minimisers(H[np.ix_(in_plane, in_plane)], g[in_plane], 2.0).reshape(2, 3, 2)
-    a, b = columns[:, :, 0], columns[:, :, 1]
-    normal = a[:, [1, 2, 0]] * b[:, [2, 0, 1]] - a[:, [2, 0, 1]] * b[:, [1, 2, 0]]
-    planar = np.concatenate([normal[:, :, None], columns], axis=2) @ axes.T
-    return _rotation_nearest(np.concatenate([full, planar]))
+    relaxed = [_sphere_minimisers(stats.H / trace, stats.g / trace, 3.0).reshape(2, 3, 3)]
+    if stats.point_spread[0] < PLANAR_SPREAD * stats.point_spread[1]:
+        axes = stats.point_axes  # M = axes @ m: R M = (R axes) m
+        H, g = _in_frame(stats.H / trace, stats.g / trace, axes.T)
+        in_plane = np.array([1, 2, 4, 5, 7, 8])  # columns 1, 2 of R axes (the widest axes)
+        columns = _sphere_minimisers(H[np.ix_(in_plane, in_plane)], g[in_plane], 2.0).reshape(2, 3, 2)
+        a, b = columns[:, :, 0], columns[:, :, 1]
+        normal = a[:, [1, 2, 0]] * b[:, [2, 0, 1]] - a[:, [2, 0, 1]] * b[:, [1, 2, 0]]
+        relaxed.append(np.concatenate([normal[:, :, None], columns], axis=2) @ axes.T)
+    return _rotation_nearest(np.concatenate(relaxed))
 
 
 def ray_sides(origins, directions, points) -> tuple[np.ndarray, np.ndarray]:

@@ -36,6 +36,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.lapack import dgesv, dsyevd
 
 from . import PoseError
 
@@ -56,7 +57,8 @@ class PoseStatistics:
     the frame of the centred world points; `centroid` (3,) is the subtracted mean of the points.
     BtB = B^T B = sum (I - f f^T) (3, 3). n: number of correspondences. point_axes (3, 3): a rotation
     whose columns are the principal axes of the centred world points, least spread first (the
-    first is the normal of the best-fitting plane).
+    first is the normal of the best-fitting plane); point_spread (3,): the sums of squared
+    distances along them (eigenvalues of the scatter matrix, ascending).
     """
 
     H: np.ndarray
@@ -68,6 +70,7 @@ class PoseStatistics:
     BtB: np.ndarray
     n: int
     point_axes: np.ndarray
+    point_spread: np.ndarray
 
     def cost(self, R) -> np.ndarray | float:
         """Value of eq. objfun (t eliminated) for rotations R (3, 3) -> float or (m, 3, 3) -> (m,).
@@ -98,8 +101,8 @@ def _as_rows(name: str, value) -> np.ndarray:
         raise PoseError(f"pose: {name} is not a numeric array ({exc})") from None
     if array.ndim != 2 or array.shape[1] != 3:
         raise PoseError(f"pose: {name} must have shape (n, 3), got {array.shape}")
-    bad = ~np.isfinite(array).all(axis=1)
-    if bad.any():
+    if not np.isfinite(array).all():
+        bad = ~np.isfinite(array).all(axis=1)
         raise PoseError(f"pose: {name} row {int(np.flatnonzero(bad)[0])} is not finite: {array[bad][0]}")
     return array
 
@@ -122,7 +125,7 @@ def validate_correspondences(origins, directions, points) -> tuple[np.ndarray, n
         )
     if n < 3:
         raise PoseError(f"pose: at least 3 correspondences are needed, got {n}")
-    norms = np.linalg.norm(directions, axis=1)
+    norms = np.sqrt(np.einsum("ij,ij->i", directions, directions))
     zero = norms < ZERO_DIRECTION
     if zero.any():
         raise PoseError(f"pose: directions row {int(np.flatnonzero(zero)[0])} is zero")
@@ -130,14 +133,14 @@ def validate_correspondences(origins, directions, points) -> tuple[np.ndarray, n
     return origins, directions, points
 
 
-def _principal_axes(scatter: np.ndarray, n: int) -> np.ndarray:
+def _principal_axes(scatter: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Eigenvectors (3, 3) of the scatter matrix of the centred points as the columns of a
-    rotation, least spread first; raises PoseError for collinear points."""
-    eigenvalues, axes = np.linalg.eigh(scatter)  # squared singular values of the centred points
+    rotation, least spread first, and the eigenvalues (3,); raises PoseError for collinear points."""
+    eigenvalues, axes, _ = dsyevd(scatter)  # squared singular values of the centred points
     if not eigenvalues[1] > COLLINEAR_TOLERANCE**2 * eigenvalues[2]:
         raise PoseError(f"pose: the {n} world points are collinear (or coincident)")
     axes[:, 0] *= np.sign(np.linalg.det(axes))
-    return axes
+    return axes, eigenvalues
 
 
 def pose_statistics(origins, directions, points) -> PoseStatistics:
@@ -153,11 +156,11 @@ def statistics_of(v: np.ndarray, f: np.ndarray, M: np.ndarray) -> PoseStatistics
     """`pose_statistics` of correspondences already checked by `validate_correspondences`:
     origins v (n, 3), unit directions f (n, 3), world points M (n, 3)."""
     n = len(M)
-    centroid = M.mean(axis=0)
+    centroid = M.sum(axis=0) / n
     M = M - centroid
 
     scatter = M.T @ M
-    point_axes = _principal_axes(scatter, n)
+    point_axes, point_spread = _principal_axes(scatter, n)
 
     U = (f[:, :, None] * M[:, None, :]).reshape(n, 9)  # kron(f_i, M_i)
     AtA = -(U.T @ U)
@@ -173,10 +176,9 @@ def statistics_of(v: np.ndarray, f: np.ndarray, M: np.ndarray) -> PoseStatistics
     BtD = w.sum(axis=0)
     DtD = float(np.einsum("ij,ij->", v, w))
 
-    eigenvalues = np.linalg.eigvalsh(BtB)
-    if not eigenvalues[0] > 1e-12 * n:
+    if not dsyevd(BtB, compute_v=False)[0][0] > 1e-12 * n:
         raise PoseError("pose: all rays are parallel; the translation along them is undetermined")
-    solved = np.linalg.solve(BtB, np.column_stack([AtB.T, BtD]))
+    solved = dgesv(BtB, np.column_stack([AtB.T, BtD]))[2]
     t_matrix = -solved[:, :9]  # (3, 9)
     t_offset = solved[:, 9]  # (3,)
     H = AtA + AtB @ t_matrix
@@ -184,5 +186,6 @@ def statistics_of(v: np.ndarray, f: np.ndarray, M: np.ndarray) -> PoseStatistics
     g = AtD - AtB @ t_offset
     c = DtD - float(BtD @ t_offset)
     return PoseStatistics(
-        H=H, g=g, c=c, t_matrix=t_matrix, t_offset=t_offset, centroid=centroid, BtB=BtB, n=n, point_axes=point_axes
+        H=H, g=g, c=c, t_matrix=t_matrix, t_offset=t_offset, centroid=centroid, BtB=BtB, n=n, point_axes=point_axes,
+        point_spread=point_spread,
     )
