@@ -149,7 +149,8 @@ def _page(title: str, intro: str, sections: list[tuple[str, str, str]]) -> str:
              "table{border-collapse:collapse;margin:0.5em 0}td,th{padding:2px 8px;border-bottom:1px solid #ddd;"
              "text-align:right}th{background:#f4f4f4}.missing{color:#a33;font-style:italic}"
              "figure{margin:1em 0}figcaption{font-size:90%;color:#555}svg{max-width:100%;height:auto}"
-             "pre{background:#f7f7f7;padding:0.5em}")
+             "pre{background:#f7f7f7;padding:0.5em}.scroll{overflow-x:auto}td{white-space:nowrap}"
+             ".note{font-size:92%;background:#f8f8ec;padding:0.4em 0.6em}")
     return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{_esc(title)}</title>"
             f"<style>{style}</style></head>\n<body><h1>{_esc(title)}</h1>\n<p>{intro}</p>\n"
             f"<nav><ul>{toc}</ul></nav>\n{body}\n</body></html>\n")
@@ -510,7 +511,10 @@ def _figure(content: str, caption: str) -> str:
 
 
 def _table(frame: pd.DataFrame) -> str:
-    return frame.to_html(index=False, border=0, escape=True, na_rep="", float_format=_number)
+    """The frame as an HTML table; wide ones scroll sideways instead of wrapping their cells."""
+    html = frame.to_html(index=False, border=0, escape=True, na_rep="", float_format=_number)
+    return f'<div class="scroll">{html}</div>'
+
 
 
 def _number(x: float) -> str:
