@@ -9,7 +9,7 @@ if config.get("simulate"):
             dataset_dir=folder_of("manifest"),
         log:
             f"{LOGS}/simulate.log",
-        threads: workflow.cores
+        threads: 8  # snakemake caps it at --cores
         conda:
             "../envs/dmais.yaml"
         shell:
