@@ -62,14 +62,15 @@ def dmais_frame(rng, n_points: int):
     return cams, uv, points, (world_from_rig.T, -world_from_rig.T @ centre)
 
 
+#: rig_from_cam rotations (5, 3, 3) and camera centres in the rig frame (5, 3), built once like
+#: pycolmap's cameras, outside the timed solves.
+_RIG_FROM_CAM = np.array([_cam_from_rig(k)[0].T for k in range(5)])
+_CENTRES = np.array([-_cam_from_rig(k)[0].T @ _cam_from_rig(k)[1] for k in range(5)])
+
+
 def _rays(cams, uv):
-    origins, directions = np.empty((len(uv), 3)), np.empty((len(uv), 3))
-    for k in range(5):
-        R_c, t_c = _cam_from_rig(k)
-        m = cams == k
-        directions[m] = _bearings(uv[m]) @ R_c
-        origins[m] = -R_c.T @ t_c
-    return origins, directions
+    """Ray origins and directions (n, 3) in the rig frame of pixels uv (n, 2) of cameras cams (n,)."""
+    return _CENTRES[cams], np.einsum("nij,nj->ni", _RIG_FROM_CAM[cams], _bearings(uv))
 
 
 def _pycolmap_solver():

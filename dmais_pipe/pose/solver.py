@@ -186,8 +186,9 @@ def roots(coeffs: np.ndarray) -> np.ndarray:
 _IDENTITY = np.eye(3)
 _GENERATORS = np.array([skew(e) for e in _IDENTITY])  # [e_a]x, (3, 3, 3)
 _PRODUCTS = np.einsum("aij,bjk->abik", _GENERATORS, _GENERATORS)
-#: (G_a G_b + G_b G_a) / 2 flattened to (9, 9): second derivatives of exp([w]x) at w = 0.
-_SECOND = (0.5 * (_PRODUCTS + _PRODUCTS.transpose(1, 0, 2, 3))).reshape(9, 9)
+#: Rows vec(G_a) then vec((G_a G_b + G_b G_a) / 2), (12, 9): with A = mat(H r - g) R^T, the
+#: gradient of w -> cost(exp([w]x) R) / 2 is <G_a, A> and its curvature term <(G_a G_b + G_b G_a) / 2, A>.
+_DERIVATIVE_ROWS = np.vstack([_GENERATORS.reshape(3, 9), (0.5 * (_PRODUCTS + _PRODUCTS.transpose(1, 0, 2, 3))).reshape(9, 9)])
 
 
 def _cayley(q: np.ndarray) -> np.ndarray:
@@ -205,18 +206,18 @@ def _cayley(q: np.ndarray) -> np.ndarray:
 def _derivatives(stats: PoseStatistics, R: np.ndarray, newton: bool):
     """Half gradient (k, 3) and half Hessian (k, 3, 3) of w -> cost(exp([w]x) R) at w = 0, R (k, 3, 3).
 
-    With r = vec(R) and J (k, 3, 9) the rows d vec(G_a R): gradient J (H r - g), Gauss-Newton
-    matrix J H J^T; `newton` adds the curvature term (H r - g) . vec((G_a G_b + G_b G_a) R / 2).
+    With r = vec(R), J (k, 3, 9) the rows vec(G_a R) and A = mat(H r - g) R^T: gradient
+    <G_a, A> = J (H r - g), Gauss-Newton matrix J H J^T; `newton` adds the curvature term
+    <(G_a G_b + G_b G_a) / 2, A>.
     """
     k = len(R)
     J = np.matmul(_GENERATORS[None], R[:, None]).reshape(k, 3, 9)
-    residual = R.reshape(k, 9) @ stats.H - stats.g  # (k, 9)
-    gradient = np.matmul(J, residual[:, :, None])[:, :, 0]
+    A = np.matmul((R.reshape(k, 9) @ stats.H - stats.g).reshape(k, 3, 3), R.transpose(0, 2, 1))
+    terms = A.reshape(k, 9) @ (_DERIVATIVE_ROWS.T if newton else _DERIVATIVE_ROWS[:3].T)
     hessian = J @ stats.H @ J.transpose(0, 2, 1)
     if newton:
-        curvature = np.matmul(residual.reshape(k, 3, 3), R.transpose(0, 2, 1)).reshape(k, 9) @ _SECOND.T
-        hessian += curvature.reshape(k, 3, 3)
-    return gradient, hessian
+        hessian += terms[:, 3:].reshape(k, 3, 3)
+    return terms[:, :3], hessian
 
 
 def descend(stats: PoseStatistics, R: np.ndarray, iterations: int = DESCENT_ITERATIONS) -> np.ndarray:
