@@ -461,8 +461,10 @@ def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tupl
         R = np.concatenate([R, *more])
         cost, t, front = _evaluate(stats, R, sides)
     keep = _unique(R, cost)
-    candidates = [Candidate(R=R[i], t=t[i], cost=max(float(cost[i]), 0.0), in_front=float(front[i])) for i in keep]
-    return candidates, _select(cost[keep], front[keep])
+    cost, front = cost[keep], front[keep]
+    candidates = [Candidate(R=Ri, t=ti, cost=max(ci, 0.0), in_front=fi)
+                  for Ri, ti, ci, fi in zip(R[keep], t[keep], cost.tolist(), front.tolist())]
+    return candidates, _select(cost, front)
 
 
 def solve_generalized_pose(origins, directions, points, refine: bool = False, sigma: float | None = None) -> GeneralizedPose:

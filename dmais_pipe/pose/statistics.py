@@ -166,11 +166,10 @@ def statistics_of(v: np.ndarray, f: np.ndarray, M: np.ndarray) -> PoseStatistics
     AtA = -(U.T @ U)
     AtB = -(U.T @ f)
     BtB = -(f.T @ f)
-    M_sum = M.sum(axis=0)  # ~0 after centring, kept for exactness
-    for a in range(3):  # the kron(I3, .) terms
-        AtA[3 * a : 3 * a + 3, 3 * a : 3 * a + 3] += scatter
-        AtB[3 * a : 3 * a + 3, a] += M_sum
-        BtB[a, a] += n
+    blocks = np.arange(3)  # the kron(I3, .) terms: diagonal blocks of AtA, entries of AtB and BtB
+    AtA.reshape(3, 3, 3, 3)[blocks, :, blocks, :] += scatter
+    AtB.reshape(3, 3, 3)[blocks, :, blocks] += M.sum(axis=0)  # ~0 after centring, kept for exactness
+    BtB[blocks, blocks] += n
     w = v - f * np.einsum("ij,ij->i", f, v)[:, None]  # Q_i v_i
     AtD = (w.T @ M).reshape(9)
     BtD = w.sum(axis=0)
