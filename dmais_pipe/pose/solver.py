@@ -16,8 +16,10 @@ For generalized rays (origins v_i, unit directions f_i, rig frame) and world poi
 Cayley's blind spot: q = tan(angle / 2) axis is infinite at 180 degrees, and a down-looking rig
 over a z-up world is a 180-degree rotation at every yaw. The problem is therefore solved in a
 pre-rotated world M' = P M (R = R' P), with P near the sought rotation so that R' stays near
-q = 0: P is a local minimum of the cost descended from the most promising of the octahedral
-group and of a sphere relaxation of eq. objfun3 (`solving_frame`). When the solution still lies
+q = 0: P is the most promising of the octahedral group and of a sphere relaxation of eq. objfun3
+(`solving_frame`). Unless the solution lies within NEAR_ANGLE of P, P is also descended to a
+local minimum, which joins the candidates (where the action matrix is ill-conditioned, e.g. one
+narrow-FoV camera over a plane, it can be the only copy of the minimum). When the solution lies
 beyond 120 deg in that frame, the problem is solved once more in the frame of the solution.
 Changing frame costs nothing in n: H' = K^T H K and g' = K^T g with r = K r',
 K = blockdiag(P^T, P^T, P^T).
@@ -66,6 +68,9 @@ SPHERE_TOLERANCE = 1e-6
 #: sphere relaxation then has a null space, and its planar version joins the starts (thickness
 #: below 1% of the width).
 PLANAR_SPREAD = 1e-4
+#: When the solution lies within this angle (radians) of the solving frame, the frame is not
+#: descended: the descent would end there.
+NEAR_ANGLE = 0.2
 #: Beyond this angle (|q| > tan(60 deg)) in the solving frame, the problem is solved again in
 #: the frame of the winner.
 MAX_FRAME_ANGLE = np.deg2rad(120.0)
@@ -366,21 +371,21 @@ def front_fraction(R: np.ndarray, t: np.ndarray, sides) -> np.ndarray:
 
 
 def solving_frame(stats: PoseStatistics, sides) -> np.ndarray:
-    """Rotation P (3, 3) near the sought rotation: a local minimum of the cost descended from the
-    most promising of the octahedral group and the relaxed rotations (`relaxed_rotations`).
+    """Rotation P (3, 3) near the sought rotation: the most promising of the octahedral group and
+    the relaxed rotations (`relaxed_rotations`).
 
     The cost alone misleads: it ignores on which side of its ray origin a point lies, and a
     "mirror" pose with the points behind the cameras, about 180 deg from the truth, often costs
     less than the octahedral rotations near the truth. So each rotation's cost is weighted by the
     fraction of points it puts behind their rays (plus 0.05, so that cost still decides among
     rotations that put every point in front); costs below the rounding level of the quadratic
-    form count as that level, so that an exact fit and its mirror are told apart. O(28 n).
+    form count as that level, so that an exact fit and its mirror are told apart. O(n).
     """
     starts = np.concatenate([OCTAHEDRAL, relaxed_rotations(stats)])
     front = front_fraction(starts, stats.translation(starts), sides)
     rounding = COST_ROUNDING * (np.trace(stats.H) + np.linalg.norm(stats.g) + abs(stats.c))
     score = np.maximum(stats.cost(starts), rounding) * (1.0 - front + 0.05)
-    return descend(stats, starts[np.argmin(score)])
+    return starts[np.argmin(score)]
 
 
 def _select(cost: np.ndarray, front: np.ndarray) -> int:
@@ -434,19 +439,21 @@ def _evaluate(stats: PoseStatistics, R: np.ndarray, sides):
 def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tuple[list[Candidate], int]:
     """All real stationary candidates, least cost first, and the index of the solution among them.
 
-    There is always at least one: the solving frame, a descended local minimum, is a candidate.
+    There is always at least one: unless the solution lies within NEAR_ANGLE of the solving
+    frame, the frame descended to a local minimum is a candidate.
     origins, directions, points: the validated correspondences that `stats` summarises.
     """
-    # The descended frame is a stationary point itself and joins the candidates: where the action
-    # matrix is ill-conditioned (one narrow-FoV camera over a plane) it can be the only copy of
-    # the minimum. Solving where the sought rotation is near q = 0 also keeps it away from
-    # Cayley's blind spot.
+    # Solving where the sought rotation is near q = 0 keeps it away from Cayley's blind spot. A
+    # descent from P ends at the solution when that lies near P; otherwise the local minimum it
+    # ends at joins the candidates, in case the roots missed it.
     sides = ray_sides(origins, directions, points)
     P = solving_frame(stats, sides)
     R, stationary = polish(stats, np.concatenate([P[None], _roots_in_frame(stats, P)]))
-    stationary[0] = True  # the descended frame: kept even where the roots miss it
     R = R[stationary]
     cost, t, front = _evaluate(stats, R, sides)
+    if not len(R) or np.trace(R[_select(cost, front)] @ P.T) < 1.0 + 2.0 * np.cos(NEAR_ANGLE):
+        R = np.concatenate([R, polish(stats, descend(stats, P)[None])[0]])
+        cost, t, front = _evaluate(stats, R, sides)
     best = _select(cost, front)
     more = []
     if np.trace(R[best] @ P.T) < 1.0 + 2.0 * np.cos(MAX_FRAME_ANGLE):
