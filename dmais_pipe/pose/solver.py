@@ -17,9 +17,9 @@ Cayley's blind spot: q = tan(angle / 2) axis is infinite at 180 degrees, and a d
 over a z-up world is a 180-degree rotation at every yaw. The problem is therefore solved in a
 pre-rotated world M' = P M (R = R' P), with P near the sought rotation so that R' stays near
 q = 0: P is the most promising of the octahedral group and of a sphere relaxation of eq. objfun3
-(`solving_frame`). Unless the solution lies within NEAR_ANGLE of P, P is also descended to a
-local minimum, which joins the candidates (where the action matrix is ill-conditioned, e.g. one
-narrow-FoV camera over a plane, it can be the only copy of the minimum). When the solution lies
+(`solving_frame`). Unless the first descent step from P heads to the solution found, P is also
+descended to a local minimum, which joins the candidates (where the action matrix is
+ill-conditioned, e.g. one narrow-FoV camera over a plane, it can be the only copy of the minimum). When the solution lies
 beyond 120 deg in that frame, the problem is solved once more in the frame of the solution.
 Changing frame costs nothing in n: H' = K^T H K and g' = K^T g with r = K r',
 K = blockdiag(P^T, P^T, P^T).
@@ -68,9 +68,6 @@ SPHERE_TOLERANCE = 1e-6
 #: sphere relaxation then has a null space, and its planar version joins the starts (thickness
 #: below 1% of the width).
 PLANAR_SPREAD = 1e-4
-#: When the solution lies within this angle (radians) of the solving frame, the frame is not
-#: descended: the descent would end there.
-NEAR_ANGLE = 0.2
 #: Beyond this angle (|q| > tan(60 deg)) in the solving frame, the problem is solved again in
 #: the frame of the winner.
 MAX_FRAME_ANGLE = np.deg2rad(120.0)
@@ -436,23 +433,36 @@ def _evaluate(stats: PoseStatistics, R: np.ndarray, sides):
     return stats.cost(R), t, front_fraction(R, t, sides)
 
 
+def _angle(A: np.ndarray, B: np.ndarray) -> float:
+    """Angle (radians) between rotations A and B (3, 3)."""
+    return float(np.arccos(np.clip((np.trace(A @ B.T) - 1.0) / 2.0, -1.0, 1.0)))
+
+
+def _heads_to(P: np.ndarray, step: np.ndarray, solution: np.ndarray) -> bool:
+    """Whether the first descent step from P (3, 3), to `step` (3, 3), brings it within a quarter
+    of its distance to `solution` (3, 3): then P lies in the basin of the solution, where the
+    descent would end."""
+    return _angle(step, solution) <= 0.25 * _angle(P, solution)
+
+
 def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tuple[list[Candidate], int]:
     """All real stationary candidates, least cost first, and the index of the solution among them.
 
-    There is always at least one: unless the solution lies within NEAR_ANGLE of the solving
-    frame, the frame descended to a local minimum is a candidate.
+    There is always at least one: unless the first descent step from the solving frame heads to
+    the solution, the frame descended to a local minimum is a candidate.
     origins, directions, points: the validated correspondences that `stats` summarises.
     """
     # Solving where the sought rotation is near q = 0 keeps it away from Cayley's blind spot. A
-    # descent from P ends at the solution when that lies near P; otherwise the local minimum it
-    # ends at joins the candidates, in case the roots missed it.
+    # descent from P ends at the solution when its first step heads there; otherwise the local
+    # minimum it ends at joins the candidates, in case the roots missed it.
     sides = ray_sides(origins, directions, points)
     P = solving_frame(stats, sides)
     R, stationary = polish(stats, np.concatenate([P[None], _roots_in_frame(stats, P)]))
     R = R[stationary]
     cost, t, front = _evaluate(stats, R, sides)
-    if not len(R) or np.trace(R[_select(cost, front)] @ P.T) < 1.0 + 2.0 * np.cos(NEAR_ANGLE):
-        R = np.concatenate([R, polish(stats, descend(stats, P)[None])[0]])
+    step = descend(stats, P, iterations=1)
+    if not len(R) or not _heads_to(P, step, R[_select(cost, front)]):
+        R = np.concatenate([R, polish(stats, descend(stats, step)[None])[0]])
         cost, t, front = _evaluate(stats, R, sides)
     best = _select(cost, front)
     more = []
