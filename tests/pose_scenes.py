@@ -53,7 +53,7 @@ def generalized_scene(rng, n=12, n_cameras=4, noise=0.0, offset=(0.0, 0.0, 0.0),
 def dmais_cam_from_rig(k: int) -> tuple[np.ndarray, np.ndarray]:
     """(R, centre) of camera k: R maps rig to camera coordinates; centre (3,) in the rig frame."""
     tilt, azimuth = DMAIS_AXES[k]
-    rig_from_cam = Rotation.from_euler("zx", np.deg2rad([azimuth, tilt])).as_matrix()
+    rig_from_cam = Rotation.from_euler("ZX", np.deg2rad([azimuth, tilt])).as_matrix()
     centre = 0.1 * np.array([np.cos(k), np.sin(k), 0.0]) if k else np.zeros(3)
     return rig_from_cam.T, centre
 

@@ -105,7 +105,9 @@ def multistart_lm(origins, directions, points, n_random=16, iterations=60, seed=
     """Minimum of eq. objfun over SO(3) by LM from 24 axis-aligned + random starts, vectorized.
 
     Independent of the solver: variable projection with t(R) from the 3x3 normal equations and a
-    finite-difference Jacobian. Returns the least direct cost found.
+    finite-difference Jacobian. Returns the least direct cost found among the minima that put at
+    least half of the points in front of their rays, the solver's rule: eq. objfun cannot tell a
+    pose from its mirror behind the cameras, which over flat ground is often a little cheaper.
     """
     rng = np.random.default_rng(seed)
     R = np.concatenate([Rotation.create_group("O").as_matrix(), Rotation.random(n_random, rng).as_matrix()])
@@ -127,7 +129,10 @@ def multistart_lm(origins, directions, points, n_random=16, iterations=60, seed=
         better = trial_cost < cost
         R[better], residual[better], cost[better] = trial[better], trial_residual[better], trial_cost[better]
         damping = np.where(better, damping / 3, damping * 4)
-    return float(cost.min())
+    _, t = _projected_residuals(origins, directions, points, R)
+    depth = np.einsum("snj,nj->sn", np.einsum("sij,nj->sni", R, points) + t[:, None, :] - origins, directions)
+    in_front = np.mean(depth > 0, axis=1) >= 0.5
+    return float(cost[in_front].min()) if in_front.any() else np.inf
 
 
 def test_returned_cost_is_the_global_minimum_in_999_of_2000_noisy_trials():

@@ -12,15 +12,14 @@ figures (config/paper_tables/time_points.csv). Batch throughput is frames per se
 
 from __future__ import annotations
 
-import ctypes
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
+from ..blas import single_threaded_blas
 from ..files import write_csv_atomic
 from ..geometry import rotation_error
 from .solver import solve_batch, solve_generalized_pose
@@ -33,7 +32,7 @@ AXES_DEG = ((0, 0), (45, 0), (45, 90), (45, 180), (45, 270))
 
 def _cam_from_rig(k: int):
     tilt, azimuth = AXES_DEG[k]
-    R = Rotation.from_euler("zx", np.deg2rad([azimuth, tilt])).as_matrix().T
+    R = Rotation.from_euler("ZX", np.deg2rad([azimuth, tilt])).as_matrix().T
     centre = 0.1 * np.array([np.cos(k), np.sin(k), 0.0]) if k else np.zeros(3)
     return R, -R @ centre
 
@@ -90,26 +89,6 @@ def _pycolmap_solver():
         return pose.rotation.matrix(), np.asarray(pose.translation)
 
     return solve
-
-
-@contextmanager
-def single_threaded_blas():
-    """Limit the OpenBLAS copies loaded by numpy and scipy to one thread in this thread, restored after.
-
-    The solver's matrices are small (at most 118 x 158): threads gain nothing there, while on a
-    busy 2-core machine their hand-offs cost milliseconds per solve. The paper's C++ figures are
-    single-threaded too. Uses `openblas_set_num_threads_local` (OpenBLAS >= 0.3.27) of every
-    OpenBLAS in /proc/self/maps; does nothing where there is none.
-    """
-    maps = Path("/proc/self/maps")
-    paths = {line.split()[-1] for line in maps.read_text().splitlines() if "openblas" in line} if maps.exists() else set()
-    setters = [getattr(ctypes.CDLL(path), "openblas_set_num_threads_local", None) for path in sorted(paths)]
-    previous = [(setter, setter(1)) for setter in setters if setter is not None]
-    try:
-        yield
-    finally:
-        for setter, threads in previous:
-            setter(threads)
 
 
 def _median_ms(solve, frames) -> tuple[float, float]:

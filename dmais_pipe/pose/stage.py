@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from ..blas import single_threaded_blas
 from ..dataset import Dataset, flight_observations, load_observations
 from ..errors import DmaisError
 from ..files import write_csv_atomic
@@ -136,7 +137,8 @@ def run_pose(dataset_dir, results_dir, cameras: list[str] | None = None, robust:
         raise DmaisError(f"{rig_path}: missing; run `dmais extrinsics` first")
     rig = Rig.load(rig_path)
     chosen = _cameras(rig, cameras)
-    table = estimate_poses(dataset, rig, load_observations(dataset, results_dir), chosen, robust, refine, groups)
+    with single_threaded_blas():  # small matrices: threads only add hand-offs to time_ms
+        table = estimate_poses(dataset, rig, load_observations(dataset, results_dir), chosen, robust, refine, groups)
     if table.empty:
         raise DmaisError(f"pose: no flight frame of {dataset_dir} could be solved with cameras {chosen}")
     path = out or poses_path(results_dir, rig, chosen)
