@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 from scipy.linalg.lapack import dgeev, dgesv, dgetrf, dsyevd, dtrtrs
 
-from ..geometry import skew
+from ..geometry import rotation_angle, skew
 from . import PoseError
 from .equations import coefficients_of
 from .statistics import PoseStatistics, statistics_of, validate_correspondences
@@ -433,16 +433,11 @@ def _evaluate(stats: PoseStatistics, R: np.ndarray, sides):
     return stats.cost(R), t, front_fraction(R, t, sides)
 
 
-def _angle(A: np.ndarray, B: np.ndarray) -> float:
-    """Angle (radians) between rotations A and B (3, 3)."""
-    return float(np.arccos(np.clip((np.trace(A @ B.T) - 1.0) / 2.0, -1.0, 1.0)))
-
-
 def _heads_to(P: np.ndarray, step: np.ndarray, solution: np.ndarray) -> bool:
     """Whether the first descent step from P (3, 3), to `step` (3, 3), brings it within a quarter
     of its distance to `solution` (3, 3): then P lies in the basin of the solution, where the
     descent would end."""
-    return _angle(step, solution) <= 0.25 * _angle(P, solution)
+    return rotation_angle(step @ solution.T) <= 0.25 * rotation_angle(P @ solution.T)
 
 
 def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tuple[list[Candidate], int]:
