@@ -41,7 +41,11 @@ def folder_of(name, up=0):
 
 
 def _rows(name):
-    """The rows of the dataset's CSV file `name` as dicts."""
+    """The rows of the dataset's CSV file `name` as dicts.
+
+    The workflow reads the dataset's CSV files itself rather than importing dmais_pipe (whose
+    Dataset and markers.stage.images_to_extract answer the same questions): with --use-conda,
+    snakemake runs where the package need not be installed. `dmais validate` checks the files."""
     return _read_rows(str(Path(dataset_ready()).parent / name))
 
 
