@@ -36,9 +36,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg.lapack import dgesv, dsyevd
+from scipy.linalg.lapack import dsyevd
 
 from . import PoseError
+from ._kernels import statistics
 
 #: Relative tolerance of the collinearity test: the second singular value of the centred points
 #: must exceed this fraction of the first (tested on the scatter matrix, whose eigenvalues are the
@@ -96,7 +97,7 @@ class PoseStatistics:
 
 def _as_rows(name: str, value) -> np.ndarray:
     try:
-        array = np.asarray(value, dtype=float)
+        array = np.ascontiguousarray(value, dtype=float)
     except (TypeError, ValueError) as exc:
         raise PoseError(f"pose: {name} is not a numeric array ({exc})") from None
     if array.ndim != 2 or array.shape[1] != 3:
@@ -140,7 +141,7 @@ def _principal_axes(scatter: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray
     if not eigenvalues[1] > COLLINEAR_TOLERANCE**2 * eigenvalues[2]:
         raise PoseError(f"pose: the {n} world points are collinear (or coincident)")
     axes[:, 0] *= np.sign(np.linalg.det(axes))
-    return axes, eigenvalues
+    return np.ascontiguousarray(axes), eigenvalues
 
 
 def pose_statistics(origins, directions, points) -> PoseStatistics:
@@ -154,36 +155,13 @@ def pose_statistics(origins, directions, points) -> PoseStatistics:
 
 def statistics_of(v: np.ndarray, f: np.ndarray, M: np.ndarray) -> PoseStatistics:
     """`pose_statistics` of correspondences already checked by `validate_correspondences`:
-    origins v (n, 3), unit directions f (n, 3), world points M (n, 3)."""
+    origins v (n, 3), unit directions f (n, 3), world points M (n, 3), C-contiguous. The sums run
+    compiled (`_kernels.statistics`), one pass over the points."""
     n = len(M)
-    centroid = M.sum(axis=0) / n
-    M = M - centroid
-
-    scatter = M.T @ M
+    H, g, c, t_matrix, t_offset, centroid, BtB, scatter = statistics(v, f, M)
     point_axes, point_spread = _principal_axes(scatter, n)
-
-    U = (f[:, :, None] * M[:, None, :]).reshape(n, 9)  # kron(f_i, M_i)
-    AtA = -(U.T @ U)
-    AtB = -(U.T @ f)
-    BtB = -(f.T @ f)
-    blocks = np.arange(3)  # the kron(I3, .) terms: diagonal blocks of AtA, entries of AtB and BtB
-    AtA.reshape(3, 3, 3, 3)[blocks, :, blocks, :] += scatter
-    AtB.reshape(3, 3, 3)[blocks, :, blocks] += M.sum(axis=0)  # ~0 after centring, kept for exactness
-    BtB[blocks, blocks] += n
-    w = v - f * np.einsum("ij,ij->i", f, v)[:, None]  # Q_i v_i
-    AtD = (w.T @ M).reshape(9)
-    BtD = w.sum(axis=0)
-    DtD = float(np.einsum("ij,ij->", v, w))
-
     if not dsyevd(BtB, compute_v=False)[0][0] > 1e-12 * n:
         raise PoseError("pose: all rays are parallel; the translation along them is undetermined")
-    solved = dgesv(BtB, np.column_stack([AtB.T, BtD]))[2]
-    t_matrix = -solved[:, :9]  # (3, 9)
-    t_offset = solved[:, 9]  # (3,)
-    H = AtA + AtB @ t_matrix
-    H = 0.5 * (H + H.T)
-    g = AtD - AtB @ t_offset
-    c = DtD - float(BtD @ t_offset)
     return PoseStatistics(
         H=H, g=g, c=c, t_matrix=t_matrix, t_offset=t_offset, centroid=centroid, BtB=BtB, n=n, point_axes=point_axes,
         point_spread=point_spread,

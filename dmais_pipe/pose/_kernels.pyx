@@ -1,0 +1,734 @@
+# cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
+"""Compiled core of the generalized pose solver: `statistics` and `solve` run the steps that
+`statistics.py` and `solver.py` describe, without Python in between.
+
+A solve is about a hundred operations on 3 x 3 to 158 x 118 matrices; as numpy calls each costs
+a few microseconds of overhead, which dominated the solve. Matrices here are C-ordered doubles
+(r = vec(R) row-major, as in `statistics.py`); LAPACK comes from SciPy's `cython_lapack`, which
+takes column-major matrices. Every buffer is allocated per call, so one `Kernel` may serve threads.
+"""
+
+from libc.math cimport acos, fabs, isfinite, sqrt
+from libc.string cimport memcpy, memset
+from scipy.linalg.cython_lapack cimport dgeev, dgesvd, dgetrf, dsyev, dtrtrs
+
+import numpy as np
+
+# The tunables of the solver; `solver.py` explains each.
+cdef double IMAGINARY_TOLERANCE = 1e-1
+cdef int NEWTON_ITERATIONS = 2
+cdef double STATIONARY_TOLERANCE = 1e-8
+cdef double DUPLICATE_TOLERANCE = 1e-9
+cdef int DESCENT_ITERATIONS = 30
+cdef double MAX_STEP = 0.5
+cdef double STEP_TOLERANCE = 1e-3
+cdef double COST_ROUNDING = 1e-12
+cdef int SPHERE_ITERATIONS = 30
+cdef double SPHERE_TOLERANCE = 1e-6
+cdef double PLANAR_SPREAD = 1e-4
+cdef double COS_MAX_FRAME_ANGLE = -0.5  # cos(120 deg)
+#: Room for candidates: 1 frame + 40 roots + 1 descent, 40 more roots, and a mirror of each.
+cdef int CAPACITY = 256
+cdef int N_SOLUTIONS = 40
+
+
+cdef struct Problem:
+    const double *H  # (9, 9)
+    const double *g  # (9,)
+    double c
+    const double *t_matrix  # (3, 9): centred translation t_c(r) = t_matrix r + t_offset
+    const double *t_offset  # (3,)
+    const double *centroid  # (3,)
+    const double *v  # (n, 3) ray origins
+    const double *f  # (n, 3) unit ray directions
+    const double *M  # (n, 3) world points (not centred)
+    int n
+
+
+# ------------------------------------------------------------------------------ small matrices
+
+
+cdef inline void matmul3(const double *A, const double *B, double *out) noexcept nogil:
+    """out = A @ B, all (3, 3); out must not alias A or B."""
+    cdef int i, j
+    for i in range(3):
+        for j in range(3):
+            out[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j]
+
+
+cdef inline double trace_product_t(const double *A, const double *B) noexcept nogil:
+    """trace(A @ B^T) for (3, 3) A, B."""
+    cdef double s = 0.0
+    cdef int i
+    for i in range(9):
+        s += A[i] * B[i]
+    return s
+
+
+cdef inline double angle_between(const double *A, const double *B) noexcept nogil:
+    """Angle (rad) of the rotation A @ B^T."""
+    cdef double cosine = 0.5 * (trace_product_t(A, B) - 1.0)
+    return acos(min(1.0, max(-1.0, cosine)))
+
+
+cdef bint solve_linear(double *A, double *b, int d) noexcept nogil:
+    """Solve A x = b in place (x in b) for A (d, d), by Gaussian elimination with partial
+    pivoting; A is overwritten. False (b unchanged in meaning) if A is singular."""
+    cdef int i, j, k, p
+    cdef double best, tmp, factor
+    for k in range(d):
+        p = k
+        best = fabs(A[k * d + k])
+        for i in range(k + 1, d):
+            if fabs(A[i * d + k]) > best:
+                best, p = fabs(A[i * d + k]), i
+        if best == 0.0:
+            return False
+        if p != k:
+            for j in range(d):
+                tmp = A[k * d + j]; A[k * d + j] = A[p * d + j]; A[p * d + j] = tmp
+            tmp = b[k]; b[k] = b[p]; b[p] = tmp
+        for i in range(k + 1, d):
+            factor = A[i * d + k] / A[k * d + k]
+            for j in range(k, d):
+                A[i * d + j] -= factor * A[k * d + j]
+            b[i] -= factor * b[k]
+    for k in range(d - 1, -1, -1):
+        for j in range(k + 1, d):
+            b[k] -= A[k * d + j] * b[j]
+        b[k] /= A[k * d + k]
+    return True
+
+
+cdef void cayley_times(const double *q, const double *R, double *out) noexcept nogil:
+    """out = Cayley(q) @ R, q (3,), R (3, 3) (geometry.rotation_from_cayley); out may alias R."""
+    cdef double qq = q[0] * q[0] + q[1] * q[1] + q[2] * q[2]
+    cdef double s = 1.0 / (1.0 + qq)
+    cdef double C[9]
+    cdef double tmp[9]
+    C[0] = (1.0 - qq + 2.0 * q[0] * q[0]) * s
+    C[4] = (1.0 - qq + 2.0 * q[1] * q[1]) * s
+    C[8] = (1.0 - qq + 2.0 * q[2] * q[2]) * s
+    C[1] = 2.0 * (q[0] * q[1] - q[2]) * s
+    C[3] = 2.0 * (q[0] * q[1] + q[2]) * s
+    C[2] = 2.0 * (q[0] * q[2] + q[1]) * s
+    C[6] = 2.0 * (q[0] * q[2] - q[1]) * s
+    C[5] = 2.0 * (q[1] * q[2] - q[0]) * s
+    C[7] = 2.0 * (q[1] * q[2] + q[0]) * s
+    matmul3(C, R, tmp)
+    memcpy(out, tmp, 9 * sizeof(double))
+
+
+cdef void nearest_rotation(double *X) noexcept:
+    """Replace X (3, 3) by the nearest rotation (Frobenius): U diag(1, 1, det U V^T) V^T."""
+    cdef int three = 3, lwork = 64, info = 0
+    cdef double s[3]
+    cdef double U[9]
+    cdef double Vt[9]
+    cdef double work[64]
+    cdef double Q[9]
+    cdef double det
+    cdef int i, j
+    # X read column-major is X^T = U S Vt; its nearest rotation U D Vt read row-major is nearest(X).
+    dgesvd(b"A", b"A", &three, &three, X, &three, s, U, &three, Vt, &three, work, &lwork, &info)
+    for i in range(3):  # Q = U Vt (column-major)
+        for j in range(3):
+            Q[i + 3 * j] = U[i] * Vt[3 * j] + U[i + 3] * Vt[1 + 3 * j] + U[i + 6] * Vt[2 + 3 * j]
+    det = (Q[0] * (Q[4] * Q[8] - Q[7] * Q[5]) - Q[3] * (Q[1] * Q[8] - Q[7] * Q[2])
+           + Q[6] * (Q[1] * Q[5] - Q[4] * Q[2]))
+    if det < 0:
+        for i in range(3):
+            for j in range(3):
+                Q[i + 3 * j] -= 2.0 * U[i + 6] * Vt[2 + 3 * j]
+    memcpy(X, Q, 9 * sizeof(double))
+
+
+# ------------------------------------------------------------------------------ cost on SO(3)
+
+
+cdef double cost_of(const Problem *p, const double *R) noexcept nogil:
+    """Eq. objfun3: r^T H r - 2 g^T r + c."""
+    cdef double total = p.c, row
+    cdef int i, j
+    for i in range(9):
+        row = -2.0 * p.g[i]
+        for j in range(9):
+            row += p.H[9 * i + j] * R[j]
+        total += row * R[i]
+    return total
+
+
+cdef void centred_translation(const Problem *p, const double *R, double *t) noexcept nogil:
+    """Optimal translation (eq. t) of the centred world points, t_c = t_matrix r + t_offset."""
+    cdef int i, j
+    for i in range(3):
+        t[i] = p.t_offset[i]
+        for j in range(9):
+            t[i] += p.t_matrix[9 * i + j] * R[j]
+
+
+cdef double front_fraction(const Problem *p, const double *R, const double *t) noexcept nogil:
+    """Fraction of points in front of their rays, f_i . (R (M_i - m) + t_c - v_i) > 0."""
+    cdef int i, a, front = 0
+    cdef double m[3]
+    cdef double depth, x
+    for i in range(p.n):
+        for a in range(3):
+            m[a] = p.M[3 * i + a] - p.centroid[a]
+        depth = 0.0
+        for a in range(3):
+            x = R[3 * a] * m[0] + R[3 * a + 1] * m[1] + R[3 * a + 2] * m[2] + t[a] - p.v[3 * i + a]
+            depth += p.f[3 * i + a] * x
+        front += depth > 0.0
+    return front / <double> p.n
+
+
+cdef void derivatives(const Problem *p, const double *R, bint newton, double *gradient, double *hessian) noexcept nogil:
+    """Half gradient (3,) and half Hessian (3, 3) of w -> cost(exp([w]x) R) at w = 0.
+
+    J_a = vec(G_a R) with G_a = [e_a]x; h = H r - g; gradient J h; Gauss-Newton matrix J H J^T;
+    `newton` adds <(G_a G_b + G_b G_a) / 2, A> = (A_ab + A_ba) / 2 - delta_ab trace(A) with
+    A = mat(h) R^T (since G_a G_b = e_b e_a^T - (e_a . e_b) I).
+    """
+    cdef double J[27]
+    cdef double h[9]
+    cdef double HJ[27]
+    cdef double A[9]
+    cdef int a, b, i, j
+    cdef double s
+    for j in range(3):  # rows of G_0 R = (0, -R_2, R_1), G_1 R = (R_2, 0, -R_0), G_2 R = (-R_1, R_0, 0)
+        J[j] = 0.0;            J[3 + j] = -R[6 + j];  J[6 + j] = R[3 + j]
+        J[9 + j] = R[6 + j];   J[12 + j] = 0.0;       J[15 + j] = -R[j]
+        J[18 + j] = -R[3 + j]; J[21 + j] = R[j];      J[24 + j] = 0.0
+    for i in range(9):
+        s = -p.g[i]
+        for j in range(9):
+            s += p.H[9 * i + j] * R[j]
+        h[i] = s
+    for a in range(3):
+        s = 0.0
+        for i in range(9):
+            s += J[9 * a + i] * h[i]
+        gradient[a] = s
+        for i in range(9):
+            s = 0.0
+            for j in range(9):
+                s += p.H[9 * i + j] * J[9 * a + j]
+            HJ[9 * a + i] = s
+    for a in range(3):
+        for b in range(3):
+            s = 0.0
+            for i in range(9):
+                s += J[9 * a + i] * HJ[9 * b + i]
+            hessian[3 * a + b] = s
+    if newton:
+        for i in range(3):
+            for j in range(3):
+                A[3 * i + j] = h[3 * i] * R[3 * j] + h[3 * i + 1] * R[3 * j + 1] + h[3 * i + 2] * R[3 * j + 2]
+        s = A[0] + A[4] + A[8]
+        for a in range(3):
+            for b in range(3):
+                hessian[3 * a + b] += 0.5 * (A[3 * a + b] + A[3 * b + a]) - (s if a == b else 0.0)
+
+
+cdef double trace9(const double *H) noexcept nogil:
+    cdef double s = 0.0
+    cdef int i
+    for i in range(9):
+        s += H[10 * i]
+    return s
+
+
+cdef void descend(const Problem *p, double *R, int iterations) noexcept nogil:
+    """Damped Gauss-Newton descent on SO(3) from R (3, 3), in place (`solver.descend`)."""
+    cdef double cost = cost_of(p, R), trial_cost, norm, factor
+    cdef double damping = 1e-6, scale = trace9(p.H)
+    cdef double gradient[3]
+    cdef double hessian[9]
+    cdef double step[3]
+    cdef double trial[9]
+    cdef int it, a
+    for it in range(iterations):
+        derivatives(p, R, False, gradient, hessian)
+        for a in range(3):
+            hessian[4 * a] += damping * scale
+            step[a] = -gradient[a]
+        if not solve_linear(hessian, step, 3):
+            break
+        norm = sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2])
+        factor = min(0.5, 0.5 * MAX_STEP / max(norm, 1e-300))
+        for a in range(3):
+            step[a] *= factor
+        cayley_times(step, R, trial)
+        trial_cost = cost_of(p, trial)
+        if trial_cost <= cost:
+            memcpy(R, trial, 9 * sizeof(double))
+            cost = trial_cost
+            damping /= 10.0
+            if norm < STEP_TOLERANCE:
+                break
+        else:
+            damping *= 10.0
+            if damping > 1e8:
+                break
+
+
+cdef bint polish(const Problem *p, double *R) noexcept nogil:
+    """Newton's method on SO(3) from R (3, 3), in place; whether R is stationary (`solver.polish`)."""
+    cdef double scale = trace9(p.H) + sqrt(sum_squares(p.g, 9))
+    cdef double gradient[3]
+    cdef double hessian[9]
+    cdef double step[3]
+    cdef int it, a
+    cdef bint stationary = False
+    for it in range(NEWTON_ITERATIONS):
+        derivatives(p, R, True, gradient, hessian)
+        for a in range(3):
+            hessian[4 * a] += 1e-14 * scale
+            step[a] = -0.5 * gradient[a]
+        stationary = sqrt(sum_squares(gradient, 3)) < STATIONARY_TOLERANCE * scale
+        if solve_linear(hessian, step, 3):
+            cayley_times(step, R, R)
+    return stationary
+
+
+cdef inline double sum_squares(const double *x, int d) noexcept nogil:
+    cdef double s = 0.0
+    cdef int i
+    for i in range(d):
+        s += x[i] * x[i]
+    return s
+
+
+# ------------------------------------------------------------------------------ frames
+
+
+cdef void sphere_minimiser(const double *H, const double *g, int d, double radius2, double *x) noexcept:
+    """Minimiser x (d,) of x^T H x - 2 g^T x on |x|^2 = radius2 (`solver._sphere_minimisers`)."""
+    cdef double V[81]
+    cdef double eigenvalues[9]
+    cdef double work[256]
+    cdef double b[9]
+    cdef double gap[9]
+    cdef double y[9]
+    cdef int lwork = 256, info = 0, i, j, it
+    cdef double norm_b, shift, norm, change, denominator
+    memcpy(V, H, d * d * sizeof(double))
+    dsyev(b"V", b"L", &d, V, &d, eigenvalues, work, &lwork, &info)  # column j of V: vector j
+    for j in range(d):
+        b[j] = 0.0
+        for i in range(d):
+            b[j] += V[j * d + i] * g[i]
+        gap[j] = eigenvalues[j] - eigenvalues[0]
+    norm_b = sqrt(sum_squares(b, d))
+    y[0] = 0.0
+    for j in range(1, d):
+        y[j] = b[j] / max(gap[j], 1e-300)
+    if sum_squares(y, d) < radius2 and fabs(b[0]) <= 1e-12 * norm_b:
+        y[0] = sqrt(radius2 - sum_squares(y, d))
+    else:
+        shift = max(fabs(b[0]), 1e-300) / sqrt(radius2)
+        for it in range(SPHERE_ITERATIONS):
+            denominator = 0.0
+            for j in range(d):
+                y[j] = b[j] / (gap[j] + shift)
+                denominator += y[j] * y[j] / (gap[j] + shift)
+            norm = sqrt(sum_squares(y, d))
+            change = (1.0 / norm - 1.0 / sqrt(radius2)) * norm * norm * norm / denominator
+            shift = max(shift - change, 0.5 * shift)
+            if fabs(change) <= SPHERE_TOLERANCE * shift:
+                break
+        for j in range(d):
+            y[j] = b[j] / (gap[j] + shift)
+    for i in range(d):
+        x[i] = 0.0
+        for j in range(d):
+            x[i] += V[j * d + i] * y[j]
+
+
+cdef void in_frame(const double *H, const double *g, const double *P, double *H_out, double *g_out) noexcept nogil:
+    """H', g' of the world M' = P M (R = R' P): blocks H'_ac = P H_ac P^T, g'_a = P g_a."""
+    cdef int a, c, i, j, k, l
+    cdef double s
+    for a in range(3):
+        for c in range(3):
+            for j in range(3):
+                for l in range(3):
+                    s = 0.0
+                    for i in range(3):
+                        for k in range(3):
+                            s += P[3 * j + i] * H[9 * (3 * a + i) + 3 * c + k] * P[3 * l + k]
+                    H_out[9 * (3 * a + j) + 3 * c + l] = s
+        for j in range(3):
+            g_out[3 * a + j] = P[3 * j] * g[3 * a] + P[3 * j + 1] * g[3 * a + 1] + P[3 * j + 2] * g[3 * a + 2]
+
+
+cdef int relaxed_rotations(const Problem *p, const double *axes, const double *spread, double *out) noexcept:
+    """Rotations (2 or 4, 3, 3) from the sphere relaxation (`solver.relaxed_rotations`); their count."""
+    cdef double trace = trace9(p.H)
+    cdef double Hn[81]
+    cdef double gn[9]
+    cdef double Hf[81]
+    cdef double gf[9]
+    cdef double Hs[36]
+    cdef double gs[6]
+    cdef double x[9]
+    cdef double axes_t[9]
+    cdef double Rp[9]
+    cdef double y[6]
+    cdef int plane[6]
+    cdef int i, j, k, sign, count = 2
+    plane[:] = [1, 2, 4, 5, 7, 8]
+    for i in range(81):
+        Hn[i] = p.H[i] / trace
+    for i in range(9):
+        gn[i] = p.g[i] / trace
+    sphere_minimiser(Hn, gn, 9, 3.0, x)
+    for i in range(9):
+        out[i] = x[i]
+        out[9 + i] = -x[i]
+    if spread[0] < PLANAR_SPREAD * spread[1]:
+        for i in range(3):
+            for j in range(3):
+                axes_t[3 * i + j] = axes[3 * j + i]
+        in_frame(Hn, gn, axes_t, Hf, gf)
+        for i in range(6):
+            gs[i] = gf[plane[i]]
+            for j in range(6):
+                Hs[6 * i + j] = Hf[9 * plane[i] + plane[j]]
+        sphere_minimiser(Hs, gs, 6, 2.0, y)
+        for k in range(2):
+            sign = 1 - 2 * k
+            for i in range(3):  # rows of R' = [a x b, a, b] with a = y[0::2], b = y[1::2]
+                Rp[3 * i + 1] = sign * y[2 * i]
+                Rp[3 * i + 2] = sign * y[2 * i + 1]
+            Rp[0] = Rp[4] * Rp[8] - Rp[7] * Rp[5]
+            Rp[3] = Rp[7] * Rp[2] - Rp[1] * Rp[8]
+            Rp[6] = Rp[1] * Rp[5] - Rp[4] * Rp[2]
+            matmul3(Rp, axes_t, out + 9 * (2 + k))
+        count = 4
+    for k in range(count):
+        nearest_rotation(out + 9 * k)
+    return count
+
+
+cdef double rounding_level(const Problem *p) noexcept nogil:
+    return COST_ROUNDING * (trace9(p.H) + sqrt(sum_squares(p.g, 9)) + fabs(p.c))
+
+
+cdef void solving_frame(const Problem *p, const double *octahedral, const double *axes, const double *spread, double *P) noexcept:
+    """The most promising start (3, 3) of the octahedral group and the relaxed rotations, cost
+    weighted by the fraction of points behind their rays (`solver.solving_frame`)."""
+    cdef double starts[9 * 28]
+    cdef double t[3]
+    cdef int count = 24 + relaxed_rotations(p, axes, spread, starts + 9 * 24)
+    cdef double rounding = rounding_level(p)
+    cdef double score, best_score = 0.0
+    cdef int k, best = 0
+    memcpy(starts, octahedral, 9 * 24 * sizeof(double))
+    for k in range(count):
+        centred_translation(p, starts + 9 * k, t)
+        score = max(cost_of(p, starts + 9 * k), rounding) * (1.0 - front_fraction(p, starts + 9 * k, t) + 0.05)
+        if k == 0 or score < best_score:
+            best, best_score = k, score
+    memcpy(P, starts + 9 * best, 9 * sizeof(double))
+
+
+# ------------------------------------------------------------------------------ the solver
+
+
+cdef class Kernel:
+    """The solver with its elimination template (`solver.runtime`): `solve` runs
+    `solver.solve_statistics`. Holds only constants; every buffer is allocated per call."""
+
+    cdef int m, n_columns, n_reducible, n_entries, n_monomials
+    cdef long[::1] target, source, shift_from, shift_to, reduced_rows, reduced_index, unit_index
+    cdef long[:, ::1] entries
+    cdef double[::1] octahedral
+    cdef int lwork
+
+    def __init__(self, int m, int n_columns, int n_reducible, target, source, shifts, reduced_rows,
+                 reduced_index, unit_index, entries, int n_monomials, octahedral):
+        """Template shape and index arrays as in `solver._Runtime`; entries (k, 4): the
+        (equation, monomial, parameter, value) of `_equations.ENTRIES`; octahedral (24, 3, 3)."""
+        self.m, self.n_columns, self.n_reducible = m, n_columns, n_reducible
+        self.target = np.ascontiguousarray(target, dtype=np.int64)
+        self.source = np.ascontiguousarray(source, dtype=np.int64)
+        rows, columns = np.nonzero(np.asarray(shifts))
+        self.shift_from = np.ascontiguousarray(rows, dtype=np.int64)
+        self.shift_to = np.ascontiguousarray(columns, dtype=np.int64)
+        self.reduced_rows = np.ascontiguousarray(reduced_rows, dtype=np.int64)
+        self.reduced_index = np.ascontiguousarray(reduced_index, dtype=np.int64)
+        self.unit_index = np.ascontiguousarray(unit_index, dtype=np.int64)
+        self.entries = np.ascontiguousarray(entries, dtype=np.int64)
+        self.n_entries = len(entries)
+        self.n_monomials = n_monomials
+        self.octahedral = np.ascontiguousarray(octahedral, dtype=float).reshape(-1)
+        if self.octahedral.shape[0] != 9 * 24:
+            raise ValueError("octahedral must be (24, 3, 3)")
+        self.lwork = self._geev_workspace()
+
+    cdef int _geev_workspace(self):
+        cdef int n = N_SOLUTIONS, one = 1, lwork = -1, info = 0
+        cdef double query = 0.0
+        cdef double[::1] a = np.zeros(n * n), wr = np.zeros(n), wi = np.zeros(n), vr = np.zeros(n * n)
+        dgeev(b"N", b"V", &n, &a[0], &n, &wr[0], &wi[0], NULL, &one, &vr[0], &n, &query, &lwork, &info)
+        return max(<int> query, 4 * n)
+
+    cdef int real_roots(self, const Problem *p, const double *P, double *rotations):
+        """Rotations Cayley(q) P (k, 3, 3) for the real and nearly real roots q of eq. EF6 in the
+        frame P (`solver._roots_in_frame`); returns k."""
+        cdef double Hf[81]
+        cdef double gf[9]
+        cdef double parameters[54]
+        cdef double q[3]
+        cdef double qi[3]
+        cdef int i, j, k, info = 0, count = 0
+        cdef int m = self.m, n_columns = self.n_columns, n_red = self.n_reducible, n = N_SOLUTIONS
+        cdef int first = m - n_red, one = 1, lwork = self.lwork
+        cdef double trace, size, imag, re0, im0, re, im, denominator
+        cdef double[::1] coefficients = np.zeros(6 * self.n_monomials)
+        cdef double[::1] template = np.zeros(m * n_columns)
+        cdef int[::1] pivots = np.empty(m, dtype=np.int32)
+        cdef double[::1] action = np.zeros(n * n)
+        cdef double[::1] wr = np.empty(n), wi = np.empty(n), vr = np.empty(n * n), work = np.empty(lwork)
+        in_frame(p.H, p.g, P, Hf, gf)
+        trace = trace9(Hf)
+        k = 0
+        for i in range(9):
+            for j in range(i, 9):
+                parameters[k] = Hf[9 * i + j] / trace
+                k += 1
+        for i in range(9):
+            parameters[45 + i] = gf[i] / trace
+        for k in range(self.n_entries):
+            coefficients[self.entries[k, 0] * self.n_monomials + self.entries[k, 1]] += \
+                self.entries[k, 3] * parameters[self.entries[k, 2]]
+        for k in range(self.target.shape[0]):
+            template[self.target[k]] = coefficients[self.source[k]]
+        # LU of [C_E C_R | C_B] (column-major, m x n_columns); U_RR R + U_RB B = 0 gives R.
+        dgetrf(&m, &n_columns, &template[0], &m, &pivots[0], &info)
+        if info != 0:
+            return 0
+        dtrtrs(b"U", b"N", b"N", &n_red, &n, &template[first * m + first], &m, &template[m * m + first], &m, &info)
+        if info != 0:
+            return 0
+        for k in range(self.shift_from.shape[0]):  # action matrix, column-major
+            action[self.shift_to[k] * n + self.shift_from[k]] = 1.0
+        for k in range(self.reduced_rows.shape[0]):
+            for j in range(n):
+                action[j * n + self.reduced_rows[k]] = -template[(m + j) * m + first + self.reduced_index[k]]
+        dgeev(b"N", b"V", &n, &action[0], &n, &wr[0], &wi[0], NULL, &one, &vr[0], &n, &work[0], &lwork, &info)
+        if info != 0:
+            return 0
+        for j in range(n):
+            if wi[j] < 0:  # the second of a conjugate pair
+                continue
+            re0 = vr[j * n + self.unit_index[0]]
+            im0 = vr[(j + 1) * n + self.unit_index[0]] if wi[j] > 0 else 0.0
+            denominator = re0 * re0 + im0 * im0
+            size = 0.0
+            imag = 0.0
+            for i in range(3):  # q_i = (re + i im) / (re0 + i im0)
+                re = vr[j * n + self.unit_index[1 + i]]
+                im = vr[(j + 1) * n + self.unit_index[1 + i]] if wi[j] > 0 else 0.0
+                q[i] = (re * re0 + im * im0) / denominator
+                qi[i] = (im * re0 - re * im0) / denominator
+                size = max(size, sqrt(q[i] * q[i] + qi[i] * qi[i]))
+                imag = max(imag, fabs(qi[i]))
+            if isfinite(size) and imag < IMAGINARY_TOLERANCE * (1.0 + size):
+                cayley_times(q, P, rotations + 9 * count)
+                count += 1
+        return count
+
+    def solve(self, const double[:, ::1] H, const double[::1] g, double c, const double[:, ::1] t_matrix,
+              const double[::1] t_offset, const double[::1] centroid, const double[:, ::1] point_axes,
+              const double[::1] point_spread, const double[:, ::1] origins, const double[:, ::1] directions,
+              const double[:, ::1] points):
+        """All real stationary candidates and the solution (`solver.solve_statistics`).
+
+        H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), point_axes (3, 3),
+        point_spread (3,): the `PoseStatistics`; origins, directions (unit), points: (n, 3).
+        Returns R (k, 3, 3), t (k, 3), cost (k,), in_front (k,) sorted by cost without duplicate
+        rotations, and the index of the solution.
+        """
+        cdef Problem p
+        p.H, p.g, p.c = &H[0, 0], &g[0], c
+        p.t_matrix, p.t_offset, p.centroid = &t_matrix[0, 0], &t_offset[0], &centroid[0]
+        p.v, p.f, p.M, p.n = &origins[0, 0], &directions[0, 0], &points[0, 0], points.shape[0]
+        cdef double[:, ::1] R = np.empty((CAPACITY, 9))
+        cdef double[:, ::1] t = np.empty((CAPACITY, 3))
+        cdef double[::1] cost = np.empty(CAPACITY)
+        cdef double[::1] front = np.empty(CAPACITY)
+        cdef double P[9]
+        cdef double step[9]
+        cdef double mirror[9]
+        cdef double normal[3]
+        cdef int i, j, k, best, before
+
+        solving_frame(&p, &self.octahedral[0], &point_axes[0, 0], &point_spread[0], P)
+        memcpy(&R[0, 0], P, 9 * sizeof(double))
+        k = self.polished(&p, &R[0, 0], 0, 1 + self.real_roots(&p, P, &R[1, 0]))
+        evaluate(&p, R, t, cost, front, 0, k)
+        memcpy(step, P, 9 * sizeof(double))
+        descend(&p, step, 1)
+        if k == 0 or angle_between(step, &R[select(cost, front, k), 0]) > 0.25 * angle_between(P, &R[select(cost, front, k), 0]):
+            # The frame's descent does not head to the solution found: its minimum joins in.
+            memcpy(&R[k, 0], step, 9 * sizeof(double))
+            descend(&p, &R[k, 0], DESCENT_ITERATIONS)
+            polish(&p, &R[k, 0])
+            evaluate(&p, R, t, cost, front, k, k + 1)
+            k += 1
+        best = select(cost, front, k)
+        before = k
+        if trace_product_t(&R[best, 0], P) < 1.0 + 2.0 * COS_MAX_FRAME_ANGLE:
+            k = self.polished(&p, &R[0, 0], k, k + self.real_roots(&p, &R[best, 0], &R[k, 0]))
+        for i in range(3):
+            normal[i] = point_axes[i, 0]
+        for i in range(3):
+            for j in range(3):
+                mirror[3 * i + j] = 2.0 * normal[i] * normal[j] - (1.0 if i == j else 0.0)
+        j = k
+        for i in range(before):
+            if front[i] < 0.5 and cost[i] < cost[best]:
+                matmul3(&R[i, 0], mirror, &R[j, 0])
+                j += 1
+        k = self.polished(&p, &R[0, 0], k, j)
+        evaluate(&p, R, t, cost, front, before, k)
+        return unique(np.asarray(R[:k]), np.asarray(t[:k]), np.asarray(cost[:k]), np.asarray(front[:k]),
+                      np.asarray(centroid))
+
+    cdef int polished(self, const Problem *p, double *R, int start, int stop):
+        """Polish rotations start..stop of R (k, 9) and keep the stationary ones (compacted from
+        start); returns the new end."""
+        cdef int i, end = start
+        for i in range(start, stop):
+            if polish(p, R + 9 * i):
+                if end != i:
+                    memcpy(R + 9 * end, R + 9 * i, 9 * sizeof(double))
+                end += 1
+        return end
+
+
+def unique(R, t, cost, front, centroid):
+    """The candidates R (k, 9), centred t (k, 3), cost (k,), front (k,) sorted by cost with duplicate
+    rotations (e.g. polished conjugate pairs) removed, t in the original world frame, and the index
+    of the solution: the cheapest with at least half the points in front, if any."""
+    cdef int k = len(cost), i, j, a
+    cdef double largest
+    order = np.argsort(cost, kind="stable")
+    R, t, cost, front = R[order], t[order], cost[order], front[order]
+    keep = np.ones(k, dtype=bool)
+    cdef unsigned char[::1] kept = keep.view(np.uint8)
+    cdef const double[:, ::1] rotations = R
+    for i in range(k):
+        for j in range(i):
+            if kept[j]:
+                largest = 0.0
+                for a in range(9):
+                    largest = max(largest, fabs(rotations[i, a] - rotations[j, a]))
+                if largest < DUPLICATE_TOLERANCE:
+                    kept[i] = 0
+                    break
+    R, t, cost, front = R[keep].reshape(-1, 3, 3), t[keep], cost[keep], front[keep]
+    t -= R @ centroid
+    feasible = np.flatnonzero(front >= 0.5)
+    return R, t, np.maximum(cost, 0.0), front, int(feasible[0]) if len(feasible) else 0
+
+
+cdef void evaluate(const Problem *p, double[:, ::1] R, double[:, ::1] t, double[::1] cost, double[::1] front,
+                   int start, int stop) noexcept:
+    """Cost, centred translation and fraction of points in front of rotations start..stop."""
+    cdef int i
+    for i in range(start, stop):
+        cost[i] = cost_of(p, &R[i, 0])
+        centred_translation(p, &R[i, 0], &t[i, 0])
+        front[i] = front_fraction(p, &R[i, 0], &t[i, 0])
+
+
+cdef int select(double[::1] cost, double[::1] front, int k) noexcept:
+    """Index of the least cost among the poses with at least half the points in front, if any
+    (`solver._select`)."""
+    cdef int i, best = -1
+    cdef bint feasible = False
+    for i in range(k):
+        if front[i] >= 0.5 and not feasible:
+            feasible, best = True, i
+        elif (front[i] >= 0.5 or not feasible) and (best < 0 or cost[i] < cost[best]):
+            best = i
+    return max(best, 0)
+
+
+def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, ::1] M):
+    """The sums and Schur complements of `statistics.statistics_of`, O(n): v, unit f, M (n, 3).
+
+    Returns H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), BtB (3, 3) and the
+    scatter matrix (3, 3) of the centred points. t_matrix and t_offset are NaN if BtB is singular
+    (all rays parallel), which the caller tests.
+    """
+    cdef int n = M.shape[0], i, a, b, k, l
+    cdef double m[3]
+    cdef double U[9]
+    cdef double w[3]
+    cdef double fv, s
+    H_ = np.zeros((9, 9)); AtB_ = np.zeros((9, 3)); BtB_ = np.zeros((3, 3)); scatter_ = np.zeros((3, 3))
+    g_ = np.zeros(9); BtD_ = np.zeros(3); centroid_arr = np.zeros(3)
+    cdef double[:, ::1] AtA = H_, AtB = AtB_, BtB = BtB_, scatter = scatter_
+    cdef double[::1] AtD = g_, BtD = BtD_, centre = centroid_arr
+    cdef double DtD = 0.0
+    cdef double sum_m[3]
+    for a in range(3):
+        s = 0.0
+        for i in range(n):
+            s += M[i, a]
+        centre[a] = s / n
+        sum_m[a] = 0.0
+    for i in range(n):
+        for a in range(3):
+            m[a] = M[i, a] - centre[a]
+            sum_m[a] += m[a]
+        fv = f[i, 0] * v[i, 0] + f[i, 1] * v[i, 1] + f[i, 2] * v[i, 2]
+        for a in range(3):
+            w[a] = v[i, a] - f[i, a] * fv  # (I - f f^T) v
+            BtD[a] += w[a]
+            DtD += v[i, a] * w[a]
+            for b in range(3):
+                U[3 * a + b] = f[i, a] * m[b]  # kron(f, m)
+                scatter[a, b] += m[a] * m[b]
+                BtB[a, b] -= f[i, a] * f[i, b]
+                AtD[3 * a + b] += w[a] * m[b]
+        for k in range(9):
+            for l in range(k, 9):
+                AtA[k, l] -= U[k] * U[l]
+            for b in range(3):
+                AtB[k, b] -= U[k] * f[i, b]
+    for a in range(3):  # the kron(I3, .) terms
+        BtB[a, a] += n
+        for b in range(3):
+            AtB[3 * a + b, a] += sum_m[b]
+            for l in range(3):
+                AtA[3 * a + b, 3 * a + l] += scatter[b, l]
+    for k in range(9):
+        for l in range(k):
+            AtA[k, l] = AtA[l, k]
+    # t = -(B^T B)^-1 (B^T A r - B^T D): solve for the 9 + 1 right-hand sides
+    t_solved = np.empty((3, 10))
+    cdef double[:, ::1] ts = t_solved
+    cdef double system[9]
+    cdef double rhs[3]
+    for k in range(10):
+        for a in range(3):
+            rhs[a] = AtB[k, a] if k < 9 else BtD[a]
+            for b in range(3):
+                system[3 * a + b] = BtB[a, b]
+        if not solve_linear(system, rhs, 3):
+            rhs[0] = rhs[1] = rhs[2] = np.nan
+        for a in range(3):
+            ts[a, k] = rhs[a]
+    t_matrix = -t_solved[:, :9]
+    t_offset = t_solved[:, 9].copy()
+    H = H_ + AtB_ @ t_matrix
+    H = 0.5 * (H + H.T)
+    g = g_ - AtB_ @ t_offset
+    c = DtD - float(BtD_ @ t_offset)
+    return H, g, c, np.ascontiguousarray(t_matrix), t_offset, centroid_arr, BtB_, scatter_
