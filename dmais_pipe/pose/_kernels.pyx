@@ -14,19 +14,35 @@ from scipy.linalg.cython_lapack cimport dgeev, dgesvd, dgetrf, dsyev, dtrtrs
 
 import numpy as np
 
-# The tunables of the solver; `solver.py` explains each.
+# Roots whose imaginary part is below this (relative to 1 + |q|) are polished as real ones:
+# nearly real pairs are where a real double root lost to rounding reappears.
 cdef double IMAGINARY_TOLERANCE = 1e-1
+# Newton steps on the cost (on SO(3)) that polish every candidate rotation.
 cdef int NEWTON_ITERATIONS = 2
+# A polished rotation is stationary when its Riemannian gradient is below this fraction of
+# trace(H) + |g|.
 cdef double STATIONARY_TOLERANCE = 1e-8
+# Rotations closer than this (max abs entry difference) are one candidate.
 cdef double DUPLICATE_TOLERANCE = 1e-9
+# Gauss-Newton steps at most that move the solving frame from its start to a minimum.
 cdef int DESCENT_ITERATIONS = 30
+# Longest descent step (radians).
 cdef double MAX_STEP = 0.5
+# The descent stops after a step shorter than this (radians); Newton polishing continues.
 cdef double STEP_TOLERANCE = 1e-3
+# Relative rounding level of the cost evaluated as a quadratic form (of trace H + |g| + |c|).
 cdef double COST_ROUNDING = 1e-12
+# Newton steps at most on the secular equation of the sphere relaxation, and their relative
+# tolerance (the relaxed rotations only start the descent).
 cdef int SPHERE_ITERATIONS = 30
 cdef double SPHERE_TOLERANCE = 1e-6
+# Points whose least spread is below this fraction of the middle one are (nearly) planar: the
+# sphere relaxation then has a null space, and its planar version joins the starts (thickness
+# below 1% of the width).
 cdef double PLANAR_SPREAD = 1e-4
-cdef double COS_MAX_FRAME_ANGLE = -0.5  # cos(120 deg)
+# Beyond 120 deg (|q| > tan(60 deg)) in the solving frame, the problem is solved again in the
+# frame of the winner: the cosine of that angle.
+cdef double COS_MAX_FRAME_ANGLE = -0.5
 #: Room for candidates: 1 frame + 40 roots + 1 descent, 40 more roots, and a mirror of each.
 cdef int CAPACITY = 256
 cdef int N_SOLUTIONS = 40
@@ -240,7 +256,12 @@ cdef double trace9(const double *H) noexcept nogil:
 
 
 cdef void descend(const Problem *p, double *R, int iterations) noexcept nogil:
-    """Damped Gauss-Newton descent on SO(3) from R (3, 3), in place (`solver.descend`)."""
+    """Damped Gauss-Newton descent of the cost on SO(3), R <- exp([w]x) R, from R (3, 3) in place.
+
+    The Gauss-Newton matrix J^T H J is positive semi-definite, so each damped step goes downhill
+    even far from a minimum; steps are capped at MAX_STEP radians. Stops after a step shorter
+    than STEP_TOLERANCE (`polish` finishes the job).
+    """
     cdef double cost = cost_of(p, R), trial_cost, norm, factor
     cdef double damping = 1e-6, scale = trace9(p.H)
     cdef double gradient[3]
@@ -274,7 +295,12 @@ cdef void descend(const Problem *p, double *R, int iterations) noexcept nogil:
 
 
 cdef bint polish(const Problem *p, double *R) noexcept nogil:
-    """Newton's method on SO(3) from R (3, 3), in place; whether R is stationary (`solver.polish`)."""
+    """Newton's method on the cost on SO(3) from R (3, 3), in place: the nearby stationary point.
+
+    Returns whether R is stationary: Riemannian gradient below STATIONARY_TOLERANCE (trace H + |g|)
+    before the last step. Starts that are no roots (e.g. a complex pair taken as real) end
+    elsewhere, usually not stationary, or on another candidate.
+    """
     cdef double scale = trace9(p.H) + sqrt(sum_squares(p.g, 9))
     cdef double gradient[3]
     cdef double hessian[9]
@@ -304,7 +330,13 @@ cdef inline double sum_squares(const double *x, int d) noexcept nogil:
 
 
 cdef void sphere_minimiser(const double *H, const double *g, int d, double radius2, double *x) noexcept:
-    """Minimiser x (d,) of x^T H x - 2 g^T x on |x|^2 = radius2 (`solver._sphere_minimisers`)."""
+    """The minimiser x (d,) of x^T H x - 2 g^T x on the sphere |x|^2 = radius2; H (d, d) symmetric.
+
+    The trust-region subproblem: x = (H - mu I)^-1 g with mu below the least eigenvalue of H,
+    found by Newton's method on 1/|x(mu)| (More and Sorensen), which is concave and so approached
+    monotonically from mu's upper bound |b_0| / sqrt(radius2); in the hard case (g without weight
+    on the least eigenvector) x is completed along that eigenvector.
+    """
     cdef double V[81]
     cdef double eigenvalues[9]
     cdef double work[256]
@@ -364,7 +396,12 @@ cdef void in_frame(const double *H, const double *g, const double *P, double *H_
 
 
 cdef int relaxed_rotations(const Problem *p, const double *axes, const double *spread, double *out) noexcept:
-    """Rotations (2 or 4, 3, 3) from the sphere relaxation (`solver.relaxed_rotations`); their count."""
+    """Rotations (2 or 4, 3, 3) near the minimum, written to out; returns their count.
+
+    From the sphere relaxation |vec R|^2 = 3 of eq. objfun3 and, for (nearly) planar points, from
+    its planar version (R on the two widest principal axes of the points, which alone matter for
+    planar points, |.|^2 = 2, completed by their cross product), each with its mirror. O(1).
+    """
     cdef double trace = trace9(p.H)
     cdef double Hn[81]
     cdef double gn[9]
@@ -417,8 +454,16 @@ cdef double rounding_level(const Problem *p) noexcept nogil:
 
 
 cdef void solving_frame(const Problem *p, const double *octahedral, const double *axes, const double *spread, double *P) noexcept:
-    """The most promising start (3, 3) of the octahedral group and the relaxed rotations, cost
-    weighted by the fraction of points behind their rays (`solver.solving_frame`)."""
+    """Rotation P (3, 3) near the sought rotation: the most promising of the octahedral group and
+    the relaxed rotations.
+
+    The cost alone misleads: it ignores on which side of its ray origin a point lies, and a
+    "mirror" pose with the points behind the cameras, about 180 deg from the truth, often costs
+    less than the octahedral rotations near the truth. So each rotation's cost is weighted by the
+    fraction of points it puts behind their rays (plus 0.05, so that cost still decides among
+    rotations that put every point in front); costs below the rounding level of the quadratic
+    form count as that level, so that an exact fit and its mirror are told apart. O(n).
+    """
     cdef double starts[9 * 28]
     cdef double t[3]
     cdef int count = 24 + relaxed_rotations(p, axes, spread, starts + 9 * 24)
@@ -438,8 +483,8 @@ cdef void solving_frame(const Problem *p, const double *octahedral, const double
 
 
 cdef class Kernel:
-    """The solver with its elimination template (`solver.runtime`): `solve` runs
-    `solver.solve_statistics`. Holds only constants; every buffer is allocated per call."""
+    """The solver with its elimination template (`solver.runtime`); `solve` runs the steps of
+    `solver.py`. Holds only constants; every buffer is allocated per call."""
 
     cdef int m, n_columns, n_reducible, n_entries, n_monomials
     cdef long[::1] target, source, shift_from, shift_to, reduced_rows, reduced_index, unit_index
@@ -477,7 +522,13 @@ cdef class Kernel:
 
     cdef int real_roots(self, const Problem *p, const double *P, double *rotations):
         """Rotations Cayley(q) P (k, 3, 3) for the real and nearly real roots q of eq. EF6 in the
-        frame P (`solver._roots_in_frame`); returns k."""
+        frame P, written to rotations; returns k.
+
+        Row i of the action matrix expresses x * b_i in the basis: x * B(q) = M B(q) at every
+        solution q. One LU factorisation of the whole template [C_E C_R | C_B] = P L [U_11 | U_12]
+        leaves the rows of the reducible monomials R alone at the bottom: U_RR R + U_RB B = 0.
+        The eigenvectors are B(q), whose entries at 1, qx, qy, qz give q.
+        """
         cdef double Hf[81]
         cdef double gf[9]
         cdef double parameters[54]
@@ -541,11 +592,20 @@ cdef class Kernel:
                 count += 1
         return count
 
+    def rotations_of_roots(self, const double[:, ::1] H, const double[::1] g, const double[:, ::1] P):
+        """Rotations (k, 3, 3) of the real and nearly real roots of eq. EF6 for statistics H (9, 9),
+        g (9,), solved in the frame P (3, 3) (`real_roots`)."""
+        cdef Problem p
+        p.H, p.g = &H[0, 0], &g[0]
+        rotations = np.empty((N_SOLUTIONS, 3, 3))
+        cdef double[:, :, ::1] out = rotations
+        return rotations[:self.real_roots(&p, &P[0, 0], &out[0, 0, 0])]
+
     def solve(self, const double[:, ::1] H, const double[::1] g, double c, const double[:, ::1] t_matrix,
               const double[::1] t_offset, const double[::1] centroid, const double[:, ::1] point_axes,
               const double[::1] point_spread, const double[:, ::1] origins, const double[:, ::1] directions,
               const double[:, ::1] points):
-        """All real stationary candidates and the solution (`solver.solve_statistics`).
+        """All real stationary candidates and the solution (the steps of `solver.py`).
 
         H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), point_axes (3, 3),
         point_spread (3,): the `PoseStatistics`; origins, directions (unit), points: (n, 3).
@@ -566,14 +626,18 @@ cdef class Kernel:
         cdef double normal[3]
         cdef int i, j, k, best, before
 
+        # Solving where the sought rotation is near q = 0 keeps it away from Cayley's blind spot.
         solving_frame(&p, &self.octahedral[0], &point_axes[0, 0], &point_spread[0], P)
         memcpy(&R[0, 0], P, 9 * sizeof(double))
         k = self.polished(&p, &R[0, 0], 0, 1 + self.real_roots(&p, P, &R[1, 0]))
         evaluate(&p, R, t, cost, front, 0, k)
         memcpy(step, P, 9 * sizeof(double))
         descend(&p, step, 1)
-        if k == 0 or angle_between(step, &R[select(cost, front, k), 0]) > 0.25 * angle_between(P, &R[select(cost, front, k), 0]):
-            # The frame's descent does not head to the solution found: its minimum joins in.
+        best = select(cost, front, k)
+        # A first step from P within a quarter of its distance to the solution found means P lies
+        # in the solution's basin, where the descent would end; otherwise the local minimum it
+        # ends at joins the candidates, in case the roots missed it.
+        if k == 0 or angle_between(step, &R[best, 0]) > 0.25 * angle_between(P, &R[best, 0]):
             memcpy(&R[k, 0], step, 9 * sizeof(double))
             descend(&p, &R[k, 0], DESCENT_ITERATIONS)
             polish(&p, &R[k, 0])
@@ -583,6 +647,8 @@ cdef class Kernel:
         before = k
         if trace_product_t(&R[best, 0], P) < 1.0 + 2.0 * COS_MAX_FRAME_ANGLE:
             k = self.polished(&p, &R[0, 0], k, k + self.real_roots(&p, &R[best, 0], &R[k, 0]))
+        # A cheaper pose with the points behind the rays: its mirror (180 deg about the normal of
+        # the points) is where the roots of an ill-conditioned planar scene may have missed the minimum.
         for i in range(3):
             normal[i] = point_axes[i, 0]
         for i in range(3):
@@ -647,8 +713,13 @@ cdef void evaluate(const Problem *p, double[:, ::1] R, double[:, ::1] t, double[
 
 
 cdef int select(double[::1] cost, double[::1] front, int k) noexcept:
-    """Index of the least cost among the poses with at least half the points in front, if any
-    (`solver._select`)."""
+    """Index of the solution: least cost among the poses with at least half the points in front,
+    if any.
+
+    Eq. objfun measures distances to lines, not rays, so a pose and its mirror that puts the
+    points behind the cameras can cost the same: exactly so for a central camera and a planar
+    scene (R and R Rz(180 deg) about the plane normal), nearly so for any almost-central rig.
+    """
     cdef int i, best = -1
     cdef bint feasible = False
     for i in range(k):

@@ -19,13 +19,16 @@ pre-rotated world M' = P M (R = R' P), with P near the sought rotation so that R
 q = 0: P is the most promising of the octahedral group and of a sphere relaxation of eq. objfun3
 (`solving_frame`). Unless the first descent step from P heads to the solution found, P is also
 descended to a local minimum, which joins the candidates (where the action matrix is
-ill-conditioned, e.g. one narrow-FoV camera over a plane, it can be the only copy of the minimum). When the solution lies
-beyond 120 deg in that frame, the problem is solved once more in the frame of the solution.
+ill-conditioned, e.g. one narrow-FoV camera over a plane, it can be the only copy of the
+minimum). When the solution lies beyond 120 deg in that frame, the problem is solved once more
+in the frame of the solution.
 Changing frame costs nothing in n: H' = K^T H K and g' = K^T g with r = K r',
 K = blockdiag(P^T, P^T, P^T).
 
-The steps run compiled (`_kernels.pyx`, Cython, LAPACK from SciPy), where the tunables are:
-as numpy calls, the ~100 operations on small matrices cost several times the arithmetic.
+The steps run compiled, in `_kernels.pyx` (Cython; LAPACK through scipy.linalg.cython_lapack),
+which also holds the tunables (`solving_frame`, `polish`, `descend` and the others named here are
+its functions): as numpy calls, the ~100 operations on small matrices cost several times their
+arithmetic.
 """
 
 from __future__ import annotations
