@@ -10,7 +10,7 @@ takes column-major matrices. Every buffer is allocated per call, so one `Kernel`
 
 from libc.math cimport acos, fabs, isfinite, sqrt
 from libc.string cimport memcpy, memset
-from scipy.linalg.cython_lapack cimport dgeev, dgesvd, dgetrf, dsyev, dtrtrs
+from scipy.linalg.cython_lapack cimport dgebak, dgebal, dgehrd, dgesvd, dgetrf, dhsein, dhseqr, dormhr, dsyev, dtrtrs
 
 import numpy as np
 
@@ -482,6 +482,42 @@ cdef void solving_frame(const Problem *p, const double *octahedral, const double
 # ------------------------------------------------------------------------------ the solver
 
 
+cdef int nearly_real_eigenvectors(double *A, double *wr, double *wi, bint *select, double *V, int *found) noexcept:
+    """Eigenvalues wr + i wi (40,) of the column-major A (40, 40), which is overwritten, and the
+    right eigenvectors V (40, found) of those nearly real, |wi| < IMAGINARY_TOLERANCE (1 + |wr|),
+    in order: select (40,) marks them (a pair at its first eigenvalue, whose vector is packed as
+    real and imaginary parts in two columns, as dgeev does). Returns LAPACK's info (0: success).
+
+    The vectors come from inverse iteration on the Hessenberg form (dhsein; dormhr and dgebak
+    undo the reduction and the balancing), so the QR iteration (dhseqr) only seeks eigenvalues
+    and the clearly complex roots (about half) cost nothing more: ~25% less work than dgeev.
+    """
+    cdef int n = N_SOLUTIONS, one = 1, ilo = 0, ihi = 0, info = 0, i, j
+    cdef int lwork = 64 * N_SOLUTIONS
+    cdef double work[64 * 40]
+    cdef double scale[40]
+    cdef double tau[40]
+    cdef double H[40 * 40]
+    cdef double T[40 * 40]
+    cdef int failed[40]
+    dgebal(b"B", &n, A, &n, &ilo, &ihi, scale, &info)
+    dgehrd(&n, &ilo, &ihi, A, &n, tau, work, &lwork, &info)
+    for j in range(n):  # the Hessenberg matrix alone (A also holds the reflectors below it)
+        for i in range(n):
+            H[j * n + i] = A[j * n + i] if i <= j + 1 else 0.0
+    memcpy(T, H, n * n * sizeof(double))
+    dhseqr(b"E", b"N", &n, &ilo, &ihi, T, &n, wr, wi, NULL, &one, work, &lwork, &info)
+    if info != 0:
+        return info
+    for j in range(n):
+        select[j] = fabs(wi[j]) < IMAGINARY_TOLERANCE * (1.0 + fabs(wr[j]))
+    dhsein(b"R", b"Q", b"N", select, &n, H, &n, wr, wi, NULL, &one, V, &n, &n, found, work, failed, failed, &info)
+    # info > 0: some vectors did not converge; they are kept, and the root filter judges them
+    dormhr(b"L", b"N", &n, found, &ilo, &ihi, A, &n, tau, V, &n, work, &lwork, &info)
+    dgebak(b"B", b"R", &n, &ilo, &ihi, scale, found, V, &n, &info)
+    return info
+
+
 cdef class Kernel:
     """The solver with its elimination template (`solver.runtime`); `solve` runs the steps of
     `solver.py`. Holds only constants; every buffer is allocated per call."""
@@ -490,7 +526,6 @@ cdef class Kernel:
     cdef long[::1] target, source, shift_from, shift_to, reduced_rows, reduced_index, unit_index
     cdef long[:, ::1] entries
     cdef double[::1] octahedral
-    cdef int lwork
 
     def __init__(self, int m, int n_columns, int n_reducible, target, source, shifts, reduced_rows,
                  reduced_index, unit_index, entries, int n_monomials, octahedral):
@@ -511,14 +546,7 @@ cdef class Kernel:
         self.octahedral = np.ascontiguousarray(octahedral, dtype=float).reshape(-1)
         if self.octahedral.shape[0] != 9 * 24:
             raise ValueError("octahedral must be (24, 3, 3)")
-        self.lwork = self._geev_workspace()
 
-    cdef int _geev_workspace(self):
-        cdef int n = N_SOLUTIONS, one = 1, lwork = -1, info = 0
-        cdef double query = 0.0
-        cdef double[::1] a = np.zeros(n * n), wr = np.zeros(n), wi = np.zeros(n), vr = np.zeros(n * n)
-        dgeev(b"N", b"V", &n, &a[0], &n, &wr[0], &wi[0], NULL, &one, &vr[0], &n, &query, &lwork, &info)
-        return max(<int> query, 4 * n)
 
     cdef int real_roots(self, const Problem *p, const double *P, double *rotations):
         """Rotations Cayley(q) P (k, 3, 3) for the real and nearly real roots q of eq. EF6 in the
@@ -536,13 +564,17 @@ cdef class Kernel:
         cdef double qi[3]
         cdef int i, j, k, info = 0, count = 0
         cdef int m = self.m, n_columns = self.n_columns, n_red = self.n_reducible, n = N_SOLUTIONS
-        cdef int first = m - n_red, one = 1, lwork = self.lwork
+        cdef int first = m - n_red
         cdef double trace, size, imag, re0, im0, re, im, denominator
         cdef double[::1] coefficients = np.zeros(6 * self.n_monomials)
         cdef double[::1] template = np.zeros(m * n_columns)
         cdef int[::1] pivots = np.empty(m, dtype=np.int32)
         cdef double[::1] action = np.zeros(n * n)
-        cdef double[::1] wr = np.empty(n), wi = np.empty(n), vr = np.empty(n * n), work = np.empty(lwork)
+        cdef double wr[40]
+        cdef double wi[40]
+        cdef double vr[40 * 40]
+        cdef bint select[40]
+        cdef int found = 0, column
         in_frame(p.H, p.g, P, Hf, gf)
         trace = trace9(Hf)
         k = 0
@@ -569,24 +601,25 @@ cdef class Kernel:
         for k in range(self.reduced_rows.shape[0]):
             for j in range(n):
                 action[j * n + self.reduced_rows[k]] = -template[(m + j) * m + first + self.reduced_index[k]]
-        dgeev(b"N", b"V", &n, &action[0], &n, &wr[0], &wi[0], NULL, &one, &vr[0], &n, &work[0], &lwork, &info)
-        if info != 0:
+        if nearly_real_eigenvectors(&action[0], wr, wi, select, vr, &found) != 0:
             return 0
+        column = 0
         for j in range(n):
-            if wi[j] < 0:  # the second of a conjugate pair
+            if not select[j]:
                 continue
-            re0 = vr[j * n + self.unit_index[0]]
-            im0 = vr[(j + 1) * n + self.unit_index[0]] if wi[j] > 0 else 0.0
+            re0 = vr[column * n + self.unit_index[0]]
+            im0 = vr[(column + 1) * n + self.unit_index[0]] if wi[j] > 0 else 0.0
             denominator = re0 * re0 + im0 * im0
             size = 0.0
             imag = 0.0
             for i in range(3):  # q_i = (re + i im) / (re0 + i im0)
-                re = vr[j * n + self.unit_index[1 + i]]
-                im = vr[(j + 1) * n + self.unit_index[1 + i]] if wi[j] > 0 else 0.0
+                re = vr[column * n + self.unit_index[1 + i]]
+                im = vr[(column + 1) * n + self.unit_index[1 + i]] if wi[j] > 0 else 0.0
                 q[i] = (re * re0 + im * im0) / denominator
                 qi[i] = (im * re0 - re * im0) / denominator
                 size = max(size, sqrt(q[i] * q[i] + qi[i] * qi[i]))
                 imag = max(imag, fabs(qi[i]))
+            column += 2 if wi[j] > 0 else 1
             if isfinite(size) and imag < IMAGINARY_TOLERANCE * (1.0 + size):
                 cayley_times(q, P, rotations + 9 * count)
                 count += 1
