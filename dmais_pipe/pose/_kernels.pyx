@@ -8,7 +8,7 @@ a few microseconds of overhead, which dominated the solve. Matrices here are C-o
 takes column-major matrices. Every buffer is allocated per call, so one `Kernel` may serve threads.
 """
 
-from libc.math cimport acos, fabs, isfinite, sqrt
+from libc.math cimport NAN, acos, fabs, isfinite, sqrt
 from libc.string cimport memcpy, memset
 from scipy.linalg.cython_lapack cimport dgebak, dgebal, dgehrd, dgesvd, dgetrf, dhsein, dhseqr, dormhr, dsyev, dtrtrs
 
@@ -43,9 +43,10 @@ cdef double PLANAR_SPREAD = 1e-4
 # Beyond 120 deg (|q| > tan(60 deg)) in the solving frame, the problem is solved again in the
 # frame of the winner: the cosine of that angle.
 cdef double COS_MAX_FRAME_ANGLE = -0.5
-#: Room for candidates: 1 frame + 40 roots + 1 descent, 40 more roots, and a mirror of each.
-cdef int CAPACITY = 256
-cdef int N_SOLUTIONS = 40
+cdef enum:
+    # Room for candidates: 1 frame + 40 roots + 1 descent, 40 more roots, and mirrors of the first 42.
+    CAPACITY = 256
+    N_SOLUTIONS = 40
 
 
 cdef struct Problem:
@@ -494,12 +495,12 @@ cdef int nearly_real_eigenvectors(double *A, double *wr, double *wi, bint *selec
     """
     cdef int n = N_SOLUTIONS, one = 1, ilo = 0, ihi = 0, info = 0, i, j
     cdef int lwork = 64 * N_SOLUTIONS
-    cdef double work[64 * 40]
-    cdef double scale[40]
-    cdef double tau[40]
-    cdef double H[40 * 40]
-    cdef double T[40 * 40]
-    cdef int failed[40]
+    cdef double work[64 * N_SOLUTIONS]
+    cdef double scale[N_SOLUTIONS]
+    cdef double tau[N_SOLUTIONS]
+    cdef double H[N_SOLUTIONS * N_SOLUTIONS]
+    cdef double T[N_SOLUTIONS * N_SOLUTIONS]
+    cdef int failed[N_SOLUTIONS]
     dgebal(b"B", &n, A, &n, &ilo, &ihi, scale, &info)
     dgehrd(&n, &ilo, &ihi, A, &n, tau, work, &lwork, &info)
     for j in range(n):  # the Hessenberg matrix alone (A also holds the reflectors below it)
@@ -570,10 +571,10 @@ cdef class Kernel:
         cdef double[::1] template = np.zeros(m * n_columns)
         cdef int[::1] pivots = np.empty(m, dtype=np.int32)
         cdef double[::1] action = np.zeros(n * n)
-        cdef double wr[40]
-        cdef double wi[40]
-        cdef double vr[40 * 40]
-        cdef bint select[40]
+        cdef double wr[N_SOLUTIONS]
+        cdef double wi[N_SOLUTIONS]
+        cdef double vr[N_SOLUTIONS * N_SOLUTIONS]
+        cdef bint select[N_SOLUTIONS]
         cdef int found = 0, column
         in_frame(p.H, p.g, P, Hf, gf)
         trace = trace9(Hf)
@@ -694,8 +695,7 @@ cdef class Kernel:
                 j += 1
         k = self.polished(&p, &R[0, 0], k, j)
         evaluate(&p, R, t, cost, front, before, k)
-        return unique(np.asarray(R[:k]), np.asarray(t[:k]), np.asarray(cost[:k]), np.asarray(front[:k]),
-                      np.asarray(centroid))
+        return distinct_candidates(R, t, cost, front, k, centroid)
 
     cdef int polished(self, const Problem *p, double *R, int start, int stop):
         """Polish rotations start..stop of R (k, 9) and keep the stationary ones (compacted from
@@ -709,30 +709,47 @@ cdef class Kernel:
         return end
 
 
-def unique(R, t, cost, front, centroid):
-    """The candidates R (k, 9), centred t (k, 3), cost (k,), front (k,) sorted by cost with duplicate
-    rotations (e.g. polished conjugate pairs) removed, t in the original world frame, and the index
-    of the solution: the cheapest with at least half the points in front, if any."""
-    cdef int k = len(cost), i, j, a
+cdef distinct_candidates(double[:, ::1] R, double[:, ::1] t, double[::1] cost, double[::1] front, int k,
+                         const double[::1] centroid):
+    """The candidates 0..k of R (9), centred t (3), cost, front sorted by cost, duplicate rotations
+    (e.g. polished conjugate pairs) removed, t in the original world frame, cost clipped at 0:
+    R (k', 3, 3), t (k', 3), cost (k',), front (k',) and the index of the solution, the cheapest
+    with at least half the points in front, if any."""
+    cdef int order[CAPACITY]
+    cdef int i, j, a, b, count = 0, best = -1
     cdef double largest
-    order = np.argsort(cost, kind="stable")
-    R, t, cost, front = R[order], t[order], cost[order], front[order]
-    keep = np.ones(k, dtype=bool)
-    cdef unsigned char[::1] kept = keep.view(np.uint8)
-    cdef const double[:, ::1] rotations = R
+    for i in range(k):  # insertion sort, stable
+        j = i
+        while j > 0 and cost[order[j - 1]] > cost[i]:
+            order[j] = order[j - 1]
+            j -= 1
+        order[j] = i
     for i in range(k):
-        for j in range(i):
-            if kept[j]:
-                largest = 0.0
-                for a in range(9):
-                    largest = max(largest, fabs(rotations[i, a] - rotations[j, a]))
-                if largest < DUPLICATE_TOLERANCE:
-                    kept[i] = 0
-                    break
-    R, t, cost, front = R[keep].reshape(-1, 3, 3), t[keep], cost[keep], front[keep]
-    t -= R @ centroid
-    feasible = np.flatnonzero(front >= 0.5)
-    return R, t, np.maximum(cost, 0.0), front, int(feasible[0]) if len(feasible) else 0
+        for j in range(count):
+            largest = 0.0
+            for a in range(9):
+                largest = max(largest, fabs(R[order[i], a] - R[order[j], a]))
+            if largest < DUPLICATE_TOLERANCE:
+                break
+        else:
+            order[count] = order[i]
+            count += 1
+    R_out, t_out, cost_out, front_out = np.empty((count, 3, 3)), np.empty((count, 3)), np.empty(count), np.empty(count)
+    cdef double[:, :, ::1] R_view = R_out
+    cdef double[:, ::1] t_view = t_out
+    cdef double[::1] cost_view = cost_out, front_view = front_out
+    for i in range(count):
+        j = order[i]
+        for a in range(3):
+            t_view[i, a] = t[j, a]
+            for b in range(3):
+                R_view[i, a, b] = R[j, 3 * a + b]
+                t_view[i, a] -= R[j, 3 * a + b] * centroid[b]
+        cost_view[i] = max(cost[j], 0.0)
+        front_view[i] = front[j]
+        if best < 0 and front[j] >= 0.5:
+            best = i
+    return R_out, t_out, cost_out, front_out, max(best, 0)
 
 
 cdef void evaluate(const Problem *p, double[:, ::1] R, double[:, ::1] t, double[::1] cost, double[::1] front,
@@ -763,30 +780,45 @@ cdef int select(double[::1] cost, double[::1] front, int k) noexcept:
     return max(best, 0)
 
 
+cdef void symmetric_eigen(double *A, double *eigenvalues) noexcept:
+    """Eigenvalues (3,), ascending, of the symmetric A (3, 3), replaced by its eigenvectors as rows."""
+    cdef int three = 3, lwork = 64, info = 0
+    cdef double work[64]
+    dsyev(b"V", b"L", &three, A, &three, eigenvalues, work, &lwork, &info)  # column-major: vectors as rows
+
+
 def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, ::1] M):
     """The sums and Schur complements of `statistics.statistics_of`, O(n): v, unit f, M (n, 3).
 
-    Returns H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), BtB (3, 3) and the
-    scatter matrix (3, 3) of the centred points. t_matrix and t_offset are NaN if BtB is singular
-    (all rays parallel), which the caller tests.
+    Returns H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), BtB (3, 3), the
+    principal axes (3, 3) of the centred points as the columns of a rotation, least spread first,
+    their spreads (3,) (ascending eigenvalues of the scatter matrix) and the least eigenvalue of
+    BtB. If BtB is singular (all rays parallel), t_matrix, t_offset, H, g and c are NaN.
     """
     cdef int n = M.shape[0], i, a, b, k, l
     cdef double m[3]
     cdef double U[9]
     cdef double w[3]
-    cdef double fv, s
-    H_ = np.zeros((9, 9)); AtB_ = np.zeros((9, 3)); BtB_ = np.zeros((3, 3)); scatter_ = np.zeros((3, 3))
-    g_ = np.zeros(9); BtD_ = np.zeros(3); centroid_arr = np.zeros(3)
-    cdef double[:, ::1] AtA = H_, AtB = AtB_, BtB = BtB_, scatter = scatter_
-    cdef double[::1] AtD = g_, BtD = BtD_, centre = centroid_arr
-    cdef double DtD = 0.0
     cdef double sum_m[3]
+    cdef double scatter[9]
+    cdef double AtA[81]
+    cdef double AtB[27]
+    cdef double AtD[9]
+    cdef double BtD[3]
+    cdef double DtD = 0.0, fv, s
+    cdef double system[9]
+    cdef double btb_eigen[3]
+    memset(scatter, 0, sizeof(scatter)); memset(AtA, 0, sizeof(AtA)); memset(AtB, 0, sizeof(AtB))
+    memset(AtD, 0, sizeof(AtD)); memset(BtD, 0, sizeof(BtD)); memset(sum_m, 0, sizeof(sum_m))
+    H_out, g_out, t_matrix_out, t_offset_out = np.empty((9, 9)), np.empty(9), np.empty((3, 9)), np.empty(3)
+    centroid_out, BtB_out, axes_out, spread_out = np.zeros(3), np.zeros((3, 3)), np.empty((3, 3)), np.empty(3)
+    cdef double[:, ::1] H = H_out, t_matrix = t_matrix_out, BtB = BtB_out, axes = axes_out
+    cdef double[::1] g = g_out, t_offset = t_offset_out, centre = centroid_out, spread = spread_out
     for a in range(3):
         s = 0.0
         for i in range(n):
             s += M[i, a]
         centre[a] = s / n
-        sum_m[a] = 0.0
     for i in range(n):
         for a in range(3):
             m[a] = M[i, a] - centre[a]
@@ -798,41 +830,55 @@ def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, :
             DtD += v[i, a] * w[a]
             for b in range(3):
                 U[3 * a + b] = f[i, a] * m[b]  # kron(f, m)
-                scatter[a, b] += m[a] * m[b]
+                scatter[3 * a + b] += m[a] * m[b]
                 BtB[a, b] -= f[i, a] * f[i, b]
                 AtD[3 * a + b] += w[a] * m[b]
         for k in range(9):
             for l in range(k, 9):
-                AtA[k, l] -= U[k] * U[l]
+                AtA[9 * k + l] -= U[k] * U[l]
             for b in range(3):
-                AtB[k, b] -= U[k] * f[i, b]
+                AtB[3 * k + b] -= U[k] * f[i, b]
     for a in range(3):  # the kron(I3, .) terms
         BtB[a, a] += n
         for b in range(3):
-            AtB[3 * a + b, a] += sum_m[b]
-            for l in range(3):
-                AtA[3 * a + b, 3 * a + l] += scatter[b, l]
-    for k in range(9):
-        for l in range(k):
-            AtA[k, l] = AtA[l, k]
-    # t = -(B^T B)^-1 (B^T A r - B^T D): solve for the 9 + 1 right-hand sides
-    t_solved = np.empty((3, 10))
-    cdef double[:, ::1] ts = t_solved
-    cdef double system[9]
-    cdef double rhs[3]
+            AtB[3 * (3 * a + b) + a] += sum_m[b]  # ~0 after centring, kept for exactness
+            for l in range(b, 3):
+                AtA[9 * (3 * a + b) + 3 * a + l] += scatter[3 * b + l]
+    # t = -(B^T B)^-1 (B^T A r - B^T D): the 9 + 1 right-hand sides
     for k in range(10):
         for a in range(3):
-            rhs[a] = AtB[k, a] if k < 9 else BtD[a]
+            w[a] = AtB[3 * k + a] if k < 9 else BtD[a]
             for b in range(3):
                 system[3 * a + b] = BtB[a, b]
-        if not solve_linear(system, rhs, 3):
-            rhs[0] = rhs[1] = rhs[2] = np.nan
+        if not solve_linear(system, w, 3):
+            w[0] = w[1] = w[2] = NAN
         for a in range(3):
-            ts[a, k] = rhs[a]
-    t_matrix = -t_solved[:, :9]
-    t_offset = t_solved[:, 9].copy()
-    H = H_ + AtB_ @ t_matrix
-    H = 0.5 * (H + H.T)
-    g = g_ - AtB_ @ t_offset
-    c = DtD - float(BtD_ @ t_offset)
-    return H, g, c, np.ascontiguousarray(t_matrix), t_offset, centroid_arr, BtB_, scatter_
+            if k < 9:
+                t_matrix[a, k] = -w[a]
+            else:
+                t_offset[a] = w[a]
+    # H = A^T A + A^T B t_matrix (symmetric), g = A^T D - A^T B t_offset, c = D^T D - B^T D . t_offset
+    for k in range(9):
+        for l in range(k, 9):
+            s = AtA[9 * k + l]
+            for a in range(3):
+                s += AtB[3 * k + a] * t_matrix[a, l]
+            H[k, l] = H[l, k] = s
+        s = AtD[k]
+        for a in range(3):
+            s -= AtB[3 * k + a] * t_offset[a]
+        g[k] = s
+    cdef double c = DtD - (BtD[0] * t_offset[0] + BtD[1] * t_offset[1] + BtD[2] * t_offset[2])
+    symmetric_eigen(scatter, &spread[0])  # squared singular values of the centred points
+    for a in range(3):
+        for b in range(3):
+            axes[b, a] = scatter[3 * a + b]
+    if axes[0, 0] * (axes[1, 1] * axes[2, 2] - axes[2, 1] * axes[1, 2]) - axes[0, 1] * (axes[1, 0] * axes[2, 2] - axes[2, 0] * axes[1, 2]) \
+            + axes[0, 2] * (axes[1, 0] * axes[2, 1] - axes[2, 0] * axes[1, 1]) < 0:
+        for a in range(3):
+            axes[a, 0] = -axes[a, 0]
+    for a in range(3):
+        for b in range(3):
+            system[3 * a + b] = BtB[a, b]
+    symmetric_eigen(system, btb_eigen)
+    return H_out, g_out, c, t_matrix_out, t_offset_out, centroid_out, BtB_out, axes_out, spread_out, btb_eigen[0]

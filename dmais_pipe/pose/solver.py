@@ -37,6 +37,7 @@ import itertools
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -50,8 +51,7 @@ from .template import Template, template_entries
 TEMPLATE_PATH = Path(__file__).with_name("_template.json")
 
 
-@dataclass(frozen=True)
-class Candidate:
+class Candidate(NamedTuple):
     """A real stationary point of eq. objfun: rotation (3, 3), translation (3,), cost, and the
     fraction of points it puts in front of their rays."""
 
@@ -166,9 +166,7 @@ def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tupl
     R, t, cost, front, best = kernel().solve(
         stats.H, stats.g, stats.c, stats.t_matrix, stats.t_offset, stats.centroid, stats.point_axes,
         stats.point_spread, origins, directions, points)
-    candidates = [Candidate(R=Ri, t=ti, cost=ci, in_front=fi)
-                  for Ri, ti, ci, fi in zip(R, t, cost.tolist(), front.tolist())]
-    return candidates, best
+    return list(map(Candidate, R, t, cost.tolist(), front.tolist())), best
 
 
 def solve_generalized_pose(origins, directions, points, refine: bool = False, sigma: float | None = None) -> GeneralizedPose:

@@ -36,7 +36,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg.lapack import dsyevd
 
 from . import PoseError
 from ._kernels import statistics
@@ -134,16 +133,6 @@ def validate_correspondences(origins, directions, points) -> tuple[np.ndarray, n
     return origins, directions, points
 
 
-def _principal_axes(scatter: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """Eigenvectors (3, 3) of the scatter matrix of the centred points as the columns of a
-    rotation, least spread first, and the eigenvalues (3,); raises PoseError for collinear points."""
-    eigenvalues, axes, _ = dsyevd(scatter)  # squared singular values of the centred points
-    if not eigenvalues[1] > COLLINEAR_TOLERANCE**2 * eigenvalues[2]:
-        raise PoseError(f"pose: the {n} world points are collinear (or coincident)")
-    axes[:, 0] *= np.sign(np.linalg.det(axes))
-    return np.ascontiguousarray(axes), eigenvalues
-
-
 def pose_statistics(origins, directions, points) -> PoseStatistics:
     """Statistics of eq. objfun3 from generalized rays and world points.
 
@@ -156,11 +145,17 @@ def pose_statistics(origins, directions, points) -> PoseStatistics:
 def statistics_of(v: np.ndarray, f: np.ndarray, M: np.ndarray) -> PoseStatistics:
     """`pose_statistics` of correspondences already checked by `validate_correspondences`:
     origins v (n, 3), unit directions f (n, 3), world points M (n, 3), C-contiguous. The sums run
-    compiled (`_kernels.statistics`), one pass over the points."""
+    compiled (`_kernels.statistics`), one pass over the points.
+
+    point_axes: eigenvectors of the scatter matrix of the centred points as the columns of a
+    rotation, least spread first; point_spread: its eigenvalues (the squared singular values of
+    the centred points). Raises PoseError for collinear points and all-parallel rays.
+    """
     n = len(M)
-    H, g, c, t_matrix, t_offset, centroid, BtB, scatter = statistics(v, f, M)
-    point_axes, point_spread = _principal_axes(scatter, n)
-    if not dsyevd(BtB, compute_v=False)[0][0] > 1e-12 * n:
+    H, g, c, t_matrix, t_offset, centroid, BtB, point_axes, point_spread, least_BtB = statistics(v, f, M)
+    if not point_spread[1] > COLLINEAR_TOLERANCE**2 * point_spread[2]:
+        raise PoseError(f"pose: the {n} world points are collinear (or coincident)")
+    if not least_BtB > 1e-12 * n:
         raise PoseError("pose: all rays are parallel; the translation along them is undetermined")
     return PoseStatistics(
         H=H, g=g, c=c, t_matrix=t_matrix, t_offset=t_offset, centroid=centroid, BtB=BtB, n=n, point_axes=point_axes,
