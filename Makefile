@@ -8,7 +8,8 @@ CORES ?= 2
 
 .PHONY: install run paper test lint clean
 
-$(STAMP): pyproject.toml
+# The pose solver's compiled core is rebuilt when its source changes.
+$(STAMP): pyproject.toml setup.py dmais_pipe/pose/_kernels.pyx
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
