@@ -16,10 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-FOCAL_PX = 45000.0
-WIDTH, HEIGHT = 4096, 3000
-#: (tilt, azimuth) in degrees of the optical axes of C0..C4 in the rig frame (C0's camera frame).
-DMAIS_AXES = ((0, 0), (45, 0), (45, 90), (45, 180), (45, 270))
+from dmais_pipe.pose.bench import FOCAL_PX, HEIGHT, WIDTH, dmais_cam_from_rig
 
 
 def random_rotation(rng, max_angle=np.deg2rad(180)) -> np.ndarray:
@@ -48,14 +45,6 @@ def generalized_scene(rng, n=12, n_cameras=4, noise=0.0, offset=(0.0, 0.0, 0.0),
     if noise:
         directions = _unit(directions + noise * rng.normal(size=(n, 3)))
     return origins, directions, points, R, t
-
-
-def dmais_cam_from_rig(k: int) -> tuple[np.ndarray, np.ndarray]:
-    """(R, centre) of camera k: R maps rig to camera coordinates; centre (3,) in the rig frame."""
-    tilt, azimuth = DMAIS_AXES[k]
-    rig_from_cam = Rotation.from_euler("ZX", np.deg2rad([azimuth, tilt])).as_matrix()
-    centre = 0.1 * np.array([np.cos(k), np.sin(k), 0.0]) if k else np.zeros(3)
-    return rig_from_cam.T, centre
 
 
 def dmais_pose(rng, yaw=None, tilt_deg=3.0, height=350.0) -> tuple[np.ndarray, np.ndarray]:

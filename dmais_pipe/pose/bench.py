@@ -27,14 +27,17 @@ from .solver import solve_batch, solve_generalized_pose
 POINT_COUNTS = (10, 50, 100, 200, 300, 400, 500)
 PAPER_TABLE = Path(__file__).resolve().parents[2] / "config" / "paper_tables" / "time_points.csv"
 FOCAL_PX, WIDTH, HEIGHT, NOISE_PX = 45000.0, 4096, 3000, 4.0
-AXES_DEG = ((0, 0), (45, 0), (45, 90), (45, 180), (45, 270))
+#: (tilt, azimuth) in degrees of the optical axes of C0..C4 in the rig frame (C0's camera frame).
+DMAIS_AXES = ((0, 0), (45, 0), (45, 90), (45, 180), (45, 270))
 
 
-def _cam_from_rig(k: int):
-    tilt, azimuth = AXES_DEG[k]
-    R = Rotation.from_euler("ZX", np.deg2rad([azimuth, tilt])).as_matrix().T
+def dmais_cam_from_rig(k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(R, centre) of camera k of the paper's rig: R (3, 3) maps rig to camera coordinates,
+    centre (3,) in the rig frame (0.1 m from C0's)."""
+    tilt, azimuth = DMAIS_AXES[k]
+    rig_from_cam = Rotation.from_euler("ZX", np.deg2rad([azimuth, tilt])).as_matrix()
     centre = 0.1 * np.array([np.cos(k), np.sin(k), 0.0]) if k else np.zeros(3)
-    return R, -R @ centre
+    return rig_from_cam.T, centre
 
 
 def _bearings(uv: np.ndarray) -> np.ndarray:
@@ -51,10 +54,10 @@ def dmais_frame(rng, n_points: int):
     uv = rng.uniform([0, 0], [WIDTH - 1, HEIGHT - 1], size=(n_points, 2))
     points = np.empty((n_points, 3))
     for k in range(5):
-        R_c, t_c = _cam_from_rig(k)
+        R_c, centre_c = dmais_cam_from_rig(k)
         m = cams == k
         direction = (_bearings(uv[m]) @ R_c) @ world_from_rig.T
-        origin = centre + world_from_rig @ (-R_c.T @ t_c)
+        origin = centre + world_from_rig @ centre_c
         depth = (rng.uniform(-10, 10, m.sum()) - origin[2]) / direction[:, 2]
         points[m] = origin + depth[:, None] * direction
     uv = uv + NOISE_PX * rng.normal(size=uv.shape)
@@ -63,8 +66,8 @@ def dmais_frame(rng, n_points: int):
 
 #: rig_from_cam rotations (5, 3, 3) and camera centres in the rig frame (5, 3), built once like
 #: pycolmap's cameras, outside the timed solves.
-_RIG_FROM_CAM = np.array([_cam_from_rig(k)[0].T for k in range(5)])
-_CENTRES = np.array([-_cam_from_rig(k)[0].T @ _cam_from_rig(k)[1] for k in range(5)])
+_RIG_FROM_CAM = np.array([dmais_cam_from_rig(k)[0].T for k in range(5)])
+_CENTRES = np.array([dmais_cam_from_rig(k)[1] for k in range(5)])
 
 
 def _rays(cams, uv):
@@ -77,7 +80,10 @@ def _pycolmap_solver():
 
     camera = pycolmap.Camera(model="PINHOLE", width=WIDTH, height=HEIGHT,
                              params=[FOCAL_PX, FOCAL_PX, (WIDTH - 1) / 2 + 0.5, (HEIGHT - 1) / 2 + 0.5])
-    cams_from_rig = [pycolmap.Rigid3d(pycolmap.Rotation3d(_cam_from_rig(k)[0]), _cam_from_rig(k)[1]) for k in range(5)]
+    cams_from_rig = []
+    for k in range(5):
+        R, centre = dmais_cam_from_rig(k)
+        cams_from_rig.append(pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ centre))
     options = pycolmap.RANSACOptions()
     options.max_error = 12.0
 
