@@ -33,6 +33,21 @@ def test_template_is_the_stored_one_and_valid_on_fresh_instances():
     assert runtime().m == 118
 
 
+def test_template_check_rejects_a_template_that_drops_a_needed_monomial():
+    """Dropping a row with an E column keeps the block square and nonsingular, yet the reductions
+    then carry a term in the dropped monomial: such a template is wrong, however well it polishes."""
+    template = Template.from_json(TEMPLATE_PATH.read_text())
+    smaller = Template(
+        action_variable=template.action_variable,
+        rows=tuple(row for row in template.rows if row != (4, (1, 3, 0))),
+        columns=tuple(column for column in template.columns if column != (5, 3, 0)),
+        n_reducible=template.n_reducible,
+    )
+    assert smaller.shape == (117, 157)
+    with pytest.raises(RuntimeError, match="drops excessive monomials"):
+        check_template(smaller, seeds=(101,))
+
+
 @pytest.mark.parametrize("kind", sorted(SCENES))
 def test_noise_free_rotation_accuracy(kind):
     rng = np.random.default_rng(7)

@@ -235,6 +235,8 @@ def build_template(action_variable: int, seed: int = BUILD_SEED, degree: int = E
 def check_template(template: Template, seeds=CHECK_SEEDS) -> None:
     """Raise RuntimeError unless the template reduces R to B on other random instances too."""
     m = template.shape[0]
+    reduced_or_basis = set(template.columns[m - template.n_reducible :])
+    equation_monomials = [tuple(int(x) for x in mono) for mono in MONOMIALS]
     for seed in seeds:
         coeffs = random_instance(seed)
         if tuple(standard_monomials(coeffs)) != template.basis:
@@ -242,3 +244,10 @@ def check_template(template: Template, seeds=CHECK_SEEDS) -> None:
         matrix = coefficient_matrix(coeffs, template.rows, template.columns)
         if len(echelon_pivots(matrix[:, :m])) != m:
             raise RuntimeError(f"instance {seed}: the eliminated block of the template is singular")
+        # The E columns left out must be combinations of those kept, else the reductions carry
+        # terms in monomials the template ignores (a square, nonsingular block does not show it).
+        excessive = [mono for mono in grevlex_descending(_add(mono, mult) for _, mult in template.rows
+                                                         for mono in equation_monomials)
+                     if mono not in reduced_or_basis]
+        if len(echelon_pivots(coefficient_matrix(coeffs, template.rows, excessive))) != m - template.n_reducible:
+            raise RuntimeError(f"instance {seed}: the template drops excessive monomials its rows need")
