@@ -67,3 +67,24 @@ def test_per_group_jobs_merge_into_the_same_poses(dataset, tmp_path):
     pd.read_csv(parts[0]).drop(columns="time_ms").to_csv(tmp_path / "bad.csv", index=False)
     with pytest.raises(DmaisError, match="bad.csv: columns"):
         merge_poses(dataset, tmp_path, [tmp_path / "bad.csv"])
+
+
+def test_a_group_without_a_solvable_frame_leaves_an_empty_part(dataset, tmp_path, caplog):
+    shutil.copy(dataset / "truth" / "rig.json", tmp_path / "rig.json")
+    frames = pd.read_csv(dataset / "frames.csv", dtype={"frame": str, "group": str})
+    images = pd.read_csv(dataset / "images.csv", dtype=str)
+    lost_group = sorted(set(frames["group"]))[0]
+    lost_frames = frames.loc[frames["group"] == lost_group, "frame"]
+    lost_images = set(images.loc[(images["stage"] == "flight") & images["placement"].isin(lost_frames), "image"])
+    observations = pd.read_csv(dataset / "observations.csv", dtype={"image": str, "point_id": str})
+    observations["camera"] = observations["image"].map(dict(zip(images["image"], images["camera"])))
+    observations[~observations["image"].isin(lost_images)].to_csv(tmp_path / "observations.csv", index=False)
+
+    part = run_pose(dataset, tmp_path, groups=[lost_group], out=tmp_path / "parts" / "lost.csv")
+    assert "could be solved" in caplog.text
+    assert list(pd.read_csv(part).columns) == COLUMNS and pd.read_csv(part).empty
+    other = run_pose(dataset, tmp_path, groups=sorted(set(frames["group"]))[1:2], out=tmp_path / "parts" / "other.csv")
+    merged = pd.read_csv(merge_poses(dataset, tmp_path, [part, other]), dtype={"frame": str, "group": str})
+    assert len(merged) and lost_group not in set(merged["group"])
+    with pytest.raises(DmaisError, match="none of the 1 per-group pose files"):
+        merge_poses(dataset, tmp_path, [part])

@@ -9,7 +9,9 @@ rig (e.g. 012), with the DESIGN.md columns
 
 (rig_from_world, rig centre x, y, z in the world, eps_proj_px the RMS reprojection distance over the
 frame's observations, time_ms the wall time of the solve alone). Frames with fewer than 3 usable
-observations, or that the solver rejects, are left out with a warning naming them.
+observations, or that the solver rejects, are left out with a warning naming them. A per-group
+job (`groups`) with no solvable frame writes an empty part with a warning, so that one group seen
+badly by a camera subset does not stop the workflow; the merge fails only when every part is empty.
 """
 
 from __future__ import annotations
@@ -139,11 +141,14 @@ def run_pose(dataset_dir, results_dir, cameras: list[str] | None = None, robust:
     chosen = _cameras(rig, cameras)
     with single_threaded_blas():  # small matrices: threads only add hand-offs to time_ms
         table = estimate_poses(dataset, rig, load_observations(dataset, results_dir), chosen, robust, refine, groups)
-    if table.empty:
+    if table.empty and not groups:
         raise DmaisError(f"pose: no flight frame of {dataset_dir} could be solved with cameras {chosen}")
+    if table.empty:
+        log.warning("pose: no flight frame of group(s) %s could be solved with cameras %s", groups, chosen)
     path = out or poses_path(results_dir, rig, chosen)
     write_csv_atomic(path, table)
-    log.info("pose: %d frames -> %s (median %.2f ms per solve)", len(table), path, table["time_ms"].median())
+    if len(table):
+        log.info("pose: %d frames -> %s (median %.2f ms per solve)", len(table), path, table["time_ms"].median())
     return path
 
 
@@ -161,6 +166,8 @@ def merge_poses(dataset_dir, results_dir, parts: list[Path], cameras: list[str] 
     if not tables:
         raise DmaisError("pose: no per-group pose file to merge")
     merged = pd.concat(tables, ignore_index=True)
+    if merged.empty:
+        raise DmaisError(f"pose: none of the {len(parts)} per-group pose files has a solved frame")
     repeated = merged["frame"][merged["frame"].duplicated()]
     if len(repeated):
         raise DmaisError(f"pose: frame {repeated.iloc[0]!r} appears in more than one of {[str(p) for p in parts]}")
