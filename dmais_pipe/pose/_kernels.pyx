@@ -548,7 +548,6 @@ cdef class Kernel:
         if self.octahedral.shape[0] != 9 * 24:
             raise ValueError("octahedral must be (24, 3, 3)")
 
-
     cdef int real_roots(self, const Problem *p, const double *P, double *rotations):
         """Rotations Cayley(q) P (k, 3, 3) for the real and nearly real roots q of eq. EF6 in the
         frame P, written to rotations; returns k.
