@@ -278,3 +278,18 @@ def test_batch_solves_every_frame_and_reports_bad_ones():
     assert isinstance(results[2], PoseError)
     for result, (_, _, _, R, _) in zip(results[:2] + results[3:], frames):
         assert rotation_error(result.R, R) < 1e-8
+
+
+def test_threaded_batch_equals_the_sequential_one():
+    """The compiled core runs without the GIL: threads solve frames at once, with the same results."""
+    from dmais_pipe.pose.solver import solve_batch
+
+    rng = np.random.default_rng(9)
+    problems = [dmais_scene(rng, 4, noise_px=4.0)[:3] for _ in range(40)]
+    problems.insert(7, (problems[0][0][:2], problems[0][1][:2], problems[0][2][:2]))
+    sequential = solve_batch(problems)
+    threaded = solve_batch(problems, workers=3)
+    assert isinstance(threaded[7], PoseError)
+    for one, other in zip(sequential[:7] + sequential[8:], threaded[:7] + threaded[8:]):
+        np.testing.assert_array_equal(one.R, other.R)
+        assert one.cost == other.cost and len(one.candidates) == len(other.candidates)

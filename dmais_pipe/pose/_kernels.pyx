@@ -5,10 +5,12 @@
 A solve is about a hundred operations on 3 x 3 to 158 x 118 matrices; as numpy calls each costs
 a few microseconds of overhead, which dominated the solve. Matrices here are C-ordered doubles
 (r = vec(R) row-major, as in `statistics.py`); LAPACK comes from SciPy's `cython_lapack`, which
-takes column-major matrices. Every buffer is allocated per call, so one `Kernel` may serve threads.
+takes column-major matrices. Every buffer is allocated per call and the solve runs without the
+GIL, so one `Kernel` serves several threads at once.
 """
 
 from libc.math cimport NAN, acos, fabs, isfinite, sqrt
+from libc.stdlib cimport calloc, free
 from libc.string cimport memcpy, memset
 from scipy.linalg.cython_lapack cimport dgebak, dgebal, dgehrd, dgesvd, dgetrf, dhsein, dhseqr, dormhr, dsyev, dtrtrs
 
@@ -60,6 +62,20 @@ cdef struct Problem:
     const double *f  # (n, 3) unit ray directions
     const double *M  # (n, 3) world points (not centred)
     int n
+
+
+cdef struct Candidates:
+    double *R  # (CAPACITY, 9) rotations
+    double *t  # (CAPACITY, 3) centred translations
+    double *cost  # (CAPACITY,)
+    double *front  # (CAPACITY,) fraction of points in front
+
+
+cdef struct Scratch:
+    double *coefficients  # (6 * n_monomials,) of the equations
+    double *template  # (m * n_columns,) column-major
+    int *pivots  # (m,)
+    double *action  # (40 * 40,) column-major
 
 
 # ------------------------------------------------------------------------------ small matrices
@@ -136,7 +152,7 @@ cdef void cayley_times(const double *q, const double *R, double *out) noexcept n
     memcpy(out, tmp, 9 * sizeof(double))
 
 
-cdef void nearest_rotation(double *X) noexcept:
+cdef void nearest_rotation(double *X) noexcept nogil:
     """Replace X (3, 3) by the nearest rotation (Frobenius): U diag(1, 1, det U V^T) V^T."""
     cdef int three = 3, lwork = 64, info = 0
     cdef double s[3]
@@ -330,7 +346,7 @@ cdef inline double sum_squares(const double *x, int d) noexcept nogil:
 # ------------------------------------------------------------------------------ frames
 
 
-cdef void sphere_minimiser(const double *H, const double *g, int d, double radius2, double *x) noexcept:
+cdef void sphere_minimiser(const double *H, const double *g, int d, double radius2, double *x) noexcept nogil:
     """The minimiser x (d,) of x^T H x - 2 g^T x on the sphere |x|^2 = radius2; H (d, d) symmetric.
 
     The trust-region subproblem: x = (H - mu I)^-1 g with mu below the least eigenvalue of H,
@@ -396,7 +412,7 @@ cdef void in_frame(const double *H, const double *g, const double *P, double *H_
             g_out[3 * a + j] = P[3 * j] * g[3 * a] + P[3 * j + 1] * g[3 * a + 1] + P[3 * j + 2] * g[3 * a + 2]
 
 
-cdef int relaxed_rotations(const Problem *p, const double *axes, const double *spread, double *out) noexcept:
+cdef int relaxed_rotations(const Problem *p, const double *axes, const double *spread, double *out) noexcept nogil:
     """Rotations (2 or 4, 3, 3) near the minimum, written to out; returns their count.
 
     From the sphere relaxation |vec R|^2 = 3 of eq. objfun3 and, for (nearly) planar points, from
@@ -454,7 +470,8 @@ cdef double rounding_level(const Problem *p) noexcept nogil:
     return COST_ROUNDING * (trace9(p.H) + sqrt(sum_squares(p.g, 9)) + fabs(p.c))
 
 
-cdef void solving_frame(const Problem *p, const double *octahedral, const double *axes, const double *spread, double *P) noexcept:
+cdef void solving_frame(const Problem *p, const double *octahedral, const double *axes, const double *spread,
+                       double *P) noexcept nogil:
     """Rotation P (3, 3) near the sought rotation: the most promising of the octahedral group and
     the relaxed rotations.
 
@@ -483,7 +500,7 @@ cdef void solving_frame(const Problem *p, const double *octahedral, const double
 # ------------------------------------------------------------------------------ the solver
 
 
-cdef int nearly_real_eigenvectors(double *A, double *wr, double *wi, bint *select, double *V, int *found) noexcept:
+cdef int nearly_real_eigenvectors(double *A, double *wr, double *wi, bint *select, double *V, int *found) noexcept nogil:
     """Eigenvalues wr + i wi (40,) of the column-major A (40, 40), which is overwritten, and the
     right eigenvectors V (40, found) of those nearly real, |wi| < IMAGINARY_TOLERANCE (1 + |wr|),
     in order: select (40,) marks them (a pair at its first eigenvalue, whose vector is packed as
@@ -548,7 +565,7 @@ cdef class Kernel:
         if self.octahedral.shape[0] != 9 * 24:
             raise ValueError("octahedral must be (24, 3, 3)")
 
-    cdef int real_roots(self, const Problem *p, const double *P, double *rotations):
+    cdef int real_roots(self, const Problem *p, const double *P, double *rotations, Scratch *scratch) noexcept nogil:
         """Rotations Cayley(q) P (k, 3, 3) for the real and nearly real roots q of eq. EF6 in the
         frame P, written to rotations; returns k.
 
@@ -566,10 +583,9 @@ cdef class Kernel:
         cdef int m = self.m, n_columns = self.n_columns, n_red = self.n_reducible, n = N_SOLUTIONS
         cdef int first = m - n_red
         cdef double trace, size, imag, re0, im0, re, im, denominator
-        cdef double[::1] coefficients = np.zeros(6 * self.n_monomials)
-        cdef double[::1] template = np.zeros(m * n_columns)
-        cdef int[::1] pivots = np.empty(m, dtype=np.int32)
-        cdef double[::1] action = np.zeros(n * n)
+        cdef double *coefficients = scratch.coefficients
+        cdef double *template = scratch.template
+        cdef double *action = scratch.action
         cdef double wr[N_SOLUTIONS]
         cdef double wi[N_SOLUTIONS]
         cdef double vr[N_SOLUTIONS * N_SOLUTIONS]
@@ -584,24 +600,27 @@ cdef class Kernel:
                 k += 1
         for i in range(9):
             parameters[45 + i] = gf[i] / trace
+        memset(coefficients, 0, 6 * self.n_monomials * sizeof(double))
         for k in range(self.n_entries):
             coefficients[self.entries[k, 0] * self.n_monomials + self.entries[k, 1]] += \
                 self.entries[k, 3] * parameters[self.entries[k, 2]]
+        memset(template, 0, m * n_columns * sizeof(double))
         for k in range(self.target.shape[0]):
             template[self.target[k]] = coefficients[self.source[k]]
         # LU of [C_E C_R | C_B] (column-major, m x n_columns); U_RR R + U_RB B = 0 gives R.
-        dgetrf(&m, &n_columns, &template[0], &m, &pivots[0], &info)
+        dgetrf(&m, &n_columns, template, &m, scratch.pivots, &info)
         if info != 0:
             return 0
         dtrtrs(b"U", b"N", b"N", &n_red, &n, &template[first * m + first], &m, &template[m * m + first], &m, &info)
         if info != 0:
             return 0
+        memset(action, 0, n * n * sizeof(double))
         for k in range(self.shift_from.shape[0]):  # action matrix, column-major
             action[self.shift_to[k] * n + self.shift_from[k]] = 1.0
         for k in range(self.reduced_rows.shape[0]):
             for j in range(n):
                 action[j * n + self.reduced_rows[k]] = -template[(m + j) * m + first + self.reduced_index[k]]
-        if nearly_real_eigenvectors(&action[0], wr, wi, select, vr, &found) != 0:
+        if nearly_real_eigenvectors(action, wr, wi, select, vr, &found) != 0:
             return 0
         column = 0
         for j in range(n):
@@ -625,20 +644,38 @@ cdef class Kernel:
                 count += 1
         return count
 
+    cdef bint allocate(self, Scratch *scratch) noexcept nogil:
+        """The buffers of `real_roots` (free them with `release`); False if memory is short."""
+        scratch.coefficients = <double *> calloc(6 * self.n_monomials, sizeof(double))
+        scratch.template = <double *> calloc(self.m * self.n_columns, sizeof(double))
+        scratch.pivots = <int *> calloc(self.m, sizeof(int))
+        scratch.action = <double *> calloc(N_SOLUTIONS * N_SOLUTIONS, sizeof(double))
+        return (scratch.coefficients != NULL and scratch.template != NULL and scratch.pivots != NULL
+                and scratch.action != NULL)
+
     def rotations_of_roots(self, const double[:, ::1] H, const double[::1] g, const double[:, ::1] P):
         """Rotations (k, 3, 3) of the real and nearly real roots of eq. EF6 for statistics H (9, 9),
         g (9,), solved in the frame P (3, 3) (`real_roots`)."""
         cdef Problem p
+        cdef Scratch scratch
+        cdef int k = 0
+        memset(&scratch, 0, sizeof(Scratch))
         p.H, p.g = &H[0, 0], &g[0]
         rotations = np.empty((N_SOLUTIONS, 3, 3))
         cdef double[:, :, ::1] out = rotations
-        return rotations[:self.real_roots(&p, &P[0, 0], &out[0, 0, 0])]
+        try:
+            if not self.allocate(&scratch):
+                raise MemoryError("pose: no memory for the elimination template")
+            k = self.real_roots(&p, &P[0, 0], &out[0, 0, 0], &scratch)
+        finally:
+            release(&scratch)
+        return rotations[:k]
 
     def solve(self, const double[:, ::1] H, const double[::1] g, double c, const double[:, ::1] t_matrix,
               const double[::1] t_offset, const double[::1] centroid, const double[:, ::1] point_axes,
               const double[::1] point_spread, const double[:, ::1] origins, const double[:, ::1] directions,
               const double[:, ::1] points):
-        """All real stationary candidates and the solution (the steps of `solver.py`).
+        """All real stationary candidates and the solution (the steps of `solver.py`), without the GIL.
 
         H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), point_axes (3, 3),
         point_spread (3,): the `PoseStatistics`; origins, directions (unit), points: (n, 3).
@@ -653,50 +690,68 @@ cdef class Kernel:
         cdef double[:, ::1] t = np.empty((CAPACITY, 3))
         cdef double[::1] cost = np.empty(CAPACITY)
         cdef double[::1] front = np.empty(CAPACITY)
+        cdef Candidates found
+        found.R, found.t, found.cost, found.front = &R[0, 0], &t[0, 0], &cost[0], &front[0]
+        cdef Scratch scratch
+        cdef int k = 0
+        cdef bint allocated = False
+        memset(&scratch, 0, sizeof(Scratch))
+        try:
+            with nogil:
+                allocated = self.allocate(&scratch)
+                if allocated:
+                    k = self.candidates(&p, &found, &scratch, &self.octahedral[0], &point_axes[0, 0], &point_spread[0])
+        finally:
+            release(&scratch)
+        if not allocated:
+            raise MemoryError("pose: no memory for the elimination template")
+        return distinct_candidates(&found, k, centroid)
+
+    cdef int candidates(self, const Problem *p, Candidates *c, Scratch *scratch, const double *octahedral,
+                        const double *point_axes, const double *point_spread) noexcept nogil:
+        """The steps of `solver.py` up to the candidates (rotation, centred t, cost, front) in c;
+        returns their count."""
         cdef double P[9]
         cdef double step[9]
         cdef double mirror[9]
-        cdef double normal[3]
         cdef int i, j, k, best, before
 
         # Solving where the sought rotation is near q = 0 keeps it away from Cayley's blind spot.
-        solving_frame(&p, &self.octahedral[0], &point_axes[0, 0], &point_spread[0], P)
-        memcpy(&R[0, 0], P, 9 * sizeof(double))
-        k = self.polished(&p, &R[0, 0], 0, 1 + self.real_roots(&p, P, &R[1, 0]))
-        evaluate(&p, R, t, cost, front, 0, k)
+        solving_frame(p, octahedral, point_axes, point_spread, P)
+        memcpy(c.R, P, 9 * sizeof(double))
+        k = self.polished(p, c.R, 0, 1 + self.real_roots(p, P, c.R + 9, scratch))
+        evaluate(p, c, 0, k)
         memcpy(step, P, 9 * sizeof(double))
-        descend(&p, step, 1)
-        best = select(cost, front, k)
+        descend(p, step, 1)
+        best = select(c, k)
         # A first step from P within a quarter of its distance to the solution found means P lies
         # in the solution's basin, where the descent would end; otherwise the local minimum it
         # ends at joins the candidates, in case the roots missed it.
-        if k == 0 or angle_between(step, &R[best, 0]) > 0.25 * angle_between(P, &R[best, 0]):
-            memcpy(&R[k, 0], step, 9 * sizeof(double))
-            descend(&p, &R[k, 0], DESCENT_ITERATIONS)
-            polish(&p, &R[k, 0])
-            evaluate(&p, R, t, cost, front, k, k + 1)
+        if k == 0 or angle_between(step, c.R + 9 * best) > 0.25 * angle_between(P, c.R + 9 * best):
+            memcpy(c.R + 9 * k, step, 9 * sizeof(double))
+            descend(p, c.R + 9 * k, DESCENT_ITERATIONS)
+            polish(p, c.R + 9 * k)
+            evaluate(p, c, k, k + 1)
             k += 1
-        best = select(cost, front, k)
+        best = select(c, k)
         before = k
-        if trace_product_t(&R[best, 0], P) < 1.0 + 2.0 * COS_MAX_FRAME_ANGLE:
-            k = self.polished(&p, &R[0, 0], k, k + self.real_roots(&p, &R[best, 0], &R[k, 0]))
+        if trace_product_t(c.R + 9 * best, P) < 1.0 + 2.0 * COS_MAX_FRAME_ANGLE:
+            k = self.polished(p, c.R, k, k + self.real_roots(p, c.R + 9 * best, c.R + 9 * k, scratch))
         # A cheaper pose with the points behind the rays: its mirror (180 deg about the normal of
         # the points) is where the roots of an ill-conditioned planar scene may have missed the minimum.
         for i in range(3):
-            normal[i] = point_axes[i, 0]
-        for i in range(3):
             for j in range(3):
-                mirror[3 * i + j] = 2.0 * normal[i] * normal[j] - (1.0 if i == j else 0.0)
+                mirror[3 * i + j] = 2.0 * point_axes[3 * i] * point_axes[3 * j] - (1.0 if i == j else 0.0)
         j = k
         for i in range(before):
-            if front[i] < 0.5 and cost[i] < cost[best]:
-                matmul3(&R[i, 0], mirror, &R[j, 0])
+            if c.front[i] < 0.5 and c.cost[i] < c.cost[best]:
+                matmul3(c.R + 9 * i, mirror, c.R + 9 * j)
                 j += 1
-        k = self.polished(&p, &R[0, 0], k, j)
-        evaluate(&p, R, t, cost, front, before, k)
-        return distinct_candidates(R, t, cost, front, k, centroid)
+        k = self.polished(p, c.R, k, j)
+        evaluate(p, c, before, k)
+        return k
 
-    cdef int polished(self, const Problem *p, double *R, int start, int stop):
+    cdef int polished(self, const Problem *p, double *R, int start, int stop) noexcept nogil:
         """Polish rotations start..stop of R (k, 9) and keep the stationary ones (compacted from
         start); returns the new end."""
         cdef int i, end = start
@@ -708,18 +763,27 @@ cdef class Kernel:
         return end
 
 
-cdef distinct_candidates(double[:, ::1] R, double[:, ::1] t, double[::1] cost, double[::1] front, int k,
-                         const double[::1] centroid):
-    """The candidates 0..k of R (9), centred t (3), cost, front sorted by cost, duplicate rotations
-    (e.g. polished conjugate pairs) removed, t in the original world frame, cost clipped at 0:
-    R (k', 3, 3), t (k', 3), cost (k',), front (k',) and the index of the solution, the cheapest
-    with at least half the points in front, if any."""
+cdef void release(Scratch *scratch) noexcept nogil:
+    """Free the buffers of `Kernel.allocate` (free ignores NULL)."""
+    free(scratch.coefficients)
+    free(scratch.template)
+    free(scratch.pivots)
+    free(scratch.action)
+    scratch.coefficients = scratch.template = scratch.action = NULL
+    scratch.pivots = NULL
+
+
+cdef distinct_candidates(const Candidates *c, int k, const double[::1] centroid):
+    """The candidates 0..k of c sorted by cost, duplicate rotations (e.g. polished conjugate pairs)
+    removed, t in the original world frame, cost clipped at 0: R (k', 3, 3), t (k', 3), cost (k',),
+    front (k',) and the index of the solution, the cheapest with at least half the points in
+    front, if any."""
     cdef int order[CAPACITY]
     cdef int i, j, a, b, count = 0, best = -1
     cdef double largest
     for i in range(k):  # insertion sort, stable
         j = i
-        while j > 0 and cost[order[j - 1]] > cost[i]:
+        while j > 0 and c.cost[order[j - 1]] > c.cost[i]:
             order[j] = order[j - 1]
             j -= 1
         order[j] = i
@@ -727,7 +791,7 @@ cdef distinct_candidates(double[:, ::1] R, double[:, ::1] t, double[::1] cost, d
         for j in range(count):
             largest = 0.0
             for a in range(9):
-                largest = max(largest, fabs(R[order[i], a] - R[order[j], a]))
+                largest = max(largest, fabs(c.R[9 * order[i] + a] - c.R[9 * order[j] + a]))
             if largest < DUPLICATE_TOLERANCE:
                 break
         else:
@@ -740,28 +804,27 @@ cdef distinct_candidates(double[:, ::1] R, double[:, ::1] t, double[::1] cost, d
     for i in range(count):
         j = order[i]
         for a in range(3):
-            t_view[i, a] = t[j, a]
+            t_view[i, a] = c.t[3 * j + a]
             for b in range(3):
-                R_view[i, a, b] = R[j, 3 * a + b]
-                t_view[i, a] -= R[j, 3 * a + b] * centroid[b]
-        cost_view[i] = max(cost[j], 0.0)
-        front_view[i] = front[j]
-        if best < 0 and front[j] >= 0.5:
+                R_view[i, a, b] = c.R[9 * j + 3 * a + b]
+                t_view[i, a] -= c.R[9 * j + 3 * a + b] * centroid[b]
+        cost_view[i] = max(c.cost[j], 0.0)
+        front_view[i] = c.front[j]
+        if best < 0 and c.front[j] >= 0.5:
             best = i
     return R_out, t_out, cost_out, front_out, max(best, 0)
 
 
-cdef void evaluate(const Problem *p, double[:, ::1] R, double[:, ::1] t, double[::1] cost, double[::1] front,
-                   int start, int stop) noexcept:
+cdef void evaluate(const Problem *p, Candidates *c, int start, int stop) noexcept nogil:
     """Cost, centred translation and fraction of points in front of rotations start..stop."""
     cdef int i
     for i in range(start, stop):
-        cost[i] = cost_of(p, &R[i, 0])
-        centred_translation(p, &R[i, 0], &t[i, 0])
-        front[i] = front_fraction(p, &R[i, 0], &t[i, 0])
+        c.cost[i] = cost_of(p, c.R + 9 * i)
+        centred_translation(p, c.R + 9 * i, c.t + 3 * i)
+        c.front[i] = front_fraction(p, c.R + 9 * i, c.t + 3 * i)
 
 
-cdef int select(double[::1] cost, double[::1] front, int k) noexcept:
+cdef int select(const Candidates *c, int k) noexcept nogil:
     """Index of the solution: least cost among the poses with at least half the points in front,
     if any.
 
@@ -772,14 +835,14 @@ cdef int select(double[::1] cost, double[::1] front, int k) noexcept:
     cdef int i, best = -1
     cdef bint feasible = False
     for i in range(k):
-        if front[i] >= 0.5 and not feasible:
+        if c.front[i] >= 0.5 and not feasible:
             feasible, best = True, i
-        elif (front[i] >= 0.5 or not feasible) and (best < 0 or cost[i] < cost[best]):
+        elif (c.front[i] >= 0.5 or not feasible) and (best < 0 or c.cost[i] < c.cost[best]):
             best = i
     return max(best, 0)
 
 
-cdef void symmetric_eigen(double *A, double *eigenvalues) noexcept:
+cdef void symmetric_eigen(double *A, double *eigenvalues) noexcept nogil:
     """Eigenvalues (3,), ascending, of the symmetric A (3, 3), replaced by its eigenvectors as rows."""
     cdef int three = 3, lwork = 64, info = 0
     cdef double work[64]

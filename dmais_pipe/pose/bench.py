@@ -6,12 +6,13 @@ cameras) are solved by ours (`solve_generalized_pose`) and by pycolmap's general
 pose (`estimate_and_refine_generalized_absolute_pose`: LO-RANSAC over GP3P + refinement) on the
 same observations, in one run; the median wall time per solve is reported with the paper's C++
 figures (config/paper_tables/time_points.csv). Batch throughput is frames per second of
-`solve_batch` over many 50-point frames. OpenBLAS runs single-threaded meanwhile (see
-`single_threaded_blas`).
+`solve_batch` over many 50-point frames, in one thread and in as many as the machine has cores.
+OpenBLAS runs single-threaded meanwhile (see `single_threaded_blas`).
 """
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -130,13 +131,17 @@ def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int
                          "pycolmap_rot_err_arcmin": colmap_err})
         frames = [dmais_frame(rng, 50) for _ in range(batch_frames)]
         problems = [(*_rays(cams, uv), points) for cams, uv, points, _ in frames]
-        start = time.perf_counter()
-        solve_batch(problems)
-        throughput = batch_frames / (time.perf_counter() - start)
+        batch = []
+        for workers in sorted({1, os.cpu_count() or 1}):
+            start = time.perf_counter()
+            solve_batch(problems, workers=workers)
+            batch.append({"points_per_frame": 50, "frames": batch_frames, "workers": workers,
+                          "frames_per_s": batch_frames / (time.perf_counter() - start)})
     table = pd.DataFrame(rows)
     print(table.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
-    print(f"batch: {throughput:.0f} frames/s (50 points per frame, rays precomputed, {batch_frames} frames)")
+    for run in batch:
+        print(f"batch: {run['frames_per_s']:.0f} frames/s in {run['workers']} thread(s) "
+              f"(50 points per frame, rays precomputed, {batch_frames} frames)")
     write_csv_atomic(csv, table)
-    write_csv_atomic(Path(csv).with_name(Path(csv).stem + "_batch.csv"),
-                     pd.DataFrame([{"points_per_frame": 50, "frames": batch_frames, "frames_per_s": throughput}]))
+    write_csv_atomic(Path(csv).with_name(Path(csv).stem + "_batch.csv"), pd.DataFrame(batch))
     return table
