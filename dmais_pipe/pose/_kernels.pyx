@@ -133,6 +133,12 @@ cdef bint solve_linear(double *A, double *b, int d) noexcept nogil:
     return True
 
 
+cdef inline double det3(const double *A) noexcept nogil:
+    """Determinant of A (3, 3) (either storage order)."""
+    return (A[0] * (A[4] * A[8] - A[7] * A[5]) - A[3] * (A[1] * A[8] - A[7] * A[2])
+            + A[6] * (A[1] * A[5] - A[4] * A[2]))
+
+
 cdef void cayley_times(const double *q, const double *R, double *out) noexcept nogil:
     """out = Cayley(q) @ R, q (3,), R (3, 3) (geometry.rotation_from_cayley); out may alias R."""
     cdef double qq = q[0] * q[0] + q[1] * q[1] + q[2] * q[2]
@@ -160,16 +166,13 @@ cdef void nearest_rotation(double *X) noexcept nogil:
     cdef double Vt[9]
     cdef double work[64]
     cdef double Q[9]
-    cdef double det
     cdef int i, j
     # X read column-major is X^T = U S Vt; its nearest rotation U D Vt read row-major is nearest(X).
     dgesvd(b"A", b"A", &three, &three, X, &three, s, U, &three, Vt, &three, work, &lwork, &info)
     for i in range(3):  # Q = U Vt (column-major)
         for j in range(3):
             Q[i + 3 * j] = U[i] * Vt[3 * j] + U[i + 3] * Vt[1 + 3 * j] + U[i + 6] * Vt[2 + 3 * j]
-    det = (Q[0] * (Q[4] * Q[8] - Q[7] * Q[5]) - Q[3] * (Q[1] * Q[8] - Q[7] * Q[2])
-           + Q[6] * (Q[1] * Q[5] - Q[4] * Q[2]))
-    if det < 0:
+    if det3(Q) < 0:
         for i in range(3):
             for j in range(3):
                 Q[i + 3 * j] -= 2.0 * U[i + 6] * Vt[2 + 3 * j]
@@ -272,6 +275,11 @@ cdef double trace9(const double *H) noexcept nogil:
     return s
 
 
+cdef inline double statistics_size(const Problem *p) noexcept nogil:
+    """trace H + |g|: the scale against which gradients and costs are small."""
+    return trace9(p.H) + sqrt(sum_squares(p.g, 9))
+
+
 cdef void descend(const Problem *p, double *R, int iterations) noexcept nogil:
     """Damped Gauss-Newton descent of the cost on SO(3), R <- exp([w]x) R, from R (3, 3) in place.
 
@@ -293,7 +301,7 @@ cdef void descend(const Problem *p, double *R, int iterations) noexcept nogil:
             step[a] = -gradient[a]
         if not solve_linear(hessian, step, 3):
             break
-        norm = sqrt(step[0] * step[0] + step[1] * step[1] + step[2] * step[2])
+        norm = sqrt(sum_squares(step, 3))
         factor = min(0.5, 0.5 * MAX_STEP / max(norm, 1e-300))
         for a in range(3):
             step[a] *= factor
@@ -318,7 +326,7 @@ cdef bint polish(const Problem *p, double *R) noexcept nogil:
     before the last step. Starts that are no roots (e.g. a complex pair taken as real) end
     elsewhere, usually not stationary, or on another candidate.
     """
-    cdef double scale = trace9(p.H) + sqrt(sum_squares(p.g, 9))
+    cdef double scale = statistics_size(p)
     cdef double gradient[3]
     cdef double hessian[9]
     cdef double step[3]
@@ -467,7 +475,7 @@ cdef int relaxed_rotations(const Problem *p, const double *axes, const double *s
 
 
 cdef double rounding_level(const Problem *p) noexcept nogil:
-    return COST_ROUNDING * (trace9(p.H) + sqrt(sum_squares(p.g, 9)) + fabs(p.c))
+    return COST_ROUNDING * (statistics_size(p) + fabs(p.c))
 
 
 cdef void solving_frame(const Problem *p, const double *octahedral, const double *axes, const double *spread,
@@ -541,20 +549,19 @@ cdef class Kernel:
     `solver.py`. Holds only constants; every buffer is allocated per call."""
 
     cdef int m, n_columns, n_reducible, n_entries, n_monomials
-    cdef long[::1] target, source, shift_from, shift_to, reduced_rows, reduced_index, unit_index
+    cdef long[::1] target, source, shift_rows, shift_columns, reduced_rows, reduced_index, unit_index
     cdef long[:, ::1] entries
     cdef double[::1] octahedral
 
-    def __init__(self, int m, int n_columns, int n_reducible, target, source, shifts, reduced_rows,
-                 reduced_index, unit_index, entries, int n_monomials, octahedral):
+    def __init__(self, int m, int n_columns, int n_reducible, target, source, shift_rows, shift_columns,
+                 reduced_rows, reduced_index, unit_index, entries, int n_monomials, octahedral):
         """Template shape and index arrays as in `solver._Runtime`; entries (k, 4): the
         (equation, monomial, parameter, value) of `_equations.ENTRIES`; octahedral (24, 3, 3)."""
         self.m, self.n_columns, self.n_reducible = m, n_columns, n_reducible
         self.target = np.ascontiguousarray(target, dtype=np.int64)
         self.source = np.ascontiguousarray(source, dtype=np.int64)
-        rows, columns = np.nonzero(np.asarray(shifts))
-        self.shift_from = np.ascontiguousarray(rows, dtype=np.int64)
-        self.shift_to = np.ascontiguousarray(columns, dtype=np.int64)
+        self.shift_rows = np.ascontiguousarray(shift_rows, dtype=np.int64)
+        self.shift_columns = np.ascontiguousarray(shift_columns, dtype=np.int64)
         self.reduced_rows = np.ascontiguousarray(reduced_rows, dtype=np.int64)
         self.reduced_index = np.ascontiguousarray(reduced_index, dtype=np.int64)
         self.unit_index = np.ascontiguousarray(unit_index, dtype=np.int64)
@@ -615,8 +622,8 @@ cdef class Kernel:
         if info != 0:
             return 0
         memset(action, 0, n * n * sizeof(double))
-        for k in range(self.shift_from.shape[0]):  # action matrix, column-major
-            action[self.shift_to[k] * n + self.shift_from[k]] = 1.0
+        for k in range(self.shift_rows.shape[0]):  # action matrix, column-major
+            action[self.shift_columns[k] * n + self.shift_rows[k]] = 1.0
         for k in range(self.reduced_rows.shape[0]):
             for j in range(n):
                 action[j * n + self.reduced_rows[k]] = -template[(m + j) * m + first + self.reduced_index[k]]
@@ -700,15 +707,15 @@ cdef class Kernel:
             with nogil:
                 allocated = self.allocate(&scratch)
                 if allocated:
-                    k = self.candidates(&p, &found, &scratch, &self.octahedral[0], &point_axes[0, 0], &point_spread[0])
+                    k = self.candidates(&p, &found, &scratch, &point_axes[0, 0], &point_spread[0])
         finally:
             release(&scratch)
         if not allocated:
             raise MemoryError("pose: no memory for the elimination template")
         return distinct_candidates(&found, k, centroid)
 
-    cdef int candidates(self, const Problem *p, Candidates *c, Scratch *scratch, const double *octahedral,
-                        const double *point_axes, const double *point_spread) noexcept nogil:
+    cdef int candidates(self, const Problem *p, Candidates *c, Scratch *scratch, const double *point_axes,
+                        const double *point_spread) noexcept nogil:
         """The steps of `solver.py` up to the candidates (rotation, centred t, cost, front) in c;
         returns their count."""
         cdef double P[9]
@@ -717,7 +724,7 @@ cdef class Kernel:
         cdef int i, j, k, best, before
 
         # Solving where the sought rotation is near q = 0 keeps it away from Cayley's blind spot.
-        solving_frame(p, octahedral, point_axes, point_spread, P)
+        solving_frame(p, &self.octahedral[0], point_axes, point_spread, P)
         memcpy(c.R, P, 9 * sizeof(double))
         k = self.polished(p, c.R, 0, 1 + self.real_roots(p, P, c.R + 9, scratch))
         evaluate(p, c, 0, k)
@@ -867,7 +874,7 @@ def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, :
     cdef double AtB[27]
     cdef double AtD[9]
     cdef double BtD[3]
-    cdef double DtD = 0.0, fv, s
+    cdef double DtD = 0.0, fv, s, sign
     cdef double system[9]
     cdef double btb_eigen[3]
     memset(scatter, 0, sizeof(scatter)); memset(AtA, 0, sizeof(AtA)); memset(AtB, 0, sizeof(AtB))
@@ -932,13 +939,10 @@ def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, :
         g[k] = s
     cdef double c = DtD - (BtD[0] * t_offset[0] + BtD[1] * t_offset[1] + BtD[2] * t_offset[2])
     symmetric_eigen(scatter, &spread[0])  # squared singular values of the centred points
+    sign = -1.0 if det3(scatter) < 0 else 1.0  # axes as the columns of a rotation
     for a in range(3):
         for b in range(3):
-            axes[b, a] = scatter[3 * a + b]
-    if axes[0, 0] * (axes[1, 1] * axes[2, 2] - axes[2, 1] * axes[1, 2]) - axes[0, 1] * (axes[1, 0] * axes[2, 2] - axes[2, 0] * axes[1, 2]) \
-            + axes[0, 2] * (axes[1, 0] * axes[2, 1] - axes[2, 0] * axes[1, 1]) < 0:
-        for a in range(3):
-            axes[a, 0] = -axes[a, 0]
+            axes[b, a] = scatter[3 * a + b] * (sign if a == 0 else 1.0)
     for a in range(3):
         for b in range(3):
             system[3 * a + b] = BtB[a, b]

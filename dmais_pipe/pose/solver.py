@@ -93,7 +93,8 @@ class _Runtime:
     n_reducible: int
     target: np.ndarray  # flat indices into the column-major (m, n_columns) template
     source: np.ndarray  # flat indices into the (6, n_monomials) coefficients
-    shifts: np.ndarray  # (40, 40) action matrix rows whose x * b is a basis monomial, else zero
+    shift_rows: np.ndarray  # basis rows whose x * b is a basis monomial ...
+    shift_columns: np.ndarray  # ... namely this one: a 1 in the action matrix
     reduced_rows: np.ndarray  # basis rows whose x * b is reducible ...
     reduced_index: np.ndarray  # ... namely this row of the reduced block
     unit_index: np.ndarray  # basis indices of the monomials 1, qx, qy, qz
@@ -108,12 +109,12 @@ def runtime() -> _Runtime:
     basis = {mono: j for j, mono in enumerate(template.basis)}
     reducible = {mono: j for j, mono in enumerate(template.reducible)}
     unit = tuple(int(i == template.action_variable) for i in range(3))
-    shifts = np.zeros((len(basis), len(basis)))
-    reduced_rows, reduced_index = [], []
+    shift_rows, shift_columns, reduced_rows, reduced_index = [], [], [], []
     for i, b in enumerate(template.basis):
         product = (b[0] + unit[0], b[1] + unit[1], b[2] + unit[2])
         if product in basis:
-            shifts[i, basis[product]] = 1.0
+            shift_rows.append(i)
+            shift_columns.append(basis[product])
         else:
             reduced_rows.append(i)
             reduced_index.append(reducible[product])
@@ -124,7 +125,8 @@ def runtime() -> _Runtime:
         n_reducible=template.n_reducible,
         target=(target % n_columns) * m + target // n_columns,
         source=source,
-        shifts=shifts,
+        shift_rows=np.array(shift_rows),
+        shift_columns=np.array(shift_columns),
         reduced_rows=np.array(reduced_rows),
         reduced_index=np.array(reduced_index),
         unit_index=np.array([basis[u] for u in units]),
@@ -153,8 +155,8 @@ OCTAHEDRAL = _octahedral_group()
 def kernel() -> Kernel:
     """The compiled solver with the template of `_template.json` (built once)."""
     rt = runtime()
-    return Kernel(rt.m, rt.n_columns, rt.n_reducible, rt.target, rt.source, rt.shifts, rt.reduced_rows,
-                  rt.reduced_index, rt.unit_index, np.array(ENTRIES), N_MONOMIALS, OCTAHEDRAL)
+    return Kernel(rt.m, rt.n_columns, rt.n_reducible, rt.target, rt.source, rt.shift_rows, rt.shift_columns,
+                  rt.reduced_rows, rt.reduced_index, rt.unit_index, np.array(ENTRIES), N_MONOMIALS, OCTAHEDRAL)
 
 
 def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tuple[list[Candidate], int]:

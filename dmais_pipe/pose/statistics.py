@@ -16,7 +16,7 @@ and substituting it gives eq. objfun3 with G = I - B B^+:
     H = A^T G A (9, 9),   g = A^T G D (9,),   c = D^T G D.
 
 Nothing here builds a 3n x 9 matrix. For unit f, [f]x^T [f]x = I - f f^T =: Q, so every product
-is a sum over points, computed in O(n) with numpy:
+is a sum over points, computed in O(n) in one pass (compiled: `_kernels.statistics`):
 
     A^T A = kron(I3, sum M M^T) - U^T U,           U_i = kron(f_i, M_i)  (9,)
     A^T B = kron(I3, sum M) - U^T F,               F = [f_i] (n, 3)
