@@ -27,7 +27,7 @@ test: $(STAMP)
 	PATH="$(BIN):$$PATH" $(BIN)/python -m pytest -q
 
 lint: $(STAMP)
-	PATH="$(BIN):$$PATH" $(BIN)/snakemake --lint
+	PATH="$(BIN):$$PATH" $(BIN)/snakemake --lint --configfile config/config.yaml
 
 clean:
 	rm -rf results logs .snakemake data

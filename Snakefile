@@ -1,12 +1,5 @@
-from snakemake.utils import validate
-
-
-configfile: "config/config.yaml"
-
-
-validate(config, "workflow/schemas/config.schema.yaml")
-
-
+# No `configfile:`: the demo's config must never lie under a user's run (`--configfile` is required).
+include: "workflow/rules/config.smk"
 include: "workflow/rules/common.smk"
 include: "workflow/rules/simulate.smk"
 include: "workflow/rules/dataset.smk"

@@ -187,7 +187,8 @@ def _parser() -> argparse.ArgumentParser:
     bench = commands.add_parser("bench", help="benchmarks: print a table and write CSV")
     benches = bench.add_subparsers(dest="bench", required=True)
     bench_markers = benches.add_parser("markers", help="marker extraction on a rendered dataset with truth")
-    bench_markers.add_argument("dataset", type=Path, nargs="?", default=Path("data/demo"))
+    bench_markers.add_argument("dataset", type=Path, nargs="?", default=Path("results/demo/dataset"),
+                               help="a rendered dataset with truth (default: the demo, as `make run` simulates it)")
     bench_markers.add_argument("--rig", type=Path, help="rig.json used to identify flight markers (e.g. truth/rig.json)")
     bench_markers.add_argument("--csv", type=Path, default=Path("reports/bench/markers.csv"))
     bench_markers.set_defaults(run=_cmd_bench_markers)

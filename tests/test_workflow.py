@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
+import shutil
 import subprocess
 import sys
 from html.parser import HTMLParser
 from pathlib import Path
 
 import pandas as pd
+import pytest
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
@@ -36,7 +39,7 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
         "render": {"intrinsics": False, "extrinsics": False, "flight": True},
     }))
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(
-        {"dataset": "tiny", "dataset_dir": "data/tiny", "simulate": "sim.yaml", "subsets": ["0", "012"],
+        {"dataset": "tiny", "simulate": "sim.yaml", "subsets": ["0", "012"],
          "bench_pose": {"repeats": 2, "batch_frames": 5}}))
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     command = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path),
@@ -44,7 +47,7 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
     result = subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
 
-    assert (tmp_path / "data/tiny/truth/rig.json").is_file()
+    assert (tmp_path / "results/tiny/dataset/truth/rig.json").is_file()
     summary = pd.read_csv(tmp_path / "reports/tiny/dataset_summary.csv")
     assert set(summary["stage"]) == {"intrinsics", "extrinsics", "flight"}
     assert summary.loc[summary["stage"] == "intrinsics", "images"].tolist() == [4] * 5
@@ -55,7 +58,7 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
 
     results = tmp_path / "results/tiny"
     # one marker job per rendered flight image, identified with the rig the workflow calibrated
-    flight_images = pd.read_csv(tmp_path / "data/tiny/images.csv").query("stage == 'flight'")["image"]
+    flight_images = pd.read_csv(tmp_path / "results/tiny/dataset/images.csv").query("stage == 'flight'")["image"]
     assert len(flight_images) == 25
     for image in flight_images:
         assert (results / "markers" / f"{image}.csv").is_file() and (tmp_path / f"logs/tiny/markers/{image}.log").is_file()
@@ -79,10 +82,69 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
     assert "Not available" not in (tmp_path / "reports/tiny/report.html").read_text()
 
 
-def test_config_schema_rejects_unknown_keys(tmp_path):
-    (tmp_path / "config.yaml").write_text(yaml.safe_dump({"dataset": "x", "dataset_dir": "d", "datset": "typo"}))
-    command = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path),
-               "--configfile", str(tmp_path / "config.yaml"), "--cores", "1", "-n"]
-    result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True, timeout=120)
+def snakemake(workdir: Path, *options: str, timeout: int = 120) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    command = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
+               *options]
+    return subprocess.run(command, cwd=workdir, env=env, capture_output=True, text=True, timeout=timeout)
+
+
+@pytest.mark.parametrize("config, message", [
+    ({"dataset": "x", "dataset_dir": "d", "datset": "typo"}, "config: (top level): Additional properties are not "
+     "allowed ('datset' was unexpected)"),
+    ({"dataset": "x", "dataset_dir": "d", "subsets": ["0", "a"]}, "config: subsets.1: 'a' does not match"),
+    ({"dataset": "x", "dataset_dir": "d", "simulate": "s.yaml"}, "config: give either dataset_dir"),
+    ({"dataset": "x"}, "config: give either dataset_dir"),
+    (None, "no configuration: run with --configfile"),
+])
+def test_config_faults_are_one_line(tmp_path, config, message):
+    options = ["--cores", "1", "-n"]
+    if config is not None:
+        (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
+        options += ["--configfile", str(tmp_path / "config.yaml")]
+    result = snakemake(tmp_path, *options)
     assert result.returncode != 0
-    assert "datset" in result.stdout + result.stderr
+    assert (result.stdout + result.stderr).strip().splitlines() == [(result.stdout + result.stderr).strip()]
+    assert message in result.stderr
+
+
+def _fingerprint(root: Path) -> dict[str, tuple[str, int, int]]:
+    """Every file below `root`: its content hash, mtime (ns) and mode."""
+    return {str(p.relative_to(root)): (hashlib.sha256(p.read_bytes()).hexdigest(), p.stat().st_mtime_ns,
+                                       p.stat().st_mode)
+            for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_a_users_dataset_is_only_read(tmp_path):
+    """The workflow on a dataset of the user's own (no `simulate:`), with files older than the
+    repository (what once made Snakemake re-simulate over them): a dry run and a real run leave
+    every input file byte-identical, with its timestamp, and add nothing to the folder."""
+    simulator = tmp_path / "sim.yaml"
+    simulator.write_text(yaml.safe_dump({
+        "name": "mysite", "seed": 5,
+        "intrinsics": {"calib_images_per_camera": 3, "eval_images_per_camera": 1},
+        "flight": {"frames_per_group": 1},
+        "render": {"intrinsics": False, "extrinsics": False, "flight": False},
+    }))
+    made = subprocess.run([sys.executable, "-m", "dmais_pipe.cli", "simulate", str(simulator),
+                           "--out", str(tmp_path / "made")], capture_output=True, text=True, timeout=300)
+    assert made.returncode == 0, made.stderr
+    site = tmp_path / "survey" / "mysite"
+    shutil.copytree(tmp_path / "made", site)
+    for path in site.rglob("*"):
+        os.utime(path, ns=(978307200 * 10**9, 978307200 * 10**9))  # 2001-01-01: older than any clone
+    before = _fingerprint(site)
+    work = tmp_path / "work"
+    work.mkdir()
+    (work / "mysite.yaml").write_text(yaml.safe_dump(
+        {"dataset": "mysite", "dataset_dir": str(site), "subsets": ["0"], "bench_pose": {"repeats": 1,
+                                                                                        "batch_frames": 2}}))
+
+    dry = snakemake(work, "--configfile", "mysite.yaml", "--cores", "2", "-n")
+    assert dry.returncode == 0, dry.stderr[-3000:]
+    assert "simulate" not in dry.stdout
+    run = snakemake(work, "--configfile", "mysite.yaml", "--cores", "2", timeout=900)
+    assert run.returncode == 0, run.stderr[-3000:]
+
+    assert (work / "reports/mysite/report.html").is_file() and (work / "results/mysite/poses.csv").is_file()
+    assert _fingerprint(site) == before

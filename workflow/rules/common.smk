@@ -5,8 +5,9 @@ from pathlib import Path
 import yaml
 
 DATASET = config["dataset"]
-DATASET_DIR = config["dataset_dir"]
 RESULTS = f"results/{DATASET}"
+#: A simulated dataset lives in a folder the workflow owns; a user's dataset is only ever read.
+DATASET_DIR = f"{RESULTS}/dataset" if config.get("simulate") else config["dataset_dir"]
 REPORTS = f"reports/{DATASET}"
 LOGS = f"logs/{DATASET}"
 BENCHMARKS = f"benchmarks/{DATASET}"
@@ -17,7 +18,7 @@ BENCH_POSE = {"repeats": 50, "batch_frames": 100, **config.get("bench_pose", {})
 
 
 def dataset_manifest():
-    """The dataset's manifest: produced by `simulate` or given by the user."""
+    """The dataset's manifest: written by `simulate` or given by the user (an input, never an output)."""
     return f"{DATASET_DIR}/dataset.yaml"
 
 

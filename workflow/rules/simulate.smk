@@ -1,3 +1,5 @@
+# Only a config with `simulate:` (the demo's, the paper's) has this rule, and it writes into
+# RESULTS/dataset, a folder of the workflow's own: a user's dataset is never an output of any rule.
 if config.get("simulate"):
 
     checkpoint simulate:
