@@ -37,12 +37,13 @@ def _cmd_summarize(args) -> None:
 
 
 def _cmd_intrinsics(args) -> None:
-    from .calib.intrinsics import run_intrinsics, write_intrinsics_table
+    from .calib.intrinsics import Plausibility, run_intrinsics, write_intrinsics_table
 
     if args.table:
         print(write_intrinsics_table(args.dataset, args.out))
         return
-    for path in run_intrinsics(args.dataset, args.out, cameras=args.camera):
+    limits = Plausibility(max_eps_calib_px=args.max_eps_px, max_focal_deviation=args.max_focal_deviation)
+    for path in run_intrinsics(args.dataset, args.out, cameras=args.camera, limits=limits):
         print(path)
 
 
@@ -114,6 +115,8 @@ def _cmd_bench_pose(args) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
+    from .calib.intrinsics import Plausibility
+
     parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     commands = parser.add_subparsers(dest="command", required=True)
@@ -146,6 +149,12 @@ def _parser() -> argparse.ArgumentParser:
     only.add_argument("--camera", action="append", help="calibrate only this camera (repeatable); no table")
     only.add_argument("--table", action="store_true",
                       help="only write tables/intrinsics.csv from the cameras' intrinsics/<camera>.methods.csv")
+    defaults = Plausibility()
+    intrinsics.add_argument("--max-eps-px", type=float, default=defaults.max_eps_calib_px,
+                            help="refuse a calibration whose eps_calib exceeds this (px; default %(default)s)")
+    intrinsics.add_argument("--max-focal-deviation", type=float, default=defaults.max_focal_deviation,
+                            help="refuse fx, fy further than this fraction from focal_px or from each other "
+                                 "(default %(default)s)")
     intrinsics.set_defaults(run=_cmd_intrinsics)
 
     extrinsics = commands.add_parser("extrinsics", help="calibrate the rig (cam_from_rig) from the placements")

@@ -52,6 +52,12 @@ RESULT_OBSERVATION_COLUMNS = ("image", "camera", "point_id", "u", "v")
 _MANIFEST_KEYS = ("name", "description", "reference_camera", "cameras", "marker_size_m")
 _CAMERA_KEYS = ("width", "height", "focal_px")
 _MIN_QUATERNION_NORM = 1e-6
+#: A control field is collinear when its RMS spread across its best-fit line is below both this
+#: fraction of the spread along it and COLLINEAR_SPREAD_M (survey noise of points on a line).
+COLLINEAR_TOLERANCE = 1e-3
+COLLINEAR_SPREAD_M = 0.01
+#: How far (px) an observation may lie outside its image, whose pixels cover [-0.5, width - 0.5].
+OBSERVATION_MARGIN_PX = 2.0
 _PROGRESS_EVERY = 20
 
 
@@ -347,6 +353,21 @@ def _check_disjoint(control: _Table, ground: _Table) -> None:
                  f"line {control.lines[control_rows[ids[row]]]}")
 
 
+def _check_field_geometry(path: Path, points: np.ndarray) -> None:
+    """A calibration field must span a plane (as a chessboard does) or a volume: points (n, 3) that
+    coincide or lie on one line give no pose, so they are refused here rather than deep in PnPf."""
+    if len(points) < 3:
+        return  # too few to be a field at all; the stages that use the field say how many they need
+    spread = np.linalg.svd(points - points.mean(axis=0), compute_uv=False) / np.sqrt(len(points))
+    if spread[0] <= 1e-9 * max(1.0, float(np.abs(points).max())):
+        raise DatasetError(path, f"all {len(points)} control points coincide; the calibration field must "
+                           "span a plane or a volume")
+    if spread[1] <= COLLINEAR_TOLERANCE * spread[0] and spread[1] <= COLLINEAR_SPREAD_M:
+        raise DatasetError(path, f"the {len(points)} control points are collinear (spread {spread[1]:.3g} m "
+                           f"across their line, {spread[0]:.3g} m along it); the calibration field must span "
+                           "a plane or a volume")
+
+
 def _empty_points() -> pd.DataFrame:
     frame = pd.DataFrame({"point_id": _strings([]), **{axis: np.zeros(0) for axis in "xyz"}})
     return frame.set_index("point_id")
@@ -422,8 +443,10 @@ def _empty_frames() -> pd.DataFrame:
     return pd.DataFrame(columns)
 
 
-def _read_observations(path: Path, camera_of: dict[str, str], point_ids, with_camera: bool) -> pd.DataFrame:
-    """Observations (image, [camera,] point_id, u, v, extras) checked against images and points."""
+def _read_observations(path: Path, camera_of: dict[str, str], cameras: dict[str, CameraSpec], point_ids,
+                       with_camera: bool) -> pd.DataFrame:
+    """Observations (image, [camera,] point_id, u, v, extras) checked against images, points and
+    the image area of each image's camera."""
     names = RESULT_OBSERVATION_COLUMNS if with_camera else OBSERVATION_COLUMNS
     table = _read_table(path, names)
     image = table.required_text("image")
@@ -439,7 +462,18 @@ def _read_observations(path: Path, camera_of: dict[str, str], point_ids, with_ca
     table.first_rows(["image", "point_id"], "observation (image, point_id)")
     columns = {name: _strings(table.text(name)) for name in names if name not in ("u", "v")}
     columns.update(u=table.floats("u"), v=table.floats("v"))
+    _check_inside_images(table, image, columns["u"], columns["v"], [cameras[camera_of[i]] for i in image])
     return _frame(table, {name: columns[name] for name in names}, names)
+
+
+def _check_inside_images(table: _Table, image: np.ndarray, u: np.ndarray, v: np.ndarray,
+                         specs: list[CameraSpec]) -> None:
+    """Every pixel (u, v) (n,) within OBSERVATION_MARGIN_PX of its image (n,) of camera specs (n,)."""
+    size = np.array([(spec.width, spec.height) for spec in specs], dtype=float).reshape(-1, 2)
+    low, high = -0.5 - OBSERVATION_MARGIN_PX, size - 0.5 + OBSERVATION_MARGIN_PX
+    outside = (u < low) | (u > high[:, 0]) | (v < low) | (v > high[:, 1])
+    table.check(outside, lambda row: f"observation ({u[row]:.6g}, {v[row]:.6g}) lies outside image "
+                f"{image[row]!r} ({int(size[row, 0])}x{int(size[row, 1])} px)")
 
 
 def _empty_observations() -> pd.DataFrame:
@@ -484,6 +518,7 @@ class Dataset:
         control, control_table = _read_points(root / CONTROL_POINTS)
         if control.empty:
             raise DatasetError(root / CONTROL_POINTS, "has no points; at least one control point is needed")
+        _check_field_geometry(root / CONTROL_POINTS, control[["x", "y", "z"]].to_numpy(float))
         ground = _empty_points()
         if (root / GROUND_POINTS).exists():
             ground, ground_table = _read_points(root / GROUND_POINTS)
@@ -494,7 +529,8 @@ class Dataset:
         if (root / OBSERVATIONS).exists():
             camera_of = dict(zip(images["image"], images["camera"]))
             points = pd.concat([control.index.to_series(), ground.index.to_series()])
-            observations = _read_observations(root / OBSERVATIONS, camera_of, points, with_camera=False)
+            observations = _read_observations(root / OBSERVATIONS, camera_of, manifest.cameras, points,
+                                              with_camera=False)
         _check_sources(image_table, images, observations)
         return cls(
             root=root, name=manifest.name, reference_camera=manifest.reference_camera, cameras=manifest.cameras,
@@ -728,7 +764,8 @@ def load_observations(dataset: Dataset, results: str | Path | None) -> pd.DataFr
         if not paths and whole.exists():
             paths = [whole]
         if paths:
-            tables = [_read_observations(p, camera_of, dataset.points.index, with_camera=True) for p in paths]
+            tables = [_read_observations(p, camera_of, dataset.cameras, dataset.points.index, with_camera=True)
+                      for p in paths]
             return pd.concat(tables, ignore_index=True) if len(tables) > 1 else tables[0]
     observations = dataset.observations.copy()
     observations.insert(1, "camera", observations["image"].map(camera_of).astype(str))

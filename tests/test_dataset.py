@@ -254,6 +254,16 @@ LOAD_ERRORS = {
                      ["invalid YAML"]),
     "no control points": (lambda r: (r / "control_points.csv").write_text("point_id,x,y,z\n"),
                           "control_points.csv", None, ["no points"]),
+    "collinear field": (lambda r: (r / "control_points.csv").write_text(
+        "point_id,x,y,z\n007,0,0,0\nA1,1,2,3\nA2,2,4.0001,6\nA3,-3,-6,-9\n"), "control_points.csv", None,
+        ["4 control points are collinear", "plane or a volume"]),
+    "coincident field": (lambda r: (r / "control_points.csv").write_text(
+        "point_id,x,y,z\n007,5,5,5\nA1,5,5,5\nA2,5,5,5\n"), "control_points.csv", None, ["coincide"]),
+    "observation far outside its image": (lambda r: _set_cells(r, "observations.csv", 0, u="1e6"),
+                                          "observations.csv", 2, ["(1e+06, 30.125) lies outside image 'f0'",
+                                                                  "(64x48 px)"]),
+    "observation just outside its image": (lambda r: _set_cells(r, "observations.csv", 2, v=str(H - 0.5 + 2.01)),
+                                           "observations.csv", 4, ["lies outside image 'i0'"]),
 }
 
 
@@ -289,6 +299,23 @@ def test_bad_image_file_found_by_check_images(root, case):
     assert f"images.csv, line {line}:" in message, message
     for part in parts:
         assert part in message, message
+
+
+def test_planar_field_and_observations_on_the_image_border_load(root):
+    (root / "control_points.csv").write_text("point_id,x,y,z\n007,0,0,0\nA1,1,0,0\nA2,0,1,0\nA3,1,1,0\n"
+                                             "G9,0.5,0.5,0\n")
+    (root / "ground_points.csv").write_text("point_id,x,y,z\nG1,1,2,3\nG2,2,3,4\n")
+    _set_cells(root, "observations.csv", 0, u=str(-0.5 - 2.0), v=str(H - 0.5 + 2.0))
+    ds = Dataset.load(root)
+    assert len(ds.control_points) == 5 and ds.observations.loc[0, "u"] == -2.5
+
+
+def test_results_observations_outside_an_image_are_refused(root, tmp_path):
+    ds = Dataset.load(root)
+    (tmp_path / "observations.csv").write_text(f"image,camera,point_id,u,v\ni1,C1,A1,{W + 10},2.5\n")
+    with pytest.raises(DatasetError, match=r"observations\.csv, line 2: observation \(74, 2\.5\) lies outside "
+                                           r"image 'i1' \(64x48 px\)"):
+        load_observations(ds, tmp_path)
 
 
 def test_point_ids_stay_strings(root):

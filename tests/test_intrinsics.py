@@ -334,3 +334,62 @@ def test_dataset_with_non_finite_observation_is_rejected_naming_the_line(simulat
     with pytest.raises(DmaisError, match=r"observations.csv, line 4"):
         run_intrinsics(copy, tmp_path / "results")
     assert not (tmp_path / "results" / "tables").exists()
+
+
+# ------------------------------------------------------------------------------ absurd results
+
+
+def test_pnpf_focal_lengths_that_disagree_are_refused_naming_the_images():
+    """Two of four views zoomed by 2 about the image centre: no majority of PnPf focal lengths
+    within 20% of their median, so no mean is taken from outliers."""
+    rng = np.random.default_rng(4)
+    points, pixels = field_views(WIDE, 4, rng, noise=0.0)
+    centre = np.array([WIDE.cx, WIDE.cy])
+    for name in ("view1", "view3"):
+        pixels[name] = centre + 2.0 * (pixels[name] - centre)
+    with pytest.raises(DmaisError, match=r"camera CZ: the PnPf focal lengths disagree, only 0 of 4 images .*view1 "):
+        calibrate_camera(points, pixels, WIDE.width, WIDE.height, name="CZ")
+
+
+def test_absurd_calibration_stops_the_stage_and_keeps_the_earlier_result(simulated, tmp_path):
+    """Point ids shuffled within two calibration images of C0 (every pixel stays inside the image):
+    eps_calib far beyond the limit; the stage names C0 and those images and leaves C0's files."""
+    dataset, _, _ = simulated
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)
+    results = tmp_path / "results"
+    run_intrinsics(copy, results, cameras=["C0"])
+    written = {p.name: p.read_bytes() for p in (results / "intrinsics").iterdir()}
+
+    images = pd.read_csv(copy / "images.csv")
+    bad = images.loc[(images.camera == "C0") & (images["split"] == "calib"), "image"].tolist()[1:3]
+    obs = pd.read_csv(copy / "observations.csv", dtype={"point_id": str})
+    rng = np.random.default_rng(0)
+    for image in bad:
+        rows = obs.index[obs["image"] == image]
+        obs.loc[rows, "point_id"] = rng.permutation(obs.loc[rows, "point_id"].to_numpy())
+    obs.to_csv(copy / "observations.csv", index=False)
+    with pytest.raises(DmaisError) as info:
+        run_intrinsics(copy, results, cameras=["C0"])
+    message = str(info.value)
+    assert message.startswith("camera C0: calibration refused, eps_calib ") and "exceeds 5 px" in message
+    worst = message.split("worst images: ")[1]
+    assert worst.startswith(tuple(bad)) and all(image in worst for image in bad), message
+    assert {p.name: p.read_bytes() for p in (results / "intrinsics").iterdir()} == written
+
+
+def test_a_focal_far_from_the_manifest_is_refused(simulated, tmp_path):
+    dataset, _, _ = simulated
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(dataset, copy)
+    manifest = yaml.safe_load((copy / "dataset.yaml").read_text())
+    manifest["cameras"]["C2"]["focal_px"] = 30000.0
+    (copy / "dataset.yaml").write_text(yaml.safe_dump(manifest))
+    with pytest.raises(DmaisError, match=r"camera C2: calibration refused, fx 4\d{4}\.\d px is \d+% from focal_px "
+                                         r"30000; fy .*\(worst images: intr_C2_"):
+        run_intrinsics(copy, tmp_path / "results", cameras=["C2"])
+    assert not (tmp_path / "results" / "intrinsics" / "C2.json").exists()

@@ -45,6 +45,9 @@ log = logging.getLogger(__name__)
 
 MIN_OBSERVATIONS_PER_IMAGE = 5
 MIN_CALIB_IMAGES = 2
+#: PnPf focal lengths within this fraction of their median count as agreeing (the rest are dropped
+#: from the mean); fewer than half agreeing means the mean would rest on outliers.
+PNPF_AGREEMENT = 0.2
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "d")
 METHODS = ("ours", "opencv", "dlt_lm")
 TABLE_COLUMNS = ("method", "camera", "fx", "fy", "cx", "cy", "d", "eps_calib_px", "eps_eval_px")
@@ -66,6 +69,11 @@ class IntrinsicsResult:
     pnpf_focal_px: dict[str, float] = field(default_factory=dict)
     skipped_images: list[str] = field(default_factory=list)
     method: str = "ours"
+    image_eps_px: dict[str, float] = field(default_factory=dict)  # RMS per calibration image
+
+    def worst_images(self, count: int = 3) -> list[tuple[str, float]]:
+        """The `count` calibration images of largest RMS reprojection distance, worst first."""
+        return sorted(self.image_eps_px.items(), key=lambda item: -item[1])[:count]
 
     def to_dict(self) -> dict:
         """The RESULTS/intrinsics/<camera>.json layout of DESIGN.md plus per-image details."""
@@ -81,6 +89,7 @@ class IntrinsicsResult:
             "n_eval_images": len(self.eval_poses),
             "skipped_images": list(self.skipped_images),
             "pnpf_focal_px": {k: float(v) for k, v in self.pnpf_focal_px.items()},
+            "image_eps_calib_px": {k: float(v) for k, v in self.image_eps_px.items()},
             "poses": {k: p.to_dict() for k, p in self.poses.items()},
             "eval_poses": {k: p.to_dict() for k, p in self.eval_poses.items()},
         }
@@ -286,11 +295,13 @@ def _load_inputs(points_world_per_image, uv_per_image, eval_points_world_per_ima
 def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, skipped, pnpf_focal=None):
     eps_eval, eval_poses = _evaluate(camera, evals, name)
     std = dict(zip(INTRINSIC_NAMES, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()))
+    ends = np.cumsum([len(X) for X, _ in calib.values()])[:-1]  # residuals are stacked in calib's order
+    per_image = dict(zip(calib, map(_rms, np.split(np.asarray(residuals).reshape(-1, 2), ends))))
     return IntrinsicsResult(
         name=name, camera=camera, std=std, eps_calib_px=_rms(residuals), eps_eval_px=eps_eval,
         n_images=len(calib), n_observations=sum(len(X) for X, _ in calib.values()),
         poses=_world_poses(poses, centre), eval_poses=_world_poses(eval_poses, centre),
-        pnpf_focal_px=pnpf_focal or {}, skipped_images=skipped, method=method)
+        pnpf_focal_px=pnpf_focal or {}, skipped_images=skipped, method=method, image_eps_px=per_image)
 
 
 def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: int, *,
@@ -314,13 +325,9 @@ def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: i
             log.warning("camera %s, image %s: PnPf failed (%s); its pose comes from PnP only", name, image, error)
     if not focal:
         raise DmaisError(f"camera {name}: PnPf failed on every calibration image; cannot initialize the focal length")
-    values = np.array(list(focal.values()))
-    # The paper takes the mean; drop gross failures (> 20% from the median, e.g. a planar view
-    # nearly parallel to the image plane) so that one bad view cannot spoil it.
-    keep = np.abs(values / np.median(values) - 1.0) < 0.2
-    f0 = float(values[keep].mean())
+    f0 = _mean_focal(focal, name)
     log.info("camera %s: PnPf focal lengths %s px, mean %.1f px", name,
-             ", ".join(f"{v:.1f}" for v in values), f0)
+             ", ".join(f"{v:.1f}" for v in focal.values()), f0)
     camera0 = Camera(fx=f0, fy=f0, cx=principal[0], cy=principal[1], d=0.0, width=width, height=height)
     poses = {}
     for image, (X, uv) in calib.items():
@@ -334,6 +341,51 @@ def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: i
              camera.fx, camera.fy, camera.cx, camera.cy, camera.d, result.eps_calib_px,
              "n/a" if result.eps_eval_px is None else f"{result.eps_eval_px:.4f}")
     return result
+
+
+def _mean_focal(focal: dict[str, float], name: str) -> float:
+    """The paper's mean of the per-image PnPf focal lengths, without gross failures (> PNPF_AGREEMENT
+    from the median, e.g. a planar view nearly parallel to the image plane) so that one bad view
+    cannot spoil it; a mean that fewer than half of the images support is refused."""
+    values = np.array(list(focal.values()))
+    keep = np.abs(values / np.median(values) - 1.0) < PNPF_AGREEMENT
+    if 2 * keep.sum() < len(values) or not keep.any():
+        listed = ", ".join(f"{image} {f:.0f}" for image, f in focal.items())
+        raise DmaisError(f"camera {name}: the PnPf focal lengths disagree, only {int(keep.sum())} of {len(values)} "
+                         f"images lie within {PNPF_AGREEMENT:.0%} of their median ({listed} px); check these "
+                         "images' observations and point ids")
+    return float(values[keep].mean())
+
+
+@dataclass(frozen=True)
+class Plausibility:
+    """Bounds beyond which a calibration is absurd and is refused rather than written.
+
+    max_eps_calib_px: RMS reprojection distance over the calibration images (the paper reaches
+    0.2-0.45 px; tens of times the marker noise means wrong observations). max_focal_deviation:
+    relative distance of fx and fy from the manifest's focal_px (when given) and of fx from fy.
+    """
+
+    max_eps_calib_px: float = 5.0
+    max_focal_deviation: float = 0.2
+
+
+def check_plausible(result: IntrinsicsResult, focal_px: float | None, limits: Plausibility = Plausibility()) -> None:
+    """Raise a DmaisError naming the camera, the fault and its worst images when `result` is absurd."""
+    cam, faults = result.camera, []
+    if not result.eps_calib_px <= limits.max_eps_calib_px:
+        faults.append(f"eps_calib {result.eps_calib_px:.3g} px exceeds {limits.max_eps_calib_px:g} px")
+    for axis, f in (("fx", cam.fx), ("fy", cam.fy)):
+        if focal_px and not abs(f / focal_px - 1.0) <= limits.max_focal_deviation:
+            faults.append(f"{axis} {f:.1f} px is {abs(f / focal_px - 1.0):.0%} from focal_px {focal_px:g}")
+    if not abs(cam.fx / cam.fy - 1.0) <= limits.max_focal_deviation:
+        faults.append(f"fx {cam.fx:.1f} and fy {cam.fy:.1f} px differ by more than {limits.max_focal_deviation:.0%}")
+    if not (-0.5 <= cam.cx <= cam.width - 0.5 and -0.5 <= cam.cy <= cam.height - 0.5):
+        faults.append(f"principal point ({cam.cx:.1f}, {cam.cy:.1f}) lies outside the image")
+    if faults:
+        worst = ", ".join(f"{image} {eps:.3g} px" for image, eps in result.worst_images())
+        raise DmaisError(f"camera {result.name}: calibration refused, {'; '.join(faults)} (worst images: {worst}); "
+                         "earlier results are kept")
 
 
 # ------------------------------------------------------------------------------ baselines
@@ -456,13 +508,14 @@ def calibrated_cameras(dataset) -> list[str]:
 
 
 def run_intrinsics(dataset_dir, results_dir, methods: Sequence[str] = METHODS,
-                   cameras: Sequence[str] | None = None) -> list[Path]:
+                   cameras: Sequence[str] | None = None, limits: Plausibility = Plausibility()) -> list[Path]:
     """`dmais intrinsics DATASET --out RESULTS [--camera C]`: calibrate cameras with intrinsics images.
 
     Writes RESULTS/intrinsics/<camera>.json ("ours") and <camera>.methods.csv (that camera's row of
     every method) per camera; with `cameras` None (every camera) also RESULTS/tables/intrinsics.csv
     (tab:intrinsics). The workflow calibrates one camera per job and then writes the table with
-    `write_intrinsics_table`. Returns the written paths.
+    `write_intrinsics_table`. A calibration beyond `limits` stops the stage before anything of
+    that camera is written. Returns the written paths.
     """
     from ..dataset import Dataset, load_observations
 
@@ -481,14 +534,14 @@ def run_intrinsics(dataset_dir, results_dir, methods: Sequence[str] = METHODS,
     written: list[Path] = []
     for k, name in enumerate(chosen, 1):
         log.info("intrinsics %d/%d: camera %s", k, len(chosen), name)
-        written += _calibrate_dataset_camera(dataset, observations, name, methods, results)
+        written += _calibrate_dataset_camera(dataset, observations, name, methods, results, limits)
     if cameras is None:
         written.append(write_intrinsics_table(dataset_dir, results_dir))
     return written
 
 
 def _calibrate_dataset_camera(dataset, observations: pd.DataFrame, name: str, methods: Sequence[str],
-                              results: Path) -> list[Path]:
+                              results: Path, limits: Plausibility) -> list[Path]:
     """Our calibration of one camera (JSON) and every method's table row (CSV)."""
     spec = dataset.cameras[name]
     calib_images = dataset.images_of("intrinsics", name, "calib")["image"].tolist()
@@ -498,6 +551,7 @@ def _calibrate_dataset_camera(dataset, observations: pd.DataFrame, name: str, me
     eX, euv = _per_image(observations, dataset.points, eval_images)
     common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name)
     ours = calibrate_camera(X, uv, spec.width, spec.height, **common)
+    check_plausible(ours, spec.focal_px, limits)
     rows = [ours.table_row()]
     baselines = {"opencv": lambda: calibrate_camera_opencv(
                      X, uv, spec.width, spec.height, spec.focal_px or float(np.mean(list(ours.pnpf_focal_px.values()))),
