@@ -1,6 +1,7 @@
 """`dmais <stage> ...`: thin argument parsing over the stage functions.
 
-User errors (DmaisError) are printed on one line to stderr and exit with status 2.
+User errors (DmaisError) and failures to read or write a file (OSError: permission, not a
+directory, disk full, a file that vanished) are printed on one line to stderr and exit with status 2.
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ import logging
 import sys
 from pathlib import Path
 
-from .errors import DmaisError
+from .errors import DmaisError, FileAccessError
 
 log = logging.getLogger("dmais")
 
@@ -217,6 +218,10 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         args.run(args)
+    except OSError as error:  # reading or writing a file the user named, or the disk, failed
+        error = FileAccessError.of(error)
+        print(f"dmais {args.command}: error: {error}", file=sys.stderr)
+        return 2
     except DmaisError as error:
         print(f"dmais {args.command}: error: {error}", file=sys.stderr)
         return 2

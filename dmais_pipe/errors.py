@@ -29,3 +29,18 @@ class ConfigError(DmaisError):
 
 class GeometryError(DmaisError):
     """Input whose geometry cannot be handled (e.g. a rotation Cayley cannot express)."""
+
+
+class FileAccessError(DmaisError):
+    """A file or folder could not be read or written (permission, not a directory, disk full, gone)."""
+
+    def __init__(self, path: str | Path, reason: str):
+        self.path = str(path)
+        self.reason = reason
+        super().__init__(f"{self.path}: {reason}")
+
+    @classmethod
+    def of(cls, error: OSError, path: str | Path | None = None) -> FileAccessError:
+        """From an OSError, naming `path` (else the error's own file name) and the system's reason."""
+        where = path if path is not None else (error.filename if error.filename is not None else "(unknown file)")
+        return cls(where, error.strerror or str(error))

@@ -1,6 +1,8 @@
 """Atomic writing of results: a temporary file in the target's folder, then a rename.
 
-A failed run therefore never leaves a half-written file under a name that looks complete.
+A failed run therefore never leaves a half-written file under a name that looks complete, and a
+write that fails (permission, a file where a folder should be, disk full) leaves the earlier file
+as it was and raises a FileAccessError naming the target.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from .errors import FileAccessError
+
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
@@ -22,13 +26,21 @@ os.umask(_UMASK)
 def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
     """Write `data` to `path` through a temporary file and a rename; creates parent folders."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    except FileExistsError:  # mkdir: a file stands where a folder of the path should be
+        raise FileAccessError(path, "a file stands where a folder of this path should be") from None
+    except OSError as error:
+        raise FileAccessError.of(error, path) from None
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; give the file the usual permissions
         os.replace(tmp, path)
+    except OSError as error:
+        Path(tmp).unlink(missing_ok=True)
+        raise FileAccessError.of(error, path) from None
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
