@@ -14,6 +14,9 @@ import csv
 import logging
 import math
 import numbers
+import os
+import re
+import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -23,7 +26,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from .errors import DatasetError
+from .errors import DatasetError, yaml_problem
 from .files import write_csv_atomic, write_yaml_atomic
 
 log = logging.getLogger(__name__)
@@ -90,9 +93,8 @@ def _read_manifest(path: Path) -> _Manifest:
     except UnicodeDecodeError:
         raise DatasetError(path, "is not UTF-8 text") from None
     except yaml.YAMLError as error:
-        mark = getattr(error, "problem_mark", None)
-        problem = getattr(error, "problem", None) or str(error)
-        raise DatasetError(path, f"invalid YAML: {problem}", None if mark is None else mark.line + 1) from None
+        problem, line = yaml_problem(error)
+        raise DatasetError(path, f"invalid YAML: {problem}", line) from None
     return _parse_manifest(data, path)
 
 
@@ -628,9 +630,12 @@ class Dataset:
         file = self.root / path
         if not file.is_file():
             raise self._image_error(image, f"file {path!r} does not exist")
-        pixels = cv2.imread(str(file), cv2.IMREAD_UNCHANGED) if file.stat().st_size else None
-        if pixels is None:
-            raise self._image_error(image, f"file {path!r} cannot be decoded")
+        pixels, messages = _decode(file)
+        if pixels is None or _CORRUPT.search(messages):
+            said = f" ({'; '.join(messages.split(chr(10)))})" if messages else ""
+            raise self._image_error(image, f"file {path!r} cannot be decoded{said}")
+        if messages:
+            log.debug("decoding %s: %s", file, messages)
         pixels = _grayscale(pixels)
         if pixels is None or pixels.dtype not in (np.uint8, np.uint16):
             raise self._image_error(image, f"file {path!r} is not an 8- or 16-bit grayscale, BGR or BGRA image")
@@ -639,6 +644,34 @@ class Dataset:
             raise self._image_error(image, f"file {path!r} is {pixels.shape[1]}x{pixels.shape[0]}, "
                                     f"camera {camera} expects {spec.width}x{spec.height}")
         return pixels
+
+
+#: What libpng and libjpeg say of a file they could only partly decode (the rest would be grey).
+_CORRUPT = re.compile(r"premature end|corrupt|truncat|incomplete|read error|crc error", re.IGNORECASE)
+
+
+#: OpenCV's own log prefix, e.g. "[ WARN:0@3.384] global grfmt_png.cpp:793 readFromStreamOrBuffer ".
+_OPENCV_LOG_PREFIX = re.compile(r"\[ ?\w+:[^\]]*\] (global )?\S+:\d+ \S+ ")
+
+
+def _decode(file: Path) -> tuple[np.ndarray | None, str]:
+    """The pixels of an image file (None when it cannot be decoded) and what the decoder libraries
+    wrote to stderr meanwhile. libpng and libjpeg write warnings straight to file descriptor 2, so
+    it is redirected while OpenCV decodes: a broken file gives one line of ours, not theirs too."""
+    data = file.read_bytes()
+    if not data:
+        return None, "empty file"
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            pixels = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        sink.seek(0)
+        messages = sink.read().decode("utf-8", "replace").strip()
+    return pixels, _OPENCV_LOG_PREFIX.sub("", messages)
 
 
 def _grayscale(pixels: np.ndarray) -> np.ndarray | None:

@@ -44,3 +44,10 @@ class FileAccessError(DmaisError):
         """From an OSError, naming `path` (else the error's own file name) and the system's reason."""
         where = path if path is not None else (error.filename if error.filename is not None else "(unknown file)")
         return cls(where, error.strerror or str(error))
+
+
+def yaml_problem(error) -> tuple[str, int | None]:
+    """One line describing a yaml.YAMLError and the 1-based line it points at (None if unknown)."""
+    mark = getattr(error, "problem_mark", None)
+    problem = getattr(error, "problem", None) or str(error).splitlines()[0]
+    return problem, None if mark is None else mark.line + 1

@@ -335,3 +335,22 @@ def test_validate_cli(root, capsys):
     assert main(["validate", str(root)]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "unknown camera 'C9'" in err and "images.csv, line 4" in err
+
+
+def test_truncated_png_is_one_line_without_the_decoders_own(root, capfd):
+    """libpng writes its complaint straight to file descriptor 2: it is folded into our one line."""
+    cv2.imwrite(str(root / "images/i1.png"), (np.random.default_rng(0).random((H, W)) * 255).astype(np.uint8))
+    data = (root / "images/i1.png").read_bytes()
+    (root / "images/i1.png").write_bytes(data[: len(data) // 2])
+    assert main(["validate", str(root)]) == 2
+    err = capfd.readouterr().err.strip()
+    assert err.splitlines() == [err] and "line 3: image 'i1': file 'images/i1.png' cannot be decoded (" in err
+    assert "incomplete" in err and "WARN" not in err
+
+
+def test_simulator_config_with_a_yaml_error_is_one_line(tmp_path, capsys):
+    (tmp_path / "sim.yaml").write_text("name: x\nseed: [1\n")
+    assert main(["simulate", str(tmp_path / "sim.yaml"), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.splitlines() == [err] and "sim.yaml, line 3: invalid YAML: expected ',' or ']'" in err
+    assert not (tmp_path / "out").exists()

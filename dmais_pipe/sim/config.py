@@ -21,7 +21,7 @@ from pathlib import Path
 
 import yaml
 
-from ..errors import ConfigError
+from ..errors import ConfigError, yaml_problem
 
 # Truth rig. Intrinsics: tab:intrinsics ("Ours" rows) for f and d, C3's fy raised to 43700 px;
 # principal points a few tens of pixels off the centre, as real lenses are. Extrinsics: the
@@ -145,7 +145,8 @@ def load_config(path: str | Path) -> dict:
     except FileNotFoundError:
         raise ConfigError(f"{path}: file not found") from None
     except yaml.YAMLError as error:
-        raise ConfigError(f"{path}: invalid YAML ({error})") from None
+        problem, line = yaml_problem(error)
+        raise ConfigError(f"{path}{'' if line is None else f', line {line}'}: invalid YAML: {problem}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of settings")
     try:
