@@ -3,15 +3,22 @@
 Each iteration draws 3 distinct correspondences, solves them with `gp3p` (up to 8 poses), and
 scores every pose on all correspondences with the angular error of `refine.ray_errors` (the norm
 of the tangent-plane residual of `refine_pose`; points behind their ray's origin, alpha <= 0,
-never count as inliers). Scoring is MSAC: sum_i min(e_i^2, threshold^2), inliers e_i < threshold.
-The iteration count adapts to the best inlier ratio w found so far,
+never count as inliers). Each correspondence has its own threshold theta_i (radians), so that
+cameras of different resolution get the same threshold in pixels (`theta_i = px / f_i`). Scoring
+is MSAC on the normalized errors: sum_i min(e_i / theta_i, 1)^2, inliers e_i < theta_i. The
+iteration count adapts to the best inlier ratio w found so far,
 
     N = log(1 - confidence) / log(1 - w^3),
 
-capped at `max_iterations`. Optionally each new best hypothesis is locally optimised
-(LO-RANSAC: `refine_pose` on its inliers, re-scored, repeated while the score improves). The best
-inlier set goes to `final_solver` (normally the globally optimal solver of `pose.solver`), whose
-pose then re-selects the inliers; this is repeated until the inlier set is stable (a few rounds).
+capped at `max_iterations`. Each new best hypothesis is locally optimised as in LO-RANSAC's
+iterative least squares (Chum, Matas, Kittler 2003; Lebeda, Matas, Chum 2012, "Fixing the locally
+optimized RANSAC"): `refine_pose` on the correspondences within LO_MULTIPLIER x theta, then within
+a threshold shrinking to theta over LO_STEPS refits, every refit re-selecting from all
+correspondences and re-scored; the best-scoring pose is kept. A minimal-sample pose is often tens
+of pixels off at the far cameras, so correct points there fall just outside theta until a refit
+brings them in. The best inlier set then goes to `final_solver` (normally the globally optimal
+solver of `pose.solver`), whose pose re-selects the inliers from all correspondences and is
+re-solved until the set is stable: the returned pose is always the solve of the returned inliers.
 """
 
 from __future__ import annotations
@@ -28,19 +35,21 @@ from .refine import ray_errors, refine_pose
 from .statistics import validate_correspondences
 
 #: Rounds of final solve -> re-selected inliers before giving up on a stable inlier set.
-FINAL_ROUNDS = 3
-#: Iterations of `refine_pose` inside local optimisation.
+FINAL_ROUNDS = 10
+#: Iterations of `refine_pose` per local-optimisation refit.
 LO_ITERATIONS = 10
-#: Rounds of local optimisation per new best hypothesis.
-LO_ROUNDS = 3
+#: Local optimisation starts from the correspondences within LO_MULTIPLIER x threshold (Lebeda et
+#: al. use 3) and shrinks the threshold to 1 x over LO_STEPS refits.
+LO_MULTIPLIER = 3.0
+LO_STEPS = 4
 
 
 @dataclass(frozen=True)
 class RobustPose:
     """Result of `ransac_generalized_pose`.
 
-    R (3, 3), t (3,): the final pose (x_rig = R @ M + t), from `final_solver`. inliers: (n,) bool,
-    the correspondences within the threshold of that pose. errors: (n,) angular errors in radians
+    R (3, 3), t (3,): the final pose (x_rig = R @ M + t), from `final_solver` on `inliers`: (n,)
+    bool, the correspondences within their threshold of that pose. errors: (n,) angular errors in radians
     (inf for points behind their ray). n_iterations: RANSAC iterations drawn. n_inliers: inliers
     of the final pose. final: the object `final_solver` returned last.
     """
@@ -73,7 +82,7 @@ def ransac_generalized_pose(
 
     origins: (n, 3) ray origins v_i and directions: (n, 3) ray directions f_i, both in the rig
     frame; points: (n, 3) world points M_i. threshold_rad: inlier threshold on the angular
-    error (radians). final_solver(origins (k, 3), directions (k, 3), points (k, 3)) -> object
+    error (radians), one for all or (n,) one per correspondence. final_solver(origins (k, 3), directions (k, 3), points (k, 3)) -> object
     with attributes R (3, 3) and t (3,), called on the inliers. confidence: RANSAC success
     probability for the adaptive stop; max_iterations: cap on minimal samples; seed: of the
     sampler. Raises PoseError for invalid input, fewer than `min_inliers` correspondences, or
@@ -82,6 +91,7 @@ def ransac_generalized_pose(
     v, f, M = validate_correspondences(origins, directions, points)
     _check_options(threshold_rad, confidence, max_iterations, min_inliers)
     n = len(M)
+    threshold_rad = _thresholds(threshold_rad, n)
     if n < min_inliers:
         raise PoseError(f"ransac: {n} correspondences, but at least min_inliers={min_inliers} are needed")
     best, n_iterations = _ransac(v, f, M, threshold_rad, confidence, max_iterations,
@@ -90,15 +100,26 @@ def ransac_generalized_pose(
     if n_best < min_inliers:
         raise PoseError(
             f"ransac: no pose explains at least {min_inliers} of the {n} correspondences within "
-            f"{threshold_rad:.3g} rad after {n_iterations} samples (best: {n_best} inliers); "
+            f"{np.median(threshold_rad):.3g} rad after {n_iterations} samples (best: {n_best} inliers); "
             "the data look like outliers only, or the threshold is too tight"
         )
     return _final(v, f, M, best, threshold_rad, final_solver, n_iterations)
 
 
+def _thresholds(threshold_rad, n: int) -> np.ndarray:
+    """(n,) per-correspondence thresholds from a scalar or an (n,) array."""
+    threshold = np.asarray(threshold_rad, dtype=float)
+    if threshold.ndim == 0:
+        return np.full(n, float(threshold))
+    if threshold.shape != (n,):
+        raise PoseError(f"ransac: threshold_rad must be a number or have shape ({n},), got {threshold.shape}")
+    return threshold
+
+
 def _check_options(threshold_rad, confidence, max_iterations, min_inliers) -> None:
-    if not (np.isfinite(threshold_rad) and threshold_rad > 0):
-        raise PoseError(f"ransac: threshold_rad must be a positive number, got {threshold_rad}")
+    threshold = np.asarray(threshold_rad, dtype=float)
+    if not (np.all(np.isfinite(threshold)) and np.all(threshold > 0)):
+        raise PoseError(f"ransac: threshold_rad must be positive numbers, got {threshold_rad}")
     if not 0 < confidence < 1:
         raise PoseError(f"ransac: confidence must lie in (0, 1), got {confidence}")
     if int(max_iterations) < 1:
@@ -136,8 +157,9 @@ def _sample(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def _score(v, f, M, R, t, threshold) -> _Hypothesis:
+    """MSAC score of a pose against per-correspondence thresholds (n,)."""
     errors = ray_errors(v, f, M, R, t)
-    capped = np.minimum(errors, threshold)  # MSAC; inf (behind the ray) is capped too
+    capped = np.minimum(errors / threshold, 1.0)  # inf (behind the ray) is capped too
     return _Hypothesis(R=R, t=t, errors=errors, inliers=errors < threshold, cost=float(capped @ capped))
 
 
@@ -152,33 +174,46 @@ def required_iterations(inlier_ratio: float, confidence: float, sample_size: int
 
 
 def _local_optimization(v, f, M, hypothesis: _Hypothesis, threshold) -> _Hypothesis:
-    """Refine on the inliers while the MSAC cost improves (LO-RANSAC)."""
-    for _ in range(LO_ROUNDS):
-        inliers = hypothesis.inliers
-        if inliers.sum() < 4:
+    """Iterative least squares with a shrinking threshold (module docstring); the best-scoring pose."""
+    best, current = hypothesis, hypothesis
+    for scale in np.linspace(LO_MULTIPLIER, 1.0, LO_STEPS):
+        selected = current.errors < scale * threshold
+        if selected.sum() < 4:
             break
-        refined = refine_pose(v[inliers], f[inliers], M[inliers], hypothesis.R, hypothesis.t,
+        refined = refine_pose(v[selected], f[selected], M[selected], current.R, current.t,
                               sigma=1.0, max_iterations=LO_ITERATIONS)
-        candidate = _score(v, f, M, refined.R, refined.t, threshold)
-        if not candidate.cost < hypothesis.cost:
-            break
-        hypothesis = candidate
-    return hypothesis
+        current = _score(v, f, M, refined.R, refined.t, threshold)
+        if current.cost < best.cost:
+            best = current
+    return best
 
 
 def _final(v, f, M, best: _Hypothesis, threshold, final_solver, n_iterations) -> RobustPose:
-    """Run the final solver on the inliers until the re-selected inlier set is stable."""
-    inliers = best.inliers
-    for _ in range(FINAL_ROUNDS):
-        result = final_solver(v[inliers], f[inliers], M[inliers])
+    """Solve the inliers with the final solver and re-select them from all correspondences until
+    the set is stable (or FINAL_ROUNDS); the returned inliers are the set the returned pose solves.
+
+    A stable set is then offered the correspondences within LO_MULTIPLIER x threshold: their
+    solve replaces it when it scores better (the final solver's counterpart of the local
+    optimisation, for a correct point that the inlier-only solve leaves just outside)."""
+    solved, kept = best.inliers, None
+    for round_ in range(FINAL_ROUNDS):
+        result = final_solver(v[solved], f[solved], M[solved])
         R, t = _pose_of(result)
-        errors = ray_errors(v, f, M, R, t)
-        selected = errors < threshold
-        if np.array_equal(selected, inliers) or selected.sum() < 3:
+        current = _score(v, f, M, R, t, threshold)
+        if kept is not None and not current.cost < kept[1].cost:
+            break  # the widened set scored worse: keep the stable one
+        kept = (solved, current, result)
+        selected = current.inliers
+        if np.array_equal(selected, solved):
+            selected = current.errors < LO_MULTIPLIER * threshold
+            if np.array_equal(selected, solved):
+                break
+        if selected.sum() < 3:
             break
-        inliers = selected
-    return RobustPose(R=R, t=t, inliers=selected, errors=errors, n_iterations=n_iterations,
-                      n_inliers=int(selected.sum()), final=result)
+        solved = selected
+    solved, current, result = kept
+    return RobustPose(R=current.R, t=current.t, inliers=solved, errors=current.errors,
+                      n_iterations=n_iterations, n_inliers=int(solved.sum()), final=result)
 
 
 def _pose_of(result) -> tuple[np.ndarray, np.ndarray]:

@@ -37,7 +37,7 @@ log = logging.getLogger(__name__)
 
 COLUMNS = ["frame", "group", "cameras", "n_points", "qw", "qx", "qy", "qz", "tx", "ty", "tz",
            "x", "y", "z", "eps_proj_px", "time_ms"]
-#: RANSAC threshold of --robust, in pixels (converted with each camera's focal length).
+#: RANSAC threshold of --robust, in pixels (an angle per observation: this over its camera's fx).
 ROBUST_THRESHOLD_PX = 20.0
 
 
@@ -81,7 +81,7 @@ def solve_frame(rig: Rig, cameras: np.ndarray, uv: np.ndarray, points: np.ndarra
     origins, directions = rig.rays_of(cameras, uv)
     start = time.perf_counter()
     if robust:
-        focal = np.mean([rig.cameras[str(c)].fx for c in np.unique(cameras)])
+        focal = np.array([rig.cameras[str(c)].fx for c in cameras])
         result = solve_robust(origins, directions, points, ROBUST_THRESHOLD_PX / focal, refine=refine)
         R, t, used = result.R, result.t, result.inliers
     else:
