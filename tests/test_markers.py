@@ -9,6 +9,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from dmais_pipe.calib.intrinsics import run_intrinsics
 from dmais_pipe.camera import Camera
 from dmais_pipe.dataset import Dataset, load_observations, write_dataset
 from dmais_pipe.errors import DatasetError, DmaisError
@@ -351,6 +352,32 @@ def test_run_markers_missing_or_corrupt_image(tmp_path):
     (tmp_path / "data" / "images" / "i1.png").write_bytes(b"not a png")
     with pytest.raises(DatasetError, match="i1.*cannot be decoded"):
         run_markers(tmp_path / "data", tmp_path / "results", jobs=2)
+
+
+def test_markers_say_why_nothing_is_identified(tmp_path, caplog):
+    """Without an attitude prior, or without focal_px, detections cannot be identified: the image's
+    job says which input is missing instead of silently reporting 0 identified."""
+    small_dataset(tmp_path / "data")
+    images = pd.read_csv(tmp_path / "data" / "images.csv", dtype=str, keep_default_na=False)
+    images.loc[images["image"] == "i0", ["prior_qw", "prior_qx", "prior_qy", "prior_qz"]] = ""
+    images.to_csv(tmp_path / "data" / "images.csv", index=False)
+    with caplog.at_level("WARNING", logger="dmais_pipe.markers.stage"):
+        run_markers_image(tmp_path / "data", tmp_path / "results", "i0")
+        run_markers_image(tmp_path / "data", tmp_path / "results", "i1")
+    said = [r.getMessage() for r in caplog.records]
+    assert len(said) == 1 and said[0].startswith("markers i0: ") and "none can be identified" in said[0], said
+    assert said[0].endswith("intrinsics images are identified from their prior centre and attitude and the camera's "
+                            "focal_px; missing prior_qw..prior_qz (attitude) in images.csv"), said
+
+    manifest = (tmp_path / "data" / "dataset.yaml").read_text().replace("focal_px: 2000.0", "")
+    (tmp_path / "data" / "dataset.yaml").write_text(manifest)
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="dmais_pipe.markers.stage"):
+        run_markers_image(tmp_path / "data", tmp_path / "results", "i1")
+    assert [r.getMessage().split("; ")[-1] for r in caplog.records] == ["missing focal_px of camera C0 in dataset.yaml"]
+    collect_observations(tmp_path / "data", tmp_path / "results", "intrinsics")
+    with pytest.raises(DmaisError, match=r"camera C0: none of its 2 calibration images has an identified observation"):
+        run_intrinsics(tmp_path / "data", tmp_path / "results")
 
 
 def test_pose_verification_drops_swapped_ids_and_keeps_the_rest():

@@ -547,6 +547,11 @@ def _calibrate_dataset_camera(dataset, observations: pd.DataFrame, name: str, me
     calib_images = dataset.images_of("intrinsics", name, "calib")["image"].tolist()
     eval_images = dataset.images_of("intrinsics", name, "eval")["image"].tolist()
     log.info("camera %s: %d calib + %d eval images", name, len(calib_images), len(eval_images))
+    if not observations["image"].isin(calib_images).any():
+        raise DmaisError(f"camera {name}: none of its {len(calib_images)} calibration images has an identified "
+                         "observation; `dmais markers` identifies markers from each image's prior centre and "
+                         "attitude and the camera's focal_px (see its warnings, and docs/dataset.md, "
+                         "'What each stage needs')")
     X, uv = _per_image(observations, dataset.points, calib_images)
     eX, euv = _per_image(observations, dataset.points, eval_images)
     common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name)

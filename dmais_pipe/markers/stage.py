@@ -68,40 +68,59 @@ def _load_rig(results_dir: Path | None) -> Rig | None:
     return Rig.load(Path(results_dir) / "rig.json")
 
 
-def predicted_projections(dataset: Dataset, image: str, results_dir=None, rig: Rig | None = None):
-    """(uv (m, 2), point ids (m,)) of the known points predicted in `image` from the priors, or None
-    when the priors (or a camera model) are missing. Only points in front of the camera and within
-    PREDICTION_MARGIN_PX of the image are kept."""
+def _prediction_model(dataset: Dataset, image: str, results_dir=None, rig: Rig | None = None):
+    """(camera, cam_from_world, points) that predict where `image` sees the known points, or a
+    sentence saying what is missing for that (which priors, focal_px, the calibrated rig)."""
     row = dataset.images[dataset.images["image"] == image].iloc[0]
     camera_name = row["camera"]
     if row["stage"] == "flight":
         rig = rig if rig is not None else _load_rig(results_dir)
-        frames = dataset.frames[dataset.frames["frame"] == row["placement"]]
-        if rig is None or camera_name not in rig.cameras or frames.empty:
-            return None
-        frame = frames.iloc[0]
+        if rig is None:
+            return "flight images are identified with the calibrated rig, and RESULTS has no rig.json yet " \
+                   "(run `dmais extrinsics` first)"
+        if camera_name not in rig.cameras:
+            return f"camera {camera_name} is not in rig.json"
+        frame = dataset.frames[dataset.frames["frame"] == row["placement"]].iloc[0]
         q = frame[["prior_qw", "prior_qx", "prior_qy", "prior_qz"]].to_numpy(dtype=float)
         centre = frame[["pos_x", "pos_y", "pos_z"]].to_numpy(dtype=float)
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(centre))):
-            return None
+        if not np.all(np.isfinite(q)):
+            return f"frame {row['placement']!r} of frames.csv has no prior_qw..prior_qz (the INS attitude)"
         rig_from_world = Rigid3.from_quat(q, np.zeros(3))
         rig_from_world = Rigid3.from_quat(q, -rig_from_world.R @ centre)
-        cam_from_world = rig.cam_from_rig[camera_name] * rig_from_world
-        camera = rig.cameras[camera_name]
         points = dataset.ground_points if len(dataset.ground_points) else dataset.points
-    else:
-        q = row[["prior_qw", "prior_qx", "prior_qy", "prior_qz"]].to_numpy(dtype=float)
-        centre = row[["prior_x", "prior_y", "prior_z"]].to_numpy(dtype=float)
-        if not (np.all(np.isfinite(q)) and np.all(np.isfinite(centre))):
-            return None
-        R = Rigid3.from_quat(q, np.zeros(3)).R
-        cam_from_world = Rigid3(R, -R @ centre)
-        # Intrinsics images are the calibration's input: identified with the nominal camera only,
-        # so that their ids never depend on an earlier calibration.
-        camera = _nominal_camera(dataset, camera_name, results_dir if row["stage"] == "extrinsics" else None)
-        points = dataset.control_points
-        if camera is None:
-            return None
+        return rig.cameras[camera_name], rig.cam_from_rig[camera_name] * rig_from_world, points
+    q = row[["prior_qw", "prior_qx", "prior_qy", "prior_qz"]].to_numpy(dtype=float)
+    centre = row[["prior_x", "prior_y", "prior_z"]].to_numpy(dtype=float)
+    missing = [f"{name} in images.csv" for name, values in (("prior_x..prior_z (camera centre)", centre),
+                                                            ("prior_qw..prior_qz (attitude)", q))
+               if not np.all(np.isfinite(values))]
+    # Intrinsics images are the calibration's input: identified with the nominal camera only,
+    # so that their ids never depend on an earlier calibration.
+    camera = _nominal_camera(dataset, camera_name, results_dir if row["stage"] == "extrinsics" else None)
+    if camera is None:
+        missing.append(f"focal_px of camera {camera_name} in dataset.yaml")
+    if missing:
+        return (f"{row['stage']} images are identified from their prior centre and attitude and the camera's "
+                f"focal_px; missing {' and '.join(missing)}")
+    R = Rigid3.from_quat(q, np.zeros(3)).R
+    return camera, Rigid3(R, -R @ centre), dataset.control_points
+
+
+def identification_gap(dataset: Dataset, image: str, results_dir=None, rig: Rig | None = None) -> str | None:
+    """Why the markers of `image` cannot be identified (docs/dataset.md, "What each stage needs"),
+    or None when the priors and camera model to predict them are there."""
+    model = _prediction_model(dataset, image, results_dir, rig)
+    return model if isinstance(model, str) else None
+
+
+def predicted_projections(dataset: Dataset, image: str, results_dir=None, rig: Rig | None = None):
+    """(uv (m, 2), point ids (m,)) of the known points predicted in `image` from the priors, or None
+    when the priors (or a camera model) are missing. Only points in front of the camera and within
+    PREDICTION_MARGIN_PX of the image are kept."""
+    model = _prediction_model(dataset, image, results_dir, rig)
+    if isinstance(model, str):
+        return None
+    camera, cam_from_world, points = model
     xyz = points[["x", "y", "z"]].to_numpy(dtype=float)
     uv = camera.project(cam_from_world.apply(xyz))
     m = PREDICTION_MARGIN_PX
@@ -128,6 +147,9 @@ def process_image(dataset: Dataset, image: str, results_dir=None, rig: Rig | Non
     found = detect(pixels)
     found["point_id"] = ""
     prediction = predicted_projections(dataset, image, results_dir, rig)
+    if prediction is None and len(found):
+        log.warning("markers %s: %d detected, none can be identified: %s", image, len(found),
+                    identification_gap(dataset, image, results_dir, rig))
     if prediction is not None and len(found):
         uv, ids = prediction
         height, width = pixels.shape
@@ -135,6 +157,10 @@ def process_image(dataset: Dataset, image: str, results_dir=None, rig: Rig | Non
         if dataset.images.loc[dataset.images["image"] == image, "stage"].iloc[0] != "flight":
             found["point_id"] = verify_with_pose(found[["u", "v"]].to_numpy(), found["point_id"].to_numpy(),
                                                  dataset.points, ((width - 1) / 2, (height - 1) / 2))
+        if not (found["point_id"] != "").any():
+            log.warning("markers %s: %d detected, none identified: the priors predict %d known point(s) near the "
+                        "image and none matches a detection (check the prior centre and attitude, and focal_px)",
+                        image, len(found), len(uv))
     return found[MARKER_COLUMNS]
 
 
