@@ -72,7 +72,7 @@ class Rig:
         return self.cameras[camera].project(cam_from_world.apply(points_world))
 
     def to_dict(self) -> dict:
-        """The rig.json layout of DESIGN.md."""
+        """The rig.json layout of docs/design.md."""
         return {
             "reference_camera": self.reference_camera,
             "cameras": [

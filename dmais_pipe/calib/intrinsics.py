@@ -76,7 +76,7 @@ class IntrinsicsResult:
         return sorted(self.image_eps_px.items(), key=lambda item: -item[1])[:count]
 
     def to_dict(self) -> dict:
-        """The RESULTS/intrinsics/<camera>.json layout of DESIGN.md plus per-image details."""
+        """The RESULTS/intrinsics/<camera>.json layout of docs/design.md."""
         cam = self.camera
         return {
             "camera": self.name, "width": cam.width, "height": cam.height,

@@ -3,7 +3,7 @@
 Writes RESULTS/markers/<image>.csv (u, v, score, point_id; point_id empty when unidentified) for
 every image with a file, and RESULTS/observations.csv (image, camera, point_id, u, v): the
 identified detections plus the dataset's own observations.csv rows (images listed there skip
-extraction, DESIGN.md). The workflow instead runs one job per image (`run_markers_image`) and
+extraction, docs/design.md). The workflow instead runs one job per image (`run_markers_image`) and
 collects each stage into RESULTS/observations/<stage>.csv (`collect_observations`).
 
 Predicted projections for identification come from the priors:

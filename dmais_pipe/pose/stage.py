@@ -3,7 +3,7 @@
 Reads RESULTS/rig.json (extrinsics stage), the identified observations (RESULTS/observations.csv or
 the dataset's) and the ground points; writes RESULTS/poses.csv (all cameras) or
 RESULTS/poses_<label>.csv for a camera subset, label = the digits of the cameras' positions in the
-rig (e.g. 012), with the DESIGN.md columns
+rig (e.g. 012), with the columns of docs/design.md
 
     frame, group, cameras, n_points, qw, qx, qy, qz, tx, ty, tz, x, y, z, eps_proj_px, time_ms
 
