@@ -64,6 +64,11 @@ def _cmd_bench_markers(args) -> None:
 
     from .markers.bench import bench_markers, summary
 
+    if args.suite != "dataset":
+        from .markers.bench_suites import run_suite
+
+        run_suite(args.suite, args.csv, seed=args.seed, images=args.images)
+        return
     frame = bench_markers(args.dataset, args.csv, rig_path=args.rig)
     stage = frame["image"].str.split("_").str[0]
     table = {name: summary(group) for name, group in frame.groupby(stage)}
@@ -201,6 +206,11 @@ def _parser() -> argparse.ArgumentParser:
                                help="a rendered dataset with truth (default: the demo, as `make run` simulates it)")
     bench_markers.add_argument("--rig", type=Path, help="rig.json used to identify flight markers (e.g. truth/rig.json)")
     bench_markers.add_argument("--csv", type=Path, default=Path("reports/bench/markers.csv"))
+    bench_markers.add_argument("--suite", choices=["dataset", "regimes", "effects", "photos", "all"], default="dataset",
+                               help="dataset: the rendered dataset; regimes / effects / photos: the refinement grid, "
+                                    "the aerial-effects grid, the real chessboard photographs (CSV beside --csv)")
+    bench_markers.add_argument("--seed", type=int, default=0, help="seed of the synthetic suites")
+    bench_markers.add_argument("--images", type=int, help="images per cell (regimes: 4) or per effect (effects: 10)")
     bench_markers.set_defaults(run=_cmd_bench_markers)
     bench_pose = benches.add_parser("pose", help="pose solver time vs points (tab:time_points) and batch throughput")
     bench_pose.add_argument("--csv", type=Path, default=Path("reports/bench/pose_time_points.csv"))

@@ -165,7 +165,7 @@ def test_refine_and_detect_ordinary_chessboard():
 
 def check_detections(image, truth, tolerance=0.2):
     frame = detect(image)
-    assert list(frame.columns) == ["u", "v", "score"]
+    assert list(frame.columns) == ["u", "v", "score", "sigma_px", "fit_residual"]
     found = frame[["u", "v"]].to_numpy()
     assert len(found) == len(truth), (found, truth)
     distance, index = cKDTree(found).query(truth)
@@ -210,7 +210,7 @@ def test_detect_small_markers_multi_board_and_border():
 def test_detect_empty_and_texture_only():
     for image in (np.zeros((480, 640), np.uint8), np.full((3, 3), 7, np.uint8)):
         frame = detect(image)
-        assert frame.empty and list(frame.columns) == ["u", "v", "score"]
+        assert frame.empty and list(frame.columns) == ["u", "v", "score", "sigma_px", "fit_residual"]
     for seed in range(3):  # fractal texture, rougher and stronger than the default
         settings = RenderSettings(background_contrast=40.0, background_roughness=0.2)
         texture = render_image(SMALL, POSE, [], np.random.default_rng(seed), settings)

@@ -8,7 +8,8 @@
    X-corner ring is two-valued, point symmetric and changes level exactly four times (two dark
    opposite sectors, two bright opposite sectors), whatever the rotation, foreshortening or
    polarity. Board outline corners (L), T-junctions and texture fail it.
-3. Sub-pixel refinement (`refine.refine`) and de-duplication.
+3. Sub-pixel refinement (`refine.refine_corners`: a blurred X-corner model fit, which rejects a
+   corner whose fit is poor and gives each its uncertainty) and de-duplication.
 """
 
 from __future__ import annotations
@@ -18,9 +19,10 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from .refine import _ring_offsets, as_float_image, clean_radius, refine, ring_quality, sample, seed
+from .refine import _ring_offsets, as_float_image, clean_radius, refine_corners, ring_quality, sample, seed
 
-COLUMNS = ["u", "v", "score"]
+COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
+REJECTED_COLUMNS = ["u", "v", "reason"]
 MIN_CONTRAST = 50.0  # DN (8-bit) between the bright and the dark sectors
 MIN_QUALITY = 0.7  # ring quality (bimodality x point symmetry) at the verification radii
 PRE_QUALITY = 0.3  # looser quality of the prefilter at the unrefined candidate position
@@ -66,71 +68,89 @@ def candidates(img: np.ndarray, min_contrast: float) -> np.ndarray:
 
 
 def detect(image, min_contrast: float = MIN_CONTRAST, min_quality: float = MIN_QUALITY,
-           refine_points: bool = True) -> pd.DataFrame:
+           refine_points: bool = True, with_rejected: bool = False):
     """Every diagonal marker (X-corner) of a (h, w) 8/16-bit grayscale image.
 
-    Returns a DataFrame with columns u, v (refined, OpenCV pixel convention) and score in [0, 1]
-    (ring quality x min(largest clean ring radius, 10 px) / 10 px: higher is surer), sorted by v
-    then u. min_contrast is in 8-bit DN (scaled to the bright end of 16-bit images). Markers whose
-    X-corner is nearer than ~5 px to the image border are not found.
+    Returns a DataFrame with columns u, v (refined, OpenCV pixel convention), score in [0, 1]
+    (ring quality x min(largest clean ring radius, 10 px) / 10 px: higher is surer), sigma_px (the
+    refinement's standard deviation per axis, px: a weight 1 / sigma^2) and fit_residual (the
+    model fit's RMS residual / contrast), sorted by v then u. min_contrast is in 8-bit DN (scaled
+    to the bright end of 16-bit images). Markers whose X-corner is nearer than ~5 px to the image
+    border are not found. With `with_rejected`, also a DataFrame u, v, reason of the verified
+    X-corners the refinement rejected (e.g. a poor fit: a shadow edge or an occluder through it).
     """
     raw = np.asarray(image)
     img = as_float_image(raw)
     contrast = min_contrast * _dn_scale(raw)
+    cand = _verified(img, contrast, min_quality)
+    rejected = pd.DataFrame({name: pd.Series(dtype=object if name == "reason" else float) for name in REJECTED_COLUMNS})
+    if len(cand) == 0:
+        return (_empty(), rejected) if with_rejected else _empty()
+    cand, radius, quality = cand
+    sigma = fit = np.full(len(cand), np.nan)
+    if refine_points:
+        corners = refine_corners(img, cand)
+        ok = np.all(np.isfinite(corners.uv), axis=1)
+        rejected = pd.DataFrame({"u": cand[~ok, 0], "v": cand[~ok, 1], "reason": corners.reason[~ok]})
+        cand, radius, quality = corners.uv[ok], radius[ok], quality[ok]
+        sigma, fit = corners.sigma_px[ok], corners.fit_residual[ok]
+        # The refined centre must still be the centre of a clean X.
+        radius = np.minimum(radius, clean_radius(img, cand, min_quality=min_quality))
+        ok = radius >= MIN_CLEAN_RADIUS
+        lost = pd.DataFrame({"u": cand[~ok, 0], "v": cand[~ok, 1], "reason": "no clean X at the fit"})
+        rejected = pd.concat([rejected, lost], ignore_index=True) if len(lost) else rejected
+        cand, radius, quality, sigma, fit = cand[ok], radius[ok], quality[ok], sigma[ok], fit[ok]
+    score = np.clip(quality * np.minimum(radius, 10.0) / 10.0, 0.0, 1.0)
+    keep = _dedupe(cand, score)
+    frame = pd.DataFrame({"u": cand[keep, 0], "v": cand[keep, 1], "score": score[keep], "sigma_px": sigma[keep],
+                          "fit_residual": fit[keep]}).sort_values(["v", "u"], ignore_index=True)
+    return (frame, rejected) if with_rejected else frame
+
+
+def _verified(img: np.ndarray, contrast: float, min_quality: float):
+    """(candidates (k, 2), clean radius (k,), ring quality (k,)) of the X-corners that pass the
+    ring tests, unrefined (centred by `seed`); an empty tuple when there are none."""
     height, width = img.shape
     cand = candidates(img, contrast)
     if len(cand) == 0:
-        return _empty()
+        return ()
     # Prefilter at the unrefined position: a ring of radius 4 px must already look like an X.
     values = sample(img, cand[:, None, :] + _ring_offsets(4.0)[None])
     quality, ring_contrast = ring_quality(values)
-    keep = (quality >= PRE_QUALITY) & (np.abs(ring_contrast) >= contrast)
-    cand = cand[keep]
+    cand = cand[(quality >= PRE_QUALITY) & (np.abs(ring_contrast) >= contrast)]
     if len(cand) == 0:
-        return _empty()
+        return ()
     seeded = seed(img, cand, 3.0)
     cand = seeded[np.all(np.isfinite(seeded), axis=1)]
     cand = cand[(cand[:, 0] >= 0) & (cand[:, 0] <= width - 1) & (cand[:, 1] >= 0) & (cand[:, 1] <= height - 1)]
-    cand = _dedupe(cand, np.ones(len(cand)))[0]
+    cand = cand[_dedupe(cand, np.ones(len(cand)))]
     if len(cand) == 0:
-        return _empty()
+        return ()
     radius = clean_radius(img, cand, min_quality=min_quality)
     good = radius >= MIN_CLEAN_RADIUS
     cand, radius = cand[good], radius[good]
     if len(cand) == 0:
-        return _empty()
+        return ()
     # Contrast and quality on a ring well inside the clean area, away from the blurred centre.
     probe = np.clip(0.5 * radius, 3.0, 12.0)[:, None, None]
-    values = sample(img, cand[:, None, :] + probe * _ring_offsets(1.0)[None])
-    quality, ring_contrast = ring_quality(values)
+    quality, ring_contrast = ring_quality(sample(img, cand[:, None, :] + probe * _ring_offsets(1.0)[None]))
     good = np.abs(ring_contrast) >= contrast
-    cand, radius, quality = cand[good], radius[good], quality[good]
-    if refine_points and len(cand):
-        fine = refine(img, cand)
-        ok = np.all(np.isfinite(fine), axis=1)
-        cand, radius, quality = fine[ok], radius[ok], quality[ok]
-        # The refined centre must still be the centre of a clean X.
-        radius = np.minimum(radius, clean_radius(img, cand, min_quality=min_quality))
-        ok = radius >= MIN_CLEAN_RADIUS
-        cand, radius, quality = cand[ok], radius[ok], quality[ok]
-    score = np.clip(quality * np.minimum(radius, 10.0) / 10.0, 0.0, 1.0)
-    cand, score = _dedupe(cand, score)
-    frame = pd.DataFrame({"u": cand[:, 0], "v": cand[:, 1], "score": score})
-    return frame.sort_values(["v", "u"], ignore_index=True)
+    if not good.any():
+        return ()
+    return cand[good], radius[good], quality[good]
 
 
-def _dedupe(points: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Keep the best-scoring point of every cluster closer than DUPLICATE_PX."""
+def _dedupe(points: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Indexes (k,) of the best-scoring point of every cluster of points (n, 2) closer than DUPLICATE_PX."""
     if len(points) < 2:
-        return points, score
+        return np.arange(len(points))
     order = np.argsort(-score, kind="stable")
-    points, score = points[order], score[order]
     tree = cKDTree(points)
     taken = np.zeros(len(points), dtype=bool)
     keep = []
-    for i in range(len(points)):
+    for i in order:
         if taken[i]:
             continue
         keep.append(i)
         taken[tree.query_ball_point(points[i], DUPLICATE_PX)] = True
-    return points[keep], score[keep]
+    return np.array(keep, dtype=int)

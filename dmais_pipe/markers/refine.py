@@ -10,11 +10,15 @@ many edge pixels (less noise) and small chessboard squares never let a neighbour
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
+from . import xfit
+
 RING_SAMPLES = 48
-MIN_RADIUS = 2.5  # px, smallest window half-size
+MIN_RADIUS = 3.0  # px, smallest window radius
 MAX_RADIUS = 40.0  # px, largest window half-size
 RADIUS_FRACTION = 0.8
 SEED_RADIUS = 5.0
@@ -118,44 +122,204 @@ def clean_radius(image: np.ndarray, uv: np.ndarray, min_quality: float = 0.6,
     return result
 
 
-def refine(image, uv, radius=None, max_iterations: int = 30, eps: float = 1e-3,
-           max_shift: float | None = None) -> np.ndarray:
-    """Sub-pixel X-corner positions (n, 2) from approximate ones uv (n, 2) (within ~2 px).
+REJECT_RESIDUAL = 0.08  # fit RMS residual / contrast above which a corner is rejected
+MAX_SIGMA_PX = 0.5  # corners less certain than this are rejected
+MIN_EDGE_ANGLE = np.radians(15.0)  # edges closer than this in direction are degenerate
+REASONS = ("no X pattern", "no convergence", "moved too far", "degenerate edges", "poor fit", "uncertain")
 
-    image: (h, w) 8/16-bit or float grayscale. radius: window half-size in px, a scalar or (n,);
-    default per point: a first pass with a 4 px window, then 0.8 x the largest clean X ring around
-    that (`clean_radius`), within [2.5, 40] px (and inside the image). Rows are NaN where the
-    iteration does not converge, the gradients show fewer than two edge directions, or the point
-    moves farther than `max_shift` (default 3 px; max(3, radius) with an explicit radius).
+
+@dataclass
+class Corners:
+    """Refined X-corners: uv (n, 2) (NaN rows where rejected), sigma_px (n,) standard deviation per
+    axis of uv from the fit's residual (usable as a weight 1 / sigma^2), fit_residual (n,) RMS
+    residual of the fit / contrast, blur_px (n,) fitted edge blur, contrast (n,) DN between the
+    levels, window_px (n,) window radius, reason (n,) '' or why the corner was rejected."""
+
+    uv: np.ndarray
+    sigma_px: np.ndarray
+    fit_residual: np.ndarray
+    blur_px: np.ndarray
+    contrast: np.ndarray
+    window_px: np.ndarray
+    reason: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int) -> "Corners":
+        nan = np.full(n, np.nan)
+        return cls(np.full((n, 2), np.nan), nan.copy(), nan.copy(), nan.copy(), nan.copy(), nan.copy(),
+                   np.full(n, REASONS[0], dtype=object))
+
+
+def refine(image, uv, radius=None, max_shift: float | None = None) -> np.ndarray:
+    """Sub-pixel X-corner positions (n, 2) from approximate ones uv (n, 2) (within ~2 px); NaN rows
+    where `refine_corners` rejects the corner."""
+    return refine_corners(image, uv, radius, max_shift).uv
+
+
+def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Corners:
+    """Fit of the blurred X-corner model (`xfit`) to every corner near uv (n, 2).
+
+    image: (h, w) 8/16-bit or float grayscale. The start is centred first by the gradient condition
+    with a small window (`seed`); the window radius (a scalar or (n,) `radius`, default per corner)
+    is the largest clean X ring around it (`clean_radius`, the marker's scale: no outline, no
+    neighbouring cell), at least 2.5 x the fitted blur + 1 px where the marker allows, within [3, 40]
+    px and inside the image. The fit runs twice, the second window centred on the first result.
+    A corner is rejected (NaN, with a reason) when no X is found, the fit does not converge, moves
+    more than `max_shift` (default 3 px) from uv, its edges are nearly parallel, its residual exceeds
+    REJECT_RESIDUAL of the contrast (e.g. a shadow edge or an occluder through it) or its
+    uncertainty exceeds MAX_SIGMA_PX.
     """
     img = as_float_image(image)
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     n = len(uv)
+    out = Corners.empty(n)
     if n == 0:
-        return np.zeros((0, 2))
-    height, width = img.shape
-    if radius is None:
-        limit = np.full(n, 3.0 if max_shift is None else float(max_shift))
-        first = seed(img, uv, limit)
-        start = np.where(np.isfinite(first), first, uv)
-        radius = np.clip(RADIUS_FRACTION * clean_radius(img, start), MIN_RADIUS, MAX_RADIUS)
-        limit = np.where(np.isfinite(first[:, 0]), 1.5, limit)  # the seed pass has centred the point
-    else:
-        start = uv
-        radius = np.broadcast_to(np.asarray(radius, dtype=float), (n,))
-        limit = np.maximum(3.0, radius) if max_shift is None else np.full(n, float(max_shift))
-    # Windows must stay inside the image (a replicated border biases the gradients).
-    room = np.min([start[:, 0], start[:, 1], width - 1 - start[:, 0], height - 1 - start[:, 1]], axis=0) - limit - 2.0
-    radius = np.where(np.isfinite(room), np.minimum(radius, np.maximum(np.floor(room), MIN_RADIUS)), radius)
-    out = np.full((n, 2), np.nan)
-    for value in np.unique(radius[np.isfinite(radius)]):
-        for shift in np.unique(limit):
-            idx = np.nonzero((radius == value) & (limit == shift))[0]
-            if len(idx):
-                out[idx] = _refine_fixed(img, start[idx], float(value), max_iterations, eps, limit[idx])
-    moved = np.hypot(*(out - uv).T) > (3.0 + (0 if max_shift is None else max_shift))
-    out[moved] = np.nan
+        return out
+    limit = 3.0 if max_shift is None else float(max_shift)
+    fixed = radius is not None
+    # Start from the seed or from uv, whichever is the centre of the larger clean X (under strong
+    # blur and foreshortening the small-window seed can drift away).
+    first = seed(img, uv, np.full(n, limit))
+    first = np.where(np.isfinite(first), first, uv)
+    clean_uv, clean_first = clean_radius(img, uv), clean_radius(img, first)
+    start = np.where((clean_first >= clean_uv)[:, None], first, uv)
+    if not fixed:
+        radius = np.maximum(clean_uv, clean_first)
+    radius = _window_radius(img, start, radius)
+    params = _initial_params(img, start, radius)
+    params, cov, rms, converged = _fit_round(img, start, params, radius)
+    # Second round centred on the first fit, with the window of the clean X about it; windows whose
+    # fit is poor shrink (an outline, a shadow edge or an occluder at their rim) down to ~2 blurs.
+    centre = np.where(np.isfinite(params[:, :2]), params[:, :2], start)
+    if not fixed:
+        again = clean_radius(img, centre)
+        radius = _window_radius(img, centre, np.where(again > 0, again, radius))
+    for attempt in range(3):
+        todo = np.ones(n, dtype=bool) if attempt == 0 else (_reasons(params, cov, rms, converged, uv, limit)
+                                                            == "poor fit") & (radius * SHRINK >= smallest)
+        if not todo.any():
+            break
+        if attempt:
+            radius = np.where(todo, radius * SHRINK, radius)
+        fitted = _fit_round(img, centre[todo], params[todo], radius[todo])
+        for array, value in zip((params, cov, rms, converged), fitted):
+            array[todo] = value
+        smallest = np.maximum(MIN_RADIUS, 2.0 * np.nan_to_num(params[:, 4], nan=1.0) + 1.0)
+    reason = _reasons(params, cov, rms, converged, uv, limit)
+    good = reason == ""
+    out.uv[:] = np.where(good[:, None], params[:, :2], np.nan)
+    out.sigma_px[:] = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
+    out.contrast[:] = 2.0 * np.abs(params[:, 6])
+    out.fit_residual[:] = rms / np.maximum(out.contrast, 1e-9)
+    out.blur_px[:], out.window_px[:], out.reason[:] = params[:, 4], radius, reason
     return out
+
+
+SHRINK = 0.75
+
+
+def _window_radius(img: np.ndarray, centre: np.ndarray, radius) -> np.ndarray:
+    """(n,) window radii: `radius` within [MIN_RADIUS, MAX_RADIUS], and inside the image."""
+    height, width = img.shape
+    radius = np.clip(np.broadcast_to(np.asarray(radius, dtype=float), (len(centre),)), MIN_RADIUS, MAX_RADIUS)
+    room = np.min([centre[:, 0], centre[:, 1], width - 1 - centre[:, 0], height - 1 - centre[:, 1]], axis=0) - 1.0
+    return np.where(np.isfinite(room), np.minimum(radius, np.maximum(np.floor(room), MIN_RADIUS)), np.nan)
+
+
+def _fit_round(img, centre, params, radius):
+    """xfit.fit of every corner in its window (radius (n,) about centre (n, 2)), grouped by radius:
+    (params (n, 7), covariance of p (n, 2, 2), RMS residual (n,), converged (n,)); NaN where params
+    start as NaN."""
+    n = len(centre)
+    out = (np.full((n, 7), np.nan), np.full((n, 2, 2), np.nan), np.full(n, np.nan), np.zeros(n, dtype=bool))
+    usable = np.isfinite(radius) & np.all(np.isfinite(params), axis=1) & np.all(np.isfinite(centre), axis=1)
+    for value in np.unique(radius[usable]):
+        idx = np.nonzero(usable & (radius == value))[0]
+        x, y, values, weights = xfit.window(img, centre[idx], float(value))
+        start = xfit.linear_levels(params[idx], x, y, values, weights)
+        for array, result in zip(out, xfit.fit(start, x, y, values, weights)):
+            array[idx] = result
+    return out
+
+
+def _reasons(params, cov, rms, converged, uv, limit) -> np.ndarray:
+    """(n,) '' for a good fit, else why the corner is rejected (REASONS)."""
+    p = params[:, :2]
+    sigma = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
+    residual = rms / np.maximum(2.0 * np.abs(params[:, 6]), 1e-9)
+    edge_angle = np.abs(np.sin(params[:, 2] - params[:, 3]))
+    reason = np.full(len(p), "", dtype=object)
+    reason[sigma > MAX_SIGMA_PX] = "uncertain"
+    reason[residual > REJECT_RESIDUAL] = "poor fit"
+    reason[edge_angle < np.sin(MIN_EDGE_ANGLE)] = "degenerate edges"
+    reason[~(np.hypot(*(p - uv).T) <= limit)] = "moved too far"
+    reason[~(converged & np.all(np.isfinite(p), axis=1) & np.isfinite(sigma))] = "no convergence"
+    reason[~np.all(np.isfinite(params), axis=1)] = "no X pattern"
+    return reason
+
+
+def _initial_params(img: np.ndarray, start: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Model parameters (n, 7) from a ring about start (n, 2): edge normals from its four level
+    changes, blur 1 px, levels from the ring; NaN rows where the ring is not an X."""
+    n = len(start)
+    rho = np.clip(0.6 * np.nan_to_num(radius, nan=MIN_RADIUS), 2.5, 12.0)
+    values = sample(img, start[:, None, :] + rho[:, None, None] * _ring_offsets(1.0)[None]).astype(float)
+    k = values.shape[1]
+    mean = values.mean(axis=1, keepdims=True)
+    high = values > mean
+    nxt = np.roll(values, -1, axis=1)
+    change = high != np.roll(high, -1, axis=1)
+    params = _saddle_params(img, start, radius)
+    ok = change.sum(axis=1) == 4
+    if not ok.any():
+        return params
+    # Sub-sample angle of each level change (the crossing of the ring mean between samples j, j+1).
+    j = np.nonzero(change[ok])[1].reshape(-1, 4)
+    rows = np.arange(ok.sum())[:, None]
+    v0, v1 = values[ok][rows, j], nxt[ok][rows, j]
+    t = np.clip((v0 - mean[ok]) / np.where(v0 == v1, 1.0, v0 - v1), 0.0, 1.0)
+    angle = 2.0 * np.pi * (j + 0.5 + t) / k
+    # An edge line runs through changes 0 and 2, the other through 1 and 3; normals = direction + 90 deg.
+    d1 = _mean_direction(angle[:, 0], angle[:, 2] - np.pi)
+    d2 = _mean_direction(angle[:, 1], angle[:, 3] - np.pi)
+    sub = params[ok]
+    sub[:, 0:2] = start[ok]
+    sub[:, 2], sub[:, 3] = d1 + 0.5 * np.pi, d2 + 0.5 * np.pi
+    sub[:, 4] = 1.0
+    sub[:, 5] = mean[ok, 0]
+    sub[:, 6] = 0.5 * (values[ok].max(axis=1) - values[ok].min(axis=1))
+    params[ok] = sub
+    return params
+
+
+def _saddle_params(img: np.ndarray, start: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Model parameters (n, 7) from the Hessian of a quadratic fitted about start (n, 2) (for rings
+    too blurred or too small to show four level changes): near a blurred X-corner the image is
+    ~ m + k l_1 l_2, whose Hessian has the edge normals' bisectors as eigenvectors and eigenvalues
+    in the ratio cot^2 of half their angle. NaN rows where the quadratic is not a saddle."""
+    r = np.clip(np.nan_to_num(radius, nan=MIN_RADIUS), MIN_RADIUS, 8.0)
+    params = np.full((len(start), 7), np.nan)
+    for value in np.unique(r):
+        idx = np.nonzero(r == value)[0]
+        x, y, values, weights = xfit.window(img, start[idx], float(value))
+        dx, dy = x - start[idx, :1], y - start[idx, 1:]
+        basis = np.stack([np.ones_like(dx), dx, dy, dx * dx, dx * dy, dy * dy], axis=-1)
+        wb = basis * weights[..., None]
+        normal = np.einsum("nki,nkj->nij", wb, basis) + 1e-9 * np.eye(6)
+        coef = np.linalg.solve(normal, np.einsum("nki,nk->ni", wb, values)[..., None])[..., 0]
+        hess = np.stack([np.stack([2 * coef[:, 3], coef[:, 4]], -1), np.stack([coef[:, 4], 2 * coef[:, 5]], -1)], 1)
+        lam, vec = np.linalg.eigh(hess)  # ascending: lam[:, 0] < 0 < lam[:, 1] at a saddle
+        saddle = (lam[:, 0] < 0) & (lam[:, 1] > 0)
+        beta = np.arctan(np.sqrt(np.abs(lam[:, 0]) / np.maximum(lam[:, 1], 1e-12)))
+        bisector = np.arctan2(vec[:, 1, 1], vec[:, 0, 1])
+        sub = np.column_stack([start[idx], bisector + beta, bisector - beta, np.ones(len(idx)), coef[:, 0],
+                               np.ones(len(idx))])
+        params[idx] = np.where(saddle[:, None], sub, np.nan)
+    return params
+
+
+def _mean_direction(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.arctan2(np.sin(a) + np.sin(b), np.cos(a) + np.cos(b))
 
 
 def seed(img: np.ndarray, uv: np.ndarray, max_shift) -> np.ndarray:

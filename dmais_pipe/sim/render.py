@@ -22,7 +22,9 @@ are then split by the lines of the pattern's grid (cell lines and outline) that 
 
 `coverage_image` is the noise-free, blur-free, vignetting-free rendering on a flat background;
 `render_image` paints the same boards over a fractal texture and adds illumination jitter, optical
-blur, vignetting, shot and read noise. Pixel coordinates follow OpenCV (centre of the top-left
+blur, vignetting, shot and read noise, and optionally the effects of real aerial photographs
+(`effects.py`: ground texture, cast shadows, occluders, motion blur, defocus, JPEG, 12-bit data).
+Pixel coordinates follow OpenCV (centre of the top-left
 pixel is (0, 0); pixel (i, j) covers [j - 0.5, j + 0.5] x [i - 0.5, i + 0.5]).
 """
 
@@ -36,6 +38,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..geometry import Rigid3
+from . import effects
 
 # Coverage codes of one sample.
 _BACKGROUND, _BLACK, _WHITE = 0, 1, 2
@@ -145,6 +148,18 @@ class RenderSettings:
     read_noise_dn: float = 1.5  # Gaussian read noise
     shot_noise_gain: float = 0.05  # shot-noise variance per DN: var = gain * signal
     illumination_jitter: float = 0.1  # per-board random scale of the levels (shadow/sun)
+    # Effects of real aerial photographs (`effects.py`), all off by default:
+    ground_texture_dn: float = 0.0  # std of band-limited ground texture (grass, gravel, asphalt) added
+    ground_grain_px: float = 1.0  # its grain: the scale of the band (difference of Gaussians)
+    shadow_fraction: float = 0.0  # share of boards crossed by a cast shadow's edge
+    shadow_depth: float = 0.6  # relative loss of light in the shadow
+    shadow_penumbra_px: float = 0.3  # width (std) of the shadow edge
+    occlusion_fraction: float = 0.0  # share of boards with a third of one cell hidden by an occluder
+    motion_blur_px: float = 0.0  # length of a linear motion blur
+    motion_direction_deg: float = 0.0  # its direction in the image (flight direction), from +u toward +v
+    defocus_px: float = 0.0  # radius of a disc (defocus) PSF
+    jpeg_quality: int = 0  # 1-100: JPEG-compress the 8-bit output; 0: none
+    bit_depth: int = 8  # 8: uint8 output; 9-16: uint16 with levels scaled to 2**bit_depth - 1 (e.g. 12-bit data)
 
 
 # ------------------------------------------------------------------------------ board geometry
@@ -663,7 +678,8 @@ def vignetting_profile(camera: Camera, vignetting: float) -> np.ndarray:
 
 def render_image(camera: Camera, cam_from_world: Rigid3, boards, rng: np.random.Generator,
                  settings: RenderSettings = RenderSettings()) -> np.ndarray:
-    """Synthetic 8-bit grayscale image (height, width) uint8 of `boards` seen by the camera.
+    """Synthetic grayscale image (height, width) of `boards` seen by the camera: uint8, or uint16
+    holding `settings.bit_depth`-bit data.
 
     Deterministic for a given rng state. One integer is drawn from `rng` and seeds three
     independent streams (illumination factors, background texture, noise), so adding a board that
@@ -671,14 +687,20 @@ def render_image(camera: Camera, cam_from_world: Rigid3, boards, rng: np.random.
     """
     boards = list(boards)
     key = int(rng.integers(0, 2**63 - 1))
-    jitter_rng, texture_rng, noise_rng = (np.random.default_rng(s) for s in np.random.SeedSequence(key).spawn(3))
+    # Streams by index: the effects' streams (3, 4) leave the first three unchanged.
+    jitter_rng, texture_rng, noise_rng, effect_rng, ground_rng = (
+        np.random.default_rng(s) for s in np.random.SeedSequence(key).spawn(5))
     factors = np.clip(1.0 + settings.illumination_jitter * jitter_rng.standard_normal(len(boards)), 0.7, 1.3)
     levels = np.column_stack([settings.black_level * factors, settings.white_level * factors])
     image = fractal_background(camera.height, camera.width, texture_rng, settings.background_mean,
                                settings.background_contrast, roughness=settings.background_roughness)
+    if settings.ground_texture_dn > 0:
+        image += effects.band_limited_noise(image.shape, ground_rng, settings.ground_texture_dn, settings.ground_grain_px)
     _paint_boards(image, camera, cam_from_world, boards, levels, settings)
+    effects.occlude_and_shadow(image, camera, cam_from_world, boards, effect_rng, settings)
     if settings.blur_sigma_px > 0:
         image = cv2.GaussianBlur(image, (0, 0), settings.blur_sigma_px, borderType=cv2.BORDER_REFLECT)
+    image = effects.blur_motion_and_defocus(image, settings)
     if settings.vignetting != 0:
         image *= vignetting_profile(camera, settings.vignetting)
     if settings.read_noise_dn > 0 or settings.shot_noise_gain > 0:
@@ -689,6 +711,4 @@ def render_image(camera: Camera, cam_from_world: Rigid3, boards, rng: np.random.
         sigma *= noise_rng.standard_normal(image.shape, dtype=np.float32)
         image += sigma
         del sigma
-    np.clip(image, 0.0, 255.0, out=image)
-    image += np.float32(0.5)
-    return image.astype(np.uint8)
+    return effects.quantize(image, settings)
