@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from .errors import DmaisError, FileAccessError
+from .files import read_only
 
 log = logging.getLogger("dmais")
 
@@ -226,8 +227,10 @@ def main(argv: list[str] | None = None) -> int:
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s: %(message)s",
     )
+    dataset = getattr(args, "dataset", None)  # a command's dataset is only read, whatever it writes
     try:
-        args.run(args)
+        with read_only(dataset):
+            args.run(args)
     except OSError as error:  # reading or writing a file the user named, or the disk, failed
         error = FileAccessError.of(error)
         print(f"dmais {args.command}: error: {error}", file=sys.stderr)

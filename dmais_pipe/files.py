@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -22,10 +23,36 @@ from .errors import FileAccessError
 _UMASK = os.umask(0)
 os.umask(_UMASK)
 
+#: Folders nothing may be written into: the datasets a `dmais` command reads (`read_only`).
+_READ_ONLY: list[Path] = []
+
+
+@contextmanager
+def read_only(folder: str | Path | None):
+    """Within the block, refuse every write into `folder` (and below): a command's dataset is only
+    read, whatever --out, --csv or --html name. None protects nothing."""
+    if folder is None:
+        yield
+        return
+    _READ_ONLY.append(Path(folder).resolve())
+    try:
+        yield
+    finally:
+        _READ_ONLY.pop()
+
+
+def _check_writable(path: Path) -> None:
+    target = path.resolve()
+    for folder in _READ_ONLY:
+        if target == folder or folder in target.parents:
+            raise FileAccessError(path, f"lies in the dataset folder {folder}, which dmais only reads; "
+                                  "write results elsewhere")
+
 
 def write_bytes_atomic(path: str | Path, data: bytes) -> Path:
     """Write `data` to `path` through a temporary file and a rename; creates parent folders."""
     path = Path(path)
+    _check_writable(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")

@@ -106,3 +106,14 @@ def test_cli_unreadable_input_is_one_line(dataset, capsys, monkeypatch):
     monkeypatch.setattr("pathlib.Path.read_text", lambda self, *a, **k: guarded(self).read())
     assert main(["validate", str(dataset)]) == 2
     _one_line_error(capsys, "dmais validate: error: ", "dataset.yaml: Permission denied")
+
+
+def test_cli_never_writes_into_the_dataset_it_reads(dataset, tmp_path, capsys):
+    """`--out` naming the dataset itself would have replaced its observations.csv with results."""
+    before = {p: p.read_bytes() for p in dataset.rglob("*") if p.is_file()}
+    assert main(["markers", str(dataset), "--out", str(dataset)]) == 2
+    _one_line_error(capsys, "dmais markers: error: ", "lies in the dataset folder", "which dmais only reads")
+    assert main(["summarize", str(dataset), "--out", str(dataset / "reports")]) == 2
+    _one_line_error(capsys, "dmais summarize: error: ", "lies in the dataset folder")
+    assert {p: p.read_bytes() for p in dataset.rglob("*") if p.is_file()} == before
+    assert main(["summarize", str(dataset), "--out", str(tmp_path / "reports")]) == 0
