@@ -7,7 +7,6 @@ import shutil
 import numpy as np
 import pandas as pd
 import pytest
-import yaml
 
 from dmais_pipe.dataset import Dataset, load_observations
 from dmais_pipe.errors import DmaisError
@@ -25,15 +24,10 @@ from dmais_pipe.evaluate import (
 )
 from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
 from dmais_pipe.rig import Rig
-from dmais_pipe.sim.simulate import simulate
 
-SIM = {
-    "name": "evaluate-small",
-    "seed": 5,
-    "intrinsics": {"calib_images_per_camera": 2, "eval_images_per_camera": 1},
-    "flight": {"frames_per_group": 3},
-    "render": {"intrinsics": False, "extrinsics": False, "flight": False},
-}
+from conftest import observation_only
+
+SIM = observation_only("evaluate-small", seed=5, calib_images=2, eval_images=1, frames_per_group=3)
 ALL = "C0+C1+C2+C3+C4"
 ARCMIN = np.radians(1.0 / 60.0)
 SHIFT = np.array([0.03, -0.04, 0.0])  # every estimated centre is off the truth by 5 cm
@@ -58,10 +52,8 @@ def poses_from_truth(dataset, cameras: str = ALL, shift=SHIFT, tilt_arcmin: floa
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("evaluate")
-    (root / "sim.yaml").write_text(yaml.safe_dump(SIM))
-    return simulate(root / "sim.yaml", root / "dataset")
+def dataset(simulated_dataset):
+    return simulated_dataset(SIM)
 
 
 @pytest.fixture()

@@ -14,7 +14,6 @@ import numpy as np
 import pandas as pd
 import pycolmap
 import pytest
-import yaml
 from scipy.spatial.transform import Rotation
 
 from dmais_pipe import cli
@@ -42,23 +41,16 @@ from dmais_pipe.errors import DmaisError
 from dmais_pipe.files import write_json_atomic
 from dmais_pipe.geometry import Rigid3, rotation_error
 from dmais_pipe.rig import Rig
-from dmais_pipe.sim.simulate import simulate
 
-SIM = {
-    "name": "extrinsics-small",
-    "seed": 11,
-    "intrinsics": {"calib_images_per_camera": 20, "eval_images_per_camera": 2},
-    "flight": {"frames_per_group": 1},
-    "render": {"intrinsics": False, "extrinsics": False, "flight": False},
-}
+from conftest import observation_only
+
+SIM = observation_only("extrinsics-small", seed=11, calib_images=20, eval_images=2, frames_per_group=1)
 
 
 @pytest.fixture(scope="module")
-def calibrated(tmp_path_factory):
-    root = tmp_path_factory.mktemp("extrinsics")
-    (root / "sim.yaml").write_text(yaml.safe_dump(SIM))
-    dataset = simulate(root / "sim.yaml", root / "dataset")
-    results = root / "results"
+def calibrated(simulated_dataset, tmp_path_factory):
+    dataset = simulated_dataset(SIM)
+    results = tmp_path_factory.mktemp("extrinsics") / "results"
     run_intrinsics(dataset, results, methods=("ours",))
     written = run_extrinsics(dataset, results)
     return dataset, results, written

@@ -20,15 +20,10 @@ from dmais_pipe.camera import Camera
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.geometry import Rigid3, rotation_error
 from dmais_pipe.rig import Rig
-from dmais_pipe.sim.simulate import simulate
 
-SIM = {
-    "name": "intrinsics-small",
-    "seed": 11,
-    "intrinsics": {"calib_images_per_camera": 6, "eval_images_per_camera": 2},
-    "flight": {"frames_per_group": 1},
-    "render": {"intrinsics": False, "extrinsics": False, "flight": False},
-}
+from conftest import observation_only
+
+SIM = observation_only("intrinsics-small", seed=11, calib_images=6, eval_images=2, frames_per_group=1)
 JSON_KEYS = {"camera", "width", "height", "fx", "fy", "cx", "cy", "d", "std", "eps_calib_px", "eps_eval_px",
              "n_images", "n_observations"}
 
@@ -37,11 +32,9 @@ WIDE = Camera(fx=505.0, fy=502.0, cx=317.5, cy=243.0, d=-0.3, width=640, height=
 
 
 @pytest.fixture(scope="module")
-def simulated(tmp_path_factory):
-    root = tmp_path_factory.mktemp("intrinsics")
-    (root / "sim.yaml").write_text(yaml.safe_dump(SIM))
-    dataset = simulate(root / "sim.yaml", root / "dataset")
-    results = root / "results"
+def simulated(simulated_dataset, tmp_path_factory):
+    dataset = simulated_dataset(SIM)
+    results = tmp_path_factory.mktemp("intrinsics") / "results"
     written = run_intrinsics(dataset, results)
     return dataset, results, written
 

@@ -7,26 +7,18 @@ import shutil
 import numpy as np
 import pandas as pd
 import pytest
-import yaml
 
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.pose.stage import COLUMNS, merge_poses, run_pose
-from dmais_pipe.sim.simulate import simulate
 
-SIM = {
-    "name": "pose-small",
-    "seed": 5,
-    "intrinsics": {"calib_images_per_camera": 6, "eval_images_per_camera": 2},
-    "flight": {"frames_per_group": 2},
-    "render": {"intrinsics": False, "extrinsics": False, "flight": False},
-}
+from conftest import observation_only
+
+SIM = observation_only("pose-small", seed=5, calib_images=6, eval_images=2, frames_per_group=2)
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("pose")
-    (root / "sim.yaml").write_text(yaml.safe_dump(SIM))
-    return simulate(root / "sim.yaml", root / "dataset")
+def dataset(simulated_dataset):
+    return simulated_dataset(SIM)
 
 
 def test_poses_of_every_frame_match_the_truth(dataset, tmp_path):

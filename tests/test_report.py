@@ -19,15 +19,10 @@ from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_
 from dmais_pipe.report.html import SECTIONS, benchmark_table, write_report
 from dmais_pipe.report.paper import PAPER_DIR, PAPER_TABLES, compare_with_paper, paper_notes, write_paper_comparisons
 from dmais_pipe.rig import Rig
-from dmais_pipe.sim.simulate import simulate
 
-SIM = {
-    "name": "report-small",
-    "seed": 9,
-    "intrinsics": {"calib_images_per_camera": 2, "eval_images_per_camera": 1},
-    "flight": {"frames_per_group": 2},
-    "render": {"intrinsics": False, "extrinsics": False, "flight": False},
-}
+from conftest import observation_only
+
+SIM = observation_only("report-small", seed=9, calib_images=2, eval_images=1, frames_per_group=2)
 SECTION_IDS = [key for key, _ in SECTIONS]
 
 
@@ -119,10 +114,8 @@ def write_benchmarks(folder) -> None:
 
 
 @pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("report")
-    (root / "sim.yaml").write_text(yaml.safe_dump(SIM))
-    return simulate(root / "sim.yaml", root / "dataset")
+def dataset(simulated_dataset):
+    return simulated_dataset(SIM)
 
 
 @pytest.fixture(scope="module")

@@ -21,13 +21,9 @@ from dmais_pipe.sim.config import DEFAULTS, load_config, merge
 from dmais_pipe.sim.render import render_image
 from dmais_pipe.sim.simulate import build_world, markers_for, render_settings, simulate, stream, truth_observations
 
-SMALL = {
-    "name": "small",
-    "seed": 11,
-    "intrinsics": {"calib_images_per_camera": 2, "eval_images_per_camera": 1},
-    "flight": {"frames_per_group": 2},
-    "render": {"intrinsics": False, "extrinsics": False, "flight": False},
-}
+from conftest import observation_only
+
+SMALL = observation_only("small", seed=11, calib_images=2, eval_images=1, frames_per_group=2)
 
 
 def write_config(path, settings) -> str:
@@ -36,10 +32,8 @@ def write_config(path, settings) -> str:
 
 
 @pytest.fixture(scope="module")
-def small_dataset(tmp_path_factory):
-    root = tmp_path_factory.mktemp("sim")
-    out = simulate(write_config(root / "small.yaml", SMALL), root / "small")
-    return Dataset.load(out)
+def small_dataset(simulated_dataset):
+    return Dataset.load(simulated_dataset(SMALL))
 
 
 def pose_from_row(row) -> Rigid3:
