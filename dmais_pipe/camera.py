@@ -20,6 +20,12 @@ from .errors import DmaisError
 _NEWTON_MAX_ITERATIONS = 50
 
 
+def image_centre(width: int, height: int) -> np.ndarray:
+    """(2,) the centre of a width x height image in pixels: ((width - 1) / 2, (height - 1) / 2),
+    since the centre of the top-left pixel is (0, 0)."""
+    return np.array([(width - 1) / 2.0, (height - 1) / 2.0])
+
+
 def _as_points(array, width: int, name: str) -> np.ndarray:
     points = np.asarray(array, dtype=float)
     if points.ndim == 1:

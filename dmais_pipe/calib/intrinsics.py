@@ -2,7 +2,8 @@
 
 Paper, section "Intrinsic Calibration" (eq. 2-3 model, eq. `refine`):
 
-1. priors d = 0, fx = fy = f, principal point at the image centre (W/2, H/2);
+1. priors d = 0, fx = fy = f, principal point at the image centre, ((W - 1) / 2, (H - 1) / 2) with
+   the centre of the top-left pixel at (0, 0) (the paper's W/2, H/2 counts from the pixel corner);
 2. PnPf per calibration image (pose + f; `calib.pnpf.solve_pnpf`), then the mean f;
 3. PnP per image with the mean f;
 4. Levenberg-Marquardt jointly over fx, fy, cx, cy, d and all image poses (eq. `refine`),
@@ -34,7 +35,7 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
-from ..camera import Camera
+from ..camera import Camera, image_centre
 from ..errors import DmaisError
 from ..files import write_csv_atomic, write_json_atomic
 from ..geometry import Rigid3
@@ -316,7 +317,7 @@ def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: i
     """
     calib, evals, centre, skipped = _load_inputs(points_world_per_image, uv_per_image,
                                                  eval_points_world_per_image, eval_uv_per_image, name, min_images)
-    principal = np.array([width / 2.0, height / 2.0])
+    principal = image_centre(width, height)
     pnpf, focal = {}, {}
     for image, (X, uv) in calib.items():
         try:
@@ -401,7 +402,8 @@ def calibrate_camera_opencv(points_world_per_image, uv_per_image, width: int, he
     names = list(calib)
     object_points = [calib[k][0].astype(np.float32).reshape(-1, 1, 3) for k in names]
     image_points = [calib[k][1].astype(np.float32).reshape(-1, 1, 2) for k in names]
-    K0 = np.array([[focal_guess, 0, width / 2.0], [0, focal_guess, height / 2.0], [0, 0, 1]], dtype=np.float64)
+    cx, cy = image_centre(width, height)
+    K0 = np.array([[focal_guess, 0, cx], [0, focal_guess, cy], [0, 0, 1]], dtype=np.float64)
     flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
              | cv2.CALIB_FIX_K4 | cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)

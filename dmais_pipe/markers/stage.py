@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..camera import Camera
+from ..camera import Camera, image_centre
 from ..dataset import Dataset, stage_observations_path
 from ..errors import DatasetError, DmaisError
 from ..files import write_csv_atomic
@@ -58,8 +58,7 @@ def _nominal_camera(dataset: Dataset, camera: str, results_dir: Path | None) -> 
     spec = dataset.cameras[camera]
     if not spec.focal_px:
         return None
-    return Camera(spec.focal_px, spec.focal_px, 0.5 * (spec.width - 1), 0.5 * (spec.height - 1), 0.0,
-                  spec.width, spec.height)
+    return Camera(spec.focal_px, spec.focal_px, *image_centre(spec.width, spec.height), 0.0, spec.width, spec.height)
 
 
 def _load_rig(results_dir: Path | None) -> Rig | None:
@@ -156,7 +155,7 @@ def process_image(dataset: Dataset, image: str, results_dir=None, rig: Rig | Non
         found["point_id"] = identify(found[["u", "v"]].to_numpy(), uv, ids, (width, height))
         if dataset.images.loc[dataset.images["image"] == image, "stage"].iloc[0] != "flight":
             found["point_id"] = verify_with_pose(found[["u", "v"]].to_numpy(), found["point_id"].to_numpy(),
-                                                 dataset.points, ((width - 1) / 2, (height - 1) / 2))
+                                                 dataset.points, image_centre(width, height))
         if not (found["point_id"] != "").any():
             log.warning("markers %s: %d detected, none identified: the priors predict %d known point(s) near the "
                         "image and none matches a detection (check the prior centre and attitude, and focal_px)",
