@@ -49,7 +49,8 @@ class RobustPose:
     """Result of `ransac_generalized_pose`.
 
     R (3, 3), t (3,): the final pose (x_rig = R @ M + t), from `final_solver` on `inliers`: (n,)
-    bool, the correspondences within their threshold of that pose. errors: (n,) angular errors in radians
+    bool, the correspondences within their threshold of that pose (or within LO_MULTIPLIER x
+    their threshold, where solving those scored better). errors: (n,) angular errors in radians
     (inf for points behind their ray). n_iterations: RANSAC iterations drawn. n_inliers: inliers
     of the final pose. final: the object `final_solver` returned last.
     """
@@ -82,10 +83,10 @@ def ransac_generalized_pose(
 
     origins: (n, 3) ray origins v_i and directions: (n, 3) ray directions f_i, both in the rig
     frame; points: (n, 3) world points M_i. threshold_rad: inlier threshold on the angular
-    error (radians), one for all or (n,) one per correspondence. final_solver(origins (k, 3), directions (k, 3), points (k, 3)) -> object
-    with attributes R (3, 3) and t (3,), called on the inliers. confidence: RANSAC success
-    probability for the adaptive stop; max_iterations: cap on minimal samples; seed: of the
-    sampler. Raises PoseError for invalid input, fewer than `min_inliers` correspondences, or
+    error (radians), one for all or (n,) one per correspondence. final_solver(origins (k, 3),
+    directions (k, 3), points (k, 3)) -> object with attributes R (3, 3) and t (3,), called on
+    the inliers. confidence: RANSAC success probability for the adaptive stop; max_iterations: cap
+    on minimal samples; seed: of the sampler. Raises PoseError for invalid input, fewer than `min_inliers` correspondences, or
     when no pose has at least `min_inliers` inliers (e.g. all data are outliers).
     """
     v, f, M = validate_correspondences(origins, directions, points)
@@ -196,12 +197,12 @@ def _final(v, f, M, best: _Hypothesis, threshold, final_solver, n_iterations) ->
     solve replaces it when it scores better (the final solver's counterpart of the local
     optimisation, for a correct point that the inlier-only solve leaves just outside)."""
     solved, kept = best.inliers, None
-    for round_ in range(FINAL_ROUNDS):
+    for _ in range(FINAL_ROUNDS):
         result = final_solver(v[solved], f[solved], M[solved])
         R, t = _pose_of(result)
         current = _score(v, f, M, R, t, threshold)
         if kept is not None and not current.cost < kept[1].cost:
-            break  # the widened set scored worse: keep the stable one
+            break  # a re-selected or widened set that scores no better ends the search
         kept = (solved, current, result)
         selected = current.inliers
         if np.array_equal(selected, solved):
