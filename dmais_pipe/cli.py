@@ -32,6 +32,15 @@ def _cmd_validate(args) -> None:
     print(dataset.summary())
 
 
+def _cmd_plan(args) -> None:
+    import json
+
+    from .dataset import Dataset
+    from .plan import workflow_plan
+
+    print(json.dumps(workflow_plan(Dataset.load(args.dataset)), indent=1))
+
+
 def _cmd_summarize(args) -> None:
     from .report.dataset import summarize
 
@@ -138,6 +147,10 @@ def _parser() -> argparse.ArgumentParser:
     validate.add_argument("dataset", type=Path)
     validate.add_argument("--skip-images", action="store_true", help="do not decode the image files")
     validate.set_defaults(run=_cmd_validate)
+
+    plan = commands.add_parser("plan", help="what the workflow needs to know of a dataset, as JSON")
+    plan.add_argument("dataset", type=Path)
+    plan.set_defaults(run=_cmd_plan)
 
     markers = commands.add_parser("markers", help="detect, refine and identify the markers of every image")
     markers.add_argument("dataset", type=Path)

@@ -567,6 +567,18 @@ class Dataset:
             keep &= self.images["split"] == split
         return self.images[keep].copy()
 
+    def images_to_extract(self, stage: str | None = None) -> list[str]:
+        """Images (of `stage`, if given) whose markers are extracted: with a file and no observations
+        given in observations.csv."""
+        images = self.images if stage is None else self.images_of(stage)
+        given = set(self.observations["image"])
+        return [image for image, path in zip(images["image"], images["path"]) if path and image not in given]
+
+    def cameras_with_intrinsics_images(self) -> list[str]:
+        """The cameras that have intrinsics images, in manifest order."""
+        having = set(self.images_of("intrinsics")["camera"])
+        return [camera for camera in self.cameras if camera in having]
+
     def image_path(self, image: str) -> Path | None:
         """Absolute path of `image`'s file, None when images.csv gives no path."""
         path = self._row(image)["path"]

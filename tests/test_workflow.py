@@ -14,6 +14,10 @@ import pandas as pd
 import pytest
 import yaml
 
+from dmais_pipe.dataset import Dataset
+from dmais_pipe.plan import workflow_plan
+from test_dataset import _inputs, _set_cells, _write
+
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -148,3 +152,21 @@ def test_a_users_dataset_is_only_read(tmp_path):
 
     assert (work / "reports/mysite/report.html").is_file() and (work / "results/mysite/poses.csv").is_file()
     assert _fingerprint(site) == before
+
+
+def test_a_faulty_dataset_stops_the_dry_run_with_the_loaders_line(tmp_path):
+    """The Snakefile learns the dataset from `dmais plan`: the same loader, so the same one line."""
+    site = _write(tmp_path / "site", _inputs())
+    plan = workflow_plan(Dataset.load(site))
+    assert plan["extract"] == {"intrinsics": ["i1"], "extrinsics": ["e0"], "flight": ["f1"]}
+    assert plan["image_camera"] == {"i1": "C1", "e0": "C1", "f1": "C1"} and plan["groups"] == ["1"]
+    assert plan["calibrated_cameras"] == ["C0", "C1"]
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump({"dataset": "site", "dataset_dir": str(site)}))
+    dry = snakemake(tmp_path, "--configfile", "site.yaml", "--cores", "1", "-n")
+    assert dry.returncode == 0, dry.stderr[-2000:]
+    assert "markers" in dry.stdout and "simulate" not in dry.stdout
+    _set_cells(site, "images.csv", 2, camera="C9")
+    dry = snakemake(tmp_path, "--configfile", "site.yaml", "--cores", "1", "-n")
+    assert dry.returncode != 0
+    assert dry.stderr.strip().splitlines() == [
+        f"dmais plan: error: {site / 'images.csv'}, line 4: unknown camera 'C9' (dataset.yaml has C0, C1)"]

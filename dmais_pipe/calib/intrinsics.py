@@ -503,7 +503,7 @@ def methods_path(results_dir, camera: str) -> Path:
 
 def calibrated_cameras(dataset) -> list[str]:
     """The dataset's cameras that have intrinsics images, in manifest order."""
-    cameras = [c for c in dataset.cameras if len(dataset.images_of("intrinsics", c))]
+    cameras = dataset.cameras_with_intrinsics_images()
     if not cameras:
         raise DmaisError(f"{dataset.root}: no intrinsics images")
     return cameras

@@ -211,7 +211,7 @@ def run_markers(dataset_dir, results_dir, jobs: int = 1) -> Path:
     """
     dataset_dir, results_dir = str(Path(dataset_dir).absolute()), Path(results_dir).absolute()
     dataset = Dataset.load(dataset_dir)
-    todo = images_to_extract(dataset)
+    todo = dataset.images_to_extract()
     # Fail before any work on a missing file: the dataset's own error names it.
     for image in todo:
         if dataset.image_path(image) is None or not dataset.image_path(image).is_file():
@@ -277,17 +277,10 @@ def observation_table(dataset: Dataset, images: list[str], markers: dict[str, pd
     return pd.concat(rows, ignore_index=True)[OBSERVATION_COLUMNS]
 
 
-def images_to_extract(dataset: Dataset, stage: str | None = None) -> list[str]:
-    """Images (of `stage`, if given) with a file and no observations given by the dataset."""
-    images = dataset.images if stage is None else dataset.images_of(stage)
-    given = set(dataset.observations["image"])
-    return [image for image, path in zip(images["image"], images["path"]) if path and image not in given]
-
-
 def run_markers_image(dataset_dir, results_dir, image: str) -> Path:
     """One image's detections with ids -> RESULTS/markers/<image>.csv (the workflow's per-image job)."""
     dataset = Dataset.load(dataset_dir)
-    if image not in images_to_extract(dataset):
+    if image not in dataset.images_to_extract():
         raise DmaisError(f"markers: {image!r} is not an image of {dataset.root / 'images.csv'} with a file "
                          "and no given observations")
     started = time.perf_counter()
@@ -301,7 +294,7 @@ def collect_observations(dataset_dir, results_dir, stage: str) -> Path:
     """RESULTS/observations/<stage>.csv from the stage's RESULTS/markers/<image>.csv files and the
     dataset's own observations of that stage (`load_observations` reads it)."""
     dataset = Dataset.load(dataset_dir)
-    images = images_to_extract(dataset, stage)
+    images = dataset.images_to_extract(stage)
     paths = {image: Path(results_dir) / MARKERS_DIR / f"{image}.csv" for image in images}
     absent = [str(p) for p in paths.values() if not p.is_file()]
     if absent:

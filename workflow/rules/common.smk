@@ -1,8 +1,8 @@
-import csv
 import functools
+import json
+import subprocess
+import sys
 from pathlib import Path
-
-import yaml
 
 DATASET = config["dataset"]
 RESULTS = f"results/{DATASET}"
@@ -41,49 +41,38 @@ def folder_of(name, up=0):
     return folder
 
 
-def _rows(name):
-    """The rows of the dataset's CSV file `name` as dicts.
-
-    The workflow reads the dataset's CSV files itself rather than importing dmais_pipe (whose
-    Dataset and markers.stage.images_to_extract answer the same questions): with --use-conda,
-    snakemake runs where the package need not be installed. `dmais validate` checks the files."""
-    return _read_rows(str(Path(dataset_ready()).parent / name))
-
-
 @functools.lru_cache(maxsize=None)
-def _read_rows(path):
-    with open(path, newline="") as handle:
-        return list(csv.DictReader(handle))
+def _plan(dataset_dir):
+    """`dmais plan DATASET`: the dataset as the stages see it (validated by the same loader; a
+    faulty dataset stops here with its one-line error)."""
+    done = subprocess.run(["dmais", "plan", dataset_dir], capture_output=True, text=True)
+    if done.returncode != 0:
+        sys.exit(done.stderr.strip() or f"dmais plan {dataset_dir} failed")
+    return json.loads(done.stdout)
+
+
+def plan():
+    return _plan(str(Path(dataset_ready()).parent))
 
 
 def cameras():
     """Camera names in the manifest's (= the rig's) order."""
-    with open(dataset_ready()) as handle:
-        return list(yaml.safe_load(handle)["cameras"])
-
-
-def image_table():
-    """images.csv rows by image id."""
-    return {row["image"]: row for row in _rows("images.csv")}
+    return plan()["cameras"]
 
 
 def extracted_images(stage):
     """Images of `stage` whose markers the workflow extracts: with a file and no given observations."""
-    given_path = Path(dataset_ready()).parent / "observations.csv"
-    given = {row["image"] for row in _rows("observations.csv")} if given_path.exists() else set()
-    return [image for image, row in image_table().items()
-            if row["stage"] == stage and row.get("path") and image not in given]
+    return plan()["extract"][stage]
 
 
 def calibrated_cameras():
     """Cameras with intrinsics images, in manifest order."""
-    having = {row["camera"] for row in image_table().values() if row["stage"] == "intrinsics"}
-    return [c for c in cameras() if c in having]
+    return plan()["calibrated_cameras"]
 
 
 def groups():
     """Flight frame groups, in the order of frames.csv."""
-    return list(dict.fromkeys(row["group"] for row in _rows("frames.csv")))
+    return plan()["groups"]
 
 
 def subset_cameras(label):
@@ -105,11 +94,11 @@ def pose_flags():
 def marker_inputs(wildcards):
     """An image's prerequisites: extrinsics images are identified with the calibrated intrinsics of
     their camera, flight images with the calibrated rig."""
-    row = image_table()[wildcards.image]
+    stage, camera = plan()["image_stage"][wildcards.image], plan()["image_camera"][wildcards.image]
     inputs = {"manifest": dataset_ready()}
-    if row["stage"] == "extrinsics":
-        inputs["intrinsics"] = f"{RESULTS}/intrinsics/{row['camera']}.json"
-    elif row["stage"] == "flight":
+    if stage == "extrinsics":
+        inputs["intrinsics"] = f"{RESULTS}/intrinsics/{camera}.json"
+    elif stage == "flight":
         inputs["rig"] = f"{RESULTS}/rig.json"
     return inputs
 
