@@ -40,7 +40,6 @@ OBSERVATIONS = "observations.csv"
 TRUTH = "truth"
 
 STAGES = ("intrinsics", "extrinsics", "flight")
-STAGE_OBSERVATIONS_DIR = "observations"
 SPLITS = ("calib", "eval")
 DEFAULT_MARKER_SIZE_M = 2.0
 
@@ -183,7 +182,7 @@ def _manifest_dict(manifest: _Manifest) -> dict:
 
 
 @dataclass
-class _Table:
+class Table:
     """A CSV file as stripped strings, one row per data line.
 
     cells: (n, k) DataFrame of str, RangeIndex; lines: (n,) the 1-based file line of every row.
@@ -250,7 +249,7 @@ def _parse_float(cell: str) -> float:
         return math.nan
 
 
-def _read_table(path: Path, required: Sequence[str], optional: Sequence[str] = ()) -> _Table:
+def read_table(path: Path, required: Sequence[str], optional: Sequence[str] = ()) -> Table:
     """Read a CSV file with a header holding at least `required` columns (blank lines are skipped)."""
     if not path.is_file():
         raise DatasetError(path, "missing")
@@ -263,7 +262,7 @@ def _read_table(path: Path, required: Sequence[str], optional: Sequence[str] = (
     _check_header(path, header, required)
     cells = pd.DataFrame(rows, columns=header, dtype=str) if rows else pd.DataFrame(
         {column: pd.Series([], dtype=str) for column in header})
-    return _Table(path, cells, np.asarray(lines, dtype=int))
+    return Table(path, cells, np.asarray(lines, dtype=int))
 
 
 def _read_rows(path: Path) -> tuple[list[str] | None, list[list[str]], list[int]]:
@@ -300,7 +299,7 @@ def _check_header(path: Path, header: list[str], required: Sequence[str]) -> Non
         raise DatasetError(path, f"missing column(s) {', '.join(missing)} (expected {','.join(required)})", 1)
 
 
-def _group(table: _Table, columns: Sequence[str]) -> np.ndarray:
+def _group(table: Table, columns: Sequence[str]) -> np.ndarray:
     """(n, k) floats of a column group that each row gives entirely or not at all (NaN rows)."""
     values = np.column_stack([table.floats(column, optional=True) for column in columns])
     given = ~np.isnan(values)
@@ -310,7 +309,7 @@ def _group(table: _Table, columns: Sequence[str]) -> np.ndarray:
     return values
 
 
-def _quaternions(table: _Table, columns: Sequence[str]) -> np.ndarray:
+def _quaternions(table: Table, columns: Sequence[str]) -> np.ndarray:
     """(n, 4) unit quaternions (w, x, y, z) of a column group, NaN rows where absent."""
     q = _group(table, columns)
     norm = np.linalg.norm(q, axis=1)
@@ -322,7 +321,7 @@ def _quaternions(table: _Table, columns: Sequence[str]) -> np.ndarray:
     return q
 
 
-def _frame(table: _Table, columns: dict, known: Sequence[str]) -> pd.DataFrame:
+def _frame(table: Table, columns: dict, known: Sequence[str]) -> pd.DataFrame:
     """DataFrame of the converted `columns` followed by the table's extra columns (as strings)."""
     extras = {column: table.cells[column] for column in table.extra_columns(known)}
     frame = pd.DataFrame(columns, index=pd.RangeIndex(len(table)))
@@ -338,16 +337,16 @@ def _strings(values) -> pd.Series:
 # ------------------------------------------------------------------------------ the files
 
 
-def _read_points(path: Path) -> tuple[pd.DataFrame, _Table]:
+def _read_points(path: Path) -> tuple[pd.DataFrame, Table]:
     """Points indexed by point_id (str) with float columns x, y, z (+ extras), and the table read."""
-    table = _read_table(path, POINT_COLUMNS)
+    table = read_table(path, POINT_COLUMNS)
     ids = table.required_text("point_id")
     table.first_rows(["point_id"], "point id")
     columns = {"point_id": _strings(ids), **{axis: table.floats(axis) for axis in "xyz"}}
     return _frame(table, columns, POINT_COLUMNS).set_index("point_id"), table
 
 
-def _check_disjoint(control: _Table, ground: _Table) -> None:
+def _check_disjoint(control: Table, ground: Table) -> None:
     control_rows = control.first_rows(["point_id"], "point id")
     ids = ground.text("point_id")
     shared = np.array([pid in control_rows for pid in ids], dtype=bool)
@@ -375,9 +374,9 @@ def _empty_points() -> pd.DataFrame:
     return frame.set_index("point_id")
 
 
-def _read_images(path: Path, root: Path, cameras: dict[str, CameraSpec]) -> tuple[pd.DataFrame, _Table]:
+def _read_images(path: Path, root: Path, cameras: dict[str, CameraSpec]) -> tuple[pd.DataFrame, Table]:
     """images.csv as a DataFrame (columns IMAGE_COLUMNS, PRIOR_CENTER, PRIOR_QUAT, extras) and its table."""
-    table = _read_table(path, IMAGE_COLUMNS, PRIOR_CENTER + PRIOR_QUAT)
+    table = read_table(path, IMAGE_COLUMNS, PRIOR_CENTER + PRIOR_QUAT)
     table.required_text("image")  # validates: every row has an image id
     table.first_rows(["image"], "image id")
     camera = table.required_text("camera")
@@ -397,7 +396,7 @@ def _read_images(path: Path, root: Path, cameras: dict[str, CameraSpec]) -> tupl
     return _frame(table, columns, IMAGE_COLUMNS + PRIOR_CENTER + PRIOR_QUAT), table
 
 
-def _check_split(table: _Table, stage: np.ndarray) -> None:
+def _check_split(table: Table, stage: np.ndarray) -> None:
     split = table.text("split")
     intrinsics = stage == "intrinsics"
     table.check(intrinsics & (split == ""), lambda row: "split is empty; intrinsics images need calib or eval")
@@ -406,7 +405,7 @@ def _check_split(table: _Table, stage: np.ndarray) -> None:
                 lambda row: f"split {split[row]!r} given for a {stage[row]} image; split is for intrinsics images only")
 
 
-def _check_placement(table: _Table, stage: np.ndarray, camera: np.ndarray) -> None:
+def _check_placement(table: Table, stage: np.ndarray, camera: np.ndarray) -> None:
     placement = table.text("placement")
     rig = stage != "intrinsics"
     table.check(rig & (placement == ""), lambda row: f"placement is empty; {stage[row]} images need "
@@ -420,7 +419,7 @@ def _check_placement(table: _Table, stage: np.ndarray, camera: np.ndarray) -> No
         seen[key] = row
 
 
-def _check_paths(table: _Table, root: Path) -> None:
+def _check_paths(table: Table, root: Path) -> None:
     image, path = table.text("image"), table.text("path")
     table.check([p != "" and Path(p).is_absolute() for p in path],
                 lambda row: f"image {image[row]!r}: path {path[row]!r} must be relative to the dataset folder")
@@ -430,7 +429,7 @@ def _check_paths(table: _Table, root: Path) -> None:
 
 def _read_frames(path: Path) -> pd.DataFrame:
     """frames.csv as a DataFrame (columns FRAME_COLUMNS, PRIOR_QUAT, extras)."""
-    table = _read_table(path, FRAME_COLUMNS, PRIOR_QUAT)
+    table = read_table(path, FRAME_COLUMNS, PRIOR_QUAT)
     frame_id = table.required_text("frame")
     table.first_rows(["frame"], "frame id")
     columns = {"frame": _strings(frame_id), "group": _strings(table.text("group"))}
@@ -450,7 +449,7 @@ def _read_observations(path: Path, camera_of: dict[str, str], cameras: dict[str,
     """Observations (image, [camera,] point_id, u, v, extras) checked against images, points and
     the image area of each image's camera."""
     names = RESULT_OBSERVATION_COLUMNS if with_camera else OBSERVATION_COLUMNS
-    table = _read_table(path, names)
+    table = read_table(path, names)
     image = table.required_text("image")
     table.check([name not in camera_of for name in image], lambda row: f"unknown image {image[row]!r} (not in {IMAGES})")
     if with_camera:
@@ -468,7 +467,7 @@ def _read_observations(path: Path, camera_of: dict[str, str], cameras: dict[str,
     return _frame(table, {name: columns[name] for name in names}, names)
 
 
-def _check_inside_images(table: _Table, image: np.ndarray, u: np.ndarray, v: np.ndarray,
+def _check_inside_images(table: Table, image: np.ndarray, u: np.ndarray, v: np.ndarray,
                          specs: list[CameraSpec]) -> None:
     """Every pixel (u, v) (n,) within OBSERVATION_MARGIN_PX of its image (n,) of camera specs (n,)."""
     size = np.array([(spec.width, spec.height) for spec in specs], dtype=float).reshape(-1, 2)
@@ -696,7 +695,7 @@ def _grayscale(pixels: np.ndarray) -> np.ndarray | None:
     return pixels if pixels.ndim == 2 else None
 
 
-def _load_frames(root: Path, images: pd.DataFrame, image_table: _Table) -> pd.DataFrame:
+def _load_frames(root: Path, images: pd.DataFrame, image_table: Table) -> pd.DataFrame:
     """frames.csv (required when there are flight images); every flight placement must be a frame."""
     flight = (images["stage"] == "flight").to_numpy()
     if not (root / FRAMES).exists():
@@ -712,7 +711,7 @@ def _load_frames(root: Path, images: pd.DataFrame, image_table: _Table) -> pd.Da
     return frames
 
 
-def _check_sources(image_table: _Table, images: pd.DataFrame, observations: pd.DataFrame) -> None:
+def _check_sources(image_table: Table, images: pd.DataFrame, observations: pd.DataFrame) -> None:
     """Every image needs a file or observations in observations.csv."""
     observed = set(observations["image"])
     names = images["image"].to_numpy(dtype=object)
@@ -786,39 +785,15 @@ def _is_missing(value) -> bool:
     return value is None or (isinstance(value, float) and math.isnan(value))
 
 
-def stage_observations_path(results: str | Path, stage: str) -> Path:
-    """RESULTS/observations/<stage>.csv: the identified observations of one stage's images."""
-    return Path(results) / STAGE_OBSERVATIONS_DIR / f"{stage}.csv"
-
-
-def load_observations(dataset: Dataset, results: str | Path | None) -> pd.DataFrame:
-    """Observations (image, camera, point_id, u, v + extras) used downstream.
-
-    The first source found wins, each validated against `dataset` with errors naming its file:
-    1. RESULTS/observations/<stage>.csv, the union over the stages that have one: the workflow
-       collects each stage's per-image markers there (`dmais markers --collect STAGE`);
-    2. RESULTS/observations.csv, written by `dmais markers` over the whole dataset;
-    3. the dataset's own observations, with `camera` taken from images.csv.
-    """
+def read_observation_table(path: Path, dataset: Dataset) -> pd.DataFrame:
+    """A results observations file (image, camera, point_id, u, v + extras) checked like the
+    dataset's own: known images and points, the image's camera, inside the image, no repeats."""
     camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
-    if results is not None:
-        paths = [p for p in (stage_observations_path(results, s) for s in STAGES) if p.exists()]
-        whole = Path(results) / OBSERVATIONS
-        if paths and whole.exists():
-            log.warning("%s is ignored: the per-stage files %s take precedence", whole, [str(p) for p in paths])
-        if not paths and whole.exists():
-            paths = [whole]
-        if paths:
-            tables = [_read_observations(p, camera_of, dataset.cameras, dataset.points.index, with_camera=True)
-                      for p in paths]
-            return pd.concat(tables, ignore_index=True) if len(tables) > 1 else tables[0]
-    observations = dataset.observations.copy()
-    observations.insert(1, "camera", observations["image"].map(camera_of).astype(str))
-    return observations
+    return _read_observations(path, camera_of, dataset.cameras, dataset.points.index, with_camera=True)
 
 
 def flight_observations(dataset: Dataset, observations: pd.DataFrame, cameras=None) -> pd.DataFrame:
-    """The rows of `observations` (load_observations) on flight images, of `cameras` if given,
+    """The rows of `observations` (Workspace.load_observations) on flight images, of `cameras` if given,
     with a `frame` column: the image's placement in images.csv."""
     flight = dataset.images_of("flight")
     if cameras is not None:

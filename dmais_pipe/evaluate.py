@@ -32,42 +32,25 @@ eps_proj_used_mean_px.
 from __future__ import annotations
 
 import logging
-import re
 from collections.abc import Sequence
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from .dataset import Dataset, _read_table, _Table, flight_observations, load_observations
-from .errors import DatasetError
-from .files import write_csv_atomic
+from .dataset import Dataset, flight_observations
 from .geometry import Rigid3, rotation_error, rotation_from_quat
 from .pose.refine import cramer_rao_bound
 from .rig import Rig
+from .workspace import CENTER, QUAT, ResultsError, Workspace
 
 log = logging.getLogger(__name__)
 
-POSES = "poses.csv"
-EVALUATION = "evaluation.csv"
-RIG = "rig.json"
-TRUTH_FRAMES = "frames.csv"
-SUBSET_FILE = re.compile(r"^poses_(\d+)\.csv$")
-QUAT = ("qw", "qx", "qy", "qz")
-TRANSLATION = ("tx", "ty", "tz")
-CENTER = ("x", "y", "z")
 POS = ("pos_x", "pos_y", "pos_z")
-POSE_COLUMNS = ("frame", "group", "cameras", "n_points", *QUAT, *TRANSLATION, *CENTER, "eps_proj_px", "time_ms")
-TRUTH_COLUMNS = ("frame", "group", *QUAT, *TRANSLATION, *CENTER)
 ERROR_COLUMNS = ("eps_pos_m", "eps_ang_arcmin")
 TRUE_ERROR_COLUMNS = ("true_pos_err_m", "true_ang_err_arcmin")
 ARCMIN_PER_RAD = 180.0 * 60.0 / np.pi
 ALL_GROUPS = "all"
-
-
-class ResultsError(DatasetError):
-    """A malformed results file (written by an earlier stage or by hand), naming the file and line."""
 
 
 # ------------------------------------------------------------------------------ pure metrics
@@ -211,95 +194,18 @@ def _ordered(groups) -> list[str]:
     return sorted((str(g) for g in groups), key=key)
 
 
-# ------------------------------------------------------------------------------ reading results
-
-
-def read_poses(path: str | Path, dataset: Dataset, rig: Rig, allowed_cameras: Sequence[str] | None = None
-               ) -> pd.DataFrame:
-    """A poses CSV (POSE_COLUMNS + extras) checked against the dataset and the rig.
-
-    Numbers must be finite; frames must be frames of the dataset with the same group; cameras
-    (names joined by '+') must be cameras of the rig (and of `allowed_cameras` when given).
-    Raises ResultsError naming the file and line. Returns typed columns, extras as strings.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise ResultsError(path, "missing; run `dmais pose` first")
-    with _as_results_error():
-        table = _read_table(path, POSE_COLUMNS)
-        if len(table) == 0:
-            raise ResultsError(path, "has no rows; no frame to evaluate")
-        frame = _checked_frames(table, dataset)
-        cameras = _checked_cameras(table, rig, allowed_cameras)
-        numbers = {c: table.floats(c) for c in POSE_COLUMNS[3:]}
-        n_points = numbers["n_points"]
-        table.check((n_points != np.round(n_points)) | (n_points < 0),
-                    lambda row: f"column n_points: {n_points[row]:g} is not a count")
-    columns = {"frame": frame, "group": table.text("group"), "cameras": cameras,
-               **numbers, "n_points": n_points.astype(int)}
-    out = pd.DataFrame(columns)
-    for extra in table.extra_columns(POSE_COLUMNS):
-        out[extra] = table.text(extra)
-    return out
-
-
-def _checked_frames(table: _Table, dataset: Dataset) -> np.ndarray:
-    frame = table.required_text("frame")
-    table.first_rows(["frame"], "frame")
-    group_of = dict(zip(dataset.frames["frame"], dataset.frames["group"]))
-    table.check([f not in group_of for f in frame],
-                lambda row: f"frame {frame[row]!r} is not a frame of {dataset.root / 'frames.csv'}")
-    group = table.text("group")
-    table.check([group_of[f] != g for f, g in zip(frame, group)],
-                lambda row: f"frame {frame[row]!r}: group {group[row]!r}, frames.csv says {group_of[frame[row]]!r}")
-    return frame
-
-
-def _checked_cameras(table: _Table, rig: Rig, allowed: Sequence[str] | None) -> np.ndarray:
-    cameras = table.required_text("cameras")
-    names = [c.split("+") for c in cameras]
-    table.check([any(n not in rig.cameras for n in row) for row in names],
-                lambda row: f"cameras {cameras[row]!r}: not all are cameras of the rig ({', '.join(rig.camera_names)})")
-    if allowed is not None:
-        table.check([any(n not in allowed for n in row) for row in names],
-                    lambda row: f"cameras {cameras[row]!r}: this subset file may use only {'+'.join(allowed)}")
-    return cameras
-
-
-def read_truth_frames(dataset: Dataset) -> pd.DataFrame | None:
-    """truth/frames.csv indexed by frame (TRUTH_COLUMNS as floats), None without truth."""
-    path = dataset.truth_dir / TRUTH_FRAMES
-    if not path.is_file():
-        return None
-    table = _read_table(path, TRUTH_COLUMNS)
-    columns = {"frame": table.required_text("frame"), "group": table.text("group")}
-    columns.update({c: table.floats(c) for c in TRUTH_COLUMNS[2:]})
-    return pd.DataFrame(columns).set_index("frame")
-
-
-@contextmanager
-def _as_results_error():
-    """Turn a DatasetError of the shared CSV reader into a ResultsError (same file, line, message)."""
-    try:
-        yield
-    except ResultsError:
-        raise
-    except DatasetError as error:
-        raise ResultsError(error.path, error.message, error.line) from None
-
-
 # ------------------------------------------------------------------------------ evaluation
 
 
 def evaluate_poses(poses: pd.DataFrame, dataset: Dataset, rig: Rig, truth: pd.DataFrame | None = None,
                    offsets: dict[str, np.ndarray] | None = None, observations: pd.DataFrame | None = None
                    ) -> pd.DataFrame:
-    """poses (read_poses) + eps_pos_m, eps_ang_arcmin [+ true_pos_err_m, true_ang_err_arcmin
+    """poses (Workspace.load_poses) + eps_pos_m, eps_ang_arcmin [+ true_pos_err_m, true_ang_err_arcmin
     [+ crb_pos_m, crb_ang_arcmin]].
 
     offsets: lever-arm offsets per group (group_offsets); default the mean offsets of `poses`.
-    truth: read_truth_frames(dataset); frames it lacks raise ResultsError.
-    observations: load_observations(dataset, RESULTS); with truth, adds the Cramer-Rao bound.
+    truth: Workspace.load_truth_frames(); frames it lacks raise ResultsError.
+    observations: those the poses used (`used_observations`); with truth, adds the Cramer-Rao bound.
     """
     pos = dataset.frames.set_index("frame").loc[poses["frame"], list(POS)].to_numpy(dtype=float)
     centers = poses[list(CENTER)].to_numpy(dtype=float)
@@ -310,7 +216,7 @@ def evaluate_poses(poses: pd.DataFrame, dataset: Dataset, rig: Rig, truth: pd.Da
     if truth is not None:
         missing = sorted(set(poses["frame"]) - set(truth.index))
         if missing:
-            raise ResultsError(dataset.truth_dir / TRUTH_FRAMES, f"has no row for frame(s) {', '.join(missing[:5])}")
+            raise ResultsError(dataset.truth_dir / "frames.csv", f"has no row for frame(s) {', '.join(missing[:5])}")
         rows = truth.loc[poses["frame"]]
         out["true_pos_err_m"], out["true_ang_err_arcmin"] = true_errors(
             poses[list(QUAT)], centers, rows[list(QUAT)], rows[list(CENTER)])
@@ -357,48 +263,52 @@ def _warn_single_frame_groups(poses: pd.DataFrame) -> None:
                     ", ".join(single))
 
 
-def subset_files(results_dir: str | Path) -> dict[str, Path]:
-    """label -> RESULTS/poses_<label>.csv, labels sorted by length then value."""
-    found = {}
-    for path in Path(results_dir).glob("poses_*.csv"):
-        match = SUBSET_FILE.match(path.name)
-        if match:
-            found[match.group(1)] = path
-    return dict(sorted(found.items(), key=lambda item: (len(item[0]), item[0])))
+def used_observations(observations: pd.DataFrame, *pose_observations: pd.DataFrame | None) -> pd.DataFrame:
+    """`observations` without those a pose solve rejected (`used` false in any of the poses files'
+    per-observation tables, e.g. RANSAC's outliers with --robust): the errors and the Cramer-Rao
+    bound of a frame are about the observations its pose stands on."""
+    rejected = [table.loc[~table["used"], ["image", "point_id"]] for table in pose_observations if table is not None]
+    if not rejected:
+        return observations
+    rejected = pd.concat(rejected)
+    key = pd.MultiIndex.from_frame(observations[["image", "point_id"]])
+    return observations[~key.isin(pd.MultiIndex.from_frame(rejected))]
 
 
 def run_evaluate(dataset_dir: str | Path, results_dir: str | Path) -> list[Path]:
     """`dmais evaluate DATASET --out RESULTS`; returns the written paths (see the module docstring)."""
-    dataset = Dataset.load(dataset_dir)
-    results = Path(results_dir)
-    rig = Rig.load(results / RIG)
-    truth = read_truth_frames(dataset)
-    poses = read_poses(results / POSES, dataset, rig)
+    workspace = Workspace.open(dataset_dir, results_dir)
+    dataset = workspace.dataset
+    rig = workspace.load_rig()
+    truth = workspace.load_truth_frames()
+    poses = workspace.load_poses()
     pos = dataset.frames.set_index("frame").loc[poses["frame"], list(POS)].to_numpy(dtype=float)
     offsets = group_offsets(poses[list(CENTER)].to_numpy(dtype=float), pos, poses["group"])
     for group, offset in offsets.items():
         log.info("lever-arm offset (estimate - POS) of group %s: (%.3f, %.3f, %.3f) m", group, *offset)
-    observations = load_observations(dataset, results)
-    evaluation = evaluate_poses(poses, dataset, rig, truth, offsets, observations)
-    written = [write_csv_atomic(results / EVALUATION, evaluation)]
+    observations = workspace.load_observations()
+    whole_rig = workspace.load_pose_observations()
+    evaluation = evaluate_poses(poses, dataset, rig, truth, offsets, used_observations(observations, whole_rig))
+    written = [workspace.save_evaluation(evaluation)]
     table = pose_methods_table(evaluation)
-    written.append(write_csv_atomic(results / "tables" / "pose_methods.csv", table))
+    written.append(workspace.save_table("pose_methods", table))
     subsets = {}
-    for label, path in subset_files(results).items():
+    for label, path in workspace.subset_labels().items():
         try:
             allowed = subset_cameras(label, rig)
         except ValueError as error:
             raise ResultsError(path, str(error)) from None
-        subset = evaluate_poses(read_poses(path, dataset, rig, allowed), dataset, rig, truth, offsets, observations)
-        subset["eps_proj_all_px"] = every_camera_eps_proj(dataset, rig, subset, observations)
+        used = used_observations(observations, whole_rig, workspace.load_pose_observations(path))
+        subset = evaluate_poses(workspace.load_poses(path, allowed), dataset, rig, truth, offsets, used)
+        subset["eps_proj_all_px"] = every_camera_eps_proj(dataset, rig, subset, used)
         subset["eps_ang_all_arcmin"] = angular_errors(subset["eps_proj_all_px"], mean_focal_px(rig, rig.camera_names))
         subsets[label] = subset
-        written.append(write_csv_atomic(results / f"evaluation_{label}.csv", subsets[label]))
+        written.append(workspace.save_evaluation(subset, label))
     if subsets:
-        written.append(write_csv_atomic(results / "tables" / "conf.csv", conf_table(subsets, rig)))
-    elif (results / "tables" / "conf.csv").exists():
-        log.info("no poses_<label>.csv: removing the stale %s", results / "tables" / "conf.csv")
-        (results / "tables" / "conf.csv").unlink()
+        written.append(workspace.save_table("conf", conf_table(subsets, rig)))
+    elif workspace.table_path("conf").exists():
+        log.info("no poses_<label>.csv: removing the stale %s", workspace.table_path("conf"))
+        workspace.table_path("conf").unlink()
     _log_summary(table)
     return written
 
@@ -417,8 +327,8 @@ def reprojection_residuals(dataset: Dataset, rig: Rig, poses: pd.DataFrame, obse
     """Flight residuals observed - projected (px) of the frames in `poses`, of the cameras the pose
     used (every camera of the rig with `every_camera`).
 
-    poses: as read_poses (frame, cameras, qw..qz, tx..tz); observations: image, camera, point_id,
-    u, v (load_observations). Returns one row per observation: frame, camera, image, point_id,
+    poses: as Workspace.load_poses (frame, cameras, qw..qz, tx..tz); observations: image, camera,
+    point_id, u, v (Workspace.load_observations). Returns one row per observation: frame, camera, image, point_id,
     u, v, du, dv (NaN where the point does not project into the camera).
     """
     obs = flight_observations(dataset, observations)

@@ -12,8 +12,9 @@ import pytest
 import yaml
 
 from dmais_pipe.cli import main
-from dmais_pipe.dataset import CameraSpec, Dataset, load_observations, write_dataset
+from dmais_pipe.dataset import CameraSpec, Dataset, write_dataset
 from dmais_pipe.errors import DatasetError
+from dmais_pipe.workspace import Workspace
 
 W, H = 64, 48
 QUAT = (0.5, 0.5, -0.5, 0.5)
@@ -145,18 +146,18 @@ def test_quaternions_are_normalized(root):
 
 def test_load_observations_from_dataset_and_results(root, tmp_path):
     ds = Dataset.load(root)
-    given = load_observations(ds, None)
+    given = Workspace(ds, tmp_path / "nothing-yet").load_observations()
     assert list(given.columns) == ["image", "camera", "point_id", "u", "v"]
     assert list(given["camera"]) == ["C0", "C0", "C0"]
     results = tmp_path / "results"
     results.mkdir()
-    assert load_observations(ds, results).equals(given)
+    assert Workspace(ds, results).load_observations().equals(given)
     (results / "observations.csv").write_text("image,camera,point_id,u,v\ni1,C1,A1,1.5,2.5\n")
-    found = load_observations(ds, results)
+    found = Workspace(ds, results).load_observations()
     assert found.loc[0, "point_id"] == "A1" and found.loc[0, "u"] == 1.5
     (results / "observations.csv").write_text("image,camera,point_id,u,v\ni1,C0,A1,1.5,2.5\n")
     with pytest.raises(DatasetError, match=r"results/observations\.csv, line 2: camera 'C0'"):
-        load_observations(ds, results)
+        Workspace(ds, results).load_observations()
 
 
 # ------------------------------------------------------------------------------ malformed datasets
@@ -315,7 +316,7 @@ def test_results_observations_outside_an_image_are_refused(root, tmp_path):
     (tmp_path / "observations.csv").write_text(f"image,camera,point_id,u,v\ni1,C1,A1,{W + 10},2.5\n")
     with pytest.raises(DatasetError, match=r"observations\.csv, line 2: observation \(74, 2\.5\) lies outside "
                                            r"image 'i1' \(64x48 px\)"):
-        load_observations(ds, tmp_path)
+        Workspace(ds, tmp_path).load_observations()
 
 
 def test_point_ids_stay_strings(root):

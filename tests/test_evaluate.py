@@ -8,10 +8,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from dmais_pipe.dataset import Dataset, load_observations
+from dmais_pipe.dataset import Dataset
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.evaluate import (
-    ResultsError,
     angular_errors,
     angular_resolution_arcmin,
     cramer_rao_errors,
@@ -24,6 +23,7 @@ from dmais_pipe.evaluate import (
 )
 from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
 from dmais_pipe.rig import Rig
+from dmais_pipe.workspace import ResultsError, Workspace
 
 from conftest import observation_only
 
@@ -159,7 +159,7 @@ def test_run_evaluate_writes_errors_and_tables(dataset, results):
     # the bound scales with the frame's pixel noise: same geometry, noise doubled -> bound doubled
     doubled = evaluation.assign(eps_proj_px=2 * evaluation["eps_proj_px"])
     truth = read(dataset / "truth" / "frames.csv").set_index("frame").loc[evaluation["frame"]]
-    observations = load_observations(Dataset.load(dataset), results)
+    observations = Workspace.open(dataset, results).load_observations()
     position, attitude = cramer_rao_errors(Dataset.load(dataset), rig, doubled, truth, observations)
     np.testing.assert_allclose(position, 2 * evaluation["crb_pos_m"], rtol=1e-6)
     np.testing.assert_allclose(attitude, 2 * evaluation["crb_ang_arcmin"], rtol=1e-6)
@@ -199,7 +199,7 @@ def test_subsets_use_the_full_rigs_lever_arm_and_fill_conf(dataset, results):
                                rtol=1e-9)
     # tab:conf's eps_proj: the subset's pose reprojected into every camera, checked by a plain loop
     ds = Dataset.load(dataset)
-    observations = load_observations(ds, results)
+    observations = Workspace(ds, results).load_observations()
     image_frame = ds.images.set_index("image")["placement"]
     for row in single.itertuples(index=False):
         pose = Rigid3.from_quat([row.qw, row.qx, row.qy, row.qz], [row.tx, row.ty, row.tz])
@@ -270,3 +270,38 @@ def test_bad_subset_files(dataset, results):
     poses_from_truth(dataset, cameras="C0").to_csv(results / "poses_07.csv", index=False)
     with pytest.raises(ResultsError, match=r"poses_07\.csv: subset label '07'"):
         run_evaluate(dataset, results)
+
+
+def test_robust_outliers_leave_the_errors_and_the_bound(dataset, tmp_path):
+    """With --robust, evaluation sees only the observations each pose was solved from: point ids
+    swapped in 30% of the flight observations make the rejected ones hundreds of pixels off, and
+    neither eps_proj_all nor the Cramer-Rao bound may count them."""
+    from dmais_pipe.evaluate import every_camera_eps_proj, used_observations
+    from dmais_pipe.pose.stage import run_pose
+
+    copy = tmp_path / "data"
+    shutil.copytree(dataset, copy)
+    observations = pd.read_csv(copy / "observations.csv", dtype=str, keep_default_na=False)
+    flight = observations.index[observations["image"].str.startswith("flight")].to_numpy()
+    rows = np.random.default_rng(1).choice(flight, size=int(0.3 * len(flight)), replace=False)
+    observations.loc[rows, "point_id"] = np.roll(observations.loc[rows, "point_id"].to_numpy(), 1)
+    observations.drop_duplicates(["image", "point_id"]).to_csv(copy / "observations.csv", index=False)
+    results = tmp_path / "results"
+    results.mkdir()
+    shutil.copy(copy / "truth" / "rig.json", results / "rig.json")
+    run_pose(copy, results, robust=True)
+    run_pose(copy, results, cameras=["C0", "C1", "C2"], robust=True)
+    run_evaluate(copy, results)
+
+    workspace = Workspace.open(copy, results)
+    whole = workspace.load_pose_observations()
+    assert (~whole["used"]).sum() >= 0.2 * len(flight)  # RANSAC rejected the swapped ids
+    everything = workspace.load_observations()
+    used = used_observations(everything, whole, workspace.load_pose_observations(workspace.poses_path("012")))
+    subset = read(results / "evaluation_012.csv")
+    rig = workspace.load_rig()
+    np.testing.assert_allclose(subset["eps_proj_all_px"], every_camera_eps_proj(workspace.dataset, rig, subset, used))
+    with_outliers = every_camera_eps_proj(workspace.dataset, rig, subset, everything)
+    assert (with_outliers > 3 * subset["eps_proj_all_px"]).all(), (with_outliers, subset["eps_proj_all_px"])
+    evaluation = read(results / "evaluation.csv")
+    assert evaluation["crb_pos_m"].notna().all() and (evaluation["crb_pos_m"] < 0.5).all()

@@ -36,11 +36,12 @@ from dmais_pipe.calib.extrinsics import (
 from dmais_pipe.calib.intrinsics import run_intrinsics
 from dmais_pipe.calib.localize import kabsch_rotation, localize_image, rotation_with_known_center
 from dmais_pipe.camera import Camera
-from dmais_pipe.dataset import Dataset, load_observations
+from dmais_pipe.dataset import Dataset
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.files import write_json_atomic
 from dmais_pipe.geometry import Rigid3, rotation_error
 from dmais_pipe.rig import Rig
+from dmais_pipe.workspace import Workspace
 
 from conftest import observation_only
 
@@ -183,7 +184,7 @@ def test_localization_with_known_centre_is_exact_on_noise_free_data(calibrated):
 def test_localization_with_rtk_prior_vs_truth(calibrated):
     dataset, results, _ = calibrated
     ds = Dataset.load(dataset)
-    observations = load_observations(ds, results)
+    observations = Workspace(ds, results).load_observations()
     poses = _truth_poses(dataset)
     cameras = {c: Camera.from_dict(json.loads((results / "intrinsics" / f"{c}.json").read_text())) for c in ds.cameras}
     for row in ds.images_of("extrinsics").itertuples():
@@ -201,7 +202,7 @@ def _inputs(calibrated):
     dataset, results, _ = calibrated
     ds = Dataset.load(dataset)
     cameras = {c: Camera.from_dict(json.loads((results / "intrinsics" / f"{c}.json").read_text())) for c in ds.cameras}
-    return ds, cameras, ds.images_of("extrinsics"), load_observations(ds, results)
+    return ds, cameras, ds.images_of("extrinsics"), Workspace(ds, results).load_observations()
 
 
 def test_placement_with_too_few_reference_points_is_skipped(calibrated, caplog):

@@ -11,13 +11,14 @@ from scipy.spatial.transform import Rotation
 
 from dmais_pipe.calib.intrinsics import run_intrinsics
 from dmais_pipe.camera import Camera
-from dmais_pipe.dataset import Dataset, load_observations, write_dataset
+from dmais_pipe.dataset import Dataset, write_dataset
 from dmais_pipe.errors import DatasetError, DmaisError
 from dmais_pipe.files import write_png_atomic
 from dmais_pipe.geometry import Rigid3
 from dmais_pipe.markers import detect, identify, refine, run_markers
 from dmais_pipe.markers.stage import collect_observations, run_markers_image, verify_with_pose
 from dmais_pipe.sim.render import MarkerBoard, RenderSettings, render_image
+from dmais_pipe.workspace import Workspace
 
 SMALL = Camera(2000.0, 2000.0, 319.7, 239.4, 0.0, 640, 480)
 FULL = Camera(45000.0, 45000.0, 2051.2, 1497.6, 3.0, 4096, 3000)
@@ -328,15 +329,15 @@ def test_run_markers_writes_results(tmp_path, jobs):
 
 def test_per_image_jobs_and_stage_collection_equal_one_run(tmp_path):
     small_dataset(tmp_path / "data")
-    whole = load_observations(Dataset.load(tmp_path / "data"),
-                              run_markers(tmp_path / "data", tmp_path / "whole", jobs=1).parent)
+    whole = Workspace.open(tmp_path / "data",
+                           run_markers(tmp_path / "data", tmp_path / "whole", jobs=1).parent).load_observations()
     for image in ("i1", "i0"):
         assert run_markers_image(tmp_path / "data", tmp_path / "jobs", image) == tmp_path / "jobs" / "markers" / f"{image}.csv"
     with pytest.raises(DmaisError, match="'hand'"):  # observations given: nothing to extract
         run_markers_image(tmp_path / "data", tmp_path / "jobs", "hand")
     collected = collect_observations(tmp_path / "data", tmp_path / "jobs", "intrinsics")
     assert collected == tmp_path / "jobs" / "observations" / "intrinsics.csv"
-    per_stage = load_observations(Dataset.load(tmp_path / "data"), tmp_path / "jobs")
+    per_stage = Workspace.open(tmp_path / "data", tmp_path / "jobs").load_observations()
     pd.testing.assert_frame_equal(per_stage.sort_values(["image", "point_id"]).reset_index(drop=True),
                                   whole.sort_values(["image", "point_id"]).reset_index(drop=True))
     (tmp_path / "jobs" / "markers" / "i0.csv").unlink()

@@ -10,6 +10,7 @@ import pytest
 
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.pose.stage import COLUMNS, merge_poses, run_pose
+from dmais_pipe.workspace import Workspace
 
 from conftest import observation_only
 
@@ -97,12 +98,12 @@ def test_robust_pose_with_40_percent_swapped_ids_is_as_good_as_without_them(data
     (~25 observations a frame): every frame within max(2x, +5 cm) of the solve of the correct rows.
     A minimal-sample consensus is tens of pixels off at the far cameras, so correct points there
     are only recovered by local optimisation that re-selects after every refit."""
-    from dmais_pipe.dataset import Dataset, load_observations
+    from dmais_pipe.dataset import Dataset
     from dmais_pipe.pose.stage import estimate_poses
     from dmais_pipe.rig import Rig
 
     data, rig = Dataset.load(dataset), Rig.load(dataset / "truth" / "rig.json")
-    observations = load_observations(data, None)
+    observations = Workspace(data, dataset / "no-results").load_observations()
     flight = observations.index[observations["image"].isin(data.images_of("flight")["image"])].to_numpy()
     rng = np.random.default_rng(seed)
     frame_of = dict(zip(data.images["image"], data.images["placement"]))
@@ -117,7 +118,8 @@ def test_robust_pose_with_40_percent_swapped_ids_is_as_good_as_without_them(data
         return pd.Series(np.linalg.norm(table[["x", "y", "z"]].to_numpy()
                                         - truth.loc[table.index, ["x", "y", "z"]].to_numpy(), axis=1), table.index)
 
-    clean = errors(estimate_poses(data, rig, correct, cameras))
-    robust = errors(estimate_poses(data, rig, wrong, cameras, robust=True))
+    clean = errors(estimate_poses(data, rig, correct, cameras)[0])
+    robust, used = estimate_poses(data, rig, wrong, cameras, robust=True)
+    robust = errors(robust)
     assert list(robust.index) == list(clean.index)
     assert (robust <= np.maximum(2 * clean, clean + 0.05)).all(), pd.DataFrame({"robust": robust, "clean": clean})

@@ -13,12 +13,15 @@ import yaml
 
 from dmais_pipe.calib.extrinsics import extrinsics_tables
 from dmais_pipe.calib.intrinsics import TABLE_COLUMNS
+from dmais_pipe.dataset import flight_observations
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.evaluate import conf_table, pose_methods_table, run_evaluate
 from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
 from dmais_pipe.report.html import SECTIONS, benchmark_table, write_report
 from dmais_pipe.report.paper import PAPER_DIR, PAPER_TABLES, compare_with_paper, paper_notes, write_paper_comparisons
+from dmais_pipe.pose.stage import reprojection_residuals
 from dmais_pipe.rig import Rig
+from dmais_pipe.workspace import POSE_OBSERVATION_COLUMNS, Workspace
 
 from conftest import observation_only
 
@@ -75,11 +78,28 @@ def poses_from_truth(dataset, cameras: str) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def pose_observations(workspace: Workspace, rig: Rig, poses: pd.DataFrame) -> pd.DataFrame:
+    """The per-observation file of `poses` as `dmais pose` writes it: every observation used."""
+    observations = flight_observations(workspace.dataset, workspace.load_observations())
+    parts = []
+    for pose in poses.itertuples(index=False):
+        rows = observations[observations["frame"] == pose.frame]
+        rig_from_world = Rigid3.from_quat([pose.qw, pose.qx, pose.qy, pose.qz], [pose.tx, pose.ty, pose.tz])
+        X = workspace.dataset.points.loc[rows["point_id"], ["x", "y", "z"]].to_numpy(float)
+        residuals = reprojection_residuals(rig, rig_from_world, rows["camera"].to_numpy(str),
+                                           rows[["u", "v"]].to_numpy(float), X)
+        parts.append(rows.assign(used=True, du=residuals[:, 0], dv=residuals[:, 1]))
+    return pd.concat(parts)[list(POSE_OBSERVATION_COLUMNS)]
+
+
 def write_results(dataset, results) -> None:
     """Every input of the report, written directly with known values."""
     truth = Rig.load(dataset / "truth" / "rig.json")
     truth.save(results / "rig.json")
-    poses_from_truth(dataset, "C0+C1+C2+C3+C4").to_csv(results / "poses.csv", index=False)
+    poses = poses_from_truth(dataset, "C0+C1+C2+C3+C4")
+    poses.to_csv(results / "poses.csv", index=False)
+    pose_observations(Workspace.open(dataset, results), truth, poses).to_csv(
+        results / "poses.observations.csv", index=False)
     for label in ("0", "012", "01234"):
         names = "+".join(truth.camera_names[int(d)] for d in label)
         poses_from_truth(dataset, names).to_csv(results / f"poses_{label}.csv", index=False)

@@ -27,10 +27,9 @@ import pandas as pd
 
 from ..camera import Camera
 from ..errors import DmaisError
-from ..files import write_csv_atomic, write_json_atomic, write_text_atomic
+from ..files import write_json_atomic, write_text_atomic
 from ..geometry import Rigid3, average_rotations, euler_zyx_from_rotation
 from ..rig import Rig
-from .intrinsics import intrinsics_path, load_intrinsics
 from .localize import DEFAULT_CENTER_SIGMA_M, DEFAULT_PIXEL_SIGMA_PX, localize_image
 from .rig_ba import BACKENDS, ImageBlock, RigBAResult, opencv_params, refine
 
@@ -284,10 +283,10 @@ def _prior_note(t: pd.DataFrame, R: pd.DataFrame, unknown: ExtrinsicsResult) -> 
 # ------------------------------------------------------------------------------ the stage
 
 
-def _load_intrinsics(results: Path, names) -> dict[str, tuple[Camera, float | None]]:
+def _load_intrinsics(workspace, names) -> dict[str, tuple[Camera, float | None]]:
     cameras = {}
     for name in names:
-        camera, record = load_intrinsics(intrinsics_path(results, name))
+        camera, record = workspace.load_intrinsics(name)
         cameras[name] = (camera, record.get("eps_calib_px"))
     return cameras
 
@@ -303,17 +302,17 @@ def run_extrinsics(dataset_dir, results_dir, use_priors: bool = True,
     tables/extrinsics_note.txt and RESULTS/figures/extrinsics_layout.svg. `backend` picks
     the rig refinement ("pycolmap" or "scipy", `calib.rig_ba`). Returns the written paths.
     """
-    from ..dataset import Dataset, load_observations
+    from ..workspace import Workspace
 
-    dataset = Dataset.load(dataset_dir)
-    results = Path(results_dir)
+    workspace = Workspace.open(dataset_dir, results_dir)
+    dataset = workspace.dataset
     images = dataset.images_of("extrinsics")
     if images.empty:
         raise DmaisError(f"{dataset.root}: no extrinsics images")
-    observations = load_observations(dataset, results)
+    observations = workspace.load_observations()
     observations = observations[observations["image"].isin(set(images["image"]))]
     names = [c for c in dataset.cameras if c in set(images["camera"]) or c == dataset.reference_camera]
-    loaded = _load_intrinsics(results, names)
+    loaded = _load_intrinsics(workspace, names)
     cameras = {c: cam for c, (cam, _) in loaded.items()}
     # Per-axis pixel sigma from the intrinsic calibration's RMS point distance (eps / sqrt 2).
     pixel_sigma = {c: (float(eps) / np.sqrt(2.0) if eps and np.isfinite(eps) and eps > 0 else DEFAULT_PIXEL_SIGMA_PX)
@@ -330,26 +329,26 @@ def run_extrinsics(dataset_dir, results_dir, use_priors: bool = True,
                                          use_priors=case, center_sigma=center_sigma, pixel_sigma=pixel_sigma,
                                          backend=backend)
         label = "known" if case else "unknown"
-        written.append(out[case].rig.save(results / "extrinsics" / f"rig_{label}.json", **out[case].extra()))
+        written.append(workspace.save_rig(out[case].rig, case=label, **out[case].extra()))
     chosen = out[use_priors and has_priors]
-    written.insert(0, chosen.rig.save(results / "rig.json", **chosen.extra()))
+    written.insert(0, workspace.save_rig(chosen.rig, **chosen.extra()))
     prefixes = image_prefixes(dataset.images, chosen.rig.camera_names)
-    written.insert(1, write_json_atomic(results / RIG_CONFIG, colmap_rig_config(chosen.rig, prefixes)))
+    written.insert(1, write_json_atomic(workspace.rig_config_path, colmap_rig_config(chosen.rig, prefixes)))
     if len(out) == 2:
-        written += _write_comparison(results, out[True], out[False])
+        written += _write_comparison(workspace, out[True], out[False])
     return written
 
 
-def _write_comparison(results: Path, known: ExtrinsicsResult, unknown: ExtrinsicsResult) -> list[Path]:
+def _write_comparison(workspace, known: ExtrinsicsResult, unknown: ExtrinsicsResult) -> list[Path]:
     """tab:extrinsics_R, tab:extrinsics_t (with standard deviations and notes), their note and the layout figure."""
     from ..report.layout import write_layout_svg
 
     table_R, table_t, note = annotate_tables(*extrinsics_tables(known.rig, unknown.rig), known, unknown)
     log.info("extrinsics: %s", note)
-    return [write_csv_atomic(results / "tables" / "extrinsics_R.csv", table_R, float_format="%.6f"),
-            write_csv_atomic(results / "tables" / "extrinsics_t.csv", table_t, float_format="%.6f"),
-            write_text_atomic(results / EXTRINSICS_NOTE, note + "\n"),
-            write_layout_svg(results / LAYOUT_FIGURE, [known.rig, unknown.rig], list(LAYOUT_LABELS),
+    return [workspace.save_table("extrinsics_R", table_R, float_format="%.6f"),
+            workspace.save_table("extrinsics_t", table_t, float_format="%.6f"),
+            write_text_atomic(workspace.root / EXTRINSICS_NOTE, note + "\n"),
+            write_layout_svg(workspace.root / LAYOUT_FIGURE, [known.rig, unknown.rig], list(LAYOUT_LABELS),
                              title="Camera layout in the rig frame (fig:extrinsics)")]
 
 

@@ -24,7 +24,6 @@ Every method's eps_eval is computed by the same pose-only estimation on the eval
 
 from __future__ import annotations
 
-import json
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -37,7 +36,6 @@ from scipy.optimize import least_squares
 
 from ..camera import Camera, image_centre
 from ..errors import DmaisError
-from ..files import write_csv_atomic, write_json_atomic
 from ..geometry import Rigid3
 from ._projection import exp_so3, pose_jacobian, project
 from .pnpf import solve_pnpf
@@ -469,24 +467,6 @@ def calibrate_camera_dlt_lm(points_world_per_image, uv_per_image, width: int, he
 # ------------------------------------------------------------------------------ the stage
 
 
-def intrinsics_path(results_dir, camera: str) -> Path:
-    """RESULTS/intrinsics/<camera>.json."""
-    return Path(results_dir) / "intrinsics" / f"{camera}.json"
-
-
-def load_intrinsics(path) -> tuple[Camera, dict]:
-    """The Camera of an intrinsics JSON written by `run_intrinsics`, and the whole record."""
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-        return Camera.from_dict(data), data
-    except FileNotFoundError:
-        raise DmaisError(f"{path}: missing; run `dmais intrinsics` first") from None
-    except (KeyError, TypeError, ValueError) as error:
-        raise DmaisError(f"{path}: not a valid intrinsics file ({error})") from None
-
-
-
 def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tuple[dict, dict]:
     X, uv = {}, {}
     for image in images:
@@ -494,11 +474,6 @@ def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tupl
         X[image] = points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
         uv[image] = obs[["u", "v"]].to_numpy(dtype=float)
     return X, uv
-
-
-def methods_path(results_dir, camera: str) -> Path:
-    """RESULTS/intrinsics/<camera>.methods.csv: one camera's rows of tables/intrinsics.csv."""
-    return Path(results_dir) / "intrinsics" / f"{camera}.methods.csv"
 
 
 def calibrated_cameras(dataset) -> list[str]:
@@ -519,32 +494,33 @@ def run_intrinsics(dataset_dir, results_dir, methods: Sequence[str] = METHODS,
     `write_intrinsics_table`. A calibration beyond `limits` stops the stage before anything of
     that camera is written. Returns the written paths.
     """
-    from ..dataset import Dataset, load_observations
+    from ..workspace import Workspace
 
     unknown = set(methods) - set(METHODS)
     if unknown or "ours" not in methods:
         raise DmaisError(f"intrinsics methods must include 'ours' and be among {METHODS}, got {list(methods)}")
-    dataset = Dataset.load(dataset_dir)
-    results = Path(results_dir)
+    workspace = Workspace.open(dataset_dir, results_dir)
+    dataset = workspace.dataset
     available = calibrated_cameras(dataset)
     chosen = available if cameras is None else list(cameras)
     missing = [c for c in chosen if c not in available]
     if missing:
         raise DmaisError(f"intrinsics: camera(s) {missing} have no intrinsics images in {dataset.root / 'images.csv'}"
                          f" (cameras with some: {available})")
-    observations = load_observations(dataset, results)
+    observations = workspace.load_observations()
     written: list[Path] = []
     for k, name in enumerate(chosen, 1):
         log.info("intrinsics %d/%d: camera %s", k, len(chosen), name)
-        written += _calibrate_dataset_camera(dataset, observations, name, methods, results, limits)
+        ours, methods_rows = _calibrate_dataset_camera(dataset, observations, name, methods, limits)
+        written += workspace.save_intrinsics(name, ours.to_dict(), methods_rows)
     if cameras is None:
-        written.append(write_intrinsics_table(dataset_dir, results_dir))
+        written.append(_write_table(workspace))
     return written
 
 
 def _calibrate_dataset_camera(dataset, observations: pd.DataFrame, name: str, methods: Sequence[str],
-                              results: Path, limits: Plausibility) -> list[Path]:
-    """Our calibration of one camera (JSON) and every method's table row (CSV)."""
+                              limits: Plausibility) -> tuple[IntrinsicsResult, pd.DataFrame]:
+    """Our calibration of one camera and every method's table row."""
     spec = dataset.cameras[name]
     calib_images = dataset.images_of("intrinsics", name, "calib")["image"].tolist()
     eval_images = dataset.images_of("intrinsics", name, "eval")["image"].tolist()
@@ -570,21 +546,23 @@ def _calibrate_dataset_camera(dataset, observations: pd.DataFrame, name: str, me
         except DmaisError as error:
             log.warning("%s", error)
             rows.append({"method": method, "camera": name})
-    return [write_json_atomic(intrinsics_path(results, name), ours.to_dict()),
-            write_csv_atomic(methods_path(results, name), pd.DataFrame(rows, columns=list(TABLE_COLUMNS)))]
+    return ours, pd.DataFrame(rows, columns=list(TABLE_COLUMNS))
 
 
 def write_intrinsics_table(dataset_dir, results_dir) -> Path:
     """RESULTS/tables/intrinsics.csv from every calibrated camera's <camera>.methods.csv."""
-    from ..dataset import Dataset
+    from ..workspace import Workspace
 
-    dataset = Dataset.load(dataset_dir)
-    paths = [methods_path(results_dir, c) for c in calibrated_cameras(dataset)]
-    absent = [str(p) for p in paths if not p.is_file()]
+    return _write_table(Workspace.open(dataset_dir, results_dir))
+
+
+def _write_table(workspace) -> Path:
+    cameras = calibrated_cameras(workspace.dataset)
+    absent = [str(workspace.methods_path(c)) for c in cameras if not workspace.methods_path(c).is_file()]
     if absent:
         raise DmaisError(f"intrinsics table: missing {absent}; run `dmais intrinsics --camera` for those cameras")
-    table = pd.concat([pd.read_csv(p, dtype={"method": str, "camera": str}) for p in paths], ignore_index=True)
+    table = pd.concat([workspace.load_methods(c) for c in cameras], ignore_index=True)
     order = {m: i for i, m in enumerate(METHODS)}
     table = table.sort_values(["camera", "method"], key=lambda s: s.map(order) if s.name == "method" else s,
                               kind="stable")
-    return write_csv_atomic(Path(results_dir) / "tables" / "intrinsics.csv", table[list(TABLE_COLUMNS)])
+    return workspace.save_table("intrinsics", table[list(TABLE_COLUMNS)])

@@ -32,39 +32,35 @@ import numpy as np
 import pandas as pd
 
 from ..camera import Camera, image_centre
-from ..dataset import Dataset, stage_observations_path
+from ..dataset import Dataset
 from ..errors import DatasetError, DmaisError
-from ..files import write_csv_atomic
 from ..geometry import Rigid3
 from ..rig import Rig
-from ..calib.intrinsics import intrinsics_path, load_intrinsics
+from ..workspace import MARKER_COLUMNS, Workspace
 from ..calib.pnpf import solve_pnpf
 from .detect import detect
 from .identify import identify
 
 log = logging.getLogger(__name__)
 
-MARKERS_DIR = "markers"
-OBSERVATIONS = "observations.csv"
-MARKER_COLUMNS = ["u", "v", "score", "point_id"]
 OBSERVATION_COLUMNS = ["image", "camera", "point_id", "u", "v"]
 PREDICTION_MARGIN_PX = 3000.0  # keep predictions this far outside the image (attitude prior errors)
 VERIFY_GATE_PX = 40.0
 
 
 def _nominal_camera(dataset: Dataset, camera: str, results_dir: Path | None) -> Camera | None:
-    if results_dir is not None and intrinsics_path(results_dir, camera).exists():
-        return load_intrinsics(intrinsics_path(results_dir, camera))[0]
+    if results_dir is not None and Workspace(dataset, results_dir).intrinsics_path(camera).exists():
+        return Workspace(dataset, results_dir).load_intrinsics(camera)[0]
     spec = dataset.cameras[camera]
     if not spec.focal_px:
         return None
     return Camera(spec.focal_px, spec.focal_px, *image_centre(spec.width, spec.height), 0.0, spec.width, spec.height)
 
 
-def _load_rig(results_dir: Path | None) -> Rig | None:
-    if results_dir is None or not (Path(results_dir) / "rig.json").exists():
+def _load_rig(dataset: Dataset, results_dir: Path | None) -> Rig | None:
+    if results_dir is None or not Workspace(dataset, results_dir).has_rig():
         return None
-    return Rig.load(Path(results_dir) / "rig.json")
+    return Workspace(dataset, results_dir).load_rig()
 
 
 def _prediction_model(dataset: Dataset, image: str, results_dir=None, rig: Rig | None = None):
@@ -73,7 +69,7 @@ def _prediction_model(dataset: Dataset, image: str, results_dir=None, rig: Rig |
     row = dataset.images[dataset.images["image"] == image].iloc[0]
     camera_name = row["camera"]
     if row["stage"] == "flight":
-        rig = rig if rig is not None else _load_rig(results_dir)
+        rig = rig if rig is not None else _load_rig(dataset, results_dir)
         if rig is None:
             return "flight images are identified with the calibrated rig, and RESULTS has no rig.json yet " \
                    "(run `dmais extrinsics` first)"
@@ -160,7 +156,7 @@ def process_image(dataset: Dataset, image: str, results_dir=None, rig: Rig | Non
             log.warning("markers %s: %d detected, none identified: the priors predict %d known point(s) near the "
                         "image and none matches a detection (check the prior centre and attitude, and focal_px)",
                         image, len(found), len(uv))
-    return found[MARKER_COLUMNS]
+    return found[list(MARKER_COLUMNS)]
 
 
 def verify_with_pose(uv: np.ndarray, ids: np.ndarray, points: pd.DataFrame, principal_point) -> np.ndarray:
@@ -195,7 +191,7 @@ def _work(args):
         dataset = _worker_dataset(dataset_dir)
         started = time.perf_counter()
         frame = process_image(dataset, image, results_dir)
-        write_csv_atomic(Path(results_dir) / MARKERS_DIR / f"{image}.csv", frame)
+        Workspace(dataset, results_dir).save_markers(image, frame)
         return image, frame, time.perf_counter() - started, None
     except DatasetError as error:
         return image, None, 0.0, ("dataset", error.path, error.message, error.line)
@@ -253,7 +249,7 @@ def run_markers(dataset_dir, results_dir, jobs: int = 1) -> Path:
             collect(_work(task), k)
     log.info("markers: %d images in %.1f s", total, time.perf_counter() - started)
 
-    return write_csv_atomic(results_dir / OBSERVATIONS, observation_table(dataset, todo, results))
+    return Workspace(dataset, results_dir).save_observations(observation_table(dataset, todo, results))
 
 
 def observation_table(dataset: Dataset, images: list[str], markers: dict[str, pd.DataFrame],
@@ -287,20 +283,18 @@ def run_markers_image(dataset_dir, results_dir, image: str) -> Path:
     found = process_image(dataset, image, results_dir)
     log.info("markers %s: %d detected, %d identified (%.2f s)", image, len(found),
              int((found["point_id"] != "").sum()), time.perf_counter() - started)
-    return write_csv_atomic(Path(results_dir) / MARKERS_DIR / f"{image}.csv", found)
+    return Workspace(dataset, results_dir).save_markers(image, found)
 
 
 def collect_observations(dataset_dir, results_dir, stage: str) -> Path:
     """RESULTS/observations/<stage>.csv from the stage's RESULTS/markers/<image>.csv files and the
-    dataset's own observations of that stage (`load_observations` reads it)."""
-    dataset = Dataset.load(dataset_dir)
-    images = dataset.images_to_extract(stage)
-    paths = {image: Path(results_dir) / MARKERS_DIR / f"{image}.csv" for image in images}
-    absent = [str(p) for p in paths.values() if not p.is_file()]
+    dataset's own observations of that stage (`Workspace.load_observations` reads it)."""
+    workspace = Workspace.open(dataset_dir, results_dir)
+    images = workspace.dataset.images_to_extract(stage)
+    absent = [str(workspace.markers_path(image)) for image in images if not workspace.markers_path(image).is_file()]
     if absent:
         raise DmaisError(f"markers: {len(absent)} marker file(s) of stage {stage} missing, e.g. {absent[0]}; "
                          "run `dmais markers --image` for them")
-    markers = {image: pd.read_csv(path, dtype={"point_id": str}, keep_default_na=False)
-               for image, path in paths.items()}
-    table = observation_table(dataset, images, markers, stage)
-    return write_csv_atomic(stage_observations_path(results_dir, stage), table)
+    markers = {image: workspace.load_markers(image) for image in images}
+    table = observation_table(workspace.dataset, images, markers, stage)
+    return workspace.save_observations(table, stage)

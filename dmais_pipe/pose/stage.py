@@ -24,19 +24,18 @@ import numpy as np
 import pandas as pd
 
 from ..blas import single_threaded_blas
-from ..dataset import Dataset, flight_observations, load_observations
+from ..dataset import Dataset, flight_observations
 from ..errors import DmaisError
-from ..files import write_csv_atomic
 from ..geometry import Rigid3, quat_from_rotation
 from ..rig import Rig
+from ..workspace import POSE_COLUMNS, POSE_OBSERVATION_COLUMNS, Workspace, pose_observations_path
 from . import PoseError
 from .robust import solve_robust
 from .solver import solve_generalized_pose
 
 log = logging.getLogger(__name__)
 
-COLUMNS = ["frame", "group", "cameras", "n_points", "qw", "qx", "qy", "qz", "tx", "ty", "tz",
-           "x", "y", "z", "eps_proj_px", "time_ms"]
+COLUMNS = list(POSE_COLUMNS)
 #: RANSAC threshold of --robust, in pixels (an angle per observation: this over its camera's fx).
 ROBUST_THRESHOLD_PX = 20.0
 
@@ -47,11 +46,11 @@ def subset_label(rig: Rig, cameras: list[str]) -> str:
     return "".join(str(names.index(c)) for c in sorted(cameras, key=names.index))
 
 
-def poses_path(results_dir, rig: Rig, cameras: list[str]) -> Path:
+def poses_path(workspace: Workspace, rig: Rig, cameras: list[str]) -> Path:
     """RESULTS/poses.csv for all cameras, RESULTS/poses_<label>.csv for a subset."""
     if sorted(cameras) == sorted(rig.camera_names):
-        return Path(results_dir) / "poses.csv"
-    return Path(results_dir) / f"poses_{subset_label(rig, cameras)}.csv"
+        return workspace.poses_path()
+    return workspace.poses_path(subset_label(rig, cameras))
 
 
 def _cameras(rig: Rig, requested: list[str] | None) -> list[str]:
@@ -63,14 +62,14 @@ def _cameras(rig: Rig, requested: list[str] | None) -> list[str]:
     return [c for c in rig.camera_names if c in requested]
 
 
-def reprojection_rms(rig: Rig, pose: Rigid3, cameras: np.ndarray, uv: np.ndarray, points: np.ndarray) -> float:
-    """RMS distance (px) between observed pixels uv (n, 2) and the projections of points (n, 3)."""
-    squared = []
+def reprojection_residuals(rig: Rig, pose: Rigid3, cameras: np.ndarray, uv: np.ndarray,
+                           points: np.ndarray) -> np.ndarray:
+    """(n, 2) observed pixels uv (n, 2) minus the projections of points (n, 3) in `cameras` (n,)."""
+    residuals = np.empty_like(uv, dtype=float)
     for name in np.unique(cameras):
         mask = cameras == name
-        predicted = rig.project(str(name), pose, points[mask])
-        squared.append(np.sum((predicted - uv[mask]) ** 2, axis=1))
-    return float(np.sqrt(np.mean(np.concatenate(squared))))
+        residuals[mask] = uv[mask] - rig.project(str(name), pose, points[mask])
+    return residuals
 
 
 def solve_frame(rig: Rig, cameras: np.ndarray, uv: np.ndarray, points: np.ndarray, robust: bool, refine: bool):
@@ -100,12 +99,15 @@ def _frame_row(frame: str, group: str, cameras_used: list[str], pose: Rigid3, n:
 
 
 def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
-                   robust: bool = False, refine: bool = False, groups: list[str] | None = None) -> pd.DataFrame:
-    """poses.csv rows (COLUMNS) for every flight frame (of `groups`, if given)."""
+                   robust: bool = False, refine: bool = False, groups: list[str] | None = None
+                   ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """poses.csv rows (COLUMNS) for every flight frame (of `groups`, if given), and one row per
+    observation of the solved frames (POSE_OBSERVATION_COLUMNS: whether the pose used it, with
+    --robust RANSAC's inliers, and its residual du, dv in px)."""
     obs = flight_observations(dataset, observations, cameras)
     points = dataset.points
     group_of = dict(zip(dataset.frames["frame"], dataset.frames["group"]))  # the loader checks every frame is there
-    rows, skipped = [], []
+    rows, per_observation, skipped = [], [], []
     warm = False
     for frame, group_obs in obs.groupby("frame", sort=True):
         group = str(group_of[frame])
@@ -122,31 +124,34 @@ def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, camer
         except PoseError as error:
             skipped.append(f"{frame} ({error})")
             continue
-        eps = reprojection_rms(rig, pose, cams[used], uv[used], X[used])
+        residuals = reprojection_residuals(rig, pose, cams, uv, X)
+        eps = float(np.sqrt(np.mean(np.sum(residuals[used] ** 2, axis=1))))
         used_cameras = [c for c in cameras if c in set(cams[used])]
         rows.append(_frame_row(str(frame), group, used_cameras, pose, int(used.sum()), eps, ms))
+        per_observation.append(group_obs.assign(frame=str(frame), used=used, du=residuals[:, 0], dv=residuals[:, 1]))
     if skipped:
         log.warning("pose: %d frame(s) skipped: %s", len(skipped), "; ".join(skipped))
-    return pd.DataFrame(rows, columns=COLUMNS)
+    observation_rows = (pd.concat(per_observation, ignore_index=True) if per_observation
+                        else pd.DataFrame(columns=list(POSE_OBSERVATION_COLUMNS)))
+    return pd.DataFrame(rows, columns=COLUMNS), observation_rows[list(POSE_OBSERVATION_COLUMNS)]
 
 
 def run_pose(dataset_dir, results_dir, cameras: list[str] | None = None, robust: bool = False,
              refine: bool = False, groups: list[str] | None = None, out: Path | None = None) -> Path:
-    """Estimate every flight frame's pose; write poses.csv (or poses_<label>.csv). Returns the path."""
-    dataset = Dataset.load(dataset_dir)
-    rig_path = Path(results_dir) / "rig.json"
-    if not rig_path.is_file():
-        raise DmaisError(f"{rig_path}: missing; run `dmais extrinsics` first")
-    rig = Rig.load(rig_path)
+    """Estimate every flight frame's pose; write poses.csv (or poses_<label>.csv) and its
+    per-observation file beside it (`workspace.pose_observations_path`). Returns the poses path."""
+    workspace = Workspace.open(dataset_dir, results_dir)
+    rig = workspace.load_rig()
     chosen = _cameras(rig, cameras)
     with single_threaded_blas():  # small matrices: threads only add hand-offs to time_ms
-        table = estimate_poses(dataset, rig, load_observations(dataset, results_dir), chosen, robust, refine, groups)
+        table, per_observation = estimate_poses(workspace.dataset, rig, workspace.load_observations(), chosen,
+                                                robust, refine, groups)
     if table.empty and not groups:
         raise DmaisError(f"pose: no flight frame of {dataset_dir} could be solved with cameras {chosen}")
     if table.empty:
         log.warning("pose: no flight frame of group(s) %s could be solved with cameras %s", groups, chosen)
-    path = out or poses_path(results_dir, rig, chosen)
-    write_csv_atomic(path, table)
+    path = out or poses_path(workspace, rig, chosen)
+    workspace.save_poses(table, per_observation, path)
     if len(table):
         log.info("pose: %d frames -> %s (median %.2f ms per solve)", len(table), path, table["time_ms"].median())
     return path
@@ -155,14 +160,16 @@ def run_pose(dataset_dir, results_dir, cameras: list[str] | None = None, robust:
 def merge_poses(dataset_dir, results_dir, parts: list[Path], cameras: list[str] | None = None,
                 out: Path | None = None) -> Path:
     """Concatenate per-group pose files (the workflow's jobs, `run_pose(groups=[g], out=part)`) of
-    one camera set into poses.csv or poses_<label>.csv. Returns the path."""
-    rig = Rig.load(Path(results_dir) / "rig.json")
-    tables = []
+    one camera set, with their per-observation files, into poses.csv or poses_<label>.csv. Returns the path."""
+    workspace = Workspace.open(dataset_dir, results_dir)
+    rig = workspace.load_rig()
+    tables, observations = [], []
     for part in parts:
         table = pd.read_csv(part, dtype={"frame": str, "group": str, "cameras": str})
         if list(table.columns) != COLUMNS:
             raise DmaisError(f"{part}: columns {list(table.columns)}, expected {COLUMNS}")
         tables.append(table)
+        observations.append(_part_observations(part))
     if not tables:
         raise DmaisError("pose: no per-group pose file to merge")
     merged = pd.concat(tables, ignore_index=True)
@@ -171,8 +178,17 @@ def merge_poses(dataset_dir, results_dir, parts: list[Path], cameras: list[str] 
     repeated = merged["frame"][merged["frame"].duplicated()]
     if len(repeated):
         raise DmaisError(f"pose: frame {repeated.iloc[0]!r} appears in more than one of {[str(p) for p in parts]}")
-    unknown = sorted(set(merged["frame"]) - set(Dataset.load(dataset_dir).frames["frame"].astype(str)))
+    unknown = sorted(set(merged["frame"]) - set(workspace.dataset.frames["frame"].astype(str)))
     if unknown:
         raise DmaisError(f"pose: frame(s) {unknown[:5]} of the pose files are not in {dataset_dir}/frames.csv")
-    path = out or poses_path(results_dir, rig, _cameras(rig, cameras))
-    return write_csv_atomic(path, merged.sort_values("frame", kind="stable"))
+    path = out or poses_path(workspace, rig, _cameras(rig, cameras))
+    workspace.save_poses(merged.sort_values("frame", kind="stable"),
+                         pd.concat(observations, ignore_index=True).sort_values("frame", kind="stable"), path)
+    return path
+
+
+def _part_observations(part: Path) -> pd.DataFrame:
+    path = pose_observations_path(part)
+    if not path.is_file():
+        raise DmaisError(f"{path}: missing; the per-group pose job writes it beside {part}")
+    return pd.read_csv(path, dtype={c: str for c in ("frame", "image", "camera", "point_id")}, keep_default_na=False)

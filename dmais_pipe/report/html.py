@@ -20,20 +20,12 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from ..dataset import Dataset, load_observations
+from ..dataset import Dataset
 from ..errors import DmaisError
-from ..evaluate import (
-    ALL_GROUPS,
-    EVALUATION,
-    POSES,
-    RIG,
-    TRUE_ERROR_COLUMNS,
-    pose_methods_table,
-    read_poses,
-    reprojection_residuals,
-)
+from ..evaluate import ALL_GROUPS, TRUE_ERROR_COLUMNS, pose_methods_table
 from ..files import write_text_atomic
 from ..rig import Rig
+from ..workspace import Workspace, pose_observations_path
 from .dataset import rig_table, summary_table
 from .paper import PAPER_TABLES, paper_comparisons, paper_notes, read_table
 
@@ -105,7 +97,7 @@ class _Context:
 
     @cached_property
     def rig(self) -> Rig:
-        return Rig.load(self.require(RIG, "run `dmais extrinsics`"))
+        return Rig.load(self.require("rig.json", "run `dmais extrinsics`"))
 
     @cached_property
     def truth_rig(self) -> Rig | None:
@@ -225,10 +217,10 @@ def _rig_section(ctx: _Context) -> str:
     else:
         rigs = _rig_variants(ctx)
         if not rigs:
-            raise MissingInput(f"{ctx.results / RIG} is missing (run `dmais extrinsics`).")
+            raise MissingInput(f"{ctx.results / 'rig.json'} is missing (run `dmais extrinsics`).")
         parts.append(_figure(_svg(rig_layout_figure(rigs)), "Camera centres (dots) and optical axes (lines) in the "
                              "rig frame (C0's; z drawn downwards, the way the cameras look); " + ", ".join(rigs) + "."))
-    if (ctx.results / RIG).is_file():
+    if (ctx.results / "rig.json").is_file():
         parts += ["<p>rig.json: rig_from_cam as ZYX Euler angles (deg) and camera centres (m).</p>",
                   _table(rig_table(ctx.rig))]
     for name, caption in (("extrinsics_R", "Relative rotations with known / unknown initial positions "
@@ -245,7 +237,7 @@ def _rig_variants(ctx: _Context) -> dict[str, Rig]:
     for label, path in (("with priors", "extrinsics/rig_known.json"), ("without priors", "extrinsics/rig_unknown.json")):
         if (ctx.results / path).is_file():
             rigs[label] = Rig.load(ctx.results / path)
-    if not rigs and (ctx.results / RIG).is_file():
+    if not rigs and (ctx.results / "rig.json").is_file():
         rigs["rig.json"] = ctx.rig
     if rigs and ctx.truth_rig is not None:
         rigs["truth"] = ctx.truth_rig
@@ -253,15 +245,18 @@ def _rig_variants(ctx: _Context) -> dict[str, Rig]:
 
 
 def _residuals_section(ctx: _Context) -> str:
-    poses_path = ctx.require(POSES, "run `dmais pose`")
-    poses = read_poses(poses_path, ctx.dataset, ctx.rig)
-    observations = load_observations(ctx.dataset, ctx.results)
-    residuals = reprojection_residuals(ctx.dataset, ctx.rig, poses, observations).dropna(subset=["du", "dv"])
+    workspace = Workspace(ctx.dataset, ctx.results)
+    ctx.require(workspace.poses_path().name, "run `dmais pose`")
+    observations = workspace.load_pose_observations()
+    if observations is None:
+        raise MissingInput(f"{pose_observations_path(workspace.poses_path())} is missing (run `dmais pose`).")
+    residuals = observations[observations["used"]].dropna(subset=["du", "dv"])
     if residuals.empty:
         raise MissingInput("No flight observation belongs to a frame of poses.csv.")
     cameras = [c for c in ctx.rig.camera_names if c in set(residuals["camera"])]
     caption = ("Top: observed minus projected marker positions over each sensor (colour = distance, px); "
-               "bottom: histogram of the distances. Projections use rig.json and poses.csv.")
+               "bottom: histogram of the distances. Projections use rig.json and poses.csv; the observations "
+               "each pose was solved from (RANSAC's inliers with --robust).")
     return "\n".join([_figure(_svg(residual_figure(residuals, ctx.rig, cameras)), caption),
                       _table(residual_table(residuals, cameras))])
 
@@ -279,7 +274,7 @@ def residual_table(residuals: pd.DataFrame, cameras: list[str]) -> pd.DataFrame:
 
 
 def _frames_section(ctx: _Context) -> str:
-    evaluation = pd.read_csv(ctx.require(EVALUATION, "run `dmais evaluate`"), dtype={"frame": str, "group": str})
+    evaluation = pd.read_csv(ctx.require("evaluation.csv", "run `dmais evaluate`"), dtype={"frame": str, "group": str})
     parts = [_figure(_svg(frame_errors_figure(evaluation)),
                      "Errors of every frame in file order, coloured by flight group. eps_pos after removing each "
                      "group's mean offset to the POS (the lever arm)."

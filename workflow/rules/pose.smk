@@ -5,6 +5,7 @@ rule pose_group:
         observations=f"{RESULTS}/observations/flight.csv",
     output:
         csv=f"{RESULTS}/poses/{{subset}}/{{group}}.csv",
+        observations=f"{RESULTS}/poses/{{subset}}/{{group}}.observations.csv",
     wildcard_constraints:
         subset=r"all|\d+",
     params:
@@ -30,6 +31,7 @@ rule poses:
         parts=pose_parts("all"),
     output:
         csv=f"{RESULTS}/poses.csv",
+        observations=f"{RESULTS}/poses.observations.csv",
     params:
         dataset_dir=folder_of("manifest"),
         results=folder_of("csv"),
@@ -48,6 +50,7 @@ rule poses_subset:
         parts=pose_parts(None),
     output:
         csv=f"{RESULTS}/poses_{{subset}}.csv",
+        observations=f"{RESULTS}/poses_{{subset}}.observations.csv",
     wildcard_constraints:
         subset=r"\d+",
     params:

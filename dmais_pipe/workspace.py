@@ -1,0 +1,311 @@
+"""The results folder of one dataset: every results path, and a load_*/save_* pair per result.
+
+`Workspace` is the output side's counterpart of `Dataset`: the stages read and write results only
+through it, so that each file's name, columns and checks live in one place. The layout is
+documented in docs/design.md ("Results directory"). Every write is atomic (`files`); every
+results CSV read back is checked with the dataset's CSV reader and a fault raises `ResultsError`
+naming the file and line.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from collections.abc import Sequence
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .camera import Camera
+from .dataset import STAGES, Dataset, Table, read_observation_table, read_table
+from .errors import DatasetError, DmaisError
+from .files import write_csv_atomic, write_json_atomic
+from .rig import Rig
+
+log = logging.getLogger(__name__)
+
+QUAT = ("qw", "qx", "qy", "qz")
+TRANSLATION = ("tx", "ty", "tz")
+CENTER = ("x", "y", "z")
+#: The columns of poses.csv (docs/design.md); rig_from_world quaternion (w, x, y, z) and translation.
+POSE_COLUMNS = ("frame", "group", "cameras", "n_points", *QUAT, *TRANSLATION, *CENTER, "eps_proj_px", "time_ms")
+#: One row per observation of a solved frame: whether the pose used it, and its residual (px).
+POSE_OBSERVATION_COLUMNS = ("frame", "image", "camera", "point_id", "u", "v", "used", "du", "dv")
+TRUTH_COLUMNS = ("frame", "group", *QUAT, *TRANSLATION, *CENTER)
+MARKER_COLUMNS = ("u", "v", "score", "point_id")
+SUBSET_FILE = re.compile(r"^poses_(\d+)\.csv$")
+
+
+class ResultsError(DatasetError):
+    """A malformed results file (written by an earlier stage or by hand), naming the file and line."""
+
+
+class Workspace:
+    """The results folder `root` of `dataset`."""
+
+    def __init__(self, dataset: Dataset, root: str | Path):
+        self.dataset = dataset
+        self.root = Path(root)
+
+    @classmethod
+    def open(cls, dataset_dir: str | Path, results_dir: str | Path) -> Workspace:
+        """The workspace of the dataset folder `dataset_dir` (loaded and validated) at `results_dir`."""
+        return cls(Dataset.load(dataset_dir), results_dir)
+
+    def __repr__(self) -> str:
+        return f"Workspace({self.dataset.name!r}, root={str(self.root)!r})"
+
+    # -------------------------------------------------------------- paths
+
+    def markers_path(self, image: str) -> Path:
+        return self.root / "markers" / f"{image}.csv"
+
+    def observations_path(self, stage: str | None = None) -> Path:
+        """RESULTS/observations/<stage>.csv (the workflow's), or RESULTS/observations.csv (None)."""
+        return self.root / "observations.csv" if stage is None else self.root / "observations" / f"{stage}.csv"
+
+    def intrinsics_path(self, camera: str) -> Path:
+        return self.root / "intrinsics" / f"{camera}.json"
+
+    def methods_path(self, camera: str) -> Path:
+        """One camera's rows of tables/intrinsics.csv, every method."""
+        return self.root / "intrinsics" / f"{camera}.methods.csv"
+
+    @property
+    def rig_path(self) -> Path:
+        return self.root / "rig.json"
+
+    @property
+    def rig_config_path(self) -> Path:
+        """The rig in COLMAP's rig config layout, beside rig.json."""
+        return self.root / "rig_config.json"
+
+    def case_rig_path(self, case: str) -> Path:
+        """extrinsics/rig_<case>.json: the rig calibrated with (known) or without (unknown) RTK priors."""
+        return self.root / "extrinsics" / f"rig_{case}.json"
+
+    def poses_path(self, label: str | None = None) -> Path:
+        """poses.csv (the whole rig, label None) or poses_<label>.csv (a camera subset)."""
+        return self.root / ("poses.csv" if label is None else f"poses_{label}.csv")
+
+    def evaluation_path(self, label: str | None = None) -> Path:
+        return self.root / ("evaluation.csv" if label is None else f"evaluation_{label}.csv")
+
+    def table_path(self, name: str) -> Path:
+        return self.root / "tables" / f"{name}.csv"
+
+    def note_path(self, name: str) -> Path:
+        """tables/<name>.txt: a stage's explanation of its tables."""
+        return self.root / "tables" / f"{name}.txt"
+
+    def figure_path(self, name: str) -> Path:
+        return self.root / "figures" / name
+
+    def subset_labels(self) -> dict[str, Path]:
+        """label -> poses_<label>.csv of the camera subsets solved so far, by length then value."""
+        found = {}
+        for path in self.root.glob("poses_*.csv"):
+            match = SUBSET_FILE.match(path.name)
+            if match:
+                found[match.group(1)] = path
+        return dict(sorted(found.items(), key=lambda item: (len(item[0]), item[0])))
+
+    # -------------------------------------------------------------- markers and observations
+
+    def save_markers(self, image: str, markers: pd.DataFrame) -> Path:
+        return write_csv_atomic(self.markers_path(image), markers[list(MARKER_COLUMNS)])
+
+    def load_markers(self, image: str) -> pd.DataFrame:
+        """One image's detections: u, v, score (float), point_id (str, '' when unidentified)."""
+        path = self.markers_path(image)
+        if not path.is_file():
+            raise ResultsError(path, f"missing; run `dmais markers --image {image}`")
+        with results_errors():
+            table = read_table(path, MARKER_COLUMNS)
+            return pd.DataFrame({"u": table.floats("u"), "v": table.floats("v"), "score": table.floats("score"),
+                                 "point_id": table.text("point_id")})
+
+    def save_observations(self, observations: pd.DataFrame, stage: str | None = None) -> Path:
+        return write_csv_atomic(self.observations_path(stage), observations)
+
+    def load_observations(self) -> pd.DataFrame:
+        """Observations (image, camera, point_id, u, v + extras) used downstream.
+
+        The first source found wins, each validated against the dataset with errors naming its file:
+        1. RESULTS/observations/<stage>.csv, the union over the stages that have one (the workflow
+           collects each stage's per-image markers there, `dmais markers --collect STAGE`);
+        2. RESULTS/observations.csv, written by `dmais markers` over the whole dataset;
+        3. the dataset's own observations, with `camera` taken from images.csv.
+        """
+        dataset = self.dataset
+        paths = [p for p in (self.observations_path(s) for s in STAGES) if p.exists()]
+        whole = self.observations_path()
+        if paths and whole.exists():
+            log.warning("%s is ignored: the per-stage files %s take precedence", whole, [str(p) for p in paths])
+        if not paths and whole.exists():
+            paths = [whole]
+        if paths:
+            tables = [read_observation_table(p, dataset) for p in paths]
+            return pd.concat(tables, ignore_index=True) if len(tables) > 1 else tables[0]
+        observations = dataset.observations.copy()
+        camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
+        observations.insert(1, "camera", observations["image"].map(camera_of).astype(str))
+        return observations
+
+    # -------------------------------------------------------------- intrinsics and rig
+
+    def save_intrinsics(self, camera: str, record: dict, methods: pd.DataFrame) -> list[Path]:
+        """<camera>.json (our calibration, docs/design.md) and <camera>.methods.csv (every method)."""
+        return [write_json_atomic(self.intrinsics_path(camera), record),
+                write_csv_atomic(self.methods_path(camera), methods)]
+
+    def load_intrinsics(self, camera: str) -> tuple[Camera, dict]:
+        """The calibrated Camera of `camera` and its whole record."""
+        path = self.intrinsics_path(camera)
+        try:
+            data = json.loads(path.read_text())
+            return Camera.from_dict(data), data
+        except FileNotFoundError:
+            raise DmaisError(f"{path}: missing; run `dmais intrinsics` first") from None
+        except (KeyError, TypeError, ValueError) as error:
+            raise DmaisError(f"{path}: not a valid intrinsics file ({error})") from None
+
+    def load_methods(self, camera: str) -> pd.DataFrame:
+        path = self.methods_path(camera)
+        if not path.is_file():
+            raise DmaisError(f"intrinsics table: missing {path}; run `dmais intrinsics --camera {camera}`")
+        return pd.read_csv(path, dtype={"method": str, "camera": str})
+
+    def save_rig(self, rig: Rig, case: str | None = None, **extra) -> Path:
+        """rig.json (case None) or extrinsics/rig_<case>.json; `extra` keys are stored beside the rig."""
+        return rig.save(self.rig_path if case is None else self.case_rig_path(case), **extra)
+
+    def has_rig(self) -> bool:
+        return self.rig_path.is_file()
+
+    def load_rig(self) -> Rig:
+        if not self.rig_path.is_file():
+            raise DmaisError(f"{self.rig_path}: missing; run `dmais extrinsics` first")
+        return Rig.load(self.rig_path)
+
+    # -------------------------------------------------------------- poses
+
+    def save_poses(self, poses: pd.DataFrame, observations: pd.DataFrame, path: Path) -> list[Path]:
+        """A poses file (POSE_COLUMNS) and, beside it, its per-observation file (`observations_of`)."""
+        return [write_csv_atomic(path, poses[list(POSE_COLUMNS)]),
+                write_csv_atomic(pose_observations_path(path), observations[list(POSE_OBSERVATION_COLUMNS)])]
+
+    def load_poses(self, path: Path | None = None, allowed_cameras: Sequence[str] | None = None) -> pd.DataFrame:
+        """A poses file (default poses.csv) checked against the dataset and the rig.
+
+        Numbers must be finite; frames must be frames of the dataset with the same group; cameras
+        (names joined by '+') must be cameras of the rig (and of `allowed_cameras` when given).
+        Raises ResultsError naming the file and line. Returns typed columns, extras as strings.
+        """
+        path = self.poses_path() if path is None else Path(path)
+        if not path.is_file():
+            raise ResultsError(path, "missing; run `dmais pose` first")
+        rig = self.load_rig()
+        with results_errors():
+            table = read_table(path, POSE_COLUMNS)
+            if len(table) == 0:
+                raise ResultsError(path, "has no rows; no frame to evaluate")
+            frame = _checked_frames(table, self.dataset)
+            cameras = _checked_cameras(table, rig, allowed_cameras)
+            numbers = {c: table.floats(c) for c in POSE_COLUMNS[3:]}
+            n_points = numbers["n_points"]
+            table.check((n_points != np.round(n_points)) | (n_points < 0),
+                        lambda row: f"column n_points: {n_points[row]:g} is not a count")
+        out = pd.DataFrame({"frame": frame, "group": table.text("group"), "cameras": cameras,
+                            **numbers, "n_points": n_points.astype(int)})
+        for extra in table.extra_columns(POSE_COLUMNS):
+            out[extra] = table.text(extra)
+        return out
+
+    def load_pose_observations(self, path: Path | None = None) -> pd.DataFrame | None:
+        """The per-observation file beside a poses file (default poses.csv): frame, image, camera,
+        point_id (str), u, v, du, dv (float), used (bool); None when the poses file has none."""
+        path = pose_observations_path(self.poses_path() if path is None else Path(path))
+        if not path.is_file():
+            return None
+        with results_errors():
+            table = read_table(path, POSE_OBSERVATION_COLUMNS)
+            used = table.text("used")
+            table.check(~np.isin(used, ("True", "False")), lambda row: f"column used: {used[row]!r} is not True/False")
+            return pd.DataFrame({**{c: table.text(c) for c in ("frame", "image", "camera", "point_id")},
+                                 **{c: table.floats(c, optional=c in ("du", "dv")) for c in ("u", "v", "du", "dv")},
+                                 "used": used == "True"})
+
+    def load_truth_frames(self) -> pd.DataFrame | None:
+        """truth/frames.csv of a simulated dataset indexed by frame (TRUTH_COLUMNS as floats), None
+        without truth."""
+        path = self.dataset.truth_dir / "frames.csv"
+        if not path.is_file():
+            return None
+        table = read_table(path, TRUTH_COLUMNS)
+        columns = {"frame": table.required_text("frame"), "group": table.text("group")}
+        columns.update({c: table.floats(c) for c in TRUTH_COLUMNS[2:]})
+        return pd.DataFrame(columns).set_index("frame")
+
+    # -------------------------------------------------------------- evaluation and tables
+
+    def save_evaluation(self, evaluation: pd.DataFrame, label: str | None = None) -> Path:
+        return write_csv_atomic(self.evaluation_path(label), evaluation)
+
+    def load_evaluation(self, label: str | None = None) -> pd.DataFrame:
+        path = self.evaluation_path(label)
+        if not path.is_file():
+            raise ResultsError(path, "missing; run `dmais evaluate` first")
+        return pd.read_csv(path, dtype={"frame": str, "group": str, "cameras": str})
+
+    def save_table(self, name: str, table: pd.DataFrame, float_format: str | None = None) -> Path:
+        return write_csv_atomic(self.table_path(name), table, float_format=float_format)
+
+    def load_table(self, name: str, dtype: dict | None = None) -> pd.DataFrame:
+        path = self.table_path(name)
+        if not path.is_file():
+            raise ResultsError(path, "missing")
+        return pd.read_csv(path, dtype=dtype)
+
+
+def pose_observations_path(poses_path: str | Path) -> Path:
+    """The per-observation file beside a poses file: poses.csv -> poses.observations.csv."""
+    poses_path = Path(poses_path)
+    return poses_path.with_name(f"{poses_path.stem}.observations.csv")
+
+
+@contextmanager
+def results_errors():
+    """Turn a DatasetError of the shared CSV reader into a ResultsError (same file, line, message)."""
+    try:
+        yield
+    except ResultsError:
+        raise
+    except DatasetError as error:
+        raise ResultsError(error.path, error.message, error.line) from None
+
+
+def _checked_frames(table: Table, dataset: Dataset) -> np.ndarray:
+    frame = table.required_text("frame")
+    table.first_rows(["frame"], "frame")
+    group_of = dict(zip(dataset.frames["frame"], dataset.frames["group"]))
+    table.check([f not in group_of for f in frame],
+                lambda row: f"frame {frame[row]!r} is not a frame of {dataset.root / 'frames.csv'}")
+    group = table.text("group")
+    table.check([group_of[f] != g for f, g in zip(frame, group)],
+                lambda row: f"frame {frame[row]!r}: group {group[row]!r}, frames.csv says {group_of[frame[row]]!r}")
+    return frame
+
+
+def _checked_cameras(table: Table, rig: Rig, allowed: Sequence[str] | None) -> np.ndarray:
+    cameras = table.required_text("cameras")
+    names = [c.split("+") for c in cameras]
+    table.check([any(n not in rig.cameras for n in row) for row in names],
+                lambda row: f"cameras {cameras[row]!r}: not all are cameras of the rig ({', '.join(rig.camera_names)})")
+    if allowed is not None:
+        table.check([any(n not in allowed for n in row) for row in names],
+                    lambda row: f"cameras {cameras[row]!r}: this subset file may use only {'+'.join(allowed)}")
+    return cameras
