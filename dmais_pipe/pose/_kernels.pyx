@@ -10,9 +10,9 @@ GIL, so one `Kernel` serves several threads at once.
 """
 
 from libc.math cimport NAN, acos, fabs, isfinite, sqrt
-from libc.stdlib cimport calloc, free
+from libc.stdlib cimport free, malloc
 from libc.string cimport memcpy, memset
-from scipy.linalg.cython_lapack cimport dgebak, dgebal, dgehrd, dgesvd, dgetrf, dhsein, dhseqr, dormhr, dsyev, dtrtrs
+from scipy.linalg.cython_lapack cimport dgebal, dgehrd, dgesvd, dgetrf, dhseqr, dormhr, dsyev, dtrtrs
 
 import numpy as np
 
@@ -76,6 +76,7 @@ cdef struct Scratch:
     double *template  # (m * n_columns,) column-major
     int *pivots  # (m,)
     double *action  # (40 * 40,) column-major
+    Eigen *eigen
 
 
 # ------------------------------------------------------------------------------ small matrices
@@ -508,40 +509,104 @@ cdef void solving_frame(const Problem *p, const double *octahedral, const double
 # ------------------------------------------------------------------------------ the solver
 
 
-cdef int nearly_real_eigenvectors(double *A, double *wr, double *wi, bint *select, double *V, int *found) noexcept nogil:
-    """Eigenvalues wr + i wi (40,) of the column-major A (40, 40), which is overwritten, and the
-    right eigenvectors V (40, found) of those nearly real, |wi| < IMAGINARY_TOLERANCE (1 + |wr|),
-    in order: select (40,) marks them (a pair at its first eigenvalue, whose vector is packed as
-    real and imaginary parts in two columns, as dgeev does). Returns LAPACK's info (0: success).
+cdef struct Eigen:
+    double H[N_SOLUTIONS * N_SOLUTIONS]  # the balanced Hessenberg form, column-major
+    double units[4 * N_SOLUTIONS]  # rows of the back-transformation at the unit monomials, (4, 40)
+    double wr[N_SOLUTIONS]
+    double wi[N_SOLUTIONS]
+    double size  # the largest entry of H
 
-    The vectors come from inverse iteration on the Hessenberg form (dhsein; dormhr and dgebak
-    undo the reduction and the balancing), so the QR iteration (dhseqr) only seeks eigenvalues
-    and the clearly complex roots (about half) cost nothing more: ~25% less work than dgeev.
-    """
-    cdef int n = N_SOLUTIONS, one = 1, ilo = 0, ihi = 0, info = 0, i, j
+
+cdef int action_eigenvalues(double *A, const long *unit_index, Eigen *e) noexcept nogil:
+    """Eigenvalues e.wr + i e.wi of the column-major action matrix A (40, 40), which is overwritten,
+    and what `eigenvector_units` needs: e.H, the Hessenberg form of the balanced A (A = D Q H Q^T
+    D^-1, dgebal scaling D, dgehrd), and e.units, the rows of D Q at the monomials 1, qx, qy, qz.
+    The QR iteration (dhseqr) seeks eigenvalues alone. Returns LAPACK's info (0: success)."""
+    cdef int n = N_SOLUTIONS, one = 1, four = 4, ilo = 0, ihi = 0, info = 0, i, j
     cdef int lwork = 64 * N_SOLUTIONS
     cdef double work[64 * N_SOLUTIONS]
     cdef double scale[N_SOLUTIONS]
     cdef double tau[N_SOLUTIONS]
-    cdef double H[N_SOLUTIONS * N_SOLUTIONS]
-    cdef double T[N_SOLUTIONS * N_SOLUTIONS]
-    cdef int failed[N_SOLUTIONS]
-    dgebal(b"B", &n, A, &n, &ilo, &ihi, scale, &info)
+    cdef double E[4 * N_SOLUTIONS]
+    dgebal(b"S", &n, A, &n, &ilo, &ihi, scale, &info)
     dgehrd(&n, &ilo, &ihi, A, &n, tau, work, &lwork, &info)
+    e.size = 0.0
     for j in range(n):  # the Hessenberg matrix alone (A also holds the reflectors below it)
         for i in range(n):
-            H[j * n + i] = A[j * n + i] if i <= j + 1 else 0.0
-    memcpy(T, H, n * n * sizeof(double))
-    dhseqr(b"E", b"N", &n, &ilo, &ihi, T, &n, wr, wi, NULL, &one, work, &lwork, &info)
-    if info != 0:
-        return info
-    for j in range(n):
-        select[j] = fabs(wi[j]) < IMAGINARY_TOLERANCE * (1.0 + fabs(wr[j]))
-    dhsein(b"R", b"Q", b"N", select, &n, H, &n, wr, wi, NULL, &one, V, &n, &n, found, work, failed, failed, &info)
-    # info > 0: some vectors did not converge; they are kept, and the root filter judges them
-    dormhr(b"L", b"N", &n, found, &ilo, &ihi, A, &n, tau, V, &n, work, &lwork, &info)
-    dgebak(b"B", b"R", &n, &ilo, &ihi, scale, found, V, &n, &info)
+            e.H[j * n + i] = A[j * n + i] if i <= j + 1 else 0.0
+            e.size = max(e.size, fabs(e.H[j * n + i]))
+    memset(E, 0, 4 * n * sizeof(double))
+    for i in range(4):
+        E[i * n + unit_index[i]] = 1.0
+    dormhr(b"L", b"T", &n, &four, &ilo, &ihi, A, &n, tau, E, &n, work, &lwork, &info)  # column i: Q^T e_u
+    for i in range(4):
+        for j in range(n):
+            e.units[i * n + j] = scale[unit_index[i]] * E[i * n + j]
+    memcpy(A, e.H, n * n * sizeof(double))
+    dhseqr(b"E", b"N", &n, &ilo, &ihi, A, &n, e.wr, e.wi, NULL, &one, work, &lwork, &info)
     return info
+
+
+cdef void eigenvector_units(const Eigen *e, double shift, double *v) noexcept nogil:
+    """v (4,): the entries at 1, qx, qy, qz of the eigenvector of the action matrix for the
+    eigenvalue nearest the real shift, by one step of inverse iteration on the Hessenberg form,
+    y = (H - shift I)^-1 1 (LU with partial pivoting of a Hessenberg matrix: one row
+    interchange per column, O(40^2)), mapped back by e.units. A zero pivot is raised to 1e-30 of
+    the largest entry of H: the least pivot is ~0 at an eigenvalue, and raising it to the
+    rounding level (1e-15) would cost digits of the vector.
+    """
+    cdef int n = N_SOLUTIONS, i, j, k
+    cdef double W[N_SOLUTIONS * N_SOLUTIONS]
+    cdef double factor[N_SOLUTIONS]
+    cdef bint swapped[N_SOLUTIONS]
+    cdef double y[N_SOLUTIONS]
+    cdef double tiny, tmp
+    for j in range(n):  # W = H - shift I, column-major, upper Hessenberg
+        memcpy(W + j * n, e.H + j * n, min(j + 2, n) * sizeof(double))
+        W[j * n + j] -= shift
+    tiny = max(e.size + fabs(shift), 1e-300) * 1e-30
+    for k in range(n):
+        swapped[k] = k + 1 < n and fabs(W[k * n + k + 1]) > fabs(W[k * n + k])
+        if swapped[k]:
+            for j in range(k, n):
+                tmp = W[j * n + k]; W[j * n + k] = W[j * n + k + 1]; W[j * n + k + 1] = tmp
+        if fabs(W[k * n + k]) < tiny:
+            W[k * n + k] = tiny
+        if k + 1 < n:
+            factor[k] = W[k * n + k + 1] / W[k * n + k]
+            for j in range(k + 1, n):
+                W[j * n + k + 1] -= factor[k] * W[j * n + k]
+    for i in range(n):
+        y[i] = 1.0
+    for k in range(n - 1):  # L^-1 P y: one interchange and one elimination per column
+        if swapped[k]:
+            tmp = y[k]; y[k] = y[k + 1]; y[k + 1] = tmp
+        y[k + 1] -= factor[k] * y[k]
+    for k in range(n - 1, -1, -1):  # U^-1 y, by columns
+        y[k] /= W[k * n + k]
+        for i in range(k):
+            y[i] -= W[k * n + i] * y[k]
+    for i in range(4):
+        v[i] = 0.0
+        for j in range(n):
+            v[i] += e.units[i * n + j] * y[j]
+
+
+cdef bint unit_directions(const double *v, const double *d, const double *M, int n, double zero, double *f) noexcept nogil:
+    """f (n, 3): the directions d (n, 3) scaled to unit length; False if any of v, d, M (n, 3) is not
+    finite or a direction is shorter than zero."""
+    cdef int i, a
+    cdef double norm
+    for i in range(3 * n):
+        if not (isfinite(v[i]) and isfinite(M[i])):
+            return False
+    for i in range(n):
+        norm = sqrt(d[3 * i] * d[3 * i] + d[3 * i + 1] * d[3 * i + 1] + d[3 * i + 2] * d[3 * i + 2])
+        if not (isfinite(norm) and norm >= zero):
+            return False
+        for a in range(3):
+            f[3 * i + a] = d[3 * i + a] / norm
+    return True
 
 
 cdef class Kernel:
@@ -579,25 +644,22 @@ cdef class Kernel:
         Row i of the action matrix expresses x * b_i in the basis: x * B(q) = M B(q) at every
         solution q. One LU factorisation of the whole template [C_E C_R | C_B] = P L [U_11 | U_12]
         leaves the rows of the reducible monomials R alone at the bottom: U_RR R + U_RB B = 0.
-        The eigenvectors are B(q), whose entries at 1, qx, qy, qz give q.
+        The eigenvalues come from `action_eigenvalues`, and of the eigenvectors B(q) only the
+        entries at 1, qx, qy, qz, which give q (`eigenvector_units`).
         """
         cdef double Hf[81]
         cdef double gf[9]
         cdef double parameters[54]
         cdef double q[3]
-        cdef double qi[3]
         cdef int i, j, k, info = 0, count = 0
         cdef int m = self.m, n_columns = self.n_columns, n_red = self.n_reducible, n = N_SOLUTIONS
         cdef int first = m - n_red
-        cdef double trace, size, imag, re0, im0, re, im, denominator
+        cdef double trace
         cdef double *coefficients = scratch.coefficients
         cdef double *template = scratch.template
         cdef double *action = scratch.action
-        cdef double wr[N_SOLUTIONS]
-        cdef double wi[N_SOLUTIONS]
-        cdef double vr[N_SOLUTIONS * N_SOLUTIONS]
-        cdef bint select[N_SOLUTIONS]
-        cdef int found = 0, column
+        cdef Eigen *eigen = scratch.eigen
+        cdef double v[4]
         in_frame(p.H, p.g, P, Hf, gf)
         trace = trace9(Hf)
         k = 0
@@ -627,38 +689,29 @@ cdef class Kernel:
         for k in range(self.reduced_rows.shape[0]):
             for j in range(n):
                 action[j * n + self.reduced_rows[k]] = -template[(m + j) * m + first + self.reduced_index[k]]
-        if nearly_real_eigenvectors(action, wr, wi, select, vr, &found) != 0:
+        if action_eigenvalues(action, &self.unit_index[0], eigen) != 0:
             return 0
-        column = 0
         for j in range(n):
-            if not select[j]:
+            # nearly real roots, one of each conjugate pair, are polished as real ones
+            if eigen.wi[j] < 0 or not fabs(eigen.wi[j]) < IMAGINARY_TOLERANCE * (1.0 + fabs(eigen.wr[j])):
                 continue
-            re0 = vr[column * n + self.unit_index[0]]
-            im0 = vr[(column + 1) * n + self.unit_index[0]] if wi[j] > 0 else 0.0
-            denominator = re0 * re0 + im0 * im0
-            size = 0.0
-            imag = 0.0
-            for i in range(3):  # q_i = (re + i im) / (re0 + i im0)
-                re = vr[column * n + self.unit_index[1 + i]]
-                im = vr[(column + 1) * n + self.unit_index[1 + i]] if wi[j] > 0 else 0.0
-                q[i] = (re * re0 + im * im0) / denominator
-                qi[i] = (im * re0 - re * im0) / denominator
-                size = max(size, sqrt(q[i] * q[i] + qi[i] * qi[i]))
-                imag = max(imag, fabs(qi[i]))
-            column += 2 if wi[j] > 0 else 1
-            if isfinite(size) and imag < IMAGINARY_TOLERANCE * (1.0 + size):
+            eigenvector_units(eigen, eigen.wr[j], v)
+            for i in range(3):
+                q[i] = v[1 + i] / v[0]
+            if isfinite(q[0]) and isfinite(q[1]) and isfinite(q[2]):
                 cayley_times(q, P, rotations + 9 * count)
                 count += 1
         return count
 
     cdef bint allocate(self, Scratch *scratch) noexcept nogil:
         """The buffers of `real_roots` (free them with `release`); False if memory is short."""
-        scratch.coefficients = <double *> calloc(6 * self.n_monomials, sizeof(double))
-        scratch.template = <double *> calloc(self.m * self.n_columns, sizeof(double))
-        scratch.pivots = <int *> calloc(self.m, sizeof(int))
-        scratch.action = <double *> calloc(N_SOLUTIONS * N_SOLUTIONS, sizeof(double))
+        scratch.coefficients = <double *> malloc(6 * self.n_monomials * sizeof(double))
+        scratch.template = <double *> malloc(self.m * self.n_columns * sizeof(double))
+        scratch.pivots = <int *> malloc(self.m * sizeof(int))
+        scratch.action = <double *> malloc(N_SOLUTIONS * N_SOLUTIONS * sizeof(double))
+        scratch.eigen = <Eigen *> malloc(sizeof(Eigen))
         return (scratch.coefficients != NULL and scratch.template != NULL and scratch.pivots != NULL
-                and scratch.action != NULL)
+                and scratch.action != NULL and scratch.eigen != NULL)
 
     def rotations_of_roots(self, const double[:, ::1] H, const double[::1] g, const double[:, ::1] P):
         """Rotations (k, 3, 3) of the real and nearly real roots of eq. EF6 for statistics H (9, 9),
@@ -712,7 +765,54 @@ cdef class Kernel:
             release(&scratch)
         if not allocated:
             raise MemoryError("pose: no memory for the elimination template")
-        return distinct_candidates(&found, k, centroid)
+        return distinct_candidates(&found, k, &centroid[0])
+
+    def solve_rays(self, const double[:, ::1] origins, const double[:, ::1] directions, const double[:, ::1] points,
+                   double collinear_tolerance, double zero_direction):
+        """`statistics.validate_correspondences`, `statistics.statistics_of` and `solve` in one
+        compiled call, without the GIL: origins, directions (any length), points (n, 3).
+
+        Returns what `solve` returns, or None when the input fails a check (fewer than 3 points,
+        a wrong shape, a value not finite, a direction shorter than zero_direction, collinear
+        points as `statistics_of` judges them with collinear_tolerance, all rays parallel): the
+        Python checks then name the fault.
+        """
+        cdef int n = points.shape[0], k = 0
+        if (n < 3 or origins.shape[0] != n or directions.shape[0] != n or points.shape[1] != 3
+                or origins.shape[1] != 3 or directions.shape[1] != 3):
+            return None
+        cdef double[:, ::1] f = np.empty((n, 3))
+        cdef double[:, ::1] R = np.empty((CAPACITY, 9))
+        cdef double[:, ::1] t = np.empty((CAPACITY, 3))
+        cdef double[::1] cost = np.empty(CAPACITY)
+        cdef double[::1] front = np.empty(CAPACITY)
+        cdef Candidates found
+        found.R, found.t, found.cost, found.front = &R[0, 0], &t[0, 0], &cost[0], &front[0]
+        cdef Statistics st
+        cdef Problem p
+        cdef Scratch scratch
+        cdef bint valid, allocated = False
+        memset(&scratch, 0, sizeof(Scratch))
+        try:
+            with nogil:
+                valid = unit_directions(&origins[0, 0], &directions[0, 0], &points[0, 0], n, zero_direction, &f[0, 0])
+                if valid:
+                    accumulate(&origins[0, 0], &f[0, 0], &points[0, 0], n, &st)
+                    valid = (st.spread[1] > collinear_tolerance * collinear_tolerance * st.spread[2]
+                             and st.least_BtB > 1e-12 * n)
+                if valid:
+                    p.H, p.g, p.c, p.t_matrix, p.t_offset, p.centroid = st.H, st.g, st.c, st.t_matrix, st.t_offset, st.centroid
+                    p.v, p.f, p.M, p.n = &origins[0, 0], &f[0, 0], &points[0, 0], n
+                    allocated = self.allocate(&scratch)
+                    if allocated:
+                        k = self.candidates(&p, &found, &scratch, st.axes, st.spread)
+        finally:
+            release(&scratch)
+        if not valid:
+            return None
+        if not allocated:
+            raise MemoryError("pose: no memory for the elimination template")
+        return distinct_candidates(&found, k, st.centroid)
 
     cdef int candidates(self, const Problem *p, Candidates *c, Scratch *scratch, const double *point_axes,
                         const double *point_spread) noexcept nogil:
@@ -776,11 +876,13 @@ cdef void release(Scratch *scratch) noexcept nogil:
     free(scratch.template)
     free(scratch.pivots)
     free(scratch.action)
+    free(scratch.eigen)
     scratch.coefficients = scratch.template = scratch.action = NULL
+    scratch.eigen = NULL
     scratch.pivots = NULL
 
 
-cdef distinct_candidates(const Candidates *c, int k, const double[::1] centroid):
+cdef distinct_candidates(const Candidates *c, int k, const double *centroid):
     """The candidates 0..k of c sorted by cost, duplicate rotations (e.g. polished conjugate pairs)
     removed, t in the original world frame, cost clipped at 0: R (k', 3, 3), t (k', 3), cost (k',),
     front (k',) and the index of the solution, the cheapest with at least half the points in
@@ -856,15 +958,23 @@ cdef void symmetric_eigen(double *A, double *eigenvalues) noexcept nogil:
     dsyev(b"V", b"L", &three, A, &three, eigenvalues, work, &lwork, &info)  # column-major: vectors as rows
 
 
-def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, ::1] M):
-    """The sums and Schur complements of `statistics.statistics_of`, O(n): v, unit f, M (n, 3).
+cdef struct Statistics:
+    double H[81]
+    double g[9]
+    double c
+    double t_matrix[27]
+    double t_offset[3]
+    double centroid[3]
+    double BtB[9]
+    double axes[9]  # principal axes of the centred points as the columns of a rotation, least spread first
+    double spread[3]  # their spreads, ascending
+    double least_BtB  # the least eigenvalue of BtB
 
-    Returns H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), BtB (3, 3), the
-    principal axes (3, 3) of the centred points as the columns of a rotation, least spread first,
-    their spreads (3,) (ascending eigenvalues of the scatter matrix) and the least eigenvalue of
-    BtB. If BtB is singular (all rays parallel), t_matrix, t_offset, H, g and c are NaN.
-    """
-    cdef int n = M.shape[0], i, a, b, k, l
+
+cdef void accumulate(const double *v, const double *f, const double *M, int n, Statistics *st) noexcept nogil:
+    """The sums and Schur complements of `statistics.statistics_of` in st, O(n): v, unit f, M (n, 3),
+    C-ordered. If BtB is singular (all rays parallel), t_matrix, t_offset, H, g and c are NaN."""
+    cdef int i, a, b, k, l
     cdef double m[3]
     cdef double U[9]
     cdef double w[3]
@@ -879,36 +989,33 @@ def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, :
     cdef double btb_eigen[3]
     memset(scatter, 0, sizeof(scatter)); memset(AtA, 0, sizeof(AtA)); memset(AtB, 0, sizeof(AtB))
     memset(AtD, 0, sizeof(AtD)); memset(BtD, 0, sizeof(BtD)); memset(sum_m, 0, sizeof(sum_m))
-    H_out, g_out, t_matrix_out, t_offset_out = np.empty((9, 9)), np.empty(9), np.empty((3, 9)), np.empty(3)
-    centroid_out, BtB_out, axes_out, spread_out = np.zeros(3), np.zeros((3, 3)), np.empty((3, 3)), np.empty(3)
-    cdef double[:, ::1] H = H_out, t_matrix = t_matrix_out, BtB = BtB_out, axes = axes_out
-    cdef double[::1] g = g_out, t_offset = t_offset_out, centre = centroid_out, spread = spread_out
+    memset(st.BtB, 0, sizeof(st.BtB))
     for a in range(3):
         s = 0.0
         for i in range(n):
-            s += M[i, a]
-        centre[a] = s / n
+            s += M[3 * i + a]
+        st.centroid[a] = s / n
     for i in range(n):
         for a in range(3):
-            m[a] = M[i, a] - centre[a]
+            m[a] = M[3 * i + a] - st.centroid[a]
             sum_m[a] += m[a]
-        fv = f[i, 0] * v[i, 0] + f[i, 1] * v[i, 1] + f[i, 2] * v[i, 2]
+        fv = f[3 * i] * v[3 * i] + f[3 * i + 1] * v[3 * i + 1] + f[3 * i + 2] * v[3 * i + 2]
         for a in range(3):
-            w[a] = v[i, a] - f[i, a] * fv  # (I - f f^T) v
+            w[a] = v[3 * i + a] - f[3 * i + a] * fv  # (I - f f^T) v
             BtD[a] += w[a]
-            DtD += v[i, a] * w[a]
+            DtD += v[3 * i + a] * w[a]
             for b in range(3):
-                U[3 * a + b] = f[i, a] * m[b]  # kron(f, m)
+                U[3 * a + b] = f[3 * i + a] * m[b]  # kron(f, m)
                 scatter[3 * a + b] += m[a] * m[b]
-                BtB[a, b] -= f[i, a] * f[i, b]
+                st.BtB[3 * a + b] -= f[3 * i + a] * f[3 * i + b]
                 AtD[3 * a + b] += w[a] * m[b]
         for k in range(9):
             for l in range(k, 9):
                 AtA[9 * k + l] -= U[k] * U[l]
             for b in range(3):
-                AtB[3 * k + b] -= U[k] * f[i, b]
+                AtB[3 * k + b] -= U[k] * f[3 * i + b]
     for a in range(3):  # the kron(I3, .) terms
-        BtB[a, a] += n
+        st.BtB[4 * a] += n
         for b in range(3):
             AtB[3 * (3 * a + b) + a] += sum_m[b]  # ~0 after centring, kept for exactness
             for l in range(b, 3):
@@ -917,34 +1024,55 @@ def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, :
     for k in range(10):
         for a in range(3):
             w[a] = AtB[3 * k + a] if k < 9 else BtD[a]
-            for b in range(3):
-                system[3 * a + b] = BtB[a, b]
+        memcpy(system, st.BtB, sizeof(system))
         if not solve_linear(system, w, 3):
             w[0] = w[1] = w[2] = NAN
         for a in range(3):
             if k < 9:
-                t_matrix[a, k] = -w[a]
+                st.t_matrix[9 * a + k] = -w[a]
             else:
-                t_offset[a] = w[a]
+                st.t_offset[a] = w[a]
     # H = A^T A + A^T B t_matrix (symmetric), g = A^T D - A^T B t_offset, c = D^T D - B^T D . t_offset
     for k in range(9):
         for l in range(k, 9):
             s = AtA[9 * k + l]
             for a in range(3):
-                s += AtB[3 * k + a] * t_matrix[a, l]
-            H[k, l] = H[l, k] = s
+                s += AtB[3 * k + a] * st.t_matrix[9 * a + l]
+            st.H[9 * k + l] = s
+            st.H[9 * l + k] = s
         s = AtD[k]
         for a in range(3):
-            s -= AtB[3 * k + a] * t_offset[a]
-        g[k] = s
-    cdef double c = DtD - (BtD[0] * t_offset[0] + BtD[1] * t_offset[1] + BtD[2] * t_offset[2])
-    symmetric_eigen(scatter, &spread[0])  # squared singular values of the centred points
+            s -= AtB[3 * k + a] * st.t_offset[a]
+        st.g[k] = s
+    st.c = DtD - (BtD[0] * st.t_offset[0] + BtD[1] * st.t_offset[1] + BtD[2] * st.t_offset[2])
+    symmetric_eigen(scatter, st.spread)  # squared singular values of the centred points
     sign = -1.0 if det3(scatter) < 0 else 1.0  # axes as the columns of a rotation
     for a in range(3):
         for b in range(3):
-            axes[b, a] = scatter[3 * a + b] * (sign if a == 0 else 1.0)
-    for a in range(3):
-        for b in range(3):
-            system[3 * a + b] = BtB[a, b]
+            st.axes[3 * b + a] = scatter[3 * a + b] * (sign if a == 0 else 1.0)
+    memcpy(system, st.BtB, sizeof(system))
     symmetric_eigen(system, btb_eigen)
-    return H_out, g_out, c, t_matrix_out, t_offset_out, centroid_out, BtB_out, axes_out, spread_out, btb_eigen[0]
+    st.least_BtB = btb_eigen[0]
+
+
+def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, ::1] M):
+    """The sums and Schur complements of `statistics.statistics_of`, O(n): v, unit f, M (n, 3).
+
+    Returns H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), BtB (3, 3), the
+    principal axes (3, 3) of the centred points as the columns of a rotation, least spread first,
+    their spreads (3,) (ascending eigenvalues of the scatter matrix) and the least eigenvalue of
+    BtB. If BtB is singular (all rays parallel), t_matrix, t_offset, H, g and c are NaN.
+    """
+    cdef Statistics st
+    accumulate(&v[0, 0], &f[0, 0], &M[0, 0], M.shape[0], &st)
+    return (array_of(st.H, 9, 9), array_of(st.g, 9, 0), st.c, array_of(st.t_matrix, 3, 9),
+            array_of(st.t_offset, 3, 0), array_of(st.centroid, 3, 0), array_of(st.BtB, 3, 3),
+            array_of(st.axes, 3, 3), array_of(st.spread, 3, 0), st.least_BtB)
+
+
+cdef array_of(const double *x, int rows, int columns):
+    """A new numpy array (rows, columns), or (rows,) if columns is 0, holding the C-ordered x."""
+    out = np.empty((rows, columns)) if columns else np.empty(rows)
+    cdef double[::1] flat = out.reshape(-1)
+    memcpy(&flat[0], x, rows * max(columns, 1) * sizeof(double))
+    return out

@@ -47,7 +47,7 @@ from . import PoseError
 from ._equations import ENTRIES
 from ._kernels import Kernel
 from .equations import N_MONOMIALS
-from .statistics import PoseStatistics, statistics_of, validate_correspondences
+from .statistics import COLLINEAR_TOLERANCE, ZERO_DIRECTION, PoseStatistics, statistics_of, validate_correspondences
 from .template import Template, template_entries
 
 TEMPLATE_PATH = Path(__file__).with_name("_template.json")
@@ -159,20 +159,6 @@ def kernel() -> Kernel:
                   rt.reduced_rows, rt.reduced_index, rt.unit_index, np.array(ENTRIES), N_MONOMIALS, OCTAHEDRAL)
 
 
-def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tuple[list[Candidate], int]:
-    """All real stationary candidates, least cost first, and the index of the solution among them
-    (the steps of the module docstring).
-
-    There is always at least one: unless the first descent step from the solving frame heads to
-    the solution, the frame descended to a local minimum is a candidate.
-    origins, directions, points: the validated correspondences that `stats` summarises.
-    """
-    R, t, cost, front, best = kernel().solve(
-        stats.H, stats.g, stats.c, stats.t_matrix, stats.t_offset, stats.centroid, stats.point_axes,
-        stats.point_spread, origins, directions, points)
-    return list(map(Candidate, R, t, cost.tolist(), front.tolist())), best
-
-
 def solve_generalized_pose(origins, directions, points, refine: bool = False, sigma: float | None = None) -> GeneralizedPose:
     """Globally optimal generalized absolute pose (see the module docstring).
 
@@ -182,18 +168,35 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
     return its (6, 6) covariance of (rotation increment, t); sigma: the angular noise (radians)
     for that covariance, else estimated from the residuals. Returns x_rig = R @ M + t.
     """
-    origins, directions, points = validate_correspondences(origins, directions, points)
-    stats = statistics_of(origins, directions, points)
-    candidates, best = solve_statistics(stats, origins, directions, points)
+    found = None
+    if _is_float_rows(origins) and _is_float_rows(directions) and _is_float_rows(points):
+        found = kernel().solve_rays(origins, directions, points, COLLINEAR_TOLERANCE, ZERO_DIRECTION)
+    if found is None:  # other input types, or input that fails a check: the Python checks name the fault
+        origins, directions, points = validate_correspondences(origins, directions, points)
+        found = kernel().solve(*_statistics_arguments(statistics_of(origins, directions, points)),
+                               origins, directions, points)
+    R, t, cost, front, best = found
+    candidates = list(map(Candidate, R, t, cost.tolist(), front.tolist()))
     solution = candidates[best]
-    pose = GeneralizedPose(R=solution.R, t=solution.t, cost=solution.cost, candidates=candidates, n_points=stats.n)
+    pose = GeneralizedPose(R=solution.R, t=solution.t, cost=solution.cost, candidates=candidates, n_points=len(points))
     if not refine:
         return pose
     from .refine import refine_pose
 
+    origins, directions, points = validate_correspondences(origins, directions, points)
     refined = refine_pose(origins, directions, points, pose.R, pose.t, sigma=sigma)
     cost = float(np.sum(np.cross(directions, points @ refined.R.T + refined.t - origins) ** 2))
     return replace(pose, R=refined.R, t=refined.t, cost=cost, covariance=refined.covariance)
+
+
+def _is_float_rows(x) -> bool:
+    """Whether x can go to the compiled core as it is: a C-contiguous float64 (n, 3) array."""
+    return type(x) is np.ndarray and x.dtype == np.float64 and x.ndim == 2 and x.flags.c_contiguous
+
+
+def _statistics_arguments(stats: PoseStatistics) -> tuple:
+    return (stats.H, stats.g, stats.c, stats.t_matrix, stats.t_offset, stats.centroid, stats.point_axes,
+            stats.point_spread)
 
 
 def solve_batch(problems, refine: bool = False, workers: int = 1) -> list[GeneralizedPose | PoseError]:
