@@ -45,6 +45,10 @@ cdef double PLANAR_SPREAD = 1e-4
 # Beyond 120 deg (|q| > tan(60 deg)) in the solving frame, the problem is solved again in the
 # frame of the winner: the cosine of that angle.
 cdef double COS_MAX_FRAME_ANGLE = -0.5
+# Points on which the solving frame and the candidates are first scored for being in front of
+# their rays (every point when n < 2 FRONT_SAMPLE): at 500 points, counting all of them for the
+# ~28 frames and ~25 candidates cost more than the template.
+cdef int FRONT_SAMPLE = 64
 cdef enum:
     # Room for candidates: 1 frame + 40 roots + 1 descent, 40 more roots, and mirrors of the first 42.
     CAPACITY = 256
@@ -204,12 +208,13 @@ cdef void centred_translation(const Problem *p, const double *R, double *t) noex
             t[i] += p.t_matrix[9 * i + j] * R[j]
 
 
-cdef double front_fraction(const Problem *p, const double *R, const double *t) noexcept nogil:
-    """Fraction of points in front of their rays, f_i . (R (M_i - m) + t_c - v_i) > 0."""
-    cdef int i, a, front = 0
+cdef double front_fraction(const Problem *p, const double *R, const double *t, int stride) noexcept nogil:
+    """Fraction of points in front of their rays, f_i . (R (M_i - m) + t_c - v_i) > 0, over every
+    stride-th point (stride 1: all of them)."""
+    cdef int i = 0, a, front = 0, total = 0
     cdef double m[3]
     cdef double depth, x
-    for i in range(p.n):
+    while i < p.n:
         for a in range(3):
             m[a] = p.M[3 * i + a] - p.centroid[a]
         depth = 0.0
@@ -217,7 +222,16 @@ cdef double front_fraction(const Problem *p, const double *R, const double *t) n
             x = R[3 * a] * m[0] + R[3 * a + 1] * m[1] + R[3 * a + 2] * m[2] + t[a] - p.v[3 * i + a]
             depth += p.f[3 * i + a] * x
         front += depth > 0.0
-    return front / <double> p.n
+        total += 1
+        i += stride
+    return front / <double> total
+
+
+cdef inline int sample_stride(const Problem *p) noexcept nogil:
+    """Stride of the fixed subsample (at most 2 FRONT_SAMPLE - 1 points) on which the solving
+    frame and the candidates are first scored; `exact_front` then counts every point where it
+    decides the solution."""
+    return max(1, p.n // FRONT_SAMPLE)
 
 
 cdef void derivatives(const Problem *p, const double *R, bint newton, double *gradient, double *hessian) noexcept nogil:
@@ -495,12 +509,13 @@ cdef void solving_frame(const Problem *p, const double *octahedral, const double
     cdef double t[3]
     cdef int count = 24 + relaxed_rotations(p, axes, spread, starts + 9 * 24)
     cdef double rounding = rounding_level(p)
+    cdef int stride = sample_stride(p)
     cdef double score, best_score = 0.0
     cdef int k, best = 0
     memcpy(starts, octahedral, 9 * 24 * sizeof(double))
     for k in range(count):
         centred_translation(p, starts + 9 * k, t)
-        score = max(cost_of(p, starts + 9 * k), rounding) * (1.0 - front_fraction(p, starts + 9 * k, t) + 0.05)
+        score = max(cost_of(p, starts + 9 * k), rounding) * (1.0 - front_fraction(p, starts + 9 * k, t, stride) + 0.05)
         if k == 0 or score < best_score:
             best, best_score = k, score
     memcpy(P, starts + 9 * best, 9 * sizeof(double))
@@ -856,6 +871,7 @@ cdef class Kernel:
                 j += 1
         k = self.polished(p, c.R, k, j)
         evaluate(p, c, before, k)
+        exact_front(p, c, k)
         return k
 
     cdef int polished(self, const Problem *p, double *R, int start, int stop) noexcept nogil:
@@ -930,7 +946,27 @@ cdef void evaluate(const Problem *p, Candidates *c, int start, int stop) noexcep
     for i in range(start, stop):
         c.cost[i] = cost_of(p, c.R + 9 * i)
         centred_translation(p, c.R + 9 * i, c.t + 3 * i)
-        c.front[i] = front_fraction(p, c.R + 9 * i, c.t + 3 * i)
+        c.front[i] = front_fraction(p, c.R + 9 * i, c.t + 3 * i, sample_stride(p))
+
+
+cdef void exact_front(const Problem *p, Candidates *c, int k) noexcept nogil:
+    """Count every point for the candidates 0..k in order of cost up to the first with at least
+    half of them in front: the solution and the cheaper poses it is preferred to. The others keep
+    the fraction of the subsample (`sample_stride`)."""
+    cdef int order[CAPACITY]
+    cdef int i, j
+    if sample_stride(p) == 1:
+        return
+    for i in range(k):  # insertion sort by cost
+        j = i
+        while j > 0 and c.cost[order[j - 1]] > c.cost[i]:
+            order[j] = order[j - 1]
+            j -= 1
+        order[j] = i
+    for i in range(k):
+        c.front[order[i]] = front_fraction(p, c.R + 9 * order[i], c.t + 3 * order[i], 1)
+        if c.front[order[i]] >= 0.5:
+            break
 
 
 cdef int select(const Candidates *c, int k) noexcept nogil:
