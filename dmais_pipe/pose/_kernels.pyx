@@ -49,6 +49,9 @@ cdef double COS_MAX_FRAME_ANGLE = -0.5
 # their rays (every point when n < 2 FRONT_SAMPLE): at 500 points, counting all of them for the
 # ~28 frames and ~25 candidates cost more than the template.
 cdef int FRONT_SAMPLE = 64
+# The dual certificate holds when the least eigenvalue of the Lagrangian's Hessian is above
+# -this (trace H + |g| + |c|): the rounding of the quadratic form and of the polished solution.
+cdef double CERTIFICATE_TOLERANCE = 1e-9
 cdef enum:
     # Room for candidates: 1 frame + 40 roots + 1 descent, 40 more roots, and mirrors of the first 42.
     CAPACITY = 256
@@ -755,7 +758,7 @@ cdef class Kernel:
         H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), point_axes (3, 3),
         point_spread (3,): the `PoseStatistics`; origins, directions (unit), points: (n, 3).
         Returns R (k, 3, 3), t (k, 3), cost (k,), in_front (k,) sorted by cost without duplicate
-        rotations, and the index of the solution.
+        rotations, the index of the solution and whether it is certified (`certified`).
         """
         cdef Problem p
         p.H, p.g, p.c = &H[0, 0], &g[0], c
@@ -780,7 +783,13 @@ cdef class Kernel:
             release(&scratch)
         if not allocated:
             raise MemoryError("pose: no memory for the elimination template")
-        return distinct_candidates(&found, k, &centroid[0])
+        return distinct_candidates(&p, &found, k)
+
+    def certify(self, const double[:, ::1] H, const double[::1] g, double c, const double[:, ::1] R):
+        """`certified` for statistics H (9, 9), g (9,), c and a rotation R (3, 3)."""
+        cdef Problem p
+        p.H, p.g, p.c = &H[0, 0], &g[0], c
+        return certified(&p, &R[0, 0])
 
     def solve_rays(self, const double[:, ::1] origins, const double[:, ::1] directions, const double[:, ::1] points,
                    double collinear_tolerance, double zero_direction):
@@ -827,7 +836,7 @@ cdef class Kernel:
             return None
         if not allocated:
             raise MemoryError("pose: no memory for the elimination template")
-        return distinct_candidates(&found, k, st.centroid)
+        return distinct_candidates(&p, &found, k)
 
     cdef int candidates(self, const Problem *p, Candidates *c, Scratch *scratch, const double *point_axes,
                         const double *point_spread) noexcept nogil:
@@ -898,7 +907,7 @@ cdef void release(Scratch *scratch) noexcept nogil:
     scratch.pivots = NULL
 
 
-cdef distinct_candidates(const Candidates *c, int k, const double *centroid):
+cdef distinct_candidates(const Problem *p, const Candidates *c, int k):
     """The candidates 0..k of c sorted by cost, duplicate rotations (e.g. polished conjugate pairs)
     removed, t in the original world frame, cost clipped at 0: R (k', 3, 3), t (k', 3), cost (k',),
     front (k',) and the index of the solution, the cheapest with at least half the points in
@@ -932,12 +941,56 @@ cdef distinct_candidates(const Candidates *c, int k, const double *centroid):
             t_view[i, a] = c.t[3 * j + a]
             for b in range(3):
                 R_view[i, a, b] = c.R[9 * j + 3 * a + b]
-                t_view[i, a] -= c.R[9 * j + 3 * a + b] * centroid[b]
+                t_view[i, a] -= c.R[9 * j + 3 * a + b] * p.centroid[b]
         cost_view[i] = max(c.cost[j], 0.0)
         front_view[i] = c.front[j]
         if best < 0 and c.front[j] >= 0.5:
             best = i
-    return R_out, t_out, cost_out, front_out, max(best, 0)
+    best = max(best, 0)
+    return R_out, t_out, cost_out, front_out, best, count > 0 and certified(p, c.R + 9 * order[best])
+
+
+cdef bint certified(const Problem *p, const double *R) noexcept nogil:
+    """Whether the Lagrangian dual certifies R (3, 3) as the global minimum of eq. objfun3 over
+    O(3), hence over SO(3) (beyond the paper).
+
+    With x = [r; y], the cost is x^T Q x, Q = [[H, -g], [-g^T, c]] (10, 10), under R^T R = I and
+    y^2 = 1. Their Lagrangian x^T Q x - tr(L (R^T R - I)) - mu (y^2 - 1) has the Hessian
+    S = Q - blockdiag(I3 kron L, mu) (r row-major, so tr(L R^T R) = r^T (I3 kron L) r). Its
+    stationarity S x = 0 at x = [r; 1] fixes the multipliers: L = R^T mat(H r - g) (symmetric
+    exactly when the gradient on SO(3) vanishes) and mu = c - g^T r. If S is positive
+    semidefinite, every feasible x costs x^T S x + tr L + mu >= tr L + mu = cost(R): R is a global
+    minimum (strong duality, as in Briales and Gonzalez-Jimenez, CVPR 2017, for registration).
+    The test is the least eigenvalue of S against -CERTIFICATE_TOLERANCE (trace H + |g| + |c|).
+    """
+    cdef double h[9]
+    cdef double L[9]
+    cdef double S[100]
+    cdef double eigenvalues[10]
+    cdef double work[340]
+    cdef int ten = 10, lwork = 340, info = 0, i, j, a, b
+    cdef double gr = 0.0
+    for i in range(9):
+        h[i] = -p.g[i]
+        gr += p.g[i] * R[i]
+        for j in range(9):
+            h[i] += p.H[9 * i + j] * R[j]
+    for a in range(3):
+        for b in range(3):
+            L[3 * a + b] = 0.0
+            for i in range(3):
+                L[3 * a + b] += R[3 * i + a] * h[3 * i + b]
+    for i in range(9):
+        for j in range(9):
+            S[10 * i + j] = p.H[9 * i + j]
+        S[10 * i + 9] = S[90 + i] = -p.g[i]
+    S[99] = gr  # c - mu
+    for i in range(3):
+        for a in range(3):
+            for b in range(3):
+                S[10 * (3 * i + a) + 3 * i + b] -= 0.5 * (L[3 * a + b] + L[3 * b + a])
+    dsyev(b"N", b"L", &ten, S, &ten, eigenvalues, work, &lwork, &info)
+    return info == 0 and eigenvalues[0] >= -CERTIFICATE_TOLERANCE * (statistics_size(p) + fabs(p.c))
 
 
 cdef void evaluate(const Problem *p, Candidates *c, int start, int stop) noexcept nogil:

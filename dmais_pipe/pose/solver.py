@@ -71,7 +71,11 @@ class GeneralizedPose:
     R (3, 3), t (3,), cost: value of eq. objfun at (R, t); candidates: every real stationary
     point found, least cost first (the solution is the cheapest with most points in front of
     their rays, usually candidates[0]); n_points: correspondences.
-    covariance: (6, 6) of (rotation increment, t) when refined, else None.
+    covariance: (6, 6) of (rotation increment, t) when refined, else None. certified: the
+    Lagrangian dual certifies the solver's solution as the global minimum of eq. objfun (beyond
+    the paper; `_kernels.certified`); False says only that the check could not prove it (for
+    instance when a cheaper pose puts the points behind the cameras). With refine, it refers to
+    the solution before refinement.
     """
 
     R: np.ndarray
@@ -80,6 +84,7 @@ class GeneralizedPose:
     candidates: list[Candidate]
     n_points: int
     covariance: np.ndarray | None = None
+    certified: bool = False
 
 
 # ------------------------------------------------------------------------------ runtime template
@@ -176,10 +181,11 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
         origins, directions, points = validate_correspondences(origins, directions, points)
         found = kernel().solve(*_statistics_arguments(statistics_of(origins, directions, points)),
                                origins, directions, points)
-    R, t, cost, front, best = found
+    R, t, cost, front, best, certified = found
     candidates = list(map(Candidate, R, t, cost.tolist(), front.tolist()))
     solution = candidates[best]
-    pose = GeneralizedPose(R=solution.R, t=solution.t, cost=solution.cost, candidates=candidates, n_points=len(points))
+    pose = GeneralizedPose(R=solution.R, t=solution.t, cost=solution.cost, candidates=candidates, n_points=len(points),
+                           certified=certified)
     if not refine:
         return pose
     from .refine import refine_pose
