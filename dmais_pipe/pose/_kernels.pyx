@@ -1,5 +1,5 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
-"""Compiled core of the generalized pose solver: `statistics` and `solve` run the steps that
+"""Compiled core of the generalized pose solver: `statistics` and `Kernel.solve_rays` run the steps that
 `statistics.py` and `solver.py` describe, without Python in between.
 
 A solve is about a hundred operations on 3 x 3 to 158 x 118 matrices; as numpy calls each costs
@@ -628,7 +628,7 @@ cdef bint unit_directions(const double *v, const double *d, const double *M, int
 
 
 cdef class Kernel:
-    """The solver with its elimination template (`solver.runtime`); `solve` runs the steps of
+    """The solver with its elimination template (`solver.runtime`); `solve_rays` runs the steps of
     `solver.py`. Holds only constants; every buffer is allocated per call."""
 
     cdef int m, n_columns, n_reducible, n_entries, n_monomials
@@ -749,42 +749,6 @@ cdef class Kernel:
             release(&scratch)
         return rotations[:k]
 
-    def solve(self, const double[:, ::1] H, const double[::1] g, double c, const double[:, ::1] t_matrix,
-              const double[::1] t_offset, const double[::1] centroid, const double[:, ::1] point_axes,
-              const double[::1] point_spread, const double[:, ::1] origins, const double[:, ::1] directions,
-              const double[:, ::1] points):
-        """All real stationary candidates and the solution (the steps of `solver.py`), without the GIL.
-
-        H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), point_axes (3, 3),
-        point_spread (3,): the `PoseStatistics`; origins, directions (unit), points: (n, 3).
-        Returns R (k, 3, 3), t (k, 3), cost (k,), in_front (k,) sorted by cost without duplicate
-        rotations, the index of the solution and whether it is certified (`certified`).
-        """
-        cdef Problem p
-        p.H, p.g, p.c = &H[0, 0], &g[0], c
-        p.t_matrix, p.t_offset, p.centroid = &t_matrix[0, 0], &t_offset[0], &centroid[0]
-        p.v, p.f, p.M, p.n = &origins[0, 0], &directions[0, 0], &points[0, 0], points.shape[0]
-        cdef double[:, ::1] R = np.empty((CAPACITY, 9))
-        cdef double[:, ::1] t = np.empty((CAPACITY, 3))
-        cdef double[::1] cost = np.empty(CAPACITY)
-        cdef double[::1] front = np.empty(CAPACITY)
-        cdef Candidates found
-        found.R, found.t, found.cost, found.front = &R[0, 0], &t[0, 0], &cost[0], &front[0]
-        cdef Scratch scratch
-        cdef int k = 0
-        cdef bint allocated = False
-        memset(&scratch, 0, sizeof(Scratch))
-        try:
-            with nogil:
-                allocated = self.allocate(&scratch)
-                if allocated:
-                    k = self.candidates(&p, &found, &scratch, &point_axes[0, 0], &point_spread[0])
-        finally:
-            release(&scratch)
-        if not allocated:
-            raise MemoryError("pose: no memory for the elimination template")
-        return distinct_candidates(&p, &found, k)
-
     def certify(self, const double[:, ::1] H, const double[::1] g, double c, const double[:, ::1] R):
         """`certified` for statistics H (9, 9), g (9,), c and a rotation R (3, 3)."""
         cdef Problem p
@@ -793,10 +757,12 @@ cdef class Kernel:
 
     def solve_rays(self, const double[:, ::1] origins, const double[:, ::1] directions, const double[:, ::1] points,
                    double collinear_tolerance, double zero_direction):
-        """`statistics.validate_correspondences`, `statistics.statistics_of` and `solve` in one
-        compiled call, without the GIL: origins, directions (any length), points (n, 3).
+        """All real stationary candidates and the solution (the steps of `solver.py`) from the rays:
+        the checks of `statistics.validate_correspondences`, `statistics.statistics_of` and the
+        solve in one compiled call, without the GIL: origins, directions (any length), points (n, 3).
 
-        Returns what `solve` returns, or None when the input fails a check (fewer than 3 points,
+        Returns R (k, 3, 3), t (k, 3), cost (k,), in_front (k,) sorted by cost without duplicate
+        rotations, the index of the solution and whether it is certified (`certified`), or None when the input fails a check (fewer than 3 points,
         a wrong shape, a value not finite, a direction shorter than zero_direction, collinear
         points as `statistics_of` judges them with collinear_tolerance, all rays parallel): the
         Python checks then name the fault.
@@ -915,12 +881,7 @@ cdef distinct_candidates(const Problem *p, const Candidates *c, int k):
     cdef int order[CAPACITY]
     cdef int i, j, a, b, count = 0, best = -1
     cdef double largest
-    for i in range(k):  # insertion sort, stable
-        j = i
-        while j > 0 and c.cost[order[j - 1]] > c.cost[i]:
-            order[j] = order[j - 1]
-            j -= 1
-        order[j] = i
+    by_cost(c, k, order)
     for i in range(k):
         for j in range(count):
             largest = 0.0
@@ -1002,20 +963,26 @@ cdef void evaluate(const Problem *p, Candidates *c, int start, int stop) noexcep
         c.front[i] = front_fraction(p, c.R + 9 * i, c.t + 3 * i, sample_stride(p))
 
 
-cdef void exact_front(const Problem *p, Candidates *c, int k) noexcept nogil:
-    """Count every point for the candidates 0..k in order of cost up to the first with at least
-    half of them in front: the solution and the cheaper poses it is preferred to. The others keep
-    the fraction of the subsample (`sample_stride`)."""
-    cdef int order[CAPACITY]
+cdef void by_cost(const Candidates *c, int k, int *order) noexcept nogil:
+    """order (k,): the indices of candidates 0..k by increasing cost (insertion sort, stable)."""
     cdef int i, j
-    if sample_stride(p) == 1:
-        return
-    for i in range(k):  # insertion sort by cost
+    for i in range(k):
         j = i
         while j > 0 and c.cost[order[j - 1]] > c.cost[i]:
             order[j] = order[j - 1]
             j -= 1
         order[j] = i
+
+
+cdef void exact_front(const Problem *p, Candidates *c, int k) noexcept nogil:
+    """Count every point for the candidates 0..k in order of cost up to the first with at least
+    half of them in front: the solution and the cheaper poses it is preferred to. The others keep
+    the fraction of the subsample (`sample_stride`)."""
+    cdef int order[CAPACITY]
+    cdef int i
+    if sample_stride(p) == 1:
+        return
+    by_cost(c, k, order)
     for i in range(k):
         c.front[order[i]] = front_fraction(p, c.R + 9 * order[i], c.t + 3 * order[i], 1)
         if c.front[order[i]] >= 0.5:

@@ -47,7 +47,7 @@ from . import PoseError
 from ._equations import ENTRIES
 from ._kernels import Kernel
 from .equations import N_MONOMIALS
-from .statistics import COLLINEAR_TOLERANCE, ZERO_DIRECTION, PoseStatistics, statistics_of, validate_correspondences
+from .statistics import COLLINEAR_TOLERANCE, ZERO_DIRECTION, statistics_of, validate_correspondences
 from .template import Template, template_entries
 
 TEMPLATE_PATH = Path(__file__).with_name("_template.json")
@@ -179,8 +179,8 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
         found = kernel().solve_rays(origins, directions, points, COLLINEAR_TOLERANCE, ZERO_DIRECTION)
     if found is None:  # other input types, or input that fails a check: the Python checks name the fault
         origins, directions, points = validate_correspondences(origins, directions, points)
-        found = kernel().solve(*_statistics_arguments(statistics_of(origins, directions, points)),
-                               origins, directions, points)
+        statistics_of(origins, directions, points)
+        found = kernel().solve_rays(origins, directions, points, COLLINEAR_TOLERANCE, ZERO_DIRECTION)
     R, t, cost, front, best, certified = found
     candidates = list(map(Candidate, R, t, cost.tolist(), front.tolist()))
     solution = candidates[best]
@@ -199,11 +199,6 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
 def _is_float_rows(x) -> bool:
     """Whether x can go to the compiled core as it is: a C-contiguous float64 (n, 3) array."""
     return type(x) is np.ndarray and x.dtype == np.float64 and x.ndim == 2 and x.flags.c_contiguous
-
-
-def _statistics_arguments(stats: PoseStatistics) -> tuple:
-    return (stats.H, stats.g, stats.c, stats.t_matrix, stats.t_offset, stats.centroid, stats.point_axes,
-            stats.point_spread)
 
 
 def solve_batch(problems, refine: bool = False, workers: int = 1) -> list[GeneralizedPose | PoseError]:
