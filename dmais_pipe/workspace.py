@@ -194,8 +194,9 @@ class Workspace:
     # -------------------------------------------------------------- poses
 
     def save_poses(self, poses: pd.DataFrame, observations: pd.DataFrame, path: Path) -> list[Path]:
-        """A poses file (POSE_COLUMNS) and, beside it, its per-observation file (`observations_of`)."""
-        return [write_csv_atomic(path, poses[list(POSE_COLUMNS)]),
+        """A poses file (POSE_COLUMNS, then any extra columns) and, beside it, its per-observation file."""
+        extras = [c for c in poses.columns if c not in POSE_COLUMNS]
+        return [write_csv_atomic(path, poses[[*POSE_COLUMNS, *extras]]),
                 write_csv_atomic(pose_observations_path(path), observations[list(POSE_OBSERVATION_COLUMNS)])]
 
     def load_poses(self, path: Path | None = None, allowed_cameras: Sequence[str] | None = None) -> pd.DataFrame:

@@ -293,3 +293,37 @@ def test_threaded_batch_equals_the_sequential_one():
     for one, other in zip(sequential[:7] + sequential[8:], threaded[:7] + threaded[8:]):
         np.testing.assert_array_equal(one.R, other.R)
         assert one.cost == other.cost and len(one.candidates) == len(other.candidates)
+
+
+# ---------------------------------------------------------------- certificate of global optimality
+
+
+def test_certified_solutions_are_global_minima_and_generic_scenes_are_certified():
+    """Soundness: a certified pose costs no more than any minimum multi-start LM finds; and the
+    certificate holds on OpenGV-like scenes at ordinary noise (the dual is tight there)."""
+    rng = np.random.default_rng(31)
+    flags = []
+    for i in range(30):
+        origins, directions, points, _, _ = generalized_scene(rng, n=10, noise=1e-3, max_angle=np.pi)
+        pose = solve_generalized_pose(origins, directions, points)
+        flags.append(pose.certified)
+        if pose.certified:
+            assert pose.cost <= multistart_lm(origins, directions, points, seed=i) * (1 + 1e-6) + 1e-15
+    assert np.mean(flags) >= 0.9
+
+
+def test_certificate_refuses_costlier_stationary_points():
+    """Every stationary candidate satisfies the KKT conditions, but only a global minimum can have
+    a positive semidefinite Lagrangian Hessian: the costlier candidates must fail the check."""
+    rng = np.random.default_rng(5)
+    refused = 0
+    for _ in range(40):
+        origins, directions, points, _, _ = generalized_scene(rng, n=10, noise=1e-3, max_angle=np.pi)
+        stats = pose_statistics(origins, directions, points)
+        pose = solve_generalized_pose(origins, directions, points)
+        assert kernel().certify(stats.H, stats.g, stats.c, pose.R) == pose.certified
+        for candidate in pose.candidates[1:]:
+            if candidate.cost > pose.candidates[0].cost * (1 + 1e-6) + 1e-12:
+                assert not kernel().certify(stats.H, stats.g, stats.c, np.ascontiguousarray(candidate.R))
+                refused += 1
+    assert refused > 40

@@ -1,5 +1,5 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
-"""Compiled core of the generalized pose solver: `statistics` and `solve` run the steps that
+"""Compiled core of the generalized pose solver: `statistics` and `Kernel.solve_rays` run the steps that
 `statistics.py` and `solver.py` describe, without Python in between.
 
 A solve is about a hundred operations on 3 x 3 to 158 x 118 matrices; as numpy calls each costs
@@ -10,9 +10,9 @@ GIL, so one `Kernel` serves several threads at once.
 """
 
 from libc.math cimport NAN, acos, fabs, isfinite, sqrt
-from libc.stdlib cimport calloc, free
+from libc.stdlib cimport free, malloc
 from libc.string cimport memcpy, memset
-from scipy.linalg.cython_lapack cimport dgebak, dgebal, dgehrd, dgesvd, dgetrf, dhsein, dhseqr, dormhr, dsyev, dtrtrs
+from scipy.linalg.cython_lapack cimport dgebal, dgehrd, dgesvd, dgetrf, dhseqr, dormhr, dsyev, dtrtrs
 
 import numpy as np
 
@@ -45,6 +45,13 @@ cdef double PLANAR_SPREAD = 1e-4
 # Beyond 120 deg (|q| > tan(60 deg)) in the solving frame, the problem is solved again in the
 # frame of the winner: the cosine of that angle.
 cdef double COS_MAX_FRAME_ANGLE = -0.5
+# Points on which the solving frame and the candidates are first scored for being in front of
+# their rays (every point when n < 2 FRONT_SAMPLE): at 500 points, counting all of them for the
+# ~28 frames and ~25 candidates cost more than the template.
+cdef int FRONT_SAMPLE = 64
+# The dual certificate holds when the least eigenvalue of the Lagrangian's Hessian is above
+# -this (trace H + |g| + |c|): the rounding of the quadratic form and of the polished solution.
+cdef double CERTIFICATE_TOLERANCE = 1e-9
 cdef enum:
     # Room for candidates: 1 frame + 40 roots + 1 descent, 40 more roots, and mirrors of the first 42.
     CAPACITY = 256
@@ -76,6 +83,7 @@ cdef struct Scratch:
     double *template  # (m * n_columns,) column-major
     int *pivots  # (m,)
     double *action  # (40 * 40,) column-major
+    Eigen *eigen
 
 
 # ------------------------------------------------------------------------------ small matrices
@@ -203,12 +211,13 @@ cdef void centred_translation(const Problem *p, const double *R, double *t) noex
             t[i] += p.t_matrix[9 * i + j] * R[j]
 
 
-cdef double front_fraction(const Problem *p, const double *R, const double *t) noexcept nogil:
-    """Fraction of points in front of their rays, f_i . (R (M_i - m) + t_c - v_i) > 0."""
-    cdef int i, a, front = 0
+cdef double front_fraction(const Problem *p, const double *R, const double *t, int stride) noexcept nogil:
+    """Fraction of points in front of their rays, f_i . (R (M_i - m) + t_c - v_i) > 0, over every
+    stride-th point (stride 1: all of them)."""
+    cdef int i = 0, a, front = 0, total = 0
     cdef double m[3]
     cdef double depth, x
-    for i in range(p.n):
+    while i < p.n:
         for a in range(3):
             m[a] = p.M[3 * i + a] - p.centroid[a]
         depth = 0.0
@@ -216,7 +225,16 @@ cdef double front_fraction(const Problem *p, const double *R, const double *t) n
             x = R[3 * a] * m[0] + R[3 * a + 1] * m[1] + R[3 * a + 2] * m[2] + t[a] - p.v[3 * i + a]
             depth += p.f[3 * i + a] * x
         front += depth > 0.0
-    return front / <double> p.n
+        total += 1
+        i += stride
+    return front / <double> total
+
+
+cdef inline int sample_stride(const Problem *p) noexcept nogil:
+    """Stride of the fixed subsample (at most 2 FRONT_SAMPLE - 1 points) on which the solving
+    frame and the candidates are first scored; `exact_front` then counts every point where it
+    decides the solution."""
+    return max(1, p.n // FRONT_SAMPLE)
 
 
 cdef void derivatives(const Problem *p, const double *R, bint newton, double *gradient, double *hessian) noexcept nogil:
@@ -494,12 +512,13 @@ cdef void solving_frame(const Problem *p, const double *octahedral, const double
     cdef double t[3]
     cdef int count = 24 + relaxed_rotations(p, axes, spread, starts + 9 * 24)
     cdef double rounding = rounding_level(p)
+    cdef int stride = sample_stride(p)
     cdef double score, best_score = 0.0
     cdef int k, best = 0
     memcpy(starts, octahedral, 9 * 24 * sizeof(double))
     for k in range(count):
         centred_translation(p, starts + 9 * k, t)
-        score = max(cost_of(p, starts + 9 * k), rounding) * (1.0 - front_fraction(p, starts + 9 * k, t) + 0.05)
+        score = max(cost_of(p, starts + 9 * k), rounding) * (1.0 - front_fraction(p, starts + 9 * k, t, stride) + 0.05)
         if k == 0 or score < best_score:
             best, best_score = k, score
     memcpy(P, starts + 9 * best, 9 * sizeof(double))
@@ -508,44 +527,108 @@ cdef void solving_frame(const Problem *p, const double *octahedral, const double
 # ------------------------------------------------------------------------------ the solver
 
 
-cdef int nearly_real_eigenvectors(double *A, double *wr, double *wi, bint *select, double *V, int *found) noexcept nogil:
-    """Eigenvalues wr + i wi (40,) of the column-major A (40, 40), which is overwritten, and the
-    right eigenvectors V (40, found) of those nearly real, |wi| < IMAGINARY_TOLERANCE (1 + |wr|),
-    in order: select (40,) marks them (a pair at its first eigenvalue, whose vector is packed as
-    real and imaginary parts in two columns, as dgeev does). Returns LAPACK's info (0: success).
+cdef struct Eigen:
+    double H[N_SOLUTIONS * N_SOLUTIONS]  # the balanced Hessenberg form, column-major
+    double units[4 * N_SOLUTIONS]  # rows of the back-transformation at the unit monomials, (4, 40)
+    double wr[N_SOLUTIONS]
+    double wi[N_SOLUTIONS]
+    double size  # the largest entry of H
 
-    The vectors come from inverse iteration on the Hessenberg form (dhsein; dormhr and dgebak
-    undo the reduction and the balancing), so the QR iteration (dhseqr) only seeks eigenvalues
-    and the clearly complex roots (about half) cost nothing more: ~25% less work than dgeev.
-    """
-    cdef int n = N_SOLUTIONS, one = 1, ilo = 0, ihi = 0, info = 0, i, j
+
+cdef int action_eigenvalues(double *A, const long *unit_index, Eigen *e) noexcept nogil:
+    """Eigenvalues e.wr + i e.wi of the column-major action matrix A (40, 40), which is overwritten,
+    and what `eigenvector_units` needs: e.H, the Hessenberg form of the balanced A (A = D Q H Q^T
+    D^-1, dgebal scaling D, dgehrd), and e.units, the rows of D Q at the monomials 1, qx, qy, qz.
+    The QR iteration (dhseqr) seeks eigenvalues alone. Returns LAPACK's info (0: success)."""
+    cdef int n = N_SOLUTIONS, one = 1, four = 4, ilo = 0, ihi = 0, info = 0, i, j
     cdef int lwork = 64 * N_SOLUTIONS
     cdef double work[64 * N_SOLUTIONS]
     cdef double scale[N_SOLUTIONS]
     cdef double tau[N_SOLUTIONS]
-    cdef double H[N_SOLUTIONS * N_SOLUTIONS]
-    cdef double T[N_SOLUTIONS * N_SOLUTIONS]
-    cdef int failed[N_SOLUTIONS]
-    dgebal(b"B", &n, A, &n, &ilo, &ihi, scale, &info)
+    cdef double E[4 * N_SOLUTIONS]
+    dgebal(b"S", &n, A, &n, &ilo, &ihi, scale, &info)
     dgehrd(&n, &ilo, &ihi, A, &n, tau, work, &lwork, &info)
+    e.size = 0.0
     for j in range(n):  # the Hessenberg matrix alone (A also holds the reflectors below it)
         for i in range(n):
-            H[j * n + i] = A[j * n + i] if i <= j + 1 else 0.0
-    memcpy(T, H, n * n * sizeof(double))
-    dhseqr(b"E", b"N", &n, &ilo, &ihi, T, &n, wr, wi, NULL, &one, work, &lwork, &info)
-    if info != 0:
-        return info
-    for j in range(n):
-        select[j] = fabs(wi[j]) < IMAGINARY_TOLERANCE * (1.0 + fabs(wr[j]))
-    dhsein(b"R", b"Q", b"N", select, &n, H, &n, wr, wi, NULL, &one, V, &n, &n, found, work, failed, failed, &info)
-    # info > 0: some vectors did not converge; they are kept, and the root filter judges them
-    dormhr(b"L", b"N", &n, found, &ilo, &ihi, A, &n, tau, V, &n, work, &lwork, &info)
-    dgebak(b"B", b"R", &n, &ilo, &ihi, scale, found, V, &n, &info)
+            e.H[j * n + i] = A[j * n + i] if i <= j + 1 else 0.0
+            e.size = max(e.size, fabs(e.H[j * n + i]))
+    memset(E, 0, 4 * n * sizeof(double))
+    for i in range(4):
+        E[i * n + unit_index[i]] = 1.0
+    dormhr(b"L", b"T", &n, &four, &ilo, &ihi, A, &n, tau, E, &n, work, &lwork, &info)  # column i: Q^T e_u
+    for i in range(4):
+        for j in range(n):
+            e.units[i * n + j] = scale[unit_index[i]] * E[i * n + j]
+    memcpy(A, e.H, n * n * sizeof(double))
+    dhseqr(b"E", b"N", &n, &ilo, &ihi, A, &n, e.wr, e.wi, NULL, &one, work, &lwork, &info)
     return info
 
 
+cdef void eigenvector_units(const Eigen *e, double shift, double *v) noexcept nogil:
+    """v (4,): the entries at 1, qx, qy, qz of the eigenvector of the action matrix for the
+    eigenvalue nearest the real shift, by one step of inverse iteration on the Hessenberg form,
+    y = (H - shift I)^-1 1 (LU with partial pivoting of a Hessenberg matrix: one row
+    interchange per column, O(40^2)), mapped back by e.units. A zero pivot is raised to 1e-30 of
+    the largest entry of H: the least pivot is ~0 at an eigenvalue, and raising it to the
+    rounding level (1e-15) would cost digits of the vector.
+    """
+    cdef int n = N_SOLUTIONS, i, j, k
+    cdef double W[N_SOLUTIONS * N_SOLUTIONS]
+    cdef double factor[N_SOLUTIONS]
+    cdef bint swapped[N_SOLUTIONS]
+    cdef double y[N_SOLUTIONS]
+    cdef double tiny, tmp
+    for j in range(n):  # W = H - shift I, column-major, upper Hessenberg
+        memcpy(W + j * n, e.H + j * n, min(j + 2, n) * sizeof(double))
+        W[j * n + j] -= shift
+    tiny = max(e.size + fabs(shift), 1e-300) * 1e-30
+    for k in range(n):
+        swapped[k] = k + 1 < n and fabs(W[k * n + k + 1]) > fabs(W[k * n + k])
+        if swapped[k]:
+            for j in range(k, n):
+                tmp = W[j * n + k]; W[j * n + k] = W[j * n + k + 1]; W[j * n + k + 1] = tmp
+        if fabs(W[k * n + k]) < tiny:
+            W[k * n + k] = tiny
+        if k + 1 < n:
+            factor[k] = W[k * n + k + 1] / W[k * n + k]
+            for j in range(k + 1, n):
+                W[j * n + k + 1] -= factor[k] * W[j * n + k]
+    for i in range(n):
+        y[i] = 1.0
+    for k in range(n - 1):  # L^-1 P y: one interchange and one elimination per column
+        if swapped[k]:
+            tmp = y[k]; y[k] = y[k + 1]; y[k + 1] = tmp
+        y[k + 1] -= factor[k] * y[k]
+    for k in range(n - 1, -1, -1):  # U^-1 y, by columns
+        y[k] /= W[k * n + k]
+        for i in range(k):
+            y[i] -= W[k * n + i] * y[k]
+    for i in range(4):
+        v[i] = 0.0
+        for j in range(n):
+            v[i] += e.units[i * n + j] * y[j]
+
+
+cdef bint unit_directions(const double *v, const double *d, const double *M, int n, double zero, double *f) noexcept nogil:
+    """f (n, 3): the directions d (n, 3) scaled to unit length; False if any of v, d, M (n, 3) is not
+    finite or a direction is shorter than zero."""
+    cdef int i, a
+    cdef double norm
+    for i in range(3 * n):
+        if not (isfinite(v[i]) and isfinite(M[i])):
+            return False
+    for i in range(n):
+        norm = sqrt(d[3 * i] * d[3 * i] + d[3 * i + 1] * d[3 * i + 1] + d[3 * i + 2] * d[3 * i + 2])
+        if not (isfinite(norm) and norm >= zero):
+            return False
+        for a in range(3):
+            f[3 * i + a] = d[3 * i + a] / norm
+    return True
+
+
 cdef class Kernel:
-    """The solver with its elimination template (`solver.runtime`); `solve` runs the steps of
+    """The solver with its elimination template (`solver.runtime`); `solve_rays` runs the steps of
     `solver.py`. Holds only constants; every buffer is allocated per call."""
 
     cdef int m, n_columns, n_reducible, n_entries, n_monomials
@@ -579,25 +662,22 @@ cdef class Kernel:
         Row i of the action matrix expresses x * b_i in the basis: x * B(q) = M B(q) at every
         solution q. One LU factorisation of the whole template [C_E C_R | C_B] = P L [U_11 | U_12]
         leaves the rows of the reducible monomials R alone at the bottom: U_RR R + U_RB B = 0.
-        The eigenvectors are B(q), whose entries at 1, qx, qy, qz give q.
+        The eigenvalues come from `action_eigenvalues`, and of the eigenvectors B(q) only the
+        entries at 1, qx, qy, qz, which give q (`eigenvector_units`).
         """
         cdef double Hf[81]
         cdef double gf[9]
         cdef double parameters[54]
         cdef double q[3]
-        cdef double qi[3]
         cdef int i, j, k, info = 0, count = 0
         cdef int m = self.m, n_columns = self.n_columns, n_red = self.n_reducible, n = N_SOLUTIONS
         cdef int first = m - n_red
-        cdef double trace, size, imag, re0, im0, re, im, denominator
+        cdef double trace
         cdef double *coefficients = scratch.coefficients
         cdef double *template = scratch.template
         cdef double *action = scratch.action
-        cdef double wr[N_SOLUTIONS]
-        cdef double wi[N_SOLUTIONS]
-        cdef double vr[N_SOLUTIONS * N_SOLUTIONS]
-        cdef bint select[N_SOLUTIONS]
-        cdef int found = 0, column
+        cdef Eigen *eigen = scratch.eigen
+        cdef double v[4]
         in_frame(p.H, p.g, P, Hf, gf)
         trace = trace9(Hf)
         k = 0
@@ -627,38 +707,29 @@ cdef class Kernel:
         for k in range(self.reduced_rows.shape[0]):
             for j in range(n):
                 action[j * n + self.reduced_rows[k]] = -template[(m + j) * m + first + self.reduced_index[k]]
-        if nearly_real_eigenvectors(action, wr, wi, select, vr, &found) != 0:
+        if action_eigenvalues(action, &self.unit_index[0], eigen) != 0:
             return 0
-        column = 0
         for j in range(n):
-            if not select[j]:
+            # nearly real roots, one of each conjugate pair, are polished as real ones
+            if eigen.wi[j] < 0 or not fabs(eigen.wi[j]) < IMAGINARY_TOLERANCE * (1.0 + fabs(eigen.wr[j])):
                 continue
-            re0 = vr[column * n + self.unit_index[0]]
-            im0 = vr[(column + 1) * n + self.unit_index[0]] if wi[j] > 0 else 0.0
-            denominator = re0 * re0 + im0 * im0
-            size = 0.0
-            imag = 0.0
-            for i in range(3):  # q_i = (re + i im) / (re0 + i im0)
-                re = vr[column * n + self.unit_index[1 + i]]
-                im = vr[(column + 1) * n + self.unit_index[1 + i]] if wi[j] > 0 else 0.0
-                q[i] = (re * re0 + im * im0) / denominator
-                qi[i] = (im * re0 - re * im0) / denominator
-                size = max(size, sqrt(q[i] * q[i] + qi[i] * qi[i]))
-                imag = max(imag, fabs(qi[i]))
-            column += 2 if wi[j] > 0 else 1
-            if isfinite(size) and imag < IMAGINARY_TOLERANCE * (1.0 + size):
+            eigenvector_units(eigen, eigen.wr[j], v)
+            for i in range(3):
+                q[i] = v[1 + i] / v[0]
+            if isfinite(q[0]) and isfinite(q[1]) and isfinite(q[2]):
                 cayley_times(q, P, rotations + 9 * count)
                 count += 1
         return count
 
     cdef bint allocate(self, Scratch *scratch) noexcept nogil:
         """The buffers of `real_roots` (free them with `release`); False if memory is short."""
-        scratch.coefficients = <double *> calloc(6 * self.n_monomials, sizeof(double))
-        scratch.template = <double *> calloc(self.m * self.n_columns, sizeof(double))
-        scratch.pivots = <int *> calloc(self.m, sizeof(int))
-        scratch.action = <double *> calloc(N_SOLUTIONS * N_SOLUTIONS, sizeof(double))
+        scratch.coefficients = <double *> malloc(6 * self.n_monomials * sizeof(double))
+        scratch.template = <double *> malloc(self.m * self.n_columns * sizeof(double))
+        scratch.pivots = <int *> malloc(self.m * sizeof(int))
+        scratch.action = <double *> malloc(N_SOLUTIONS * N_SOLUTIONS * sizeof(double))
+        scratch.eigen = <Eigen *> malloc(sizeof(Eigen))
         return (scratch.coefficients != NULL and scratch.template != NULL and scratch.pivots != NULL
-                and scratch.action != NULL)
+                and scratch.action != NULL and scratch.eigen != NULL)
 
     def rotations_of_roots(self, const double[:, ::1] H, const double[::1] g, const double[:, ::1] P):
         """Rotations (k, 3, 3) of the real and nearly real roots of eq. EF6 for statistics H (9, 9),
@@ -678,41 +749,60 @@ cdef class Kernel:
             release(&scratch)
         return rotations[:k]
 
-    def solve(self, const double[:, ::1] H, const double[::1] g, double c, const double[:, ::1] t_matrix,
-              const double[::1] t_offset, const double[::1] centroid, const double[:, ::1] point_axes,
-              const double[::1] point_spread, const double[:, ::1] origins, const double[:, ::1] directions,
-              const double[:, ::1] points):
-        """All real stationary candidates and the solution (the steps of `solver.py`), without the GIL.
-
-        H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), point_axes (3, 3),
-        point_spread (3,): the `PoseStatistics`; origins, directions (unit), points: (n, 3).
-        Returns R (k, 3, 3), t (k, 3), cost (k,), in_front (k,) sorted by cost without duplicate
-        rotations, and the index of the solution.
-        """
+    def certify(self, const double[:, ::1] H, const double[::1] g, double c, const double[:, ::1] R):
+        """`certified` for statistics H (9, 9), g (9,), c and a rotation R (3, 3)."""
         cdef Problem p
         p.H, p.g, p.c = &H[0, 0], &g[0], c
-        p.t_matrix, p.t_offset, p.centroid = &t_matrix[0, 0], &t_offset[0], &centroid[0]
-        p.v, p.f, p.M, p.n = &origins[0, 0], &directions[0, 0], &points[0, 0], points.shape[0]
+        return certified(&p, &R[0, 0])
+
+    def solve_rays(self, const double[:, ::1] origins, const double[:, ::1] directions, const double[:, ::1] points,
+                   double collinear_tolerance, double zero_direction):
+        """All real stationary candidates and the solution (the steps of `solver.py`) from the rays:
+        the checks of `statistics.validate_correspondences`, `statistics.statistics_of` and the
+        solve in one compiled call, without the GIL: origins, directions (any length), points (n, 3).
+
+        Returns R (k, 3, 3), t (k, 3), cost (k,), in_front (k,) sorted by cost without duplicate
+        rotations, the index of the solution and whether it is certified (`certified`), or None when the input fails a check (fewer than 3 points,
+        a wrong shape, a value not finite, a direction shorter than zero_direction, collinear
+        points as `statistics_of` judges them with collinear_tolerance, all rays parallel): the
+        Python checks then name the fault.
+        """
+        cdef int n = points.shape[0], k = 0
+        if (n < 3 or origins.shape[0] != n or directions.shape[0] != n or points.shape[1] != 3
+                or origins.shape[1] != 3 or directions.shape[1] != 3):
+            return None
+        cdef double[:, ::1] f = np.empty((n, 3))
         cdef double[:, ::1] R = np.empty((CAPACITY, 9))
         cdef double[:, ::1] t = np.empty((CAPACITY, 3))
         cdef double[::1] cost = np.empty(CAPACITY)
         cdef double[::1] front = np.empty(CAPACITY)
         cdef Candidates found
         found.R, found.t, found.cost, found.front = &R[0, 0], &t[0, 0], &cost[0], &front[0]
+        cdef Statistics st
+        cdef Problem p
         cdef Scratch scratch
-        cdef int k = 0
-        cdef bint allocated = False
+        cdef bint valid, allocated = False
         memset(&scratch, 0, sizeof(Scratch))
         try:
             with nogil:
-                allocated = self.allocate(&scratch)
-                if allocated:
-                    k = self.candidates(&p, &found, &scratch, &point_axes[0, 0], &point_spread[0])
+                valid = unit_directions(&origins[0, 0], &directions[0, 0], &points[0, 0], n, zero_direction, &f[0, 0])
+                if valid:
+                    accumulate(&origins[0, 0], &f[0, 0], &points[0, 0], n, &st)
+                    valid = (st.spread[1] > collinear_tolerance * collinear_tolerance * st.spread[2]
+                             and st.least_BtB > 1e-12 * n)
+                if valid:
+                    p.H, p.g, p.c, p.t_matrix, p.t_offset, p.centroid = st.H, st.g, st.c, st.t_matrix, st.t_offset, st.centroid
+                    p.v, p.f, p.M, p.n = &origins[0, 0], &f[0, 0], &points[0, 0], n
+                    allocated = self.allocate(&scratch)
+                    if allocated:
+                        k = self.candidates(&p, &found, &scratch, st.axes, st.spread)
         finally:
             release(&scratch)
+        if not valid:
+            return None
         if not allocated:
             raise MemoryError("pose: no memory for the elimination template")
-        return distinct_candidates(&found, k, centroid)
+        return distinct_candidates(&p, &found, k)
 
     cdef int candidates(self, const Problem *p, Candidates *c, Scratch *scratch, const double *point_axes,
                         const double *point_spread) noexcept nogil:
@@ -756,6 +846,7 @@ cdef class Kernel:
                 j += 1
         k = self.polished(p, c.R, k, j)
         evaluate(p, c, before, k)
+        exact_front(p, c, k)
         return k
 
     cdef int polished(self, const Problem *p, double *R, int start, int stop) noexcept nogil:
@@ -776,11 +867,13 @@ cdef void release(Scratch *scratch) noexcept nogil:
     free(scratch.template)
     free(scratch.pivots)
     free(scratch.action)
+    free(scratch.eigen)
     scratch.coefficients = scratch.template = scratch.action = NULL
+    scratch.eigen = NULL
     scratch.pivots = NULL
 
 
-cdef distinct_candidates(const Candidates *c, int k, const double[::1] centroid):
+cdef distinct_candidates(const Problem *p, const Candidates *c, int k):
     """The candidates 0..k of c sorted by cost, duplicate rotations (e.g. polished conjugate pairs)
     removed, t in the original world frame, cost clipped at 0: R (k', 3, 3), t (k', 3), cost (k',),
     front (k',) and the index of the solution, the cheapest with at least half the points in
@@ -788,12 +881,7 @@ cdef distinct_candidates(const Candidates *c, int k, const double[::1] centroid)
     cdef int order[CAPACITY]
     cdef int i, j, a, b, count = 0, best = -1
     cdef double largest
-    for i in range(k):  # insertion sort, stable
-        j = i
-        while j > 0 and c.cost[order[j - 1]] > c.cost[i]:
-            order[j] = order[j - 1]
-            j -= 1
-        order[j] = i
+    by_cost(c, k, order)
     for i in range(k):
         for j in range(count):
             largest = 0.0
@@ -814,12 +902,56 @@ cdef distinct_candidates(const Candidates *c, int k, const double[::1] centroid)
             t_view[i, a] = c.t[3 * j + a]
             for b in range(3):
                 R_view[i, a, b] = c.R[9 * j + 3 * a + b]
-                t_view[i, a] -= c.R[9 * j + 3 * a + b] * centroid[b]
+                t_view[i, a] -= c.R[9 * j + 3 * a + b] * p.centroid[b]
         cost_view[i] = max(c.cost[j], 0.0)
         front_view[i] = c.front[j]
         if best < 0 and c.front[j] >= 0.5:
             best = i
-    return R_out, t_out, cost_out, front_out, max(best, 0)
+    best = max(best, 0)
+    return R_out, t_out, cost_out, front_out, best, count > 0 and certified(p, c.R + 9 * order[best])
+
+
+cdef bint certified(const Problem *p, const double *R) noexcept nogil:
+    """Whether the Lagrangian dual certifies R (3, 3) as the global minimum of eq. objfun3 over
+    O(3), hence over SO(3) (beyond the paper).
+
+    With x = [r; y], the cost is x^T Q x, Q = [[H, -g], [-g^T, c]] (10, 10), under R^T R = I and
+    y^2 = 1. Their Lagrangian x^T Q x - tr(L (R^T R - I)) - mu (y^2 - 1) has the Hessian
+    S = Q - blockdiag(I3 kron L, mu) (r row-major, so tr(L R^T R) = r^T (I3 kron L) r). Its
+    stationarity S x = 0 at x = [r; 1] fixes the multipliers: L = R^T mat(H r - g) (symmetric
+    exactly when the gradient on SO(3) vanishes) and mu = c - g^T r. If S is positive
+    semidefinite, every feasible x costs x^T S x + tr L + mu >= tr L + mu = cost(R): R is a global
+    minimum (strong duality, as in Briales and Gonzalez-Jimenez, CVPR 2017, for registration).
+    The test is the least eigenvalue of S against -CERTIFICATE_TOLERANCE (trace H + |g| + |c|).
+    """
+    cdef double h[9]
+    cdef double L[9]
+    cdef double S[100]
+    cdef double eigenvalues[10]
+    cdef double work[340]
+    cdef int ten = 10, lwork = 340, info = 0, i, j, a, b
+    cdef double gr = 0.0
+    for i in range(9):
+        h[i] = -p.g[i]
+        gr += p.g[i] * R[i]
+        for j in range(9):
+            h[i] += p.H[9 * i + j] * R[j]
+    for a in range(3):
+        for b in range(3):
+            L[3 * a + b] = 0.0
+            for i in range(3):
+                L[3 * a + b] += R[3 * i + a] * h[3 * i + b]
+    for i in range(9):
+        for j in range(9):
+            S[10 * i + j] = p.H[9 * i + j]
+        S[10 * i + 9] = S[90 + i] = -p.g[i]
+    S[99] = gr  # c - mu
+    for i in range(3):
+        for a in range(3):
+            for b in range(3):
+                S[10 * (3 * i + a) + 3 * i + b] -= 0.5 * (L[3 * a + b] + L[3 * b + a])
+    dsyev(b"N", b"L", &ten, S, &ten, eigenvalues, work, &lwork, &info)
+    return info == 0 and eigenvalues[0] >= -CERTIFICATE_TOLERANCE * (statistics_size(p) + fabs(p.c))
 
 
 cdef void evaluate(const Problem *p, Candidates *c, int start, int stop) noexcept nogil:
@@ -828,7 +960,33 @@ cdef void evaluate(const Problem *p, Candidates *c, int start, int stop) noexcep
     for i in range(start, stop):
         c.cost[i] = cost_of(p, c.R + 9 * i)
         centred_translation(p, c.R + 9 * i, c.t + 3 * i)
-        c.front[i] = front_fraction(p, c.R + 9 * i, c.t + 3 * i)
+        c.front[i] = front_fraction(p, c.R + 9 * i, c.t + 3 * i, sample_stride(p))
+
+
+cdef void by_cost(const Candidates *c, int k, int *order) noexcept nogil:
+    """order (k,): the indices of candidates 0..k by increasing cost (insertion sort, stable)."""
+    cdef int i, j
+    for i in range(k):
+        j = i
+        while j > 0 and c.cost[order[j - 1]] > c.cost[i]:
+            order[j] = order[j - 1]
+            j -= 1
+        order[j] = i
+
+
+cdef void exact_front(const Problem *p, Candidates *c, int k) noexcept nogil:
+    """Count every point for the candidates 0..k in order of cost up to the first with at least
+    half of them in front: the solution and the cheaper poses it is preferred to. The others keep
+    the fraction of the subsample (`sample_stride`)."""
+    cdef int order[CAPACITY]
+    cdef int i
+    if sample_stride(p) == 1:
+        return
+    by_cost(c, k, order)
+    for i in range(k):
+        c.front[order[i]] = front_fraction(p, c.R + 9 * order[i], c.t + 3 * order[i], 1)
+        if c.front[order[i]] >= 0.5:
+            break
 
 
 cdef int select(const Candidates *c, int k) noexcept nogil:
@@ -856,15 +1014,23 @@ cdef void symmetric_eigen(double *A, double *eigenvalues) noexcept nogil:
     dsyev(b"V", b"L", &three, A, &three, eigenvalues, work, &lwork, &info)  # column-major: vectors as rows
 
 
-def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, ::1] M):
-    """The sums and Schur complements of `statistics.statistics_of`, O(n): v, unit f, M (n, 3).
+cdef struct Statistics:
+    double H[81]
+    double g[9]
+    double c
+    double t_matrix[27]
+    double t_offset[3]
+    double centroid[3]
+    double BtB[9]
+    double axes[9]  # principal axes of the centred points as the columns of a rotation, least spread first
+    double spread[3]  # their spreads, ascending
+    double least_BtB  # the least eigenvalue of BtB
 
-    Returns H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), BtB (3, 3), the
-    principal axes (3, 3) of the centred points as the columns of a rotation, least spread first,
-    their spreads (3,) (ascending eigenvalues of the scatter matrix) and the least eigenvalue of
-    BtB. If BtB is singular (all rays parallel), t_matrix, t_offset, H, g and c are NaN.
-    """
-    cdef int n = M.shape[0], i, a, b, k, l
+
+cdef void accumulate(const double *v, const double *f, const double *M, int n, Statistics *st) noexcept nogil:
+    """The sums and Schur complements of `statistics.statistics_of` in st, O(n): v, unit f, M (n, 3),
+    C-ordered. If BtB is singular (all rays parallel), t_matrix, t_offset, H, g and c are NaN."""
+    cdef int i, a, b, k, l
     cdef double m[3]
     cdef double U[9]
     cdef double w[3]
@@ -879,36 +1045,33 @@ def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, :
     cdef double btb_eigen[3]
     memset(scatter, 0, sizeof(scatter)); memset(AtA, 0, sizeof(AtA)); memset(AtB, 0, sizeof(AtB))
     memset(AtD, 0, sizeof(AtD)); memset(BtD, 0, sizeof(BtD)); memset(sum_m, 0, sizeof(sum_m))
-    H_out, g_out, t_matrix_out, t_offset_out = np.empty((9, 9)), np.empty(9), np.empty((3, 9)), np.empty(3)
-    centroid_out, BtB_out, axes_out, spread_out = np.zeros(3), np.zeros((3, 3)), np.empty((3, 3)), np.empty(3)
-    cdef double[:, ::1] H = H_out, t_matrix = t_matrix_out, BtB = BtB_out, axes = axes_out
-    cdef double[::1] g = g_out, t_offset = t_offset_out, centre = centroid_out, spread = spread_out
+    memset(st.BtB, 0, sizeof(st.BtB))
     for a in range(3):
         s = 0.0
         for i in range(n):
-            s += M[i, a]
-        centre[a] = s / n
+            s += M[3 * i + a]
+        st.centroid[a] = s / n
     for i in range(n):
         for a in range(3):
-            m[a] = M[i, a] - centre[a]
+            m[a] = M[3 * i + a] - st.centroid[a]
             sum_m[a] += m[a]
-        fv = f[i, 0] * v[i, 0] + f[i, 1] * v[i, 1] + f[i, 2] * v[i, 2]
+        fv = f[3 * i] * v[3 * i] + f[3 * i + 1] * v[3 * i + 1] + f[3 * i + 2] * v[3 * i + 2]
         for a in range(3):
-            w[a] = v[i, a] - f[i, a] * fv  # (I - f f^T) v
+            w[a] = v[3 * i + a] - f[3 * i + a] * fv  # (I - f f^T) v
             BtD[a] += w[a]
-            DtD += v[i, a] * w[a]
+            DtD += v[3 * i + a] * w[a]
             for b in range(3):
-                U[3 * a + b] = f[i, a] * m[b]  # kron(f, m)
+                U[3 * a + b] = f[3 * i + a] * m[b]  # kron(f, m)
                 scatter[3 * a + b] += m[a] * m[b]
-                BtB[a, b] -= f[i, a] * f[i, b]
+                st.BtB[3 * a + b] -= f[3 * i + a] * f[3 * i + b]
                 AtD[3 * a + b] += w[a] * m[b]
         for k in range(9):
             for l in range(k, 9):
                 AtA[9 * k + l] -= U[k] * U[l]
             for b in range(3):
-                AtB[3 * k + b] -= U[k] * f[i, b]
+                AtB[3 * k + b] -= U[k] * f[3 * i + b]
     for a in range(3):  # the kron(I3, .) terms
-        BtB[a, a] += n
+        st.BtB[4 * a] += n
         for b in range(3):
             AtB[3 * (3 * a + b) + a] += sum_m[b]  # ~0 after centring, kept for exactness
             for l in range(b, 3):
@@ -917,34 +1080,55 @@ def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, :
     for k in range(10):
         for a in range(3):
             w[a] = AtB[3 * k + a] if k < 9 else BtD[a]
-            for b in range(3):
-                system[3 * a + b] = BtB[a, b]
+        memcpy(system, st.BtB, sizeof(system))
         if not solve_linear(system, w, 3):
             w[0] = w[1] = w[2] = NAN
         for a in range(3):
             if k < 9:
-                t_matrix[a, k] = -w[a]
+                st.t_matrix[9 * a + k] = -w[a]
             else:
-                t_offset[a] = w[a]
+                st.t_offset[a] = w[a]
     # H = A^T A + A^T B t_matrix (symmetric), g = A^T D - A^T B t_offset, c = D^T D - B^T D . t_offset
     for k in range(9):
         for l in range(k, 9):
             s = AtA[9 * k + l]
             for a in range(3):
-                s += AtB[3 * k + a] * t_matrix[a, l]
-            H[k, l] = H[l, k] = s
+                s += AtB[3 * k + a] * st.t_matrix[9 * a + l]
+            st.H[9 * k + l] = s
+            st.H[9 * l + k] = s
         s = AtD[k]
         for a in range(3):
-            s -= AtB[3 * k + a] * t_offset[a]
-        g[k] = s
-    cdef double c = DtD - (BtD[0] * t_offset[0] + BtD[1] * t_offset[1] + BtD[2] * t_offset[2])
-    symmetric_eigen(scatter, &spread[0])  # squared singular values of the centred points
+            s -= AtB[3 * k + a] * st.t_offset[a]
+        st.g[k] = s
+    st.c = DtD - (BtD[0] * st.t_offset[0] + BtD[1] * st.t_offset[1] + BtD[2] * st.t_offset[2])
+    symmetric_eigen(scatter, st.spread)  # squared singular values of the centred points
     sign = -1.0 if det3(scatter) < 0 else 1.0  # axes as the columns of a rotation
     for a in range(3):
         for b in range(3):
-            axes[b, a] = scatter[3 * a + b] * (sign if a == 0 else 1.0)
-    for a in range(3):
-        for b in range(3):
-            system[3 * a + b] = BtB[a, b]
+            st.axes[3 * b + a] = scatter[3 * a + b] * (sign if a == 0 else 1.0)
+    memcpy(system, st.BtB, sizeof(system))
     symmetric_eigen(system, btb_eigen)
-    return H_out, g_out, c, t_matrix_out, t_offset_out, centroid_out, BtB_out, axes_out, spread_out, btb_eigen[0]
+    st.least_BtB = btb_eigen[0]
+
+
+def statistics(const double[:, ::1] v, const double[:, ::1] f, const double[:, ::1] M):
+    """The sums and Schur complements of `statistics.statistics_of`, O(n): v, unit f, M (n, 3).
+
+    Returns H (9, 9), g (9,), c, t_matrix (3, 9), t_offset (3,), centroid (3,), BtB (3, 3), the
+    principal axes (3, 3) of the centred points as the columns of a rotation, least spread first,
+    their spreads (3,) (ascending eigenvalues of the scatter matrix) and the least eigenvalue of
+    BtB. If BtB is singular (all rays parallel), t_matrix, t_offset, H, g and c are NaN.
+    """
+    cdef Statistics st
+    accumulate(&v[0, 0], &f[0, 0], &M[0, 0], M.shape[0], &st)
+    return (array_of(st.H, 9, 9), array_of(st.g, 9, 0), st.c, array_of(st.t_matrix, 3, 9),
+            array_of(st.t_offset, 3, 0), array_of(st.centroid, 3, 0), array_of(st.BtB, 3, 3),
+            array_of(st.axes, 3, 3), array_of(st.spread, 3, 0), st.least_BtB)
+
+
+cdef array_of(const double *x, int rows, int columns):
+    """A new numpy array (rows, columns), or (rows,) if columns is 0, holding the C-ordered x."""
+    out = np.empty((rows, columns)) if columns else np.empty(rows)
+    cdef double[::1] flat = out.reshape(-1)
+    memcpy(&flat[0], x, rows * max(columns, 1) * sizeof(double))
+    return out

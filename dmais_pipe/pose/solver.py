@@ -47,7 +47,7 @@ from . import PoseError
 from ._equations import ENTRIES
 from ._kernels import Kernel
 from .equations import N_MONOMIALS
-from .statistics import PoseStatistics, statistics_of, validate_correspondences
+from .statistics import COLLINEAR_TOLERANCE, ZERO_DIRECTION, statistics_of, validate_correspondences
 from .template import Template, template_entries
 
 TEMPLATE_PATH = Path(__file__).with_name("_template.json")
@@ -55,7 +55,8 @@ TEMPLATE_PATH = Path(__file__).with_name("_template.json")
 
 class Candidate(NamedTuple):
     """A real stationary point of eq. objfun: rotation (3, 3), translation (3,), cost, and the
-    fraction of points it puts in front of their rays."""
+    fraction of points it puts in front of their rays (counted over every point for the solution
+    and the cheaper candidates; beyond 127 points, over a fixed subsample of 64 to 127 for the others)."""
 
     R: np.ndarray
     t: np.ndarray
@@ -70,7 +71,11 @@ class GeneralizedPose:
     R (3, 3), t (3,), cost: value of eq. objfun at (R, t); candidates: every real stationary
     point found, least cost first (the solution is the cheapest with most points in front of
     their rays, usually candidates[0]); n_points: correspondences.
-    covariance: (6, 6) of (rotation increment, t) when refined, else None.
+    covariance: (6, 6) of (rotation increment, t) when refined, else None. certified: the
+    Lagrangian dual certifies the solver's solution as the global minimum of eq. objfun (beyond
+    the paper; `_kernels.certified`); False says only that the check could not prove it (for
+    instance when a cheaper pose puts the points behind the cameras). With refine, it refers to
+    the solution before refinement.
     """
 
     R: np.ndarray
@@ -79,6 +84,7 @@ class GeneralizedPose:
     candidates: list[Candidate]
     n_points: int
     covariance: np.ndarray | None = None
+    certified: bool = False
 
 
 # ------------------------------------------------------------------------------ runtime template
@@ -159,20 +165,6 @@ def kernel() -> Kernel:
                   rt.reduced_rows, rt.reduced_index, rt.unit_index, np.array(ENTRIES), N_MONOMIALS, OCTAHEDRAL)
 
 
-def solve_statistics(stats: PoseStatistics, origins, directions, points) -> tuple[list[Candidate], int]:
-    """All real stationary candidates, least cost first, and the index of the solution among them
-    (the steps of the module docstring).
-
-    There is always at least one: unless the first descent step from the solving frame heads to
-    the solution, the frame descended to a local minimum is a candidate.
-    origins, directions, points: the validated correspondences that `stats` summarises.
-    """
-    R, t, cost, front, best = kernel().solve(
-        stats.H, stats.g, stats.c, stats.t_matrix, stats.t_offset, stats.centroid, stats.point_axes,
-        stats.point_spread, origins, directions, points)
-    return list(map(Candidate, R, t, cost.tolist(), front.tolist())), best
-
-
 def solve_generalized_pose(origins, directions, points, refine: bool = False, sigma: float | None = None) -> GeneralizedPose:
     """Globally optimal generalized absolute pose (see the module docstring).
 
@@ -182,18 +174,31 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
     return its (6, 6) covariance of (rotation increment, t); sigma: the angular noise (radians)
     for that covariance, else estimated from the residuals. Returns x_rig = R @ M + t.
     """
-    origins, directions, points = validate_correspondences(origins, directions, points)
-    stats = statistics_of(origins, directions, points)
-    candidates, best = solve_statistics(stats, origins, directions, points)
+    found = None
+    if _is_float_rows(origins) and _is_float_rows(directions) and _is_float_rows(points):
+        found = kernel().solve_rays(origins, directions, points, COLLINEAR_TOLERANCE, ZERO_DIRECTION)
+    if found is None:  # other input types, or input that fails a check: the Python checks name the fault
+        origins, directions, points = validate_correspondences(origins, directions, points)
+        statistics_of(origins, directions, points)
+        found = kernel().solve_rays(origins, directions, points, COLLINEAR_TOLERANCE, ZERO_DIRECTION)
+    R, t, cost, front, best, certified = found
+    candidates = list(map(Candidate, R, t, cost.tolist(), front.tolist()))
     solution = candidates[best]
-    pose = GeneralizedPose(R=solution.R, t=solution.t, cost=solution.cost, candidates=candidates, n_points=stats.n)
+    pose = GeneralizedPose(R=solution.R, t=solution.t, cost=solution.cost, candidates=candidates, n_points=len(points),
+                           certified=certified)
     if not refine:
         return pose
     from .refine import refine_pose
 
+    origins, directions, points = validate_correspondences(origins, directions, points)
     refined = refine_pose(origins, directions, points, pose.R, pose.t, sigma=sigma)
     cost = float(np.sum(np.cross(directions, points @ refined.R.T + refined.t - origins) ** 2))
     return replace(pose, R=refined.R, t=refined.t, cost=cost, covariance=refined.covariance)
+
+
+def _is_float_rows(x) -> bool:
+    """Whether x can go to the compiled core as it is: a C-contiguous float64 (n, 3) array."""
+    return type(x) is np.ndarray and x.dtype == np.float64 and x.ndim == 2 and x.flags.c_contiguous
 
 
 def solve_batch(problems, refine: bool = False, workers: int = 1) -> list[GeneralizedPose | PoseError]:

@@ -5,10 +5,12 @@ the dataset's) and the ground points; writes RESULTS/poses.csv (all cameras) or
 RESULTS/poses_<label>.csv for a camera subset, label = the digits of the cameras' positions in the
 rig (e.g. 012), with the columns of docs/design.md
 
-    frame, group, cameras, n_points, qw, qx, qy, qz, tx, ty, tz, x, y, z, eps_proj_px, time_ms
+    frame, group, cameras, n_points, qw, qx, qy, qz, tx, ty, tz, x, y, z, eps_proj_px, time_ms, certified
 
 (rig_from_world, rig centre x, y, z in the world, eps_proj_px the RMS reprojection distance over the
-frame's observations, time_ms the wall time of the solve alone). Frames with fewer than 3 usable
+observations used, time_ms the wall time of the solve alone, certified the solver's certificate of
+global optimality) and beside it <poses>.observations.csv, one row per observation of the solved
+frames with whether the pose used it and its residual. Frames with fewer than 3 usable
 observations, or that the solver rejects, are left out with a warning naming them. A per-group
 job (`groups`) with no solvable frame writes an empty part with a warning, so that one group seen
 badly by a camera subset does not stop the workflow; the merge fails only when every part is empty.
@@ -35,7 +37,9 @@ from .solver import solve_generalized_pose
 
 log = logging.getLogger(__name__)
 
-COLUMNS = list(POSE_COLUMNS)
+#: poses.csv: the columns of every poses file, then `certified` (the solver's Lagrangian dual
+#: certificate of global optimality, `GeneralizedPose.certified`; with --robust, the final solve's).
+COLUMNS = [*POSE_COLUMNS, "certified"]
 #: RANSAC threshold of --robust, in pixels (an angle per observation: this over its camera's fx).
 ROBUST_THRESHOLD_PX = 20.0
 
@@ -75,7 +79,7 @@ def reprojection_residuals(rig: Rig, pose: Rigid3, cameras: np.ndarray, uv: np.n
 def solve_frame(rig: Rig, cameras: np.ndarray, uv: np.ndarray, points: np.ndarray, robust: bool, refine: bool):
     """Pose of one frame from observations of `cameras` (n,) at pixels uv (n, 2) of points (n, 3).
 
-    Returns (Rigid3 rig_from_world, solve time in ms, mask of the observations used).
+    Returns (Rigid3 rig_from_world, solve time in ms, mask of the observations used, certified).
     """
     origins, directions = rig.rays_of(cameras, uv)
     start = time.perf_counter()
@@ -83,19 +87,23 @@ def solve_frame(rig: Rig, cameras: np.ndarray, uv: np.ndarray, points: np.ndarra
         focal = np.array([rig.cameras[str(c)].fx for c in cameras])
         result = solve_robust(origins, directions, points, ROBUST_THRESHOLD_PX / focal, refine=refine)
         R, t, used = result.R, result.t, result.inliers
+        certified = bool(getattr(result.final, "certified", False))
     else:
         result = solve_generalized_pose(origins, directions, points, refine=refine)
         R, t, used = result.R, result.t, np.ones(len(points), dtype=bool)
+        certified = result.certified
     elapsed = (time.perf_counter() - start) * 1e3
-    return Rigid3(R, t), elapsed, used
+    return Rigid3(R, t), elapsed, used, certified
 
 
-def _frame_row(frame: str, group: str, cameras_used: list[str], pose: Rigid3, n: int, eps: float, ms: float) -> dict:
+def _frame_row(frame: str, group: str, cameras_used: list[str], pose: Rigid3, n: int, eps: float, ms: float,
+               certified: bool) -> dict:
     q = quat_from_rotation(pose.R)
     centre = pose.center
     return {"frame": frame, "group": group, "cameras": "+".join(cameras_used), "n_points": n,
             "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3], "tx": pose.t[0], "ty": pose.t[1], "tz": pose.t[2],
-            "x": centre[0], "y": centre[1], "z": centre[2], "eps_proj_px": eps, "time_ms": ms}
+            "x": centre[0], "y": centre[1], "z": centre[2], "eps_proj_px": eps, "time_ms": ms,
+            "certified": certified}
 
 
 def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
@@ -120,14 +128,14 @@ def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, camer
             if not warm:  # one untimed solve loads the template: time_ms is the solve alone
                 solve_frame(rig, cams, uv, X, robust, refine)
                 warm = True
-            pose, ms, used = solve_frame(rig, cams, uv, X, robust, refine)
+            pose, ms, used, certified = solve_frame(rig, cams, uv, X, robust, refine)
         except PoseError as error:
             skipped.append(f"{frame} ({error})")
             continue
         residuals = reprojection_residuals(rig, pose, cams, uv, X)
         eps = float(np.sqrt(np.mean(np.sum(residuals[used] ** 2, axis=1))))
         used_cameras = [c for c in cameras if c in set(cams[used])]
-        rows.append(_frame_row(str(frame), group, used_cameras, pose, int(used.sum()), eps, ms))
+        rows.append(_frame_row(str(frame), group, used_cameras, pose, int(used.sum()), eps, ms, certified))
         per_observation.append(group_obs.assign(frame=str(frame), used=used, du=residuals[:, 0], dv=residuals[:, 1]))
     if skipped:
         log.warning("pose: %d frame(s) skipped: %s", len(skipped), "; ".join(skipped))
