@@ -31,6 +31,10 @@ class GeometryError(DmaisError):
     """Input whose geometry cannot be handled (e.g. a rotation Cayley cannot express)."""
 
 
+class PoseError(DmaisError):
+    """Input the generalized pose solver cannot handle (too few, collinear or invalid data)."""
+
+
 class FileAccessError(DmaisError):
     """A file or folder could not be read or written (permission, not a directory, disk full, gone)."""
 

@@ -1,23 +1,26 @@
-"""Generalized absolute pose (paper, section Absolute Pose Estimation).
+"""Absolute pose of the rig as a generalized camera (paper, section Absolute Pose Estimation).
 
-Groundwork of issue 3:
+The public solvers:
 
-- `statistics`: the n-independent statistics H, g, c of eq. objfun3 and the translation map of
-  eq. t, accumulated in O(n);
-- `generate`: the sympy derivation of the six optimality conditions of eq. EF6 in Cayley
-  parameters (`python -m dmais_pipe.pose.generate` writes `_equations.py`);
-- `equations`: the runtime side, coefficients of the six polynomials for given statistics.
+- `solve_generalized_pose(origins, directions, points)`: the paper's globally optimal solver of
+  eq. objfun (t eliminated by eq. t, the optimality conditions eq. EF6 in Cayley parameters solved
+  by an action-matrix template), with a Lagrangian dual certificate of global optimality;
+- `solve_batch(problems, workers=N)`: many frames, in threads (the compiled core runs without the GIL);
+- `solve_robust(origins, directions, points, threshold_rad)`: LO-RANSAC over gP3P samples, then
+  the global solver on the inliers.
+
+The modules: `statistics` (the O(n) statistics of eq. objfun3), `generate` -> `_equations.py`
+(the sympy derivation of eq. EF6), `template` -> `_template.json` (the elimination template),
+`_kernels.pyx` (the compiled core), `solver` (the API), `gp3p` (minimal solver), `refine`
+(Levenberg-Marquardt on angular residuals, Cramer-Rao bound), `robust`, `bench` (`dmais bench
+pose`) and `stage` (`dmais pose`).
 """
 
 from __future__ import annotations
 
-from ..errors import DmaisError
+from ..errors import PoseError
+from .statistics import PoseStatistics, pose_statistics
+from .robust import solve_robust
+from .solver import solve_batch, solve_generalized_pose
 
-
-class PoseError(DmaisError):
-    """Input the generalized pose solver cannot handle (too few, collinear or invalid data)."""
-
-
-from .statistics import PoseStatistics, pose_statistics  # noqa: E402
-
-__all__ = ["PoseError", "PoseStatistics", "pose_statistics"]
+__all__ = ["PoseError", "PoseStatistics", "pose_statistics", "solve_batch", "solve_generalized_pose", "solve_robust"]

@@ -45,7 +45,7 @@ import numpy as np
 from numpy.polynomial import polynomial as P1
 from scipy.signal import convolve2d
 
-from . import PoseError
+from ..errors import PoseError
 from .statistics import validate_correspondences
 
 #: Newton steps on the depth equations for each candidate.

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..calib._projection import exp_so3
 from ..geometry import skew
-from . import PoseError
+from ..errors import PoseError
 from .statistics import validate_correspondences
 
 #: Iteration limit of `refine_pose`.

@@ -29,7 +29,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from . import PoseError
+from ..errors import PoseError
 from .gp3p import gp3p_unchecked
 from .refine import ray_errors, refine_pose
 from .statistics import validate_correspondences

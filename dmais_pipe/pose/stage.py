@@ -31,7 +31,7 @@ from ..errors import DmaisError
 from ..geometry import Rigid3, quat_from_rotation
 from ..rig import Rig
 from ..workspace import POSE_COLUMNS, POSE_OBSERVATION_COLUMNS, Workspace, pose_observations_path
-from . import PoseError
+from ..errors import PoseError
 from .robust import solve_robust
 from .solver import solve_generalized_pose
 

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import PoseError
+from ..errors import PoseError
 from ._kernels import statistics
 
 #: Relative tolerance of the collinearity test: the second singular value of the centred points
