@@ -5,7 +5,7 @@ f = 45000 px, 4096 x 3000 px, at 350 m, 4 px pixel noise, points spread evenly o
 cameras) are solved by ours (`solve_generalized_pose`) and by pycolmap's generalized absolute
 pose (`estimate_and_refine_generalized_absolute_pose`: LO-RANSAC over GP3P + refinement) on the
 same observations, in one run; the median wall time per solve is reported with the paper's C++
-figures (config/paper_tables/time_points.csv), and the fraction of our solutions that the Lagrangian
+figures (dmais_pipe/report/paper_tables/time_points.csv), and the fraction of our solutions that the Lagrangian
 dual certifies as global minima (`GeneralizedPose.certified`). Batch throughput is frames per second of
 `solve_batch` over many 50-point frames, in one thread and in as many as the machine has cores.
 OpenBLAS runs single-threaded meanwhile (see `single_threaded_blas`).
@@ -27,7 +27,7 @@ from ..geometry import rotation_error
 from .solver import solve_batch, solve_generalized_pose
 
 POINT_COUNTS = (10, 50, 100, 200, 300, 400, 500)
-PAPER_TABLE = Path(__file__).resolve().parents[2] / "config" / "paper_tables" / "time_points.csv"
+PAPER_TABLE = Path(__file__).resolve().parents[1] / "report" / "paper_tables" / "time_points.csv"
 FOCAL_PX, WIDTH, HEIGHT, NOISE_PX = 45000.0, 4096, 3000, 4.0
 #: (tilt, azimuth) in degrees of the optical axes of C0..C4 in the rig frame (C0's camera frame).
 DMAIS_AXES = ((0, 0), (45, 0), (45, 90), (45, 180), (45, 270))

@@ -60,7 +60,7 @@ def write_report(dataset_dir: str | Path, results_dir: str | Path, out_html: str
     """Write the HTML report of RESULTS (with DATASET) to `out_html` atomically; returns its path.
 
     benchmarks_dir: folder of snakemake benchmark files (*.tsv, searched recursively), optional.
-    paper_dir: the published tables (default config/paper_tables).
+    paper_dir: the published tables (default: the package's paper_tables).
     """
     context = _Context(Path(dataset_dir), Path(results_dir), benchmarks_dir, paper_dir)
     builders = {"dataset": _dataset_section, "intrinsics": _intrinsics_section, "rig": _rig_section,

@@ -1,6 +1,6 @@
 """Our tables beside the paper's published numbers, with their ratio.
 
-The published numbers are transcribed once from the paper's LaTeX into `config/paper_tables/*.csv`
+The published numbers are transcribed once from the paper's LaTeX into `dmais_pipe/report/paper_tables/*.csv` (package data)
 with the column names of our RESULTS/tables/*.csv; a column the paper does not report is absent.
 Conventions of the transcription:
 
@@ -30,7 +30,7 @@ from ..files import write_csv_atomic
 
 log = logging.getLogger(__name__)
 
-PAPER_DIR = Path(__file__).resolve().parents[2] / "config" / "paper_tables"
+PAPER_DIR = Path(__file__).resolve().parent / "paper_tables"
 COMPARISON_COLUMNS = ("quantity", "ours", "paper", "ratio", "difference")
 
 
@@ -131,7 +131,7 @@ def read_table(path: str | Path, keys: Sequence[str]) -> pd.DataFrame:
 def paper_comparisons(results_dir: str | Path, paper_dir: str | Path | None = None) -> dict[str, pd.DataFrame]:
     """name -> compare_with_paper(...) for every table of PAPER_TABLES present on both sides.
 
-    Ours are RESULTS/tables/<name>.csv, the paper's `paper_dir`/<name>.csv (default config/paper_tables).
+    Ours are RESULTS/tables/<name>.csv, the paper's `paper_dir`/<name>.csv (default: the package's paper_tables).
     """
     tables = Path(results_dir) / "tables"
     paper_dir = Path(paper_dir) if paper_dir is not None else PAPER_DIR
