@@ -35,7 +35,10 @@ POSE_COLUMNS = ("frame", "group", "cameras", "n_points", *QUAT, *TRANSLATION, *C
 #: One row per observation of a solved frame: whether the pose used it, and its residual (px).
 POSE_OBSERVATION_COLUMNS = ("frame", "image", "camera", "point_id", "u", "v", "used", "du", "dv")
 TRUTH_COLUMNS = ("frame", "group", *QUAT, *TRANSLATION, *CENTER)
-MARKER_COLUMNS = ("u", "v", "score", "point_id")
+#: markers/<image>.csv: every detection, its sub-pixel standard deviation per axis and the fit's
+#: residual (fraction of the marker's contrast), and its point id ('' when unidentified).
+MARKER_COLUMNS = ("u", "v", "score", "sigma_px", "fit_residual", "point_id")
+MARKER_REQUIRED = ("u", "v", "score", "point_id")
 SUBSET_FILE = re.compile(r"^poses_(\d+)\.csv$")
 
 
@@ -119,14 +122,15 @@ class Workspace:
         return write_csv_atomic(self.markers_path(image), markers[list(MARKER_COLUMNS)])
 
     def load_markers(self, image: str) -> pd.DataFrame:
-        """One image's detections: u, v, score (float), point_id (str, '' when unidentified)."""
+        """One image's detections: u, v, score, sigma_px, fit_residual (float; the last two NaN where
+        a file predates them), point_id (str, '' when unidentified)."""
         path = self.markers_path(image)
         if not path.is_file():
             raise ResultsError(path, f"missing; run `dmais markers --image {image}`")
         with results_errors():
-            table = read_table(path, MARKER_COLUMNS)
-            return pd.DataFrame({"u": table.floats("u"), "v": table.floats("v"), "score": table.floats("score"),
-                                 "point_id": table.text("point_id")})
+            table = read_table(path, MARKER_REQUIRED)
+            columns = {c: table.floats(c, optional=c in ("sigma_px", "fit_residual")) for c in MARKER_COLUMNS[:-1]}
+            return pd.DataFrame({**columns, "point_id": table.text("point_id")})
 
     def save_observations(self, observations: pd.DataFrame, stage: str | None = None) -> Path:
         return write_csv_atomic(self.observations_path(stage), observations)

@@ -316,7 +316,8 @@ def test_run_markers_writes_results(tmp_path, jobs):
     for k, pose in enumerate(poses):
         markers = pd.read_csv(tmp_path / "results" / "markers" / f"i{k}.csv", dtype={"point_id": str},
                               keep_default_na=False)
-        assert list(markers.columns) == ["u", "v", "score", "point_id"]
+        assert list(markers.columns) == ["u", "v", "score", "sigma_px", "fit_residual", "point_id"]
+        assert markers["sigma_px"].between(0, 0.5).all()
         ours = observations[observations["image"] == f"i{k}"]
         assert len(ours) >= 8
         truth = SMALL.project(pose.apply(control.loc[ours["point_id"], ["x", "y", "z"]].to_numpy()))

@@ -153,7 +153,7 @@ def test_report_has_every_section_and_is_self_contained(dataset, results, tmp_pa
     out = write_report(dataset, results, tmp_path / "report" / "report.html", benchmarks_dir=tmp_path / "benchmarks")
     page = parse(out)
     assert page.ids == SECTION_IDS
-    assert page.missing == {}, page.missing
+    assert list(page.missing) == ["markers"] and "observations given" in page.missing["markers"]  # no images
     assert set(page.figures) == {"rig", "residuals", "frames", "subsets", "runtime", "stages"}
     assert all(src.startswith("data:") for src in page.srcs)
     assert "script" not in page.tags and "link" not in page.tags
@@ -289,3 +289,28 @@ def test_paper_notes_cover_every_table_and_reach_the_report(dataset, results, tm
     (tmp_path / "paper" / "notes.yaml").write_text("intrinsic: typo\n")
     with pytest.raises(DmaisError, match="intrinsic"):
         paper_notes(tmp_path / "paper")
+
+
+def test_marker_quality_flags_the_image_whose_corners_are_poor():
+    """Per image and camera: counts, sigma quantiles; an image 5x worse than its camera's others is flagged."""
+    from dmais_pipe.report.markers import camera_quality, image_quality
+
+    rng = np.random.default_rng(0)
+
+    def markers(n, sigma, identified):
+        return pd.DataFrame({"u": rng.uniform(0, 4096, n), "v": rng.uniform(0, 3000, n), "score": 0.9,
+                             "sigma_px": rng.uniform(0.8, 1.2, n) * sigma, "fit_residual": 0.02,
+                             "point_id": [f"P{k}" if k < identified else "" for k in range(n)]})
+
+    tables = {"a0": markers(20, 0.02, 18), "a1": markers(15, 0.02, 15), "a2": markers(12, 0.10, 10),
+              "b0": markers(10, 0.20, 10), "b1": markers(10, 0.22, 9)}
+    camera_of = {"a0": "A", "a1": "A", "a2": "A", "b0": "B", "b1": "B"}
+    images = image_quality(tables, camera_of)
+    assert images.set_index("image")["flagged"].to_dict() == {"a0": False, "a1": False, "a2": True, "b0": False,
+                                                               "b1": False}
+    assert images.set_index("image").loc["a0", ["detected", "identified"]].tolist() == [20, 18]
+    cameras = camera_quality(images, tables, camera_of).set_index("camera")
+    assert cameras.loc["A", "flagged_images"] == "a2" and cameras.loc["B", "flagged_images"] == "none"
+    assert cameras.loc["A", ["images", "detected", "identified"]].tolist() == [3, 47, 43]
+    expected = np.median(np.concatenate([tables[i]["sigma_px"] for i in ("a0", "a1", "a2")]))
+    assert cameras.loc["A", "sigma_median_px"] == pytest.approx(expected)

@@ -80,7 +80,7 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
 
     parser = Headings()
     parser.feed((tmp_path / "reports/tiny/report.html").read_text())
-    assert parser.headings == ["Dataset", "Intrinsics per camera", "Rig layout", "Reprojection residuals per camera",
+    assert parser.headings == ["Dataset", "Marker quality per camera", "Intrinsics per camera", "Rig layout", "Reprojection residuals per camera",
                                "Per-frame pose errors", "Camera subsets", "Runtime versus number of points",
                                "Processing time per stage", "Comparison with the paper"]
     assert "Not available" not in (tmp_path / "reports/tiny/report.html").read_text()

@@ -27,12 +27,14 @@ from ..files import write_text_atomic
 from ..rig import Rig
 from ..workspace import Workspace, pose_observations_path
 from .dataset import rig_table, summary_table
+from .markers import FLAG_FACTOR, FLAG_MIN_SIGMA_PX, camera_quality, image_quality
 from .paper import PAPER_TABLES, paper_comparisons, paper_notes, read_table
 
 log = logging.getLogger(__name__)
 
 SECTIONS = (
     ("dataset", "Dataset"),
+    ("markers", "Marker quality per camera"),
     ("intrinsics", "Intrinsics per camera"),
     ("rig", "Rig layout"),
     ("residuals", "Reprojection residuals per camera"),
@@ -63,7 +65,7 @@ def write_report(dataset_dir: str | Path, results_dir: str | Path, out_html: str
     paper_dir: the published tables (default: the package's paper_tables).
     """
     context = _Context(Path(dataset_dir), Path(results_dir), benchmarks_dir, paper_dir)
-    builders = {"dataset": _dataset_section, "intrinsics": _intrinsics_section, "rig": _rig_section,
+    builders = {"dataset": _dataset_section, "markers": _markers_section, "intrinsics": _intrinsics_section, "rig": _rig_section,
                 "residuals": _residuals_section, "frames": _frames_section, "subsets": _subsets_section,
                 "runtime": _runtime_section, "stages": _stages_section, "paper": _paper_section}
     sections = [(key, title, _build(builders[key], context, key)) for key, title in SECTIONS]
@@ -158,6 +160,41 @@ def _dataset_section(ctx: _Context) -> str:
         parts.append("<p>Simulated dataset: ground truth under <code>truth/</code> is used for the true errors "
                      "below (never by the pipeline's estimation).</p>")
     return "\n".join(parts)
+
+
+def _markers_section(ctx: _Context) -> str:
+    workspace = Workspace(ctx.dataset, ctx.results)
+    extracted = [i for i in ctx.dataset.images_to_extract() if workspace.markers_path(i).is_file()]
+    if not extracted:
+        raise MissingInput("no markers/<image>.csv: no image's markers were extracted (observations given, "
+                           "or run `dmais markers`).")
+    markers = {image: workspace.load_markers(image) for image in extracted}
+    camera_of = dict(zip(ctx.dataset.images["image"], ctx.dataset.images["camera"]))
+    images = image_quality(markers, camera_of)
+    caption = ("Sub-pixel standard deviation (per axis) of every refined corner, from the residual of its fit, "
+               "per camera (log scale). Images are flagged when their median exceeds "
+               f"{FLAG_FACTOR:g}x their camera's median and {FLAG_MIN_SIGMA_PX:g} px.")
+    parts = [_figure(_svg(marker_sigma_figure(markers, camera_of)), caption),
+             _table(camera_quality(images, markers, camera_of))]
+    flagged = images[images["flagged"]]
+    if len(flagged):
+        parts += ["<p>Flagged images (poor corners):</p>", _table(flagged.drop(columns="flagged"))]
+    return "\n".join(parts)
+
+
+def marker_sigma_figure(markers: dict[str, pd.DataFrame], camera_of: dict[str, str]):
+    """Box plot of every corner's sigma_px per camera."""
+    cameras = sorted({camera_of[image] for image in markers})
+    values = [np.concatenate([t["sigma_px"].to_numpy(float) for i, t in markers.items() if camera_of[i] == c])
+              for c in cameras]
+    values = [v[np.isfinite(v) & (v > 0)] for v in values]
+    fig = Figure(figsize=(1.2 * len(cameras) + 2.0, 3.2))
+    ax = fig.subplots()
+    ax.boxplot([v if len(v) else [np.nan] for v in values], showfliers=True)
+    ax.set_xticks(range(1, len(cameras) + 1), cameras)
+    ax.set_yscale("log")
+    ax.set_ylabel("sigma (px)")
+    return fig
 
 
 def _intrinsics_section(ctx: _Context) -> str:
