@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .dataset import Dataset, flight_observations
+from .dataset import Dataset
+from .frames import frame_observations
 from .geometry import Rigid3, rotation_error, rotation_from_quat
 from .pose.refine import cramer_rao_bound
 from .rig import Rig
@@ -236,21 +237,18 @@ def cramer_rao_errors(dataset: Dataset, rig: Rig, poses: pd.DataFrame, truth_row
     The simulator's flight errors are not all of that kind (survey and in-flight mounting errors are
     shared by many rays), so the bound is what pixel noise alone would allow.
     """
-    obs = flight_observations(dataset, observations)
-    by_frame = {frame: rows for frame, rows in obs.groupby("frame", sort=False)}
+    by_frame = {frame.frame: frame for frame in frame_observations(dataset, rig, observations)}
     bounds = np.full((len(poses), 2), np.nan)
     for k, (pose, true) in enumerate(zip(poses.itertuples(index=False), truth_rows.itertuples(index=False))):
         cameras = pose.cameras.split("+")
-        rows = by_frame.get(pose.frame)
-        rows = rows[rows["camera"].isin(cameras)] if rows is not None else None
-        if rows is None or len(rows) < 3 or not pose.eps_proj_px > 0:
+        frame = by_frame.get(pose.frame)
+        mine = np.isin(frame.cameras, cameras) if frame is not None else None
+        if frame is None or mine.sum() < 3 or not pose.eps_proj_px > 0:
             continue
-        origins, directions = rig.rays_of(rows["camera"].to_numpy(str), rows[["u", "v"]].to_numpy(float))
-        points = dataset.points.loc[rows["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
         R = rotation_from_quat([true.qw, true.qx, true.qy, true.qz])
         sigma = pose.eps_proj_px / np.sqrt(2.0) / mean_focal_px(rig, cameras)
-        position, attitude = cramer_rao_bound(origins, directions, points, R, np.array([true.tx, true.ty, true.tz]),
-                                              sigma)
+        position, attitude = cramer_rao_bound(frame.origins[mine], frame.directions[mine], frame.points[mine], R,
+                                              np.array([true.tx, true.ty, true.tz]), sigma)
         bounds[k] = position, attitude * ARCMIN_PER_RAD
     return bounds[:, 0], bounds[:, 1]
 
@@ -331,23 +329,22 @@ def reprojection_residuals(dataset: Dataset, rig: Rig, poses: pd.DataFrame, obse
     point_id, u, v (Workspace.load_observations). Returns one row per observation: frame, camera, image, point_id,
     u, v, du, dv (NaN where the point does not project into the camera).
     """
-    obs = flight_observations(dataset, observations)
-    points = dataset.points
+    by_frame = {frame.frame: frame for frame in frame_observations(dataset, rig, observations)}
     parts = []
-    by_frame = {frame: rows for frame, rows in obs.groupby("frame", sort=False)}
     for pose in poses.itertuples(index=False):
-        rows = by_frame.get(pose.frame)
-        if rows is None:
+        frame = by_frame.get(pose.frame)
+        if frame is None:
             continue
         rig_from_world = Rigid3.from_quat([pose.qw, pose.qx, pose.qy, pose.qz], [pose.tx, pose.ty, pose.tz])
         for camera in (rig.camera_names if every_camera else pose.cameras.split("+")):
-            mine = rows[rows["camera"] == camera]
-            if mine.empty:
+            mine = frame.cameras == camera
+            if not mine.any():
                 continue
-            X = points.loc[mine["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
-            projected = rig.project(camera, rig_from_world, X)
-            parts.append(mine.assign(du=mine["u"].to_numpy() - projected[:, 0],
-                                     dv=mine["v"].to_numpy() - projected[:, 1]))
+            projected = rig.project(camera, rig_from_world, frame.points[mine])
+            parts.append(pd.DataFrame({"frame": frame.frame, "camera": camera, "image": frame.images[mine],
+                                       "point_id": frame.point_ids[mine], "u": frame.uv[mine, 0],
+                                       "v": frame.uv[mine, 1], "du": frame.uv[mine, 0] - projected[:, 0],
+                                       "dv": frame.uv[mine, 1] - projected[:, 1]}))
     columns = ["frame", "camera", "image", "point_id", "u", "v", "du", "dv"]
     if not parts:
         return pd.DataFrame({c: pd.Series([], dtype=float if c in ("u", "v", "du", "dv") else object)

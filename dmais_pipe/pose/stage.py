@@ -26,8 +26,9 @@ import numpy as np
 import pandas as pd
 
 from ..blas import single_threaded_blas
-from ..dataset import Dataset, flight_observations
+from ..dataset import Dataset
 from ..errors import DmaisError
+from ..frames import FrameObservations, frame_observations
 from ..geometry import Rigid3, quat_from_rotation
 from ..rig import Rig
 from ..workspace import POSE_COLUMNS, POSE_OBSERVATION_COLUMNS, Workspace, pose_observations_path
@@ -76,15 +77,15 @@ def reprojection_residuals(rig: Rig, pose: Rigid3, cameras: np.ndarray, uv: np.n
     return residuals
 
 
-def solve_frame(rig: Rig, cameras: np.ndarray, uv: np.ndarray, points: np.ndarray, robust: bool, refine: bool):
-    """Pose of one frame from observations of `cameras` (n,) at pixels uv (n, 2) of points (n, 3).
+def solve_frame(rig: Rig, frame: FrameObservations, robust: bool, refine: bool):
+    """Pose of one frame from its observations' generalized rays.
 
-    Returns (Rigid3 rig_from_world, solve time in ms, mask of the observations used, certified).
+    Returns (Rigid3 rig_from_world, solve time in ms, mask (n,) of the observations used, certified).
     """
-    origins, directions = rig.rays_of(cameras, uv)
+    origins, directions, points = frame.origins, frame.directions, frame.points
     start = time.perf_counter()
     if robust:
-        focal = np.array([rig.cameras[str(c)].fx for c in cameras])
+        focal = np.array([rig.cameras[str(c)].fx for c in frame.cameras])
         result = solve_robust(origins, directions, points, ROBUST_THRESHOLD_PX / focal, refine=refine)
         R, t, used = result.R, result.t, result.inliers
         certified = bool(getattr(result.final, "certified", False))
@@ -112,31 +113,24 @@ def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, camer
     """poses.csv rows (COLUMNS) for every flight frame (of `groups`, if given), and one row per
     observation of the solved frames (POSE_OBSERVATION_COLUMNS: whether the pose used it, with
     --robust RANSAC's inliers, and its residual du, dv in px)."""
-    obs = flight_observations(dataset, observations, cameras)
-    points = dataset.points
-    group_of = dict(zip(dataset.frames["frame"], dataset.frames["group"]))  # the loader checks every frame is there
     rows, per_observation, skipped = [], [], []
     warm = False
-    for frame, group_obs in obs.groupby("frame", sort=True):
-        group = str(group_of[frame])
-        if groups and group not in groups:
-            continue
-        X = points.loc[group_obs["point_id"], ["x", "y", "z"]].to_numpy(float)
-        uv = group_obs[["u", "v"]].to_numpy(float)
-        cams = group_obs["camera"].to_numpy(str)
+    for frame in frame_observations(dataset, rig, observations, cameras, groups):
         try:
             if not warm:  # one untimed solve loads the template: time_ms is the solve alone
-                solve_frame(rig, cams, uv, X, robust, refine)
+                solve_frame(rig, frame, robust, refine)
                 warm = True
-            pose, ms, used, certified = solve_frame(rig, cams, uv, X, robust, refine)
+            pose, ms, used, certified = solve_frame(rig, frame, robust, refine)
         except PoseError as error:
-            skipped.append(f"{frame} ({error})")
+            skipped.append(f"{frame.frame} ({error})")
             continue
-        residuals = reprojection_residuals(rig, pose, cams, uv, X)
+        residuals = reprojection_residuals(rig, pose, frame.cameras, frame.uv, frame.points)
         eps = float(np.sqrt(np.mean(np.sum(residuals[used] ** 2, axis=1))))
-        used_cameras = [c for c in cameras if c in set(cams[used])]
-        rows.append(_frame_row(str(frame), group, used_cameras, pose, int(used.sum()), eps, ms, certified))
-        per_observation.append(group_obs.assign(frame=str(frame), used=used, du=residuals[:, 0], dv=residuals[:, 1]))
+        used_cameras = [c for c in cameras if c in set(frame.cameras[used])]
+        rows.append(_frame_row(frame.frame, frame.group, used_cameras, pose, int(used.sum()), eps, ms, certified))
+        per_observation.append(pd.DataFrame({
+            "frame": frame.frame, "image": frame.images, "camera": frame.cameras, "point_id": frame.point_ids,
+            "u": frame.uv[:, 0], "v": frame.uv[:, 1], "used": used, "du": residuals[:, 0], "dv": residuals[:, 1]}))
     if skipped:
         log.warning("pose: %d frame(s) skipped: %s", len(skipped), "; ".join(skipped))
     observation_rows = (pd.concat(per_observation, ignore_index=True) if per_observation
