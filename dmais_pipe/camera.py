@@ -67,18 +67,22 @@ def _radial_scale(xy: np.ndarray, d: float) -> np.ndarray:
     return 1.0 + d * np.sum(xy**2, axis=1)
 
 
+def _pixels(xy: np.ndarray, s, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """(n, 2) pixels u = fx x s + cx, v = fy y s + cy of normalized points xy (n, 2) scaled by s (n,) or 1."""
+    return np.column_stack([fx * xy[:, 0] * s + cx, fy * xy[:, 1] * s + cy])
+
+
 def _project_normalized(xy, z, fx, fy, cx, cy, d, jacobian: bool):
     """Pixels (n, 2) of undistorted normalized points xy (n, 2) at depths z (n,); with `jacobian` also
     d pixels / d point (n, 2, 3) and d pixels / d (fx, fy, cx, cy, d) (n, 2, 5)."""
     s = _radial_scale(xy, d)
-    xy_d = xy * s[:, None]
-    uv = np.column_stack([fx * xy_d[:, 0] + cx, fy * xy_d[:, 1] + cy])
+    uv = _pixels(xy, s, fx, fy, cx, cy)
     if not jacobian:
         return uv
     x, y = xy[:, 0], xy[:, 1]
     r2 = x * x + y * y
     J_intrinsics = np.zeros((len(xy), 2, 5))
-    J_intrinsics[:, 0, 0], J_intrinsics[:, 1, 1] = xy_d[:, 0], xy_d[:, 1]
+    J_intrinsics[:, 0, 0], J_intrinsics[:, 1, 1] = x * s, y * s
     J_intrinsics[:, 0, 2] = J_intrinsics[:, 1, 3] = 1.0
     J_intrinsics[:, 0, 4], J_intrinsics[:, 1, 4] = fx * x * r2, fy * y * r2
     J_xy = np.empty((len(xy), 2, 2))  # d pixels / d (x, y)
@@ -144,11 +148,12 @@ class Camera:
 
     def distort(self, uv) -> np.ndarray:
         """Distorted pixels (n, 2) from undistorted pixels (n, 2) (eq. 2)."""
-        return self._pixel_from_normalized(self._distort_normalized(self._normalized_from_pixel(uv)))
+        xy = self._normalized_from_pixel(uv)
+        return _pixels(xy, _radial_scale(xy, self.d), self.fx, self.fy, self.cx, self.cy)
 
     def undistort(self, uv) -> np.ndarray:
         """Undistorted pixels (n, 2) from distorted pixels (n, 2); NaN where not invertible."""
-        return self._pixel_from_normalized(self.undistort_normalized(uv))
+        return _pixels(self.undistort_normalized(uv), 1.0, self.fx, self.fy, self.cx, self.cy)
 
     def undistort_normalized(self, uv) -> np.ndarray:
         """Undistorted normalized coordinates (n, 2) (x, y) of distorted pixels (n, 2).
@@ -195,9 +200,3 @@ class Camera:
     def _normalized_from_pixel(self, uv) -> np.ndarray:
         uv = _as_points(uv, 2, "uv")
         return np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy])
-
-    def _pixel_from_normalized(self, xy: np.ndarray) -> np.ndarray:
-        return np.column_stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy])
-
-    def _distort_normalized(self, xy: np.ndarray) -> np.ndarray:
-        return xy * _radial_scale(xy, self.d)[:, None]
