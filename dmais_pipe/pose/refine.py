@@ -30,8 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..calib._projection import exp_so3
-from ..geometry import skew
+from ..geometry import exp_so3, skew
 from . import PoseError
 from .statistics import validate_correspondences
 
