@@ -7,6 +7,15 @@ distorted to
 
 i.e. the normalized point (x, y) is scaled by (1 + d r^2). Pixel coordinates follow OpenCV: the
 centre of the top-left pixel is (0, 0). Camera coordinates: x right, y down, z forward.
+
+For a point X_c of the camera frame (OpenCV's pinhole with k1 = d):
+
+    x = X_c0 / X_c2,  y = X_c1 / X_c2,  s = 1 + d (x^2 + y^2),  u = fx x s + cx,  v = fy y s + cy.
+
+`Camera.project` returns NaN for points the camera does not image; least-squares solvers use
+`project_unmasked`, the same formula for every point off the camera plane, so that a trial step
+that moves a point behind the camera gives a large residual instead of NaN. Both can return the
+Jacobians with respect to the point and to the intrinsics (fx, fy, cx, cy, d).
 """
 
 from __future__ import annotations
@@ -33,6 +42,58 @@ def _as_points(array, width: int, name: str) -> np.ndarray:
     if points.ndim != 2 or points.shape[1] != width:
         raise DmaisError(f"{name} must have shape (n, {width}), got {np.shape(array)}")
     return points
+
+
+def project_unmasked(points_cam, fx: float, fy: float, cx: float, cy: float, d: float, jacobian: bool = False):
+    """Distorted pixels (n, 2) of points (n, 3) in the camera frame, by eq. 2-3 for any point with z != 0.
+
+    Unlike `Camera.project`, points behind the camera or beyond the distortion's fold are projected
+    by the same formula (the model's smooth extension, for least-squares solvers). With `jacobian`,
+    returns (pixels (n, 2), d pixels / d points_cam (n, 2, 3), d pixels / d (fx, fy, cx, cy, d) (n, 2, 5)).
+    """
+    xy, z = _normalized_from_cam(_as_points(points_cam, 3, "points_cam"))
+    return _project_normalized(xy, z, fx, fy, cx, cy, d, jacobian)
+
+
+def _normalized_from_cam(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, y) = (X_c0, X_c1) / X_c2 (n, 2) and the depths X_c2 (n,) of points (n, 3); inf or NaN where z = 0."""
+    z = points[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return points[:, :2] / z[:, None], z
+
+
+def _radial_scale(xy: np.ndarray, d: float) -> np.ndarray:
+    """(n,) the distortion's scale s = 1 + d r^2 of normalized points (n, 2)."""
+    return 1.0 + d * np.sum(xy**2, axis=1)
+
+
+def _pixels(xy: np.ndarray, s, fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
+    """(n, 2) pixels u = fx x s + cx, v = fy y s + cy of normalized points xy (n, 2) scaled by s (n,) or 1."""
+    return np.column_stack([fx * xy[:, 0] * s + cx, fy * xy[:, 1] * s + cy])
+
+
+def _project_normalized(xy, z, fx, fy, cx, cy, d, jacobian: bool):
+    """Pixels (n, 2) of undistorted normalized points xy (n, 2) at depths z (n,); with `jacobian` also
+    d pixels / d point (n, 2, 3) and d pixels / d (fx, fy, cx, cy, d) (n, 2, 5)."""
+    s = _radial_scale(xy, d)
+    uv = _pixels(xy, s, fx, fy, cx, cy)
+    if not jacobian:
+        return uv
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    J_intrinsics = np.zeros((len(xy), 2, 5))
+    J_intrinsics[:, 0, 0], J_intrinsics[:, 1, 1] = x * s, y * s
+    J_intrinsics[:, 0, 2] = J_intrinsics[:, 1, 3] = 1.0
+    J_intrinsics[:, 0, 4], J_intrinsics[:, 1, 4] = fx * x * r2, fy * y * r2
+    J_xy = np.empty((len(xy), 2, 2))  # d pixels / d (x, y)
+    J_xy[:, 0, 0] = fx * (s + 2.0 * d * x * x)
+    J_xy[:, 0, 1] = fx * 2.0 * d * x * y
+    J_xy[:, 1, 0] = fy * 2.0 * d * x * y
+    J_xy[:, 1, 1] = fy * (s + 2.0 * d * y * y)
+    J_normalized = np.zeros((len(xy), 2, 3))  # d (x, y) / d point
+    J_normalized[:, 0, 0] = J_normalized[:, 1, 1] = 1.0 / z
+    J_normalized[:, 0, 2], J_normalized[:, 1, 2] = -x / z, -y / z
+    return uv, J_xy @ J_normalized, J_intrinsics
 
 
 @dataclass(frozen=True)
@@ -68,25 +129,31 @@ class Camera:
         """
         return np.inf if self.d >= 0 else 1.0 / np.sqrt(-3.0 * self.d)
 
-    def project(self, points_cam) -> np.ndarray:
+    def project(self, points_cam, jacobian: bool = False):
         """Distorted pixels (n, 2) of points (n, 3) in the camera frame.
 
-        NaN for points with z <= 0 and, for d < 0, beyond `max_projectable_radius`.
+        NaN for points with z <= 0 and, for d < 0, beyond `max_projectable_radius`. With `jacobian`,
+        returns (pixels (n, 2), d pixels / d points_cam (n, 2, 3), d pixels / d (fx, fy, cx, cy, d)
+        (n, 2, 5)), NaN in the rows of points not imaged.
         """
-        points = _as_points(points_cam, 3, "points_cam")
-        z = points[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            xy = points[:, :2] / z[:, None]
-        xy[~(z > 0) | (np.hypot(xy[:, 0], xy[:, 1]) > self.max_projectable_radius)] = np.nan
-        return self._pixel_from_normalized(self._distort_normalized(xy))
+        xy, z = _normalized_from_cam(_as_points(points_cam, 3, "points_cam"))
+        hidden = ~(z > 0) | (np.hypot(xy[:, 0], xy[:, 1]) > self.max_projectable_radius)
+        xy[hidden] = np.nan
+        out = _project_normalized(xy, np.where(hidden, np.nan, z), self.fx, self.fy, self.cx, self.cy, self.d,
+                                      jacobian)
+        if jacobian:
+            out[1][hidden] = np.nan
+            out[2][hidden] = np.nan
+        return out
 
     def distort(self, uv) -> np.ndarray:
         """Distorted pixels (n, 2) from undistorted pixels (n, 2) (eq. 2)."""
-        return self._pixel_from_normalized(self._distort_normalized(self._normalized_from_pixel(uv)))
+        xy = self._normalized_from_pixel(uv)
+        return _pixels(xy, _radial_scale(xy, self.d), self.fx, self.fy, self.cx, self.cy)
 
     def undistort(self, uv) -> np.ndarray:
         """Undistorted pixels (n, 2) from distorted pixels (n, 2); NaN where not invertible."""
-        return self._pixel_from_normalized(self.undistort_normalized(uv))
+        return _pixels(self.undistort_normalized(uv), 1.0, self.fx, self.fy, self.cx, self.cy)
 
     def undistort_normalized(self, uv) -> np.ndarray:
         """Undistorted normalized coordinates (n, 2) (x, y) of distorted pixels (n, 2).
@@ -133,10 +200,3 @@ class Camera:
     def _normalized_from_pixel(self, uv) -> np.ndarray:
         uv = _as_points(uv, 2, "uv")
         return np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy])
-
-    def _pixel_from_normalized(self, xy: np.ndarray) -> np.ndarray:
-        return np.column_stack([self.fx * xy[:, 0] + self.cx, self.fy * xy[:, 1] + self.cy])
-
-    def _distort_normalized(self, xy: np.ndarray) -> np.ndarray:
-        r2 = np.sum(xy**2, axis=1, keepdims=True)
-        return xy * (1.0 + self.d * r2)

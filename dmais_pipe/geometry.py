@@ -1,7 +1,12 @@
-"""Rotations (Cayley, quaternion, ZYX Euler), rigid transforms and error metrics.
+"""Rotations (Cayley, quaternion, ZYX Euler, SO(3) exp/log and Jacobians), rigid transforms and error metrics.
 
 Conventions: quaternions are (w, x, y, z); angles are radians; a `Rigid3` named `a_from_b` maps
 points of frame b to frame a: x_a = R @ x_b + t.
+
+Least-squares solvers perturb a rotation on the left of a fixed reference, R = exp(phi) R0, so
+they work in a chart around R0. The exact derivative uses the left Jacobian of SO(3) (Barfoot,
+"State Estimation for Robotics", eq. 7.77): exp(phi + dphi) ~ exp(J_l(phi) dphi) exp(phi), hence
+d(R X)/dphi = -[R X]x J_l(phi) (`pose_jacobian`).
 """
 
 from __future__ import annotations
@@ -15,9 +20,51 @@ from .errors import GeometryError
 
 
 def skew(v) -> np.ndarray:
-    """(3, 3) cross-product matrix [v]x of a 3-vector, so that skew(a) @ b == cross(a, b)."""
-    x, y, z = np.asarray(v, dtype=float)
-    return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    """Cross-product matrices [v]x (3, 3) or (n, 3, 3) of vectors (3,) or (n, 3): skew(a) @ b == cross(a, b)."""
+    v = np.asarray(v, dtype=float)
+    if v.ndim not in (1, 2) or v.shape[-1] != 3:
+        raise GeometryError(f"skew needs vectors of shape (3,) or (n, 3), got {v.shape}")
+    S = np.zeros(v.shape + (3,))
+    S[..., 0, 1], S[..., 0, 2] = -v[..., 2], v[..., 1]
+    S[..., 1, 0], S[..., 1, 2] = v[..., 2], -v[..., 0]
+    S[..., 2, 0], S[..., 2, 1] = -v[..., 1], v[..., 0]
+    return S
+
+
+def exp_so3(phi) -> np.ndarray:
+    """Rotations (3, 3) or (n, 3, 3) of rotation vectors phi (3,) or (n, 3) (angle |phi| about phi / |phi|)."""
+    return Rotation.from_rotvec(np.asarray(phi, dtype=float)).as_matrix()
+
+
+def log_so3(R) -> np.ndarray:
+    """Rotation vectors (3,) or (n, 3), angle in [0, pi], of rotations (3, 3) or (n, 3, 3); exp_so3's inverse."""
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
+
+
+def left_jacobian_so3(phi) -> np.ndarray:
+    """(3, 3) left Jacobian J_l of SO(3) at a rotation vector phi (3,): exp(phi + dphi) ~ exp(J_l dphi) exp(phi).
+
+    J_l = I + (1 - cos theta) / theta^2 [phi]x + (theta - sin theta) / theta^3 [phi]x^2, theta = |phi|;
+    its Taylor series to second order below theta = 1e-6.
+    """
+    phi = np.asarray(phi, dtype=float)
+    theta = float(np.linalg.norm(phi))
+    K = skew(phi)
+    if theta < 1e-6:
+        return np.eye(3) + 0.5 * K + K @ K / 6.0
+    return (np.eye(3) + (1.0 - np.cos(theta)) / theta**2 * K
+            + (theta - np.sin(theta)) / theta**3 * K @ K)
+
+
+def pose_jacobian(points, R, phi, J_point) -> np.ndarray:
+    """(n, k, 6) d f / d(phi, t) of a function f of X_c = R X + t, with R = exp(phi) R0.
+
+    points: (n, 3) X; R: (3, 3) the rotation already composed, exp(phi) R0; phi: (3,);
+    J_point: (n, k, 3) d f / d X_c at X_c (e.g. `camera.project_unmasked`'s pixel Jacobian, k = 2).
+    By the chain rule with d X_c / dphi = -[R X]x J_l(phi) and d X_c / dt = I.
+    """
+    dXc_dphi = -skew(np.asarray(points, dtype=float) @ np.asarray(R).T) @ left_jacobian_so3(phi)
+    return np.concatenate([J_point @ dXc_dphi, J_point], axis=2)
 
 
 def rotation_from_cayley(q) -> np.ndarray:
@@ -89,7 +136,7 @@ def rotation_angle(R) -> np.ndarray:
 def rotation_error(R_estimate, R_reference) -> np.ndarray:
     """Angle (rad) of R_estimate @ R_reference^T, accurate also for tiny angles."""
     delta = np.asarray(R_estimate) @ np.swapaxes(np.asarray(R_reference), -1, -2)
-    return np.linalg.norm(Rotation.from_matrix(delta).as_rotvec(), axis=-1)
+    return np.linalg.norm(log_so3(delta), axis=-1)
 
 
 def translation_error(t_estimate, t_reference) -> np.ndarray:

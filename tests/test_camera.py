@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dmais_pipe.camera import Camera
+from dmais_pipe.camera import Camera, project_unmasked
 from dmais_pipe.errors import DmaisError
+from dmais_pipe.geometry import exp_so3, pose_jacobian
 
 # Long-focal DMAIS-like cameras: fx != fy slightly, principal point tens of px off centre.
 LONG_FOCAL = {
@@ -381,3 +385,112 @@ def test_project_flags_points_beyond_the_distortion_fold():
     assert np.isnan(camera.project(point)).all()
     inside = np.array([[0.99 * r_turn, 0.0, 1.0]])
     np.testing.assert_allclose(camera.unproject(camera.project(inside)), inside / np.linalg.norm(inside), atol=1e-9)
+
+
+# ------------------------------------------------------------------------------- Jacobians
+
+INTRINSICS = ("fx", "fy", "cx", "cy", "d")
+
+
+def numeric_point_jacobian(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """(n, 2, 3) central differences of the pixels by each coordinate of the points, step 1e-6 of the depth."""
+    h = 1e-6 * points[:, 2:]
+    columns = [(camera.project(points + h * e) - camera.project(points - h * e)) / (2.0 * h) for e in np.eye(3)]
+    return np.stack(columns, axis=2)
+
+
+def numeric_intrinsics_jacobian(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """(n, 2, 5) central differences of the pixels by fx, fy, cx, cy, d (the pixels are linear in each)."""
+    columns = []
+    for name in INTRINSICS:
+        h = 1e-3 * max(abs(getattr(camera, name)), 1.0)
+        plus = replace(camera, **{name: getattr(camera, name) + h}).project(points)
+        minus = replace(camera, **{name: getattr(camera, name) - h}).project(points)
+        columns.append((plus - minus) / (2.0 * h))
+    return np.stack(columns, axis=2)
+
+
+@pytest.mark.parametrize("name", sorted(ALL_CAMERAS))
+def test_project_jacobians_are_the_finite_differences(name):
+    camera = ALL_CAMERAS[name]
+    points = random_points_in_view(camera, 40, np.random.default_rng(11))
+    uv, J_point, J_intrinsics = camera.project(points, jacobian=True)
+    np.testing.assert_array_equal(uv, camera.project(points))
+    assert J_point.shape == (40, 2, 3) and J_intrinsics.shape == (40, 2, 5)
+    assert np.isfinite(J_point).all() and np.isfinite(J_intrinsics).all()
+    scale = np.abs(J_point).max(axis=(1, 2))[:, None, None]  # ~ f / z
+    np.testing.assert_allclose(J_point / scale, numeric_point_jacobian(camera, points) / scale, rtol=0, atol=1e-7)
+    np.testing.assert_allclose(J_intrinsics, numeric_intrinsics_jacobian(camera, points), rtol=1e-8, atol=1e-9)
+
+
+def test_project_jacobian_is_nan_where_points_are_not_imaged():
+    camera = WIDE_INSIDE["640x480"]
+    points = np.array([[0.1, 0.2, 1.0],                       # imaged
+                       [0.1, 0.2, -1.0],                      # behind
+                       [0.0, 0.0, 0.0],                       # the centre
+                       [np.tan(np.radians(60)), 0.0, 1.0]])   # beyond the fold of d = -0.3
+    with np.errstate(all="raise"):
+        uv, J_point, J_intrinsics = camera.project(points, jacobian=True)
+    assert np.isfinite(uv[0]).all() and np.isfinite(J_point[0]).all() and np.isfinite(J_intrinsics[0]).all()
+    assert np.isnan(uv[1:]).all() and np.isnan(J_point[1:]).all() and np.isnan(J_intrinsics[1:]).all()
+
+
+def test_project_unmasked_is_project_where_imaged_and_finite_elsewhere():
+    """The solvers' model: the same pixels and Jacobians for imaged points; behind the camera the
+    formula's value (the mirrored point's pixel), not NaN."""
+    camera = LONG_FOCAL["d=-3.0"]
+    points = random_points_in_view(camera, 30, np.random.default_rng(12))
+    args = (camera.fx, camera.fy, camera.cx, camera.cy, camera.d)
+    for masked, unmasked in zip(camera.project(points, jacobian=True), project_unmasked(points, *args, jacobian=True)):
+        np.testing.assert_array_equal(unmasked, masked)
+    np.testing.assert_array_equal(project_unmasked(points, *args), camera.project(points))
+    behind = -points[:5]
+    np.testing.assert_allclose(project_unmasked(behind, *args), camera.project(points[:5]), rtol=1e-15)
+    assert np.isnan(camera.project(behind)).all()
+
+
+# The removed calib/_projection.py's outputs (commit c2e85e5), captured before it went: four
+# cameras (d = 3, -3, 0 long-focal, d = -0.3 wide), world points with one behind each camera.
+PROJECTION_REFERENCE = Path(__file__).parent / "data" / "projection_reference.npz"
+
+
+def test_project_unmasked_equals_the_removed_projection_module():
+    ref = np.load(PROJECTION_REFERENCE)
+    for k, intrinsics in enumerate(ref["intrinsics"]):
+        points_cam = ref["points"][k] @ ref["R"][k].T + ref["t"][k]
+        uv, J_point, J_intrinsics = project_unmasked(points_cam, *intrinsics, jacobian=True)
+        np.testing.assert_allclose(uv, ref["uv"][k], rtol=1e-12, atol=0)
+        np.testing.assert_allclose(J_point, ref["J_cam"][k], rtol=1e-12, atol=0)
+        np.testing.assert_allclose(J_intrinsics, ref["J_intr"][k], rtol=1e-12, atol=0)
+
+
+def test_pose_jacobian_of_pixels_equals_the_removed_projection_module():
+    ref = np.load(PROJECTION_REFERENCE)
+    for k, intrinsics in enumerate(ref["intrinsics"]):
+        for phi, expected in zip(ref["phis"], ref["pose_jacobian"][k]):
+            R = exp_so3(phi) @ ref["R"][k]
+            _, J_point, _ = project_unmasked(ref["points"][k] @ R.T + ref["t"][k], *intrinsics, jacobian=True)
+            np.testing.assert_allclose(pose_jacobian(ref["points"][k], R, phi, J_point), expected, rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("angle", [0.0, 0.3])
+def test_pose_jacobian_of_pixels_is_the_finite_differences(angle):
+    """d pixels / d(phi, t) for cam_from_world = (exp(phi) R0, t), against central differences."""
+    camera = LONG_FOCAL["d=3.0"]
+    rng = np.random.default_rng(13)
+    points_cam = random_points_in_view(camera, 20, rng) + [0.0, 0.0, 100.0]
+    R0 = exp_so3([0.2, -0.1, 0.3])
+    phi = angle * np.array([0.6, 0.0, -0.8])
+    t = np.array([1.0, -2.0, 3.0])
+    X = (points_cam - t) @ exp_so3(phi) @ R0  # world points with exp(phi) R0 X + t = points_cam
+    args = (camera.fx, camera.fy, camera.cx, camera.cy, camera.d)
+
+    def pixels(p):
+        return project_unmasked(X @ (exp_so3(p[:3]) @ R0).T + p[3:], *args)
+
+    p0, h = np.concatenate([phi, t]), np.array([1e-7] * 3 + [1e-4] * 3)
+    numeric = np.stack([(pixels(p0 + h[i] * e) - pixels(p0 - h[i] * e)) / (2.0 * h[i])
+                        for i, e in enumerate(np.eye(6))], axis=2)
+    _, J_point, _ = project_unmasked(X @ (exp_so3(phi) @ R0).T + t, *args, jacobian=True)
+    J = pose_jacobian(X, exp_so3(phi) @ R0, phi, J_point)
+    np.testing.assert_allclose(J, numeric, rtol=1e-5, atol=1e-6 * np.abs(J).max())

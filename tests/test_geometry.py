@@ -1,13 +1,15 @@
-"""Tests of rotations (Cayley, quaternion, ZYX Euler), error metrics, averaging and Rigid3."""
+"""Tests of rotations (Cayley, quaternion, ZYX Euler, SO(3) exp/log/Jacobians), error metrics, averaging and Rigid3."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scipy.linalg import expm
 from scipy.spatial.transform import Rotation
 
 from dmais_pipe.errors import DmaisError, GeometryError
@@ -16,6 +18,10 @@ from dmais_pipe.geometry import (
     average_rotations,
     cayley_from_rotation,
     euler_zyx_from_rotation,
+    exp_so3,
+    left_jacobian_so3,
+    log_so3,
+    pose_jacobian,
     quat_from_rotation,
     rotation_angle,
     rotation_error,
@@ -70,6 +76,143 @@ def test_skew_is_cross_product_matrix():
         a, b = rng.normal(size=3), rng.normal(size=3)
         np.testing.assert_allclose(skew(a) @ b, np.cross(a, b), atol=1e-15)
         np.testing.assert_array_equal(skew(a), -skew(a).T)
+
+
+def test_skew_is_vectorised_over_rows():
+    rng = np.random.default_rng(1)
+    a, b = rng.normal(size=(7, 3)), rng.normal(size=(7, 3))
+    S = skew(a)
+    assert S.shape == (7, 3, 3)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", S, b), np.cross(a, b), atol=1e-15)
+    for k in range(7):
+        np.testing.assert_array_equal(S[k], skew(a[k]))
+    assert skew(np.zeros((0, 3))).shape == (0, 3, 3)
+
+
+@pytest.mark.parametrize("shape", [(2,), (4,), (3, 2), (2, 3, 3)])
+def test_skew_rejects_other_shapes(shape):
+    with pytest.raises(GeometryError):
+        skew(np.ones(shape))
+
+
+# ------------------------------------------------------------------------------- SO(3) exp and log
+
+# Rotation angles from 0 through tiny (series territory) and moderate to pi and just below it.
+ANGLES = [0.0, 1e-12, 1e-8, 1e-6, 1e-3, 0.5, 2.0, np.pi - 1e-3, np.pi - 1e-7, np.pi - 1e-10]
+
+
+def rotvecs_at(angles, seed: int) -> np.ndarray:
+    """(len(angles), 3) rotation vectors of the given lengths about random axes."""
+    axes = np.random.default_rng(seed).normal(size=(len(angles), 3))
+    return axes / np.linalg.norm(axes, axis=1, keepdims=True) * np.asarray(angles)[:, None]
+
+
+def rodrigues(axis, angle) -> np.ndarray:
+    """cos a I + sin a [k]x + (1 - cos a) k k^T for a unit axis k, written out."""
+    k = np.asarray(axis, dtype=float)
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.cos(angle) * np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * np.outer(k, k)
+
+
+def test_exp_so3_is_the_matrix_exponential_of_skew():
+    phis = rotvecs_at(ANGLES, seed=3)
+    R = exp_so3(phis)
+    assert R.shape == (len(ANGLES), 3, 3)
+    for phi, Rk in zip(phis, R):
+        np.testing.assert_allclose(Rk, expm(skew(phi)), rtol=0, atol=1e-14)
+        np.testing.assert_array_equal(exp_so3(phi), Rk)
+    assert_rotation(R)
+
+
+@pytest.mark.parametrize("angle", ANGLES + [np.pi])
+def test_exp_so3_is_rodrigues(angle):
+    axis = np.array([2.0, -1.0, 0.5]) / np.linalg.norm([2.0, -1.0, 0.5])
+    np.testing.assert_allclose(exp_so3(angle * axis), rodrigues(axis, angle), rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("angle", ANGLES)
+def test_log_so3_inverts_rodrigues(angle):
+    """log of an angle-axis rotation built without scipy gives its rotation vector back; near 0 the
+    vector keeps its relative accuracy, near pi its direction."""
+    axis = np.array([-0.3, 0.4, 0.2]) / np.linalg.norm([-0.3, 0.4, 0.2])
+    phi = log_so3(rodrigues(axis, angle))
+    assert phi.shape == (3,)
+    # Near pi the matrix fixes the angle to ~sqrt(eps) only: |R - R'| ~ (pi - a) da for nearby angles.
+    atol = 1e-15 if angle < 3.0 else 2e-8
+    np.testing.assert_allclose(phi, angle * axis, rtol=1e-9, atol=atol)
+
+
+def test_log_so3_at_pi_gives_an_axis_of_the_rotation():
+    axis = np.array([1.0, 2.0, -2.0]) / 3.0
+    phi = log_so3(rodrigues(axis, np.pi))
+    assert np.linalg.norm(phi) == pytest.approx(np.pi, abs=1e-12)
+    assert abs(phi @ axis) == pytest.approx(np.pi, abs=1e-12)  # +-axis: both are the same rotation
+    np.testing.assert_allclose(exp_so3(phi), rodrigues(axis, np.pi), atol=1e-14)
+
+
+def test_log_so3_is_vectorised_and_matches_scipy_rotvec():
+    phis = rotvecs_at(ANGLES, seed=4)
+    R = np.array([rodrigues(p / max(np.linalg.norm(p), 1e-300), np.linalg.norm(p)) for p in phis])
+    logs = log_so3(R)
+    assert logs.shape == (len(ANGLES), 3)
+    np.testing.assert_allclose(logs, Rotation.from_matrix(R).as_rotvec(), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(exp_so3(logs), R, rtol=0, atol=1e-14)
+
+
+# ------------------------------------------------------------------------------- Jacobians
+
+
+def numeric_left_jacobian(phi, h: float = 1e-6) -> np.ndarray:
+    """Central differences of log(exp(phi + h e_k) exp(phi)^T) / h: the definition of J_l."""
+    R = exp_so3(phi)
+    columns = [(log_so3(exp_so3(phi + h * e) @ R.T) - log_so3(exp_so3(phi - h * e) @ R.T)) / (2.0 * h)
+               for e in np.eye(3)]
+    return np.column_stack(columns)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 5e-7, 1e-3, 0.4, 1.5, 2.8])
+def test_left_jacobian_so3_is_the_derivative_of_exp(angle):
+    """Both branches (the series below 1e-6 and the closed form) against finite differences."""
+    phi = rotvecs_at([angle], seed=5)[0]
+    np.testing.assert_allclose(left_jacobian_so3(phi), numeric_left_jacobian(phi), rtol=0, atol=1e-8)
+
+
+def test_left_jacobian_so3_fixes_phi_and_is_continuous_at_the_series_switch():
+    phi = np.array([0.3, -0.9, 1.1])
+    np.testing.assert_allclose(left_jacobian_so3(phi) @ phi, phi, atol=1e-15)  # J_l(phi) phi = phi
+    axis = np.array([1.0, 1.0, -1.0]) / np.sqrt(3.0)
+    below, above = left_jacobian_so3((1e-6 - 1e-15) * axis), left_jacobian_so3((1e-6 + 1e-15) * axis)
+    # the closed form's 1 - cos(theta) keeps only ~eps / theta^2 = 1e-4 of relative accuracy at the
+    # switch: 5e-11 on the 0.5 [phi]x term (dropping that term would differ by 5e-7)
+    np.testing.assert_allclose(below, above, rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-8, 0.02, 2.0])
+def test_pose_jacobian_is_the_derivative_of_the_transformed_points(angle):
+    """With J_point = I the chain rule gives d(exp(phi) R0 X + t)/d(phi, t): compared with central differences."""
+    rng = np.random.default_rng(6)
+    X, R0, t = rng.normal(0.0, 10.0, (5, 3)), random_rotations(1, seed=7)[0], rng.normal(size=3)
+    phi = rotvecs_at([angle], seed=8)[0]
+
+    def transformed(p):
+        return X @ (exp_so3(p[:3]) @ R0).T + p[3:]
+
+    p0, h = np.concatenate([phi, t]), 1e-6
+    numeric = np.stack([(transformed(p0 + h * e) - transformed(p0 - h * e)) / (2.0 * h) for e in np.eye(6)], axis=2)
+    J = pose_jacobian(X, exp_so3(phi) @ R0, phi, np.broadcast_to(np.eye(3), (5, 3, 3)))
+    assert J.shape == (5, 3, 6)
+    np.testing.assert_allclose(J, numeric, rtol=0, atol=1e-7)
+
+
+# The removed calib/_projection.py's outputs (commit c2e85e5), captured before it went.
+PROJECTION_REFERENCE = Path(__file__).parent / "data" / "projection_reference.npz"
+
+
+def test_exp_and_left_jacobian_equal_the_removed_projection_module():
+    ref = np.load(PROJECTION_REFERENCE)
+    for phi, R, J in zip(ref["phis"], ref["exp_so3"], ref["left_jacobian"]):
+        np.testing.assert_allclose(exp_so3(phi), R, rtol=1e-12, atol=1e-15)
+        np.testing.assert_allclose(left_jacobian_so3(phi), J, rtol=1e-12, atol=1e-15)
 
 
 # ------------------------------------------------------------------------------------- Cayley

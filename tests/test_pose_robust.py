@@ -240,7 +240,7 @@ def test_absolute_orientation_three_points():
 
 
 def test_refine_jacobian_matches_finite_differences():
-    from dmais_pipe.calib._projection import exp_so3
+    from dmais_pipe.geometry import exp_so3
     from dmais_pipe.pose.refine import _jacobian
 
     rng = np.random.default_rng(20)

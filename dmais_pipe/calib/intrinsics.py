@@ -34,10 +34,9 @@ import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
 
-from ..camera import Camera, image_centre
+from ..camera import Camera, image_centre, project_unmasked
 from ..errors import DmaisError
-from ..geometry import Rigid3
-from ._projection import exp_so3, pose_jacobian, project
+from ..geometry import Rigid3, exp_so3, pose_jacobian
 from .pnpf import solve_pnpf
 
 log = logging.getLogger(__name__)
@@ -154,11 +153,11 @@ def refine_pose(camera: Camera, X: np.ndarray, uv: np.ndarray, pose: Rigid3) -> 
     args = (camera.fx, camera.fy, camera.cx, camera.cy, camera.d)
 
     def fun(p):
-        return (project(X, exp_so3(p[:3]) @ R0, p[3:], *args) - uv).ravel()
+        return (project_unmasked(X @ (exp_so3(p[:3]) @ R0).T + p[3:], *args) - uv).ravel()
 
     def jac(p):
         R = exp_so3(p[:3]) @ R0
-        _, J_cam, _ = project(X, R, p[3:], *args, jacobian=True)
+        _, J_cam, _ = project_unmasked(X @ R.T + p[3:], *args, jacobian=True)
         return pose_jacobian(X, R, p[:3], J_cam).reshape(-1, 6)
 
     sol = least_squares(fun, np.concatenate([np.zeros(3), pose.t]), jac=jac, method="lm",
@@ -211,7 +210,8 @@ def bundle_adjust(camera: Camera, poses: dict[str, Rigid3], data: dict[str, tupl
         for i, k in enumerate(names):
             X, uv = data[k]
             q = p[5 + 6 * i: 11 + 6 * i]
-            out[rows[i]:rows[i + 1]] = (project(X, exp_so3(q[:3]) @ R0[i], q[3:], *p[:5]) - uv).ravel()
+            Xc = X @ (exp_so3(q[:3]) @ R0[i]).T + q[3:]
+            out[rows[i]:rows[i + 1]] = (project_unmasked(Xc, *p[:5]) - uv).ravel()
         return out
 
     def jac(p):
@@ -220,7 +220,7 @@ def bundle_adjust(camera: Camera, poses: dict[str, Rigid3], data: dict[str, tupl
             X, _ = data[k]
             q = p[5 + 6 * i: 11 + 6 * i]
             R = exp_so3(q[:3]) @ R0[i]
-            _, J_cam, J_intr = project(X, R, q[3:], *p[:5], jacobian=True)
+            _, J_cam, J_intr = project_unmasked(X @ R.T + q[3:], *p[:5], jacobian=True)
             J[rows[i]:rows[i + 1], :5] = J_intr.reshape(-1, 5)
             J[rows[i]:rows[i + 1], 5 + 6 * i: 11 + 6 * i] = pose_jacobian(X, R, q[:3], J_cam).reshape(-1, 6)
         return J
@@ -413,8 +413,8 @@ def calibrate_camera_opencv(points_world_per_image, uv_per_image, width: int, he
     camera = Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], d=float(dist.ravel()[0]), width=width,
                     height=height)
     poses = {k: Rigid3(cv2.Rodrigues(r)[0], t.ravel()) for k, r, t in zip(names, rvecs, tvecs)}
-    residuals = np.vstack([project(calib[k][0], poses[k].R, poses[k].t, camera.fx, camera.fy, camera.cx,
-                                   camera.cy, camera.d) - calib[k][1] for k in names])
+    residuals = np.vstack([project_unmasked(poses[k].apply(calib[k][0]), camera.fx, camera.fy, camera.cx, camera.cy,
+                                            camera.d) - calib[k][1] for k in names])
     s = np.asarray(std_intr).ravel()
     cov = np.diag(np.array([s[0], s[1], s[2], s[3], s[4]]) ** 2)
     return _finish(name, "opencv", camera, poses, residuals, cov, calib, evals, centre, skipped)

@@ -19,10 +19,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..camera import Camera
+from ..camera import Camera, project_unmasked
 from ..errors import DmaisError
-from ..geometry import Rigid3
-from ._projection import exp_so3, left_jacobian, pose_jacobian, project
+from ..geometry import Rigid3, exp_so3, left_jacobian_so3, pose_jacobian, skew
 from .intrinsics import estimate_pose
 
 MIN_POINTS = 3
@@ -79,17 +78,15 @@ def refine_pose_with_center_prior(camera: Camera, X: np.ndarray, uv: np.ndarray,
 
     def fun(p):
         R, t = unpack(p)
-        r_pix = (project(X, R, t, *args) - uv).ravel() / pixel_sigma
+        r_pix = (project_unmasked(X @ R.T + t, *args) - uv).ravel() / pixel_sigma
         return np.concatenate([r_pix, (p[3:] - prior) / center_sigma])
 
     def jac(p):
         R, t = unpack(p)
-        _, J_cam, _ = project(X, R, t, *args, jacobian=True)
+        _, J_cam, _ = project_unmasked(X @ R.T + t, *args, jacobian=True)
         J_pose = pose_jacobian(X, R, p[:3], J_cam)  # d/d(phi, t) with t free
         # t = -R C: dt/dphi = [R C]x J_l (from d(R C) = -[R C]x J_l dphi), dt/dC = -R
-        RC = R @ p[3:]
-        skew = np.array([[0.0, -RC[2], RC[1]], [RC[2], 0.0, -RC[0]], [-RC[1], RC[0], 0.0]])
-        dt_dphi = skew @ left_jacobian(p[:3])
+        dt_dphi = skew(R @ p[3:]) @ left_jacobian_so3(p[:3])
         J = np.empty((2 * n + 3, 6))
         J[:2 * n, :3] = (J_pose[:, :, :3] + J_pose[:, :, 3:] @ dt_dphi).reshape(-1, 3)
         J[:2 * n, 3:] = (J_pose[:, :, 3:] @ -R).reshape(-1, 3)

@@ -33,10 +33,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..camera import Camera
+from ..camera import Camera, project_unmasked
 from ..errors import DmaisError
-from ..geometry import Rigid3, skew
-from ._projection import exp_so3, left_jacobian, project
+from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
 
 log = logging.getLogger(__name__)
 
@@ -73,15 +72,6 @@ class RigBAResult:
     prior_residuals_m: dict[str, np.ndarray] = field(default_factory=dict)
     sigma0: float = float("nan")  # a posteriori standard deviation of unit weight
     backend: str = "scipy"
-
-
-def _skews(v: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) cross-product matrices of vectors (n, 3)."""
-    S = np.zeros((len(v), 3, 3))
-    S[:, 0, 1], S[:, 0, 2] = -v[:, 2], v[:, 1]
-    S[:, 1, 0], S[:, 1, 2] = v[:, 2], -v[:, 0]
-    S[:, 2, 0], S[:, 2, 1] = -v[:, 1], v[:, 0]
-    return S
 
 
 def _camera_sigmas(cameras, pixel_sigma: float | dict[str, float]) -> dict[str, float]:
@@ -165,7 +155,7 @@ class _RigProblem:
             v = X_rig - c
             X_cam = v @ Rc  # rows of Rc^T v
             n2 = 2 * len(b.X)
-            out = project(X_cam, np.eye(3), np.zeros(3), cam.fx, cam.fy, cam.cx, cam.cy, cam.d, jacobian=jacobian)
+            out = project_unmasked(X_cam, cam.fx, cam.fy, cam.cx, cam.cy, cam.d, jacobian=jacobian)
             uv = out[0] if jacobian else out
             r[r0:r0 + n2] = (uv - b.uv).ravel() / s
             if prior:
@@ -175,18 +165,18 @@ class _RigProblem:
             J_cam = out[1] / s  # (n, 2, 3) d(pixel)/d(X_cam)
             RcT = Rc.T
             # placement: dX_rig/dpsi = -[X_rig]x J_l(psi), dX_rig/dC = -R_j; dX_cam/dX_rig = R_c^T
-            dXr_dpsi = -_skews(X_rig) @ left_jacobian(psi)
+            dXr_dpsi = -skew(X_rig) @ left_jacobian_so3(psi)
             kj = self.pl_index[b.placement]
             J[r0:r0 + n2, kj:kj + 3] = (J_cam @ RcT @ dXr_dpsi).reshape(-1, 3)
             J[r0:r0 + n2, kj + 3:kj + 6] = (J_cam @ (RcT @ -Rj)).reshape(-1, 3)
             if b.camera != self.reference:
                 # dX_cam/dphi = R_c^T [v]x J_l(phi), dX_cam/dc = -R_c^T
                 kc = self.cam_index[b.camera]
-                J[r0:r0 + n2, kc:kc + 3] = (J_cam @ (RcT @ _skews(v)) @ left_jacobian(phi)).reshape(-1, 3)
+                J[r0:r0 + n2, kc:kc + 3] = (J_cam @ (RcT @ skew(v)) @ left_jacobian_so3(phi)).reshape(-1, 3)
                 J[r0:r0 + n2, kc + 3:kc + 6] = (J_cam @ -RcT).reshape(-1, 3)
             if prior:
                 rr = slice(r0 + n2, r0 + nr)
-                J[rr, kj:kj + 3] = Rj.T @ skew(c) @ left_jacobian(psi) / self.center_sigma
+                J[rr, kj:kj + 3] = Rj.T @ skew(c) @ left_jacobian_so3(psi) / self.center_sigma
                 J[rr, kj + 3:kj + 6] = np.eye(3) / self.center_sigma
                 if b.camera != self.reference:
                     J[rr, kc + 3:kc + 6] = Rj.T / self.center_sigma

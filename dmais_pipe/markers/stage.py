@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..camera import Camera, image_centre
+from ..camera import Camera, image_centre, project_unmasked
 from ..dataset import Dataset
 from ..errors import DatasetError, DmaisError
 from ..geometry import Rigid3
@@ -177,8 +177,9 @@ def verify_with_pose(uv: np.ndarray, ids: np.ndarray, points: pd.DataFrame, prin
         except DmaisError:
             ids[keep] = ""
             return ids
-        x = cam_from_world.apply(X)
-        residual = np.hypot(*(focal * x[:, :2] / x[:, 2:] + principal_point - uv[keep]).T)
+        # the nominal pinhole (d = 0); PnPf's pose has every point in front, where nothing is masked
+        uv_fit = project_unmasked(cam_from_world.apply(X), focal, focal, *principal_point, 0.0)
+        residual = np.hypot(*(uv_fit - uv[keep]).T)
         worst = int(np.argmax(residual))
         if residual[worst] <= VERIFY_GATE_PX:
             return ids

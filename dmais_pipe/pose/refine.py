@@ -30,9 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..calib._projection import exp_so3
-from ..geometry import skew
 from ..errors import PoseError
+from ..geometry import exp_so3, skew
 from .statistics import validate_correspondences
 
 #: Iteration limit of `refine_pose`.

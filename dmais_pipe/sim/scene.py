@@ -12,7 +12,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..camera import Camera
-from ..geometry import Rigid3, rotation_from_euler_zyx
+from ..geometry import Rigid3, exp_so3, rotation_from_euler_zyx
 from ..rig import Rig
 from .render import MarkerBoard
 
@@ -80,7 +80,7 @@ def direction(azimuth_deg: float, elevation_deg: float = 0.0) -> np.ndarray:
 
 def small_rotation(rng: np.random.Generator, sigma_rad: float) -> np.ndarray:
     """(3, 3) rotation by a rotation vector with N(0, sigma^2) components."""
-    return Rotation.from_rotvec(rng.normal(0.0, sigma_rad, 3)).as_matrix()
+    return exp_so3(rng.normal(0.0, sigma_rad, 3))
 
 
 # --------------------------------------------------------------------------- calibration field
@@ -198,7 +198,7 @@ def _intrinsic_pose(config, camera, station, markers, rng) -> Rigid3:
         elevation = rng.uniform(-1, 1) * c["aim_jitter_deg"][1]
         roll = np.radians(90.0 * rng.integers(4) + rng.normal(0.0, c["roll_jitter_deg"]))
         forward = direction(azimuth, elevation)
-        world_from_cam = look_rotation(forward) @ Rotation.from_rotvec([0, 0, roll]).as_matrix()
+        world_from_cam = look_rotation(forward) @ exp_so3([0, 0, roll])
         position = station + rng.normal(0.0, c["station_jitter_m"], 3)
         cam_from_world = Rigid3(world_from_cam, position).inverse()
         if len(visible_points(camera, cam_from_world, markers, 20.0)) >= c["min_points"]:
@@ -219,7 +219,7 @@ def placement_poses(config: dict, rig: Rig, rng: np.random.Generator) -> list[Ri
     poses = []
     for j in range(e["placements"]):
         roll = np.radians(e["initial_roll_deg"] + 90.0 * j)
-        world_from_rig = world_from_rig0 @ Rotation.from_rotvec([0, 0, roll]).as_matrix()
+        world_from_rig = world_from_rig0 @ exp_so3([0, 0, roll])
         world_from_rig = _adjust_to_field(rig, world_from_rig, targets) @ world_from_rig
         world_from_rig = small_rotation(rng, np.radians(e["adjust_jitter_deg"])) @ world_from_rig
         position = station + rng.normal(0.0, e["station_jitter_m"], 3)
