@@ -31,14 +31,16 @@ _DERF = np.sqrt(2.0 / np.pi)
 
 def window(img: np.ndarray, centre: np.ndarray, radius: float):
     """Pixels of discs of `radius` about centres (n, 2): positions x, y (n, k), values (n, k) and
-    taper weights (n, k), 0 outside the disc or the image."""
+    taper weights (n, k), 0 outside the disc or the image. Only pixels within radius + 1 of the
+    rounded centre are listed (the taper is 0 beyond radius from the centre itself)."""
     height, width = img.shape
     half = int(np.ceil(radius)) + 1
     offs = np.arange(-half, half + 1)
     oy, ox = np.meshgrid(offs, offs, indexing="ij")
+    disc = ox**2 + oy**2 <= (radius + 1.0) ** 2
     c = np.rint(np.nan_to_num(centre)).astype(int)
-    x = c[:, :1] + ox.ravel()[None]
-    y = c[:, 1:] + oy.ravel()[None]
+    x = c[:, :1] + ox[disc][None]
+    y = c[:, 1:] + oy[disc][None]
     inside = (x >= 0) & (x < width) & (y >= 0) & (y < height)
     values = img[np.clip(y, 0, height - 1), np.clip(x, 0, width - 1)].astype(np.float64)
     d2 = (x - centre[:, :1]) ** 2 + (y - centre[:, 1:]) ** 2
@@ -100,9 +102,9 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40):
         p, xa, ya, va, wa = params[active], x[active], y[active], values[active], weights[active]
         r, jac = model(p, xa, ya)
         r = r - va
-        wj = jac * wa[..., None]
-        hess = np.einsum("nki,nkj->nij", wj, jac)
-        grad = np.einsum("nki,nk->ni", wj, r)
+        wj = (jac * wa[..., None]).transpose(0, 2, 1)  # (n, 7, k): batched BLAS products below
+        hess = np.matmul(wj, jac)
+        grad = np.matmul(wj, r[..., None])[..., 0]
         damped = hess + lam[active, None, None] * (np.eye(N_PARAMS) * np.diagonal(hess, axis1=1, axis2=2)[:, None, :]
                                                     + 1e-9 * np.eye(N_PARAMS))
         try:
@@ -122,9 +124,9 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40):
         active = active[~done]
     r, jac = model(params, x, y)
     r = r - values
-    wj = jac * weights[..., None]
-    hess = np.einsum("nki,nkj->nij", wj, jac)
-    meat = np.einsum("nki,nkj->nij", wj * weights[..., None], jac)
+    wj = (jac * weights[..., None]).transpose(0, 2, 1)
+    hess = np.matmul(wj, jac)
+    meat = np.matmul(wj * weights[:, None, :], jac)
     sw = weights.sum(1)
     dof = np.maximum(np.count_nonzero(weights > 0, axis=1) - N_PARAMS, 1)
     sigma2 = (weights * r**2).sum(1) / np.maximum(sw, 1e-12) * np.count_nonzero(weights > 0, axis=1) / dof
