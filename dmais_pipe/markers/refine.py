@@ -19,7 +19,7 @@ from . import xfit
 
 RING_SAMPLES = 48
 MIN_RADIUS = 3.0  # px, smallest window radius
-MAX_RADIUS = 40.0  # px, largest window half-size
+MAX_RADIUS = 25.0  # px, largest window half-size
 RADIUS_FRACTION = 0.8
 SEED_RADIUS = 5.0
 SEED_EPS = 0.01

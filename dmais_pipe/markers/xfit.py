@@ -31,14 +31,16 @@ _DERF = np.sqrt(2.0 / np.pi)
 
 def window(img: np.ndarray, centre: np.ndarray, radius: float):
     """Pixels of discs of `radius` about centres (n, 2): positions x, y (n, k), values (n, k) and
-    taper weights (n, k), 0 outside the disc or the image."""
+    taper weights (n, k), 0 outside the disc or the image. Only pixels within radius + 1 of the
+    rounded centre are listed (the taper is 0 beyond radius from the centre itself)."""
     height, width = img.shape
     half = int(np.ceil(radius)) + 1
     offs = np.arange(-half, half + 1)
     oy, ox = np.meshgrid(offs, offs, indexing="ij")
+    disc = ox**2 + oy**2 <= (radius + 1.0) ** 2
     c = np.rint(np.nan_to_num(centre)).astype(int)
-    x = c[:, :1] + ox.ravel()[None]
-    y = c[:, 1:] + oy.ravel()[None]
+    x = c[:, :1] + ox[disc][None]
+    y = c[:, 1:] + oy[disc][None]
     inside = (x >= 0) & (x < width) & (y >= 0) & (y < height)
     values = img[np.clip(y, 0, height - 1), np.clip(x, 0, width - 1)].astype(np.float64)
     d2 = (x - centre[:, :1]) ** 2 + (y - centre[:, 1:]) ** 2
@@ -82,6 +84,12 @@ def linear_levels(params: np.ndarray, x, y, values, weights) -> np.ndarray:
     return params
 
 
+def _normal_equations(residual: np.ndarray, jac: np.ndarray, weights: np.ndarray):
+    """Weighted cost (n,), J^T W J (n, 7, 7) and J^T W r (n, 7) of residuals (n, k) and Jacobians (n, k, 7)."""
+    wj = (jac * weights[..., None]).transpose(0, 2, 1)  # (n, 7, k): batched BLAS products
+    return (weights * residual**2).sum(1), np.matmul(wj, jac), np.matmul(wj, residual[..., None])[..., 0]
+
+
 def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40):
     """Levenberg-Marquardt from params (n, 7) on pixels x, y, values, weights (n, k).
 
@@ -90,31 +98,28 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40):
     params = params.copy()
     n = len(params)
     lam = np.full(n, 1e-3)
-    residual = model(params, x, y, jacobian=False)[0] - values
-    cost = (weights * residual**2).sum(1)
+    value, jac = model(params, x, y)
+    cost, hess, grad = _normal_equations(value - values, jac, weights)
+    eye = np.eye(N_PARAMS)
     converged = np.zeros(n, dtype=bool)
     active = np.arange(n)
     for _ in range(iterations):
         if len(active) == 0:
             break
-        p, xa, ya, va, wa = params[active], x[active], y[active], values[active], weights[active]
-        r, jac = model(p, xa, ya)
-        r = r - va
-        wj = jac * wa[..., None]
-        hess = np.einsum("nki,nkj->nij", wj, jac)
-        grad = np.einsum("nki,nk->ni", wj, r)
-        damped = hess + lam[active, None, None] * (np.eye(N_PARAMS) * np.diagonal(hess, axis1=1, axis2=2)[:, None, :]
-                                                    + 1e-9 * np.eye(N_PARAMS))
+        h = hess[active]
+        damped = h + lam[active, None, None] * (eye * np.diagonal(h, axis1=1, axis2=2)[:, None, :] + 1e-9 * eye)
         try:
-            step = -np.linalg.solve(damped, grad[..., None])[..., 0]
+            step = -np.linalg.solve(damped, grad[active][..., None])[..., 0]
         except np.linalg.LinAlgError:
-            step = -np.stack([np.linalg.lstsq(d, g, rcond=None)[0] for d, g in zip(damped, grad)])
-        trial = p + step
+            step = -np.stack([np.linalg.lstsq(d, g, rcond=None)[0] for d, g in zip(damped, grad[active])])
+        trial = params[active] + step
         trial[:, 4] = np.maximum(trial[:, 4], MIN_BLUR)
-        new_cost = (wa * (model(trial, xa, ya, jacobian=False)[0] - va) ** 2).sum(1)
+        # The trial's Jacobian with its values: the next step's normal equations where it is taken.
+        value, jac = model(trial, x[active], y[active])
+        new_cost, new_hess, new_grad = _normal_equations(value - values[active], jac, weights[active])
         better = np.isfinite(new_cost) & (new_cost <= cost[active])
-        params[active[better]] = trial[better]
-        cost[active[better]] = new_cost[better]
+        taken = active[better]
+        params[taken], cost[taken], hess[taken], grad[taken] = trial[better], new_cost[better], new_hess[better], new_grad[better]
         lam[active] = np.where(better, lam[active] / 3.0, lam[active] * 4.0)
         small = np.hypot(step[:, 0], step[:, 1]) < 1e-4
         done = (better & small) | (lam[active] > 1e6)
@@ -122,9 +127,9 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40):
         active = active[~done]
     r, jac = model(params, x, y)
     r = r - values
-    wj = jac * weights[..., None]
-    hess = np.einsum("nki,nkj->nij", wj, jac)
-    meat = np.einsum("nki,nkj->nij", wj * weights[..., None], jac)
+    wj = (jac * weights[..., None]).transpose(0, 2, 1)
+    hess = np.matmul(wj, jac)
+    meat = np.matmul(wj * weights[:, None, :], jac)
     sw = weights.sum(1)
     dof = np.maximum(np.count_nonzero(weights > 0, axis=1) - N_PARAMS, 1)
     sigma2 = (weights * r**2).sum(1) / np.maximum(sw, 1e-12) * np.count_nonzero(weights > 0, axis=1) / dof
