@@ -117,6 +117,27 @@ def projected_residuals(origins, directions, points, R):
     return np.cross(directions, X + t[:, None, :] - origins).reshape(len(R), -1), t
 
 
+def _cross_matrices(x):
+    """[x]x (..., 3, 3) of vectors x (..., 3)."""
+    out = np.zeros(x.shape + (3,))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -x[..., 2], x[..., 1], -x[..., 0]
+    return out - np.swapaxes(out, -1, -2)
+
+
+def _projected_jacobian(directions, points, R):
+    """Jacobian (S, 3n, 3) of `projected_residuals` for R <- exp([w]x) R at w = 0, R (S, 3, 3).
+
+    With X_i = R M_i, dX_i = -[X_i]x w, and t(R) = S^-1 sum_j Q_j (v_j - X_j) (S = sum_j Q_j,
+    Q_j = I - f_j f_j^T) moves by T w, T = S^-1 sum_j Q_j [X_j]x; so r_i = [f_i]x (X_i + t - v_i)
+    moves by [f_i]x (T - [X_i]x) w.
+    """
+    Q = np.eye(3) - directions[:, :, None] * directions[:, None, :]  # (n, 3, 3)
+    X = _cross_matrices(np.einsum("sij,nj->sni", R, points))  # (S, n, 3, 3)
+    T = np.linalg.solve(Q.sum(axis=0), np.einsum("nij,snjk->sik", Q, X))  # (S, 3, 3)
+    J = np.einsum("nij,snjk->snik", _cross_matrices(directions), T[:, None] - X)
+    return J.reshape(len(R), -1, 3)
+
+
 def direct_cost(origins, directions, points, R, t):
     """Eq. objfun at (R (3, 3), t (3,)), summed over the rays; points (n, 3) as given."""
     return float(np.sum(np.cross(directions, points @ R.T + t - origins) ** 2))
@@ -126,13 +147,13 @@ def multistart_minimum(origins, directions, points, n_random=16, iterations=60, 
     """Minimum of eq. objfun over SO(3) by LM from 24 axis-aligned + n_random random starts and the
     rotations of starts (k, 3, 3) (e.g. a scene's true rotation), vectorized.
 
-    Independent of the solver: variable projection with t(R) from the 3x3 normal equations and a
-    finite-difference Jacobian, on the world points centred on their mean (t is free, so the cost
-    is unchanged, and UTM-sized coordinates do not drown the residuals of a narrow camera in
-    rounding). Returns (cost, R (3, 3), t (3,)) of the least direct cost found among the minima
-    that put at least half of the points in front of their rays, the solver's rule (eq. objfun
-    cannot tell a pose from its mirror behind the cameras, which over flat ground is often a
-    little cheaper); (inf, None, None) if no minimum does.
+    Independent of the solver: variable projection with t(R) from the 3x3 normal equations and its
+    exact Jacobian (`_projected_jacobian`), on the world points centred on their mean (t is free,
+    so the cost is unchanged, and UTM-sized coordinates do not drown the residuals of a narrow
+    camera in rounding). Returns (cost, R (3, 3), t (3,)) of the least direct cost found among the
+    minima that put at least half of the points in front of their rays, the solver's rule (eq.
+    objfun cannot tell a pose from its mirror behind the cameras, which over flat ground is often
+    a little cheaper); (inf, None, None) if no minimum does.
     """
     directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
     centroid = points.mean(axis=0)
@@ -143,11 +164,8 @@ def multistart_minimum(origins, directions, points, n_random=16, iterations=60, 
     residual, _ = projected_residuals(origins, directions, centred, R)
     cost = np.sum(residual**2, axis=1)
     damping = np.full(len(R), 1e-3)
-    h = 1e-7
     for _ in range(iterations):
-        J = np.stack([
-            (projected_residuals(origins, directions, centred, Rotation.from_rotvec(h * np.eye(3)[a]).as_matrix() @ R)[0]
-             - residual) / h for a in range(3)], axis=2)  # (S, 3n, 3)
+        J = _projected_jacobian(directions, centred, R)
         JtJ = np.einsum("sra,srb->sab", J, J)
         g = np.einsum("sra,sr->sa", J, residual)
         diag = np.einsum("saa->sa", JtJ)

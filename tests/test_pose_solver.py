@@ -13,7 +13,8 @@ from dmais_pipe.pose.equations import coefficients_of
 from dmais_pipe.pose.solver import TEMPLATE_PATH, kernel, runtime, solve_generalized_pose
 from dmais_pipe.pose.template import Template, check_template, template_entries
 
-from pose_scenes import dmais_scene, generalized_scene, multistart_minimum, narrow_camera_scene, single_camera_scene
+from pose_scenes import (centred_cost, dmais_scene, generalized_scene, multistart_minimum, narrow_camera_scene,
+                         single_camera_scene)
 
 SCENES = {
     "opengv": lambda rng, noise: generalized_scene(rng, n=10, noise=noise * 1e-3, max_angle=np.pi),
@@ -177,6 +178,39 @@ def test_returned_cost_is_the_global_minimum_in_999_of_2000_noisy_trials():
         if ours > reference * (1 + 1e-6) + 1e-15:
             misses.append((i, kind, ours, reference))
     assert len(misses) <= 2, misses
+
+
+def _narrow_misses(fovs, trials, seed):
+    """Trials (index, field of view, cost ratio, angle to the reference in deg) where the solver's
+    cost exceeds that of multi-start LM (also started at the true rotation) on a narrow camera
+    over flat ground; costs on the centred points."""
+    rng = np.random.default_rng(seed)
+    misses = []
+    for i in range(trials):
+        fov = fovs[i % len(fovs)]
+        origins, directions, points, R, _ = narrow_camera_scene(rng, fov)
+        pose = solve_generalized_pose(origins, directions, points)
+        ours = centred_cost(origins, directions, points, pose.R, pose.t)
+        assert abs(ours - pose.cost) <= 1e-3 * ours  # the quadratic form rounds at ~1e-4 at 0.5 deg
+        reference, R_reference, _ = multistart_minimum(origins, directions, points, n_random=8, iterations=40,
+                                                       seed=i, starts=[R])
+        if ours > reference * (1 + 1e-6):
+            misses.append((i, fov, ours / reference, np.rad2deg(rotation_error(pose.R, R_reference))))
+    return misses
+
+
+def test_global_minimum_through_a_narrow_camera_over_flat_ground():
+    """Issue 16 item 2: one camera of 0.5-2 deg over a plane (10 points, 0.3 px) has minima a few
+    degrees apart (the plane and its flip) that the template's roots cannot tell apart. Before the
+    flip descent and the exact tie costs, 2% of the 0.5 deg cases missed the minimum (4 here)."""
+    misses = _narrow_misses([0.5], 150, seed=516) + _narrow_misses([1.0, 2.0], 50, seed=1602)
+    assert len(misses) <= 1, misses
+
+
+def test_global_minimum_through_the_5_4_deg_camera_over_flat_ground():
+    """The paper's subset #0 (C0 alone) over a flat area: the minimum in every case."""
+    misses = _narrow_misses([5.4], 60, seed=1654)
+    assert not misses, misses
 
 
 # ---------------------------------------------------------------- bad input
