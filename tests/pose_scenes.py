@@ -8,7 +8,11 @@ with x_rig = R @ M + t, noise-free unless a noise level is given. Kinds:
 - `dmais_scene`: the paper's rig (C0 nadir, C1..C4 tilted 45 deg, 0.1 m apart, f = 45000 px,
   4096 x 3000 px) at 350 m over a ground with +-10 m relief (or flat: `planar=True`) in UTM-like
   coordinates, random yaw, roll and pitch within 3 deg; pixel noise in pixels;
-- `single_camera_scene`: C0 of that rig alone (a central, 5-degree camera).
+- `single_camera_scene`: C0 of that rig alone (a central, 5-degree camera);
+- `narrow_camera_scene`: C0 alone with a field of view of choice (0.5 to 5.4 deg) over flat
+  ground: the paper's subset #0 over a flat area, where eq. objfun is ill-conditioned.
+
+`multistart_minimum` is the slow, independent reference for the global minimum of eq. objfun.
 """
 
 from __future__ import annotations
@@ -58,15 +62,16 @@ def dmais_pose(rng, yaw=None, tilt_deg=3.0, height=350.0) -> tuple[np.ndarray, n
 
 
 def dmais_scene(rng, points_per_camera=4, cameras=range(5), noise_px=0.0, planar=False, yaw=None,
-                relief=10.0):
-    """Rays of the DMAIS rig to ground points: pixels uniform over each image, noise in pixels."""
+                relief=10.0, focal_px=FOCAL_PX):
+    """Rays of the DMAIS rig to ground points: pixels uniform over each image, noise in pixels;
+    focal_px sets the cameras' field of view (4096 px wide images)."""
     R, t = dmais_pose(rng, yaw)
     world_from_rig, centre = R.T, -R.T @ t
     origins, directions, points = [], [], []
     for k in cameras:
         cam_from_rig, v = dmais_cam_from_rig(k)
         uv = rng.uniform([0, 0], [WIDTH - 1, HEIGHT - 1], size=(points_per_camera, 2))
-        bearing = np.column_stack([(uv - [(WIDTH - 1) / 2, (HEIGHT - 1) / 2]) / FOCAL_PX, np.ones(len(uv))])
+        bearing = np.column_stack([(uv - [(WIDTH - 1) / 2, (HEIGHT - 1) / 2]) / focal_px, np.ones(len(uv))])
         f_rig = _unit(bearing) @ cam_from_rig  # rows: cam_from_rig^T bearing
         origin_world = centre + world_from_rig @ v
         f_world = f_rig @ world_from_rig.T
@@ -75,7 +80,7 @@ def dmais_scene(rng, points_per_camera=4, cameras=range(5), noise_px=0.0, planar
         points.append(origin_world + depth[:, None] * f_world)
         if noise_px:
             uv = uv + noise_px * rng.normal(size=uv.shape)
-            bearing = np.column_stack([(uv - [(WIDTH - 1) / 2, (HEIGHT - 1) / 2]) / FOCAL_PX, np.ones(len(uv))])
+            bearing = np.column_stack([(uv - [(WIDTH - 1) / 2, (HEIGHT - 1) / 2]) / focal_px, np.ones(len(uv))])
             f_rig = _unit(bearing) @ cam_from_rig
         origins.append(np.tile(v, (len(uv), 1)))
         directions.append(f_rig)
@@ -85,3 +90,104 @@ def dmais_scene(rng, points_per_camera=4, cameras=range(5), noise_px=0.0, planar
 def single_camera_scene(rng, n=10, noise_px=0.0, planar=False):
     """C0 alone: a central camera with a 5.2 x 3.8 degree field of view."""
     return dmais_scene(rng, points_per_camera=n, cameras=[0], noise_px=noise_px, planar=planar)
+
+
+def focal_of_fov(fov_deg: float) -> float:
+    """Focal length (px) that gives the 4096 px wide image a horizontal field of view of fov_deg."""
+    return (WIDTH / 2) / np.tan(np.deg2rad(fov_deg) / 2)
+
+
+def narrow_camera_scene(rng, fov_deg, n=10, noise_px=0.3):
+    """C0 alone with a horizontal field of view of fov_deg (4096 x 3000 px) over flat ground at
+    350 m, random yaw, tilt within 3 deg; n points, pixel noise noise_px."""
+    return dmais_scene(rng, points_per_camera=n, cameras=[0], noise_px=noise_px, planar=True,
+                       focal_px=focal_of_fov(fov_deg))
+
+
+# ---------------------------------------------------------------- reference global minimum (slow)
+
+
+def projected_residuals(origins, directions, points, R):
+    """Residuals [f]x (R M + t(R) - v), (S, 3n), and t(R) (S, 3), with t(R) solved directly per
+    rotation R (S, 3, 3) from the 3 x 3 normal equations; origins, directions (unit), points (n, 3)."""
+    Q = np.eye(3) - directions[:, :, None] * directions[:, None, :]  # (n, 3, 3)
+    X = np.einsum("sij,nj->sni", R, points)
+    rhs = np.einsum("nij,snj->si", Q, origins - X)
+    t = np.linalg.solve(Q.sum(axis=0), rhs.T).T  # (S, 3)
+    return np.cross(directions, X + t[:, None, :] - origins).reshape(len(R), -1), t
+
+
+def _cross_matrices(x):
+    """[x]x (..., 3, 3) of vectors x (..., 3)."""
+    out = np.zeros(x.shape + (3,))
+    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -x[..., 2], x[..., 1], -x[..., 0]
+    return out - np.swapaxes(out, -1, -2)
+
+
+def _projected_jacobian(directions, points, R):
+    """Jacobian (S, 3n, 3) of `projected_residuals` for R <- exp([w]x) R at w = 0, R (S, 3, 3).
+
+    With X_i = R M_i, dX_i = -[X_i]x w, and t(R) = S^-1 sum_j Q_j (v_j - X_j) (S = sum_j Q_j,
+    Q_j = I - f_j f_j^T) moves by T w, T = S^-1 sum_j Q_j [X_j]x; so r_i = [f_i]x (X_i + t - v_i)
+    moves by [f_i]x (T - [X_i]x) w.
+    """
+    Q = np.eye(3) - directions[:, :, None] * directions[:, None, :]  # (n, 3, 3)
+    X = _cross_matrices(np.einsum("sij,nj->sni", R, points))  # (S, n, 3, 3)
+    T = np.linalg.solve(Q.sum(axis=0), np.einsum("nij,snjk->sik", Q, X))  # (S, 3, 3)
+    J = np.einsum("nij,snjk->snik", _cross_matrices(directions), T[:, None] - X)
+    return J.reshape(len(R), -1, 3)
+
+
+def direct_cost(origins, directions, points, R, t):
+    """Eq. objfun at (R (3, 3), t (3,)), summed over the rays; points (n, 3) as given."""
+    return float(np.sum(np.cross(directions, points @ R.T + t - origins) ** 2))
+
+
+def multistart_minimum(origins, directions, points, n_random=16, iterations=60, seed=0, starts=()):
+    """Minimum of eq. objfun over SO(3) by LM from 24 axis-aligned + n_random random starts and the
+    rotations of starts (k, 3, 3) (e.g. a scene's true rotation), vectorized.
+
+    Independent of the solver: variable projection with t(R) from the 3x3 normal equations and its
+    exact Jacobian (`_projected_jacobian`), on the world points centred on their mean (t is free,
+    so the cost is unchanged, and UTM-sized coordinates do not drown the residuals of a narrow
+    camera in rounding). Returns (cost, R (3, 3), t (3,)) of the least direct cost found among the
+    minima that put at least half of the points in front of their rays, the solver's rule (eq.
+    objfun cannot tell a pose from its mirror behind the cameras, which over flat ground is often
+    a little cheaper); (inf, None, None) if no minimum does.
+    """
+    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    centroid = points.mean(axis=0)
+    centred = points - centroid
+    rng = np.random.default_rng(seed)
+    R = np.concatenate([Rotation.create_group("O").as_matrix(), Rotation.random(n_random, rng).as_matrix(),
+                        np.reshape(starts, (-1, 3, 3))])
+    residual, _ = projected_residuals(origins, directions, centred, R)
+    cost = np.sum(residual**2, axis=1)
+    damping = np.full(len(R), 1e-3)
+    for _ in range(iterations):
+        J = _projected_jacobian(directions, centred, R)
+        JtJ = np.einsum("sra,srb->sab", J, J)
+        g = np.einsum("sra,sr->sa", J, residual)
+        diag = np.einsum("saa->sa", JtJ)
+        step = -np.linalg.solve(JtJ + damping[:, None, None] * (diag[:, :, None] * np.eye(3) + 1e-30), g[:, :, None])[:, :, 0]
+        trial = Rotation.from_rotvec(step).as_matrix() @ R
+        trial_residual, _ = projected_residuals(origins, directions, centred, trial)
+        trial_cost = np.sum(trial_residual**2, axis=1)
+        better = trial_cost < cost
+        R[better], residual[better], cost[better] = trial[better], trial_residual[better], trial_cost[better]
+        damping = np.where(better, damping / 3, damping * 4)
+    _, t = projected_residuals(origins, directions, centred, R)
+    depth = np.einsum("snj,nj->sn", np.einsum("sij,nj->sni", R, centred) + t[:, None, :] - origins, directions)
+    in_front = np.mean(depth > 0, axis=1) >= 0.5
+    if not in_front.any():
+        return np.inf, None, None
+    best = np.flatnonzero(in_front)[np.argmin(cost[in_front])]
+    return float(cost[best]), R[best], t[best] - R[best] @ centroid
+
+
+def centred_cost(origins, directions, points, R, t):
+    """Eq. objfun at (R, t) evaluated on the centred points (t + R m for the mean m): the same
+    value as `direct_cost` without the rounding of UTM-sized coordinates."""
+    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    centroid = points.mean(axis=0)
+    return direct_cost(origins, directions, points - centroid, R, t + R @ centroid)

@@ -13,7 +13,8 @@ from dmais_pipe.pose.equations import coefficients_of
 from dmais_pipe.pose.solver import TEMPLATE_PATH, kernel, runtime, solve_generalized_pose
 from dmais_pipe.pose.template import Template, check_template, template_entries
 
-from pose_scenes import dmais_scene, generalized_scene, single_camera_scene
+from pose_scenes import (centred_cost, dmais_scene, generalized_scene, multistart_minimum, narrow_camera_scene,
+                         single_camera_scene)
 
 SCENES = {
     "opengv": lambda rng, noise: generalized_scene(rng, n=10, noise=noise * 1e-3, max_angle=np.pi),
@@ -156,47 +157,9 @@ def _direct_cost(origins, directions, points, R, t):
     return float(np.sum(np.cross(directions, points @ R.T + t - origins) ** 2))
 
 
-def _projected_residuals(origins, directions, points, R):
-    """Residuals [f]x (R M + t(R) - v), (S, 3n), with t(R) solved directly per rotation R (S, 3, 3)."""
-    Q = np.eye(3) - directions[:, :, None] * directions[:, None, :]  # (n, 3, 3)
-    X = np.einsum("sij,nj->sni", R, points)
-    rhs = np.einsum("nij,snj->si", Q, origins - X)
-    t = np.linalg.solve(Q.sum(axis=0), rhs.T).T  # (S, 3)
-    return np.cross(directions, X + t[:, None, :] - origins).reshape(len(R), -1), t
-
-
 def multistart_lm(origins, directions, points, n_random=16, iterations=60, seed=0):
-    """Minimum of eq. objfun over SO(3) by LM from 24 axis-aligned + random starts, vectorized.
-
-    Independent of the solver: variable projection with t(R) from the 3x3 normal equations and a
-    finite-difference Jacobian. Returns the least direct cost found among the minima that put at
-    least half of the points in front of their rays, the solver's rule: eq. objfun cannot tell a
-    pose from its mirror behind the cameras, which over flat ground is often a little cheaper.
-    """
-    rng = np.random.default_rng(seed)
-    R = np.concatenate([Rotation.create_group("O").as_matrix(), Rotation.random(n_random, rng).as_matrix()])
-    residual, _ = _projected_residuals(origins, directions, points, R)
-    cost = np.sum(residual**2, axis=1)
-    damping = np.full(len(R), 1e-3)
-    h = 1e-7
-    for _ in range(iterations):
-        J = np.stack([
-            (_projected_residuals(origins, directions, points, Rotation.from_rotvec(h * np.eye(3)[a]).as_matrix() @ R)[0]
-             - residual) / h for a in range(3)], axis=2)  # (S, 3n, 3)
-        JtJ = np.einsum("sra,srb->sab", J, J)
-        g = np.einsum("sra,sr->sa", J, residual)
-        diag = np.einsum("saa->sa", JtJ)
-        step = -np.linalg.solve(JtJ + damping[:, None, None] * (diag[:, :, None] * np.eye(3) + 1e-30), g[:, :, None])[:, :, 0]
-        trial = Rotation.from_rotvec(step).as_matrix() @ R
-        trial_residual, _ = _projected_residuals(origins, directions, points, trial)
-        trial_cost = np.sum(trial_residual**2, axis=1)
-        better = trial_cost < cost
-        R[better], residual[better], cost[better] = trial[better], trial_residual[better], trial_cost[better]
-        damping = np.where(better, damping / 3, damping * 4)
-    _, t = _projected_residuals(origins, directions, points, R)
-    depth = np.einsum("snj,nj->sn", np.einsum("sij,nj->sni", R, points) + t[:, None, :] - origins, directions)
-    in_front = np.mean(depth > 0, axis=1) >= 0.5
-    return float(cost[in_front].min()) if in_front.any() else np.inf
+    """The least cost of `pose_scenes.multistart_minimum` (see there)."""
+    return multistart_minimum(origins, directions, points, n_random, iterations, seed)[0]
 
 
 def test_returned_cost_is_the_global_minimum_in_999_of_2000_noisy_trials():
@@ -215,6 +178,39 @@ def test_returned_cost_is_the_global_minimum_in_999_of_2000_noisy_trials():
         if ours > reference * (1 + 1e-6) + 1e-15:
             misses.append((i, kind, ours, reference))
     assert len(misses) <= 2, misses
+
+
+def _narrow_misses(fovs, trials, seed):
+    """Trials (index, field of view, cost ratio, angle to the reference in deg) where the solver's
+    cost exceeds that of multi-start LM (also started at the true rotation) on a narrow camera
+    over flat ground; costs on the centred points."""
+    rng = np.random.default_rng(seed)
+    misses = []
+    for i in range(trials):
+        fov = fovs[i % len(fovs)]
+        origins, directions, points, R, _ = narrow_camera_scene(rng, fov)
+        pose = solve_generalized_pose(origins, directions, points)
+        ours = centred_cost(origins, directions, points, pose.R, pose.t)
+        assert abs(ours - pose.cost) <= 1e-3 * ours  # the quadratic form rounds at ~1e-4 at 0.5 deg
+        reference, R_reference, _ = multistart_minimum(origins, directions, points, n_random=8, iterations=40,
+                                                       seed=i, starts=[R])
+        if ours > reference * (1 + 1e-6):
+            misses.append((i, fov, ours / reference, np.rad2deg(rotation_error(pose.R, R_reference))))
+    return misses
+
+
+def test_global_minimum_through_a_narrow_camera_over_flat_ground():
+    """Issue 16 item 2: one camera of 0.5-2 deg over a plane (10 points, 0.3 px) has minima a few
+    degrees apart (the plane and its flip) that the template's roots cannot tell apart. Before the
+    flip descent and the exact tie costs, 2% of the 0.5 deg cases missed the minimum (4 here)."""
+    misses = _narrow_misses([0.5], 150, seed=516) + _narrow_misses([1.0, 2.0], 50, seed=1602)
+    assert len(misses) <= 1, misses
+
+
+def test_global_minimum_through_the_5_4_deg_camera_over_flat_ground():
+    """The paper's subset #0 (C0 alone) over a flat area: the minimum in every case."""
+    misses = _narrow_misses([5.4], 60, seed=1654)
+    assert not misses, misses
 
 
 # ---------------------------------------------------------------- bad input

@@ -34,6 +34,10 @@ cdef double MAX_STEP = 0.5
 cdef double STEP_TOLERANCE = 1e-3
 # Relative rounding level of the cost evaluated as a quadratic form (of trace H + |g| + |c|).
 cdef double COST_ROUNDING = 1e-12
+# Front-facing candidates whose costs lie within this many rounding levels of the least are
+# compared by their costs summed over the points (`exact_costs`): through a 0.5 deg camera the
+# quadratic form is off by up to ~30 levels, as much as two minima may differ.
+cdef double TIE_ROUNDINGS = 1e3
 # Newton steps at most on the secular equation of the sphere relaxation, and their relative
 # tolerance (the relaxed rotations only start the descent).
 cdef int SPHERE_ITERATIONS = 30
@@ -42,6 +46,10 @@ cdef double SPHERE_TOLERANCE = 1e-6
 # sphere relaxation then has a null space, and its planar version joins the starts (thickness
 # below 1% of the width).
 cdef double PLANAR_SPREAD = 1e-4
+# Points whose least spread is below this fraction of the middle one (thickness below 10% of the
+# width) are flat enough for the two-fold ambiguity of a plane seen through a narrow field of view:
+# the flip of the solution (`flipped`) starts one more descent.
+cdef double FLIP_SPREAD = 1e-2
 # Beyond 120 deg (|q| > tan(60 deg)) in the solving frame, the problem is solved again in the
 # frame of the winner: the cosine of that angle.
 cdef double COS_MAX_FRAME_ANGLE = -0.5
@@ -53,7 +61,7 @@ cdef int FRONT_SAMPLE = 64
 # -this (trace H + |g| + |c|): the rounding of the quadratic form and of the polished solution.
 cdef double CERTIFICATE_TOLERANCE = 1e-9
 cdef enum:
-    # Room for candidates: 1 frame + 40 roots + 1 descent, 40 more roots, and mirrors of the first 42.
+    # Room for candidates: 1 frame + 40 roots + 1 descent, 40 more roots, mirrors of the first 42, 1 flip.
     CAPACITY = 256
     N_SOLUTIONS = 40
 
@@ -228,6 +236,23 @@ cdef double front_fraction(const Problem *p, const double *R, const double *t, i
         total += 1
         i += stride
     return front / <double> total
+
+
+cdef double residual_cost(const Problem *p, const double *R, const double *t) noexcept nogil:
+    """Eq. objfun at R (3, 3) and the centred translation t (3,), summed over the points, O(n): the
+    cost without the rounding of the quadratic form r^T H r - 2 g^T r + c (`cost_of`)."""
+    cdef int i, a
+    cdef double m[3]
+    cdef double x[3]
+    cdef double total = 0.0
+    for i in range(p.n):
+        for a in range(3):
+            m[a] = p.M[3 * i + a] - p.centroid[a]
+        for a in range(3):
+            x[a] = R[3 * a] * m[0] + R[3 * a + 1] * m[1] + R[3 * a + 2] * m[2] + t[a] - p.v[3 * i + a]
+        total += ((p.f[3 * i + 1] * x[2] - p.f[3 * i + 2] * x[1]) ** 2 + (p.f[3 * i + 2] * x[0] - p.f[3 * i] * x[2]) ** 2
+                  + (p.f[3 * i] * x[1] - p.f[3 * i + 1] * x[0]) ** 2)
+    return total
 
 
 cdef inline int sample_stride(const Problem *p) noexcept nogil:
@@ -846,6 +871,17 @@ cdef class Kernel:
                 j += 1
         k = self.polished(p, c.R, k, j)
         evaluate(p, c, before, k)
+        # A plane through a narrow field of view has two minima a few degrees apart, the solution
+        # and its flip, where the template's roots are too inaccurate to tell them apart: descend
+        # from the flip of the solution too.
+        if point_spread[0] < FLIP_SPREAD * point_spread[1]:
+            best = select(c, k)
+            if flipped(p, c.R + 9 * best, point_axes, c.R + 9 * k):
+                descend(p, c.R + 9 * k, DESCENT_ITERATIONS)
+                polish(p, c.R + 9 * k)
+                evaluate(p, c, k, k + 1)
+                k += 1
+        exact_costs(p, c, k)
         exact_front(p, c, k)
         return k
 
@@ -859,6 +895,44 @@ cdef class Kernel:
                     memcpy(R + 9 * end, R + 9 * i, 9 * sizeof(double))
                 end += 1
         return end
+
+
+cdef bint flipped(const Problem *p, const double *R, const double *point_axes, double *out) noexcept nogil:
+    """The flip of the rotation R (3, 3) for (nearly) planar points, in out (3, 3): R turned so that
+    the plane's normal is mirrored about the line of sight, the line from the mean ray origin to
+    the points' centroid (in the rig frame, at the optimal translation of R).
+
+    Through a narrow field of view a plane and its flip look alike (exactly so under affine
+    projection), so the cost has a second minimum near the flip of every minimum; the rotation
+    about n x s by twice the angle between the normal n and the line of sight s is the Cayley
+    rotation q = (n x s) / (n . s). False (out unset) when the plane is seen edge-on (n . s below
+    1e-3 |n| |s|). point_axes: the principal axes of the points as columns, normal first.
+    """
+    cdef double t[3]
+    cdef double s[3]
+    cdef double n[3]
+    cdef double q[3]
+    cdef double dot = 0.0
+    cdef int i, a
+    centred_translation(p, R, t)
+    for a in range(3):
+        s[a] = t[a]
+        for i in range(p.n):
+            s[a] -= p.v[3 * i + a] / p.n
+        n[a] = R[3 * a] * point_axes[0] + R[3 * a + 1] * point_axes[3] + R[3 * a + 2] * point_axes[6]
+        dot += n[a] * s[a]
+    if dot < 0.0:
+        dot = -dot
+        for a in range(3):
+            n[a] = -n[a]
+    if not dot > 1e-3 * sqrt(sum_squares(n, 3) * sum_squares(s, 3)):
+        return False
+    q[0] = (n[1] * s[2] - n[2] * s[1]) / dot
+    q[1] = (n[2] * s[0] - n[0] * s[2]) / dot
+    q[2] = (n[0] * s[1] - n[1] * s[0]) / dot
+    memcpy(out, R, 9 * sizeof(double))
+    cayley_times(q, out, out)
+    return True
 
 
 cdef void release(Scratch *scratch) noexcept nogil:
@@ -987,6 +1061,24 @@ cdef void exact_front(const Problem *p, Candidates *c, int k) noexcept nogil:
         c.front[order[i]] = front_fraction(p, c.R + 9 * order[i], c.t + 3 * order[i], 1)
         if c.front[order[i]] >= 0.5:
             break
+
+
+cdef void exact_costs(const Problem *p, Candidates *c, int k) noexcept nogil:
+    """Where two or more front-facing candidates 0..k cost within TIE_ROUNDINGS rounding levels of
+    the cheapest front-facing one, replace their costs by `residual_cost`, so that the cheaper of
+    two nearly equal minima wins (through a narrow field of view the quadratic form cannot tell)."""
+    cdef int i, close = 0, best = select(c, k)
+    cdef double band
+    if k == 0 or c.front[best] < 0.5:
+        return
+    band = c.cost[best] + TIE_ROUNDINGS * rounding_level(p)
+    for i in range(k):
+        close += c.front[i] >= 0.5 and c.cost[i] <= band
+    if close < 2:
+        return
+    for i in range(k):
+        if c.front[i] >= 0.5 and c.cost[i] <= band:
+            c.cost[i] = residual_cost(p, c.R + 9 * i, c.t + 3 * i)
 
 
 cdef int select(const Candidates *c, int k) noexcept nogil:

@@ -21,7 +21,12 @@ q = 0: P is the most promising of the octahedral group and of a sphere relaxatio
 descended to a local minimum, which joins the candidates (where the action matrix is
 ill-conditioned, e.g. one narrow-FoV camera over a plane, it can be the only copy of the
 minimum). When the solution lies beyond 120 deg in that frame, the problem is solved once more
-in the frame of the solution.
+in the frame of the solution. For (nearly) planar points, the flip of the solution (its plane
+normal mirrored about the line of sight) starts one more descent: through a narrow field of view
+a plane and its flip look alike, and the cost has minima a few degrees apart that the template's
+roots are too inaccurate to tell apart (issue 16: 2% of the 0.5 deg cases missed the minimum).
+Front-facing candidates within a thousand rounding levels of the least cost are then compared by
+their costs summed over the points, which the quadratic form cannot resolve at 0.5 deg.
 Changing frame costs nothing in n: H' = K^T H K and g' = K^T g with r = K r',
 K = blockdiag(P^T, P^T, P^T).
 
