@@ -19,7 +19,7 @@ from dmais_pipe.evaluate import conf_table, pose_methods_table, run_evaluate
 from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
 from dmais_pipe.report.html import SECTIONS, benchmark_table, write_report
 from dmais_pipe.report.paper import PAPER_DIR, PAPER_TABLES, compare_with_paper, paper_notes, write_paper_comparisons
-from dmais_pipe.pose.stage import reprojection_residuals
+from dmais_pipe.pose.stage import pixel_residuals
 from dmais_pipe.rig import Rig
 from dmais_pipe.workspace import POSE_OBSERVATION_COLUMNS, Workspace
 
@@ -86,7 +86,7 @@ def pose_observations(workspace: Workspace, rig: Rig, poses: pd.DataFrame) -> pd
         rows = observations[observations["frame"] == pose.frame]
         rig_from_world = Rigid3.from_quat([pose.qw, pose.qx, pose.qy, pose.qz], [pose.tx, pose.ty, pose.tz])
         X = workspace.dataset.points.loc[rows["point_id"], ["x", "y", "z"]].to_numpy(float)
-        residuals = reprojection_residuals(rig, rig_from_world, rows["camera"].to_numpy(str),
+        residuals = pixel_residuals(rig, rig_from_world, rows["camera"].to_numpy(str),
                                            rows[["u", "v"]].to_numpy(float), X)
         parts.append(rows.assign(used=True, du=residuals[:, 0], dv=residuals[:, 1]))
     return pd.concat(parts)[list(POSE_OBSERVATION_COLUMNS)]

@@ -67,7 +67,7 @@ def _cameras(rig: Rig, requested: list[str] | None) -> list[str]:
     return [c for c in rig.camera_names if c in requested]
 
 
-def reprojection_residuals(rig: Rig, pose: Rigid3, cameras: np.ndarray, uv: np.ndarray,
+def pixel_residuals(rig: Rig, pose: Rigid3, cameras: np.ndarray, uv: np.ndarray,
                            points: np.ndarray) -> np.ndarray:
     """(n, 2) observed pixels uv (n, 2) minus the projections of points (n, 3) in `cameras` (n,)."""
     residuals = np.empty_like(uv, dtype=float)
@@ -124,7 +124,7 @@ def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, camer
         except PoseError as error:
             skipped.append(f"{frame.frame} ({error})")
             continue
-        residuals = reprojection_residuals(rig, pose, frame.cameras, frame.uv, frame.points)
+        residuals = pixel_residuals(rig, pose, frame.cameras, frame.uv, frame.points)
         eps = float(np.sqrt(np.mean(np.sum(residuals[used] ** 2, axis=1))))
         used_cameras = [c for c in cameras if c in set(frame.cameras[used])]
         rows.append(_frame_row(frame.frame, frame.group, used_cameras, pose, int(used.sum()), eps, ms, certified))
