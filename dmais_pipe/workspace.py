@@ -100,13 +100,6 @@ class Workspace:
     def table_path(self, name: str) -> Path:
         return self.root / "tables" / f"{name}.csv"
 
-    def note_path(self, name: str) -> Path:
-        """tables/<name>.txt: a stage's explanation of its tables."""
-        return self.root / "tables" / f"{name}.txt"
-
-    def figure_path(self, name: str) -> Path:
-        return self.root / "figures" / name
-
     def subset_labels(self) -> dict[str, Path]:
         """label -> poses_<label>.csv of the camera subsets solved so far, by length then value."""
         found = {}
@@ -260,21 +253,8 @@ class Workspace:
     def save_evaluation(self, evaluation: pd.DataFrame, label: str | None = None) -> Path:
         return write_csv_atomic(self.evaluation_path(label), evaluation)
 
-    def load_evaluation(self, label: str | None = None) -> pd.DataFrame:
-        path = self.evaluation_path(label)
-        if not path.is_file():
-            raise ResultsError(path, "missing; run `dmais evaluate` first")
-        return pd.read_csv(path, dtype={"frame": str, "group": str, "cameras": str})
-
     def save_table(self, name: str, table: pd.DataFrame, float_format: str | None = None) -> Path:
         return write_csv_atomic(self.table_path(name), table, float_format=float_format)
-
-    def load_table(self, name: str, dtype: dict | None = None) -> pd.DataFrame:
-        path = self.table_path(name)
-        if not path.is_file():
-            raise ResultsError(path, "missing")
-        return pd.read_csv(path, dtype=dtype)
-
 
 def pose_observations_path(poses_path: str | Path) -> Path:
     """The per-observation file beside a poses file: poses.csv -> poses.observations.csv."""

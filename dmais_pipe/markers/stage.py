@@ -49,8 +49,9 @@ VERIFY_GATE_PX = 40.0
 
 
 def _nominal_camera(dataset: Dataset, camera: str, results_dir: Path | None) -> Camera | None:
-    if results_dir is not None and Workspace(dataset, results_dir).intrinsics_path(camera).exists():
-        return Workspace(dataset, results_dir).load_intrinsics(camera)[0]
+    workspace = None if results_dir is None else Workspace(dataset, results_dir)
+    if workspace is not None and workspace.intrinsics_path(camera).exists():
+        return workspace.load_intrinsics(camera)[0]
     spec = dataset.cameras[camera]
     if not spec.focal_px:
         return None
@@ -58,9 +59,8 @@ def _nominal_camera(dataset: Dataset, camera: str, results_dir: Path | None) -> 
 
 
 def _load_rig(dataset: Dataset, results_dir: Path | None) -> Rig | None:
-    if results_dir is None or not Workspace(dataset, results_dir).has_rig():
-        return None
-    return Workspace(dataset, results_dir).load_rig()
+    workspace = None if results_dir is None else Workspace(dataset, results_dir)
+    return workspace.load_rig() if workspace is not None and workspace.has_rig() else None
 
 
 def _prediction_model(dataset: Dataset, image: str, results_dir=None, rig: Rig | None = None):
