@@ -47,26 +47,53 @@ def _cmd_summarize(args) -> None:
     print(summarize(args.dataset, args.out))
 
 
-def _cmd_intrinsics(args) -> None:
-    from .calib.intrinsics import Plausibility, run_intrinsics, write_intrinsics_table
+def _workspace(args):
+    from .workspace import Workspace
 
-    if args.table:
-        print(write_intrinsics_table(args.dataset, args.out))
-        return
-    limits = Plausibility(max_eps_calib_px=args.max_eps_px, max_focal_deviation=args.max_focal_deviation)
-    for path in run_intrinsics(args.dataset, args.out, cameras=args.camera, limits=limits):
+    return Workspace.open(args.dataset, args.out)
+
+
+def _conf(args, module, *flags: tuple[str, object]):
+    """The stage's named conf (--conf) with the options given as flags, then --set KEY=VALUE, applied."""
+    from .stages import configure, settings_line
+
+    overrides = [f"{key}={value}" for key, value in flags if value is not None] + list(args.set or [])
+    conf = configure(module.CONFS, args.conf or next(iter(module.CONFS)), overrides, args.command)
+    log.debug("%s settings: %s", args.command, settings_line(conf))
+    return conf
+
+
+def _print(paths) -> None:
+    for path in paths:
         print(path)
 
 
-def _cmd_markers(args) -> None:
-    from .markers.stage import collect_observations, run_markers, run_markers_image
+def _cmd_intrinsics(args) -> None:
+    from .stages import intrinsics
 
-    if args.image:
-        print(run_markers_image(args.dataset, args.out, args.image))
-    elif args.collect:
-        print(collect_observations(args.dataset, args.out, args.collect))
+    conf = _conf(args, intrinsics, ("max_eps_calib_px", args.max_eps_px),
+                 ("max_focal_deviation", args.max_focal_deviation))
+    workspace = _workspace(args)
+    if args.table:
+        _print(intrinsics.write_table(workspace))
+        return
+    if args.camera:
+        _print(path for camera in args.camera for path in intrinsics.run_camera(workspace, camera, conf))
     else:
-        print(run_markers(args.dataset, args.out, jobs=args.jobs))
+        _print(intrinsics.run(workspace, conf))
+
+
+def _cmd_markers(args) -> None:
+    from .stages import markers
+
+    conf = _conf(args, markers)
+    workspace = _workspace(args)
+    if args.collect:
+        _print(markers.collect(workspace, args.collect))
+    elif args.image:
+        _print(markers.run_image(workspace, args.image, conf))
+    else:
+        _print(markers.run(workspace, conf))
 
 
 def _cmd_bench_markers(args) -> None:
@@ -88,40 +115,37 @@ def _cmd_bench_markers(args) -> None:
 
 
 def _cmd_extrinsics(args) -> None:
-    from .calib.extrinsics import run_extrinsics
+    from .stages import extrinsics
 
-    for path in run_extrinsics(args.dataset, args.out, use_priors=not args.no_priors, backend=args.backend):
-        print(path)
+    conf = _conf(args, extrinsics, ("use_priors", False if args.no_priors else None), ("backend", args.backend))
+    _print(extrinsics.run(_workspace(args), conf))
 
 
 def _cmd_pose(args) -> None:
-    from .pose.stage import merge_poses, run_pose
+    from .stages import pose
 
     cameras = [c for c in args.cameras.split(",") if c] if args.cameras else None
     groups = [g for g in args.groups.split(",") if g] if args.groups else None
+    conf = _conf(args, pose, ("robust", args.robust or None), ("refine", args.refine or None))
+    workspace = _workspace(args)
     if args.merge:
-        print(merge_poses(args.dataset, args.out, args.merge, cameras=cameras, out=args.csv))
+        _print(pose.merge(workspace, args.merge, cameras=cameras, out=args.csv))
         return
-    print(run_pose(args.dataset, args.out, cameras=cameras, robust=args.robust, refine=args.refine,
-                   groups=groups, out=args.csv))
+    _print(pose.run(workspace, conf, cameras=cameras, groups=groups, out=args.csv))
 
 
 def _cmd_evaluate(args) -> None:
-    from .evaluate import run_evaluate
+    from .stages import evaluate
 
-    for path in run_evaluate(args.dataset, args.out):
-        print(path)
+    conf = _conf(args, evaluate)
+    _print(evaluate.run(_workspace(args), conf))
 
 
 def _cmd_report(args) -> None:
-    from .files import copy_atomic
-    from .report.html import write_report
-    from .report.paper import write_paper_comparisons
+    from .stages import report
 
-    write_paper_comparisons(args.out, args.out / "tables")
-    print(write_report(args.dataset, args.out, args.html, benchmarks_dir=args.benchmarks))
-    for table in sorted((args.out / "tables").glob("*.csv")):  # the CSV tables beside the HTML
-        print(copy_atomic(table, args.html.parent / "tables" / table.name))
+    conf = _conf(args, report)
+    _print(report.run(_workspace(args), args.html, conf, benchmarks=args.benchmarks))
 
 
 def _cmd_bench_pose(args) -> None:
@@ -131,7 +155,7 @@ def _cmd_bench_pose(args) -> None:
 
 
 def _parser() -> argparse.ArgumentParser:
-    from .calib.intrinsics import Plausibility
+    from .stages.intrinsics import Conf as IntrinsicsConf
 
     parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -155,7 +179,6 @@ def _parser() -> argparse.ArgumentParser:
     markers = commands.add_parser("markers", help="detect, refine and identify the markers of every image")
     markers.add_argument("dataset", type=Path)
     markers.add_argument("--out", type=Path, required=True, help="results folder")
-    markers.add_argument("--jobs", type=int, default=1, help="images processed in parallel")
     one = markers.add_mutually_exclusive_group()
     one.add_argument("--image", help="only this image -> RESULTS/markers/<image>.csv (one workflow job)")
     one.add_argument("--collect", choices=("intrinsics", "extrinsics", "flight"),
@@ -169,19 +192,19 @@ def _parser() -> argparse.ArgumentParser:
     only.add_argument("--camera", action="append", help="calibrate only this camera (repeatable); no table")
     only.add_argument("--table", action="store_true",
                       help="only write tables/intrinsics.csv from the cameras' intrinsics/<camera>.methods.csv")
-    defaults = Plausibility()
-    intrinsics.add_argument("--max-eps-px", type=float, default=defaults.max_eps_calib_px,
-                            help="refuse a calibration whose eps_calib exceeds this (px; default %(default)s)")
-    intrinsics.add_argument("--max-focal-deviation", type=float, default=defaults.max_focal_deviation,
+    defaults = IntrinsicsConf()
+    intrinsics.add_argument("--max-eps-px", type=float,
+                            help=f"refuse a calibration whose eps_calib exceeds this (px; default {defaults.max_eps_calib_px})")
+    intrinsics.add_argument("--max-focal-deviation", type=float,
                             help="refuse fx, fy further than this fraction from focal_px or from each other "
-                                 "(default %(default)s)")
+                                 f"(default {defaults.max_focal_deviation})")
     intrinsics.set_defaults(run=_cmd_intrinsics)
 
     extrinsics = commands.add_parser("extrinsics", help="calibrate the rig (cam_from_rig) from the placements")
     extrinsics.add_argument("dataset", type=Path)
     extrinsics.add_argument("--out", type=Path, required=True, help="results folder (with intrinsics/)")
     extrinsics.add_argument("--no-priors", action="store_true", help="write rig.json from the run without RTK priors")
-    extrinsics.add_argument("--backend", choices=("pycolmap", "scipy"), default="pycolmap",
+    extrinsics.add_argument("--backend", choices=("pycolmap", "scipy"),
                             help="rig bundle adjuster (both reach the same optimum; default: pycolmap)")
     extrinsics.set_defaults(run=_cmd_extrinsics)
 
@@ -208,6 +231,11 @@ def _parser() -> argparse.ArgumentParser:
     report.add_argument("--html", type=Path, required=True, help="report file, e.g. reports/demo/report.html")
     report.add_argument("--benchmarks", type=Path, help="folder of snakemake benchmark files (stage times)")
     report.set_defaults(run=_cmd_report)
+    for stage in (markers, intrinsics, extrinsics, pose, evaluate, report):
+        stage.add_argument("--conf", help="named settings of the stage (docs/design.md, 'Stage settings'; "
+                                          "default: its first)")
+        stage.add_argument("--set", action="append", metavar="KEY=VALUE",
+                           help="change one setting of the conf (repeatable), e.g. --set robust=true")
 
     summarize = commands.add_parser("summarize", help="write a dataset summary (CSV + HTML) to a report folder")
     summarize.add_argument("dataset", type=Path)

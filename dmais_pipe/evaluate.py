@@ -1,4 +1,4 @@
-"""`dmais evaluate DATASET --out RESULTS`: accuracy of the flight poses (paper, "Pose Estimation Results").
+"""Accuracy of the flight poses (paper, "Pose Estimation Results"): the metrics the evaluate stage writes.
 
 Per frame of RESULTS/poses.csv (and of every camera-subset file RESULTS/poses_<label>.csv):
 
@@ -18,9 +18,9 @@ Per frame of RESULTS/poses.csv (and of every camera-subset file RESULTS/poses_<l
   crb_pos_m, crb_ang_arcmin, the Cramer-Rao bound of the same frame's geometry at the true pose for
   pixel noise of the frame's eps_proj (`cramer_rao_errors`).
 
-Outputs: RESULTS/evaluation.csv and evaluation_<label>.csv (the poses columns + the errors),
-RESULTS/tables/pose_methods.csv (tab:pose_methods: per group mean and sample std (ddof = 1) of
-eps_pos, eps_ang, eps_proj and the mean time) and, when subset files exist, RESULTS/tables/conf.csv
+The evaluate stage (`stages.evaluate`) writes evaluation.csv and evaluation_<label>.csv (the
+poses columns + the errors), tables/pose_methods.csv (tab:pose_methods: per group mean and sample std (ddof = 1) of
+eps_pos, eps_ang, eps_proj and the mean time) and, when subset files exist, tables/conf.csv
 (tab:conf: per group and subset label the means of eps_pos, eps_ang, eps_proj). A subset label is
 the digits of the camera indexes in rig order (C0..C4): 0, 01, 012, 1234, 01234. A subset's
 evaluation also has eps_proj_all_px / eps_ang_all_arcmin: the subset's pose reprojected into every
@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -43,7 +42,7 @@ from .frames import frame_observations
 from .geometry import Rigid3, rotation_error, rotation_from_quat
 from .pose.refine import cramer_rao_bound
 from .rig import Rig
-from .workspace import CENTER, QUAT, ResultsError, Workspace
+from .workspace import CENTER, QUAT, ResultsError
 
 log = logging.getLogger(__name__)
 
@@ -273,50 +272,6 @@ def used_observations(observations: pd.DataFrame, *pose_observations: pd.DataFra
     return observations[~key.isin(pd.MultiIndex.from_frame(rejected))]
 
 
-def run_evaluate(dataset_dir: str | Path, results_dir: str | Path) -> list[Path]:
-    """`dmais evaluate DATASET --out RESULTS`; returns the written paths (see the module docstring)."""
-    workspace = Workspace.open(dataset_dir, results_dir)
-    dataset = workspace.dataset
-    rig = workspace.load_rig()
-    truth = workspace.load_truth_frames()
-    poses = workspace.load_poses()
-    pos = dataset.frames.set_index("frame").loc[poses["frame"], list(POS)].to_numpy(dtype=float)
-    offsets = group_offsets(poses[list(CENTER)].to_numpy(dtype=float), pos, poses["group"])
-    for group, offset in offsets.items():
-        log.info("lever-arm offset (estimate - POS) of group %s: (%.3f, %.3f, %.3f) m", group, *offset)
-    observations = workspace.load_observations()
-    whole_rig = workspace.load_pose_observations()
-    evaluation = evaluate_poses(poses, dataset, rig, truth, offsets, used_observations(observations, whole_rig))
-    written = [workspace.save_evaluation(evaluation)]
-    table = pose_methods_table(evaluation)
-    written.append(workspace.save_table("pose_methods", table))
-    subsets = {}
-    for label, path in workspace.subset_labels().items():
-        try:
-            allowed = subset_cameras(label, rig)
-        except ValueError as error:
-            raise ResultsError(path, str(error)) from None
-        used = used_observations(observations, whole_rig, workspace.load_pose_observations(path))
-        subset = evaluate_poses(workspace.load_poses(path, allowed), dataset, rig, truth, offsets, used)
-        subset["eps_proj_all_px"] = every_camera_eps_proj(dataset, rig, subset, used)
-        subset["eps_ang_all_arcmin"] = angular_errors(subset["eps_proj_all_px"], mean_focal_px(rig, rig.camera_names))
-        subsets[label] = subset
-        written.append(workspace.save_evaluation(subset, label))
-    if subsets:
-        written.append(workspace.save_table("conf", conf_table(subsets, rig)))
-    elif workspace.table_path("conf").exists():
-        log.info("no poses_<label>.csv: removing the stale %s", workspace.table_path("conf"))
-        workspace.table_path("conf").unlink()
-    _log_summary(table)
-    return written
-
-
-def _log_summary(table: pd.DataFrame) -> None:
-    for row in table.itertuples(index=False):
-        log.info("group %s: %d frames, eps_pos %.3f m, eps_ang %.3f', eps_proj %.3f px, %.2f ms", row.group,
-                 row.n_frames, row.eps_pos_mean_m, row.eps_ang_mean_arcmin, row.eps_proj_mean_px, row.time_mean_ms)
-
-
 # ------------------------------------------------------------------------------ residuals
 
 
@@ -363,3 +318,18 @@ def every_camera_eps_proj(dataset: Dataset, rig: Rig, poses: pd.DataFrame, obser
     residuals = reprojection_residuals(dataset, rig, poses, observations, every_camera=True)
     squared = (residuals["du"] ** 2 + residuals["dv"] ** 2).groupby(residuals["frame"]).mean()
     return np.sqrt(squared.reindex(poses["frame"]).to_numpy(dtype=float))
+
+
+def residual_table(residuals: pd.DataFrame, cameras: list[str]) -> pd.DataFrame:
+    """Per camera of `cameras`: observations, RMS / median / max distance (px), mean du, dv (px).
+
+    residuals: rows with camera, du, dv (a poses file's per-observation table)."""
+    rows = []
+    for camera in cameras:
+        r = residuals[residuals["camera"] == camera]
+        d = np.hypot(r["du"], r["dv"])
+        rows.append({"camera": camera, "observations": len(r), "rms_px": float(np.sqrt(np.mean(d**2))),
+                     "median_px": float(np.median(d)), "max_px": float(d.max()),
+                     "mean_du_px": float(r["du"].mean()), "mean_dv_px": float(r["dv"].mean())})
+    return pd.DataFrame(rows, columns=["camera", "observations", "rms_px", "median_px", "max_px", "mean_du_px",
+                                       "mean_dv_px"])

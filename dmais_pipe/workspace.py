@@ -22,7 +22,7 @@ import pandas as pd
 from .camera import Camera
 from .dataset import STAGES, Dataset, Table, read_observation_table, read_table
 from .errors import DatasetError, DmaisError
-from .files import write_csv_atomic, write_json_atomic
+from .files import write_csv_atomic, write_json_atomic, write_text_atomic
 from .rig import Rig
 
 log = logging.getLogger(__name__)
@@ -89,6 +89,16 @@ class Workspace:
     def case_rig_path(self, case: str) -> Path:
         """extrinsics/rig_<case>.json: the rig calibrated with (known) or without (unknown) RTK priors."""
         return self.root / "extrinsics" / f"rig_{case}.json"
+
+    @property
+    def extrinsics_note_path(self) -> Path:
+        """Why the rig calibrated without priors lands where it does, in the run's numbers."""
+        return self.table_path("extrinsics_note").with_suffix(".txt")
+
+    @property
+    def layout_figure_path(self) -> Path:
+        """fig:extrinsics, the rigs with and without priors (SVG)."""
+        return self.root / "figures" / "extrinsics_layout.svg"
 
     def poses_path(self, label: str | None = None) -> Path:
         """poses.csv (the whole rig, label None) or poses_<label>.csv (a camera subset)."""
@@ -180,6 +190,16 @@ class Workspace:
         """rig.json (case None) or extrinsics/rig_<case>.json; `extra` keys are stored beside the rig."""
         return rig.save(self.rig_path if case is None else self.case_rig_path(case), **extra)
 
+    def save_rig_config(self, config: list[dict]) -> Path:
+        return write_json_atomic(self.rig_config_path, config)
+
+    def save_extrinsics_note(self, note: str) -> Path:
+        return write_text_atomic(self.extrinsics_note_path, note.strip() + "\n")
+
+    def load_extrinsics_note(self) -> str | None:
+        path = self.extrinsics_note_path
+        return path.read_text().strip() if path.is_file() else None
+
     def has_rig(self) -> bool:
         return self.rig_path.is_file()
 
@@ -196,11 +216,13 @@ class Workspace:
         return [write_csv_atomic(path, poses[[*POSE_COLUMNS, *extras]]),
                 write_csv_atomic(pose_observations_path(path), observations[list(POSE_OBSERVATION_COLUMNS)])]
 
-    def load_poses(self, path: Path | None = None, allowed_cameras: Sequence[str] | None = None) -> pd.DataFrame:
+    def load_poses(self, path: Path | None = None, allowed_cameras: Sequence[str] | None = None,
+                   empty_ok: bool = False) -> pd.DataFrame:
         """A poses file (default poses.csv) checked against the dataset and the rig.
 
         Numbers must be finite; frames must be frames of the dataset with the same group; cameras
-        (names joined by '+') must be cameras of the rig (and of `allowed_cameras` when given).
+        (names joined by '+') must be cameras of the rig (and of `allowed_cameras` when given); a
+        file without rows is an error unless empty_ok (a per-group part of the workflow).
         Raises ResultsError naming the file and line. Returns typed columns, extras as strings.
         """
         path = self.poses_path() if path is None else Path(path)
@@ -209,7 +231,7 @@ class Workspace:
         rig = self.load_rig()
         with results_errors():
             table = read_table(path, POSE_COLUMNS)
-            if len(table) == 0:
+            if len(table) == 0 and not empty_ok:
                 raise ResultsError(path, "has no rows; no frame to evaluate")
             frame = _checked_frames(table, self.dataset)
             cameras = _checked_cameras(table, rig, allowed_cameras)
@@ -253,8 +275,23 @@ class Workspace:
     def save_evaluation(self, evaluation: pd.DataFrame, label: str | None = None) -> Path:
         return write_csv_atomic(self.evaluation_path(label), evaluation)
 
+    def load_evaluation(self, label: str | None = None) -> pd.DataFrame | None:
+        """evaluation.csv (or evaluation_<label>.csv) as written by the evaluate stage; None when absent."""
+        path = self.evaluation_path(label)
+        return pd.read_csv(path, dtype={"frame": str, "group": str, "cameras": str}) if path.is_file() else None
+
     def save_table(self, name: str, table: pd.DataFrame, float_format: str | None = None) -> Path:
         return write_csv_atomic(self.table_path(name), table, float_format=float_format)
+
+    def load_table(self, name: str, keys: Sequence[str] = ()) -> pd.DataFrame | None:
+        """tables/<name>.csv with its key columns as text (subset '012' stays '012'); None when absent."""
+        path = self.table_path(name)
+        return pd.read_csv(path, dtype={k: str for k in keys}) if path.is_file() else None
+
+    def table_paths(self) -> list[Path]:
+        """Every tables/*.csv written so far, by name."""
+        return sorted((self.root / "tables").glob("*.csv"))
+
 
 def pose_observations_path(poses_path: str | Path) -> Path:
     """The per-observation file beside a poses file: poses.csv -> poses.observations.csv."""

@@ -17,12 +17,12 @@ from dmais_pipe.evaluate import (
     group_offsets,
     mean_focal_px,
     position_errors,
-    run_evaluate,
     subset_cameras,
     true_errors,
 )
 from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
 from dmais_pipe.rig import Rig
+from dmais_pipe.stages import evaluate, pose
 from dmais_pipe.workspace import ResultsError, Workspace
 
 from conftest import observation_only
@@ -120,8 +120,8 @@ def test_true_errors():
 # ------------------------------------------------------------------------------ the stage
 
 
-def test_run_evaluate_writes_errors_and_tables(dataset, results):
-    written = run_evaluate(dataset, results)
+def test_evaluate_stage_writes_errors_and_tables(dataset, results):
+    written = evaluate.run(Workspace.open(dataset, results))
     assert results / "evaluation.csv" in written and results / "tables" / "pose_methods.csv" in written
     assert not (results / "tables" / "conf.csv").exists()  # no subset file
     evaluation = read(results / "evaluation.csv")
@@ -173,7 +173,7 @@ def test_subsets_use_the_full_rigs_lever_arm_and_fill_conf(dataset, results):
     bias = np.array([0.5, 0.0, 0.0])
     poses_from_truth(dataset, cameras="C0", shift=SHIFT + bias).to_csv(results / "poses_0.csv", index=False)
     poses_from_truth(dataset).to_csv(results / "poses_01234.csv", index=False)
-    written = run_evaluate(dataset, results)
+    written = evaluate.run(Workspace.open(dataset, results))
     assert {results / "evaluation_0.csv", results / "evaluation_01234.csv", results / "tables" / "conf.csv"} <= set(written)
     full = read(results / "evaluation.csv")
     single = read(results / "evaluation_0.csv")
@@ -217,7 +217,7 @@ def test_subsets_use_the_full_rigs_lever_arm_and_fill_conf(dataset, results):
     # Without subset files a rerun leaves no stale conf table behind.
     (results / "poses_0.csv").unlink()
     (results / "poses_01234.csv").unlink()
-    run_evaluate(dataset, results)
+    evaluate.run(Workspace.open(dataset, results))
     assert not (results / "tables" / "conf.csv").exists()
 
 
@@ -227,13 +227,13 @@ def test_subsets_use_the_full_rigs_lever_arm_and_fill_conf(dataset, results):
 def test_missing_poses(dataset, results):
     (results / "poses.csv").unlink()
     with pytest.raises(ResultsError, match=r"poses\.csv: missing"):
-        run_evaluate(dataset, results)
+        evaluate.run(Workspace.open(dataset, results))
 
 
 def test_missing_rig(dataset, results):
     (results / "rig.json").unlink()
     with pytest.raises(DmaisError, match="rig.json"):
-        run_evaluate(dataset, results)
+        evaluate.run(Workspace.open(dataset, results))
 
 
 @pytest.mark.parametrize("column, value, message", [
@@ -249,27 +249,27 @@ def test_bad_poses_name_file_and_line(dataset, results, column, value, message):
     poses.loc[1, column] = value
     poses.to_csv(results / "poses.csv", index=False)
     with pytest.raises(ResultsError, match=rf"poses\.csv, {message}"):
-        run_evaluate(dataset, results)
+        evaluate.run(Workspace.open(dataset, results))
 
 
 def test_duplicate_and_empty_poses(dataset, results):
     poses = pd.read_csv(results / "poses.csv", dtype=str)
     pd.concat([poses, poses.iloc[:1]]).to_csv(results / "poses.csv", index=False)
     with pytest.raises(ResultsError, match="duplicate frame"):
-        run_evaluate(dataset, results)
+        evaluate.run(Workspace.open(dataset, results))
     poses.iloc[:0].to_csv(results / "poses.csv", index=False)
     with pytest.raises(ResultsError, match="has no rows"):
-        run_evaluate(dataset, results)
+        evaluate.run(Workspace.open(dataset, results))
 
 
 def test_bad_subset_files(dataset, results):
     poses_from_truth(dataset, cameras="C0+C1").to_csv(results / "poses_0.csv", index=False)
     with pytest.raises(ResultsError, match=r"poses_0\.csv, line 2: cameras 'C0\+C1': this subset file may use only C0"):
-        run_evaluate(dataset, results)
+        evaluate.run(Workspace.open(dataset, results))
     (results / "poses_0.csv").unlink()
     poses_from_truth(dataset, cameras="C0").to_csv(results / "poses_07.csv", index=False)
     with pytest.raises(ResultsError, match=r"poses_07\.csv: subset label '07'"):
-        run_evaluate(dataset, results)
+        evaluate.run(Workspace.open(dataset, results))
 
 
 def test_robust_outliers_leave_the_errors_and_the_bound(dataset, tmp_path):
@@ -277,7 +277,6 @@ def test_robust_outliers_leave_the_errors_and_the_bound(dataset, tmp_path):
     swapped in 30% of the flight observations make the rejected ones hundreds of pixels off, and
     neither eps_proj_all nor the Cramer-Rao bound may count them."""
     from dmais_pipe.evaluate import every_camera_eps_proj, used_observations
-    from dmais_pipe.pose.stage import run_pose
 
     copy = tmp_path / "data"
     shutil.copytree(dataset, copy)
@@ -289,9 +288,10 @@ def test_robust_outliers_leave_the_errors_and_the_bound(dataset, tmp_path):
     results = tmp_path / "results"
     results.mkdir()
     shutil.copy(copy / "truth" / "rig.json", results / "rig.json")
-    run_pose(copy, results, robust=True)
-    run_pose(copy, results, cameras=["C0", "C1", "C2"], robust=True)
-    run_evaluate(copy, results)
+    robust = pose.Conf(robust=True)
+    pose.run(Workspace.open(copy, results), robust)
+    pose.run(Workspace.open(copy, results), robust, cameras=["C0", "C1", "C2"])
+    evaluate.run(Workspace.open(copy, results))
 
     workspace = Workspace.open(copy, results)
     whole = workspace.load_pose_observations()

@@ -20,10 +20,6 @@ from dmais_pipe import cli
 from dmais_pipe.calib import rig_ba
 from dmais_pipe.calib.extrinsics import (
     DEFAULT_BACKEND,
-    EXTRINSICS_NOTE,
-    LAYOUT_FIGURE,
-    LAYOUT_LABELS,
-    RIG_CONFIG,
     CameraNotLinkedError,
     annotate_tables,
     calibrate_extrinsics,
@@ -31,9 +27,7 @@ from dmais_pipe.calib.extrinsics import (
     extrinsics_tables,
     image_prefixes,
     initial_extrinsics,
-    run_extrinsics,
 )
-from dmais_pipe.calib.intrinsics import run_intrinsics
 from dmais_pipe.calib.localize import kabsch_rotation, localize_image, rotation_with_known_center
 from dmais_pipe.camera import Camera
 from dmais_pipe.dataset import Dataset
@@ -41,6 +35,8 @@ from dmais_pipe.errors import DmaisError
 from dmais_pipe.files import write_json_atomic
 from dmais_pipe.geometry import Rigid3, rotation_error
 from dmais_pipe.rig import Rig
+from dmais_pipe.stages import extrinsics, intrinsics
+from dmais_pipe.stages.extrinsics import LAYOUT_LABELS
 from dmais_pipe.workspace import Workspace
 
 from conftest import observation_only
@@ -52,8 +48,9 @@ SIM = observation_only("extrinsics-small", seed=11, calib_images=20, eval_images
 def calibrated(simulated_dataset, tmp_path_factory):
     dataset = simulated_dataset(SIM)
     results = tmp_path_factory.mktemp("extrinsics") / "results"
-    run_intrinsics(dataset, results, methods=("ours",))
-    written = run_extrinsics(dataset, results)
+    workspace = Workspace.open(dataset, results)
+    intrinsics.run(workspace, intrinsics.CONFS["ours"])
+    written = extrinsics.run(workspace)
     return dataset, results, written
 
 
@@ -137,7 +134,7 @@ def test_tables_carry_standard_deviations_and_the_note(calibrated):
                                                       table_R.loc[camera, "note"]).groups())
         assert (eps_deg, std_deg) == pytest.approx((table_R.loc[camera, "eps_R_deg"],
                                                     table_R.loc[camera, "unknown_std_deg"]), abs=6e-5)
-    note_path = results / EXTRINSICS_NOTE
+    note_path = results / "tables" / "extrinsics_note.txt"
     assert note_path in written
     note = note_path.read_text()
     low, high = map(float, re.search(r"centres move by (\S+)-(\S+) m", note).groups())
@@ -320,7 +317,8 @@ def test_cli_backend_switch(calibrated, tmp_path):
     """`dmais extrinsics --backend scipy` reaches the default (pycolmap) run's rig; the switch offers every backend."""
     dataset, results, _ = calibrated
     command = ["extrinsics", str(dataset), "--out", str(tmp_path)]
-    assert cli._parser().parse_args(command).backend == DEFAULT_BACKEND == "pycolmap"
+    assert cli._parser().parse_args(command).backend is None  # the conf decides
+    assert extrinsics.Conf().backend == DEFAULT_BACKEND == "pycolmap"
     for backend in rig_ba.BACKENDS:
         assert cli._parser().parse_args(command + ["--backend", backend]).backend == backend
     with pytest.raises(SystemExit):
@@ -346,9 +344,9 @@ def test_unknown_backend_is_an_error(calibrated):
 
 def test_colmap_rig_config_round_trips(calibrated):
     _, results, written = calibrated
-    assert results / RIG_CONFIG in written
+    assert results / "rig_config.json" in written
     rig = Rig.load(results / "rig.json")
-    configs = pycolmap.read_rig_config(results / RIG_CONFIG)
+    configs = pycolmap.read_rig_config(results / "rig_config.json")
     assert len(configs) == 1
     entries = configs[0].cameras
     assert [e.image_prefix for e in entries] == ["C0/", "C1/", "C2/", "C3/", "C4/"]  # no image files: "<camera>/"
@@ -376,7 +374,7 @@ def test_colmap_rig_config_uses_colmap_pixel_convention(tmp_path):
     off = Camera(fx=44000.0, fy=44100.0, cx=2031.25, cy=1517.75, d=-1.5, width=W, height=H)
     tilt = Rotation.from_euler("y", 45, degrees=True).as_matrix()
     rig = Rig({"A": centred, "B": off}, {"A": Rigid3.identity(), "B": Rigid3(tilt, [0.1, 0.0, -0.05])}, "A")
-    path = write_json_atomic(tmp_path / RIG_CONFIG, colmap_rig_config(rig))
+    path = write_json_atomic(tmp_path / "rig_config.json", colmap_rig_config(rig))
     entries = {e.image_prefix: e.camera for e in pycolmap.read_rig_config(path)[0].cameras}
     default = pycolmap.Camera.create_from_model_name(1, "OPENCV", 45000.0, W, H)
     assert (entries["A/"].principal_point_x, entries["A/"].principal_point_y) == (
@@ -397,7 +395,7 @@ def test_image_prefixes():
 
 def test_layout_figure_of_both_cases(calibrated):
     _, results, written = calibrated
-    path = results / LAYOUT_FIGURE
+    path = results / "figures" / "extrinsics_layout.svg"
     assert path in written
     svg = ET.parse(path).getroot()
     ns = "{http://www.w3.org/2000/svg}"

@@ -14,12 +14,14 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from dmais_pipe.calib.intrinsics import (
-    calibrate_camera, calibrate_camera_dlt_lm, calibrate_camera_opencv, run_intrinsics, write_intrinsics_table,
+    calibrate_camera, calibrate_camera_dlt_lm, calibrate_camera_opencv,
 )
 from dmais_pipe.camera import Camera
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.geometry import Rigid3, rotation_error
 from dmais_pipe.rig import Rig
+from dmais_pipe.stages import intrinsics
+from dmais_pipe.workspace import Workspace
 
 from conftest import observation_only
 
@@ -35,16 +37,16 @@ WIDE = Camera(fx=505.0, fy=502.0, cx=317.5, cy=243.0, d=-0.3, width=640, height=
 def simulated(simulated_dataset, tmp_path_factory):
     dataset = simulated_dataset(SIM)
     results = tmp_path_factory.mktemp("intrinsics") / "results"
-    written = run_intrinsics(dataset, results)
+    written = intrinsics.run(Workspace.open(dataset, results))
     return dataset, results, written
 
 
 def test_per_camera_runs_and_table_equal_one_run(simulated, tmp_path):
     dataset, results, _ = simulated
     for camera in ("C3", "C0", "C1", "C2", "C4"):
-        run_intrinsics(dataset, tmp_path, cameras=[camera])
+        intrinsics.run_camera(Workspace.open(dataset, tmp_path), camera)
     assert not (tmp_path / "tables" / "intrinsics.csv").exists()
-    pd.testing.assert_frame_equal(pd.read_csv(write_intrinsics_table(dataset, tmp_path)),
+    pd.testing.assert_frame_equal(pd.read_csv(intrinsics.write_table(Workspace.open(dataset, tmp_path))[0]),
                                   pd.read_csv(results / "tables" / "intrinsics.csv"))
     assert (json.loads((tmp_path / "intrinsics" / "C3.json").read_text())
             == json.loads((results / "intrinsics" / "C3.json").read_text()))
@@ -52,14 +54,14 @@ def test_per_camera_runs_and_table_equal_one_run(simulated, tmp_path):
 
 def test_table_names_a_camera_not_calibrated_yet(simulated, tmp_path):
     dataset, _, _ = simulated
-    run_intrinsics(dataset, tmp_path, cameras=["C0"])
+    intrinsics.run_camera(Workspace.open(dataset, tmp_path), "C0")
     with pytest.raises(DmaisError, match="C1.methods.csv"):
-        write_intrinsics_table(dataset, tmp_path)
+        intrinsics.write_table(Workspace.open(dataset, tmp_path))[0]
     with pytest.raises(DmaisError, match="C9"):
-        run_intrinsics(dataset, tmp_path, cameras=["C9"])
+        intrinsics.run_camera(Workspace.open(dataset, tmp_path), "C9")
 
 
-def test_run_intrinsics_writes_json_and_table(simulated):
+def test_intrinsics_stage_writes_json_and_table(simulated):
     dataset, results, written = simulated
     names = ["C0", "C1", "C2", "C3", "C4"]
     assert set(written) == ({results / "intrinsics" / f"{c}.json" for c in names}
@@ -280,7 +282,7 @@ def test_non_finite_observation_names_the_row():
 
 
 def test_stage_skips_sparse_images_and_names_a_camera_without_enough(simulated, tmp_path, caplog):
-    """Through run_intrinsics: C1 loses two calib images (4 and 1 observations left) and an eval image (3): one
+    """Through the intrinsics stage: C1 loses two calib images (4 and 1 observations left) and an eval image (3): one
     warning lists them and C1 is calibrated on the rest; C2 keeps one usable calib image: an error naming C2."""
     dataset, _, _ = simulated
     import shutil
@@ -300,7 +302,7 @@ def test_stage_skips_sparse_images_and_names_a_camera_without_enough(simulated, 
     results = tmp_path / "results"
     with caplog.at_level(logging.WARNING, logger="dmais_pipe.calib.intrinsics"):
         with pytest.raises(DmaisError, match=r"camera C2: 1 usable calibration image\(s\)"):
-            run_intrinsics(copy, results)
+            intrinsics.run(Workspace.open(copy, results))
     sparse = [r.getMessage() for r in caplog.records if "fewer than 5 observations" in r.getMessage()]
     c1_warnings = [m for m in sparse if m.startswith("camera C1:")]
     assert len(c1_warnings) == 1 and "3 image(s)" in c1_warnings[0], sparse
@@ -325,7 +327,7 @@ def test_dataset_with_non_finite_observation_is_rejected_naming_the_line(simulat
     obs[3] = ",".join(fields)
     (copy / "observations.csv").write_text("\n".join(obs) + "\n")
     with pytest.raises(DmaisError, match=r"observations.csv, line 4"):
-        run_intrinsics(copy, tmp_path / "results")
+        intrinsics.run(Workspace.open(copy, tmp_path / "results"))
     assert not (tmp_path / "results" / "tables").exists()
 
 
@@ -353,7 +355,7 @@ def test_absurd_calibration_stops_the_stage_and_keeps_the_earlier_result(simulat
     copy = tmp_path / "copy"
     shutil.copytree(dataset, copy)
     results = tmp_path / "results"
-    run_intrinsics(copy, results, cameras=["C0"])
+    intrinsics.run_camera(Workspace.open(copy, results), "C0")
     written = {p.name: p.read_bytes() for p in (results / "intrinsics").iterdir()}
 
     images = pd.read_csv(copy / "images.csv")
@@ -365,7 +367,7 @@ def test_absurd_calibration_stops_the_stage_and_keeps_the_earlier_result(simulat
         obs.loc[rows, "point_id"] = rng.permutation(obs.loc[rows, "point_id"].to_numpy())
     obs.to_csv(copy / "observations.csv", index=False)
     with pytest.raises(DmaisError) as info:
-        run_intrinsics(copy, results, cameras=["C0"])
+        intrinsics.run_camera(Workspace.open(copy, results), "C0")
     message = str(info.value)
     assert message.startswith("camera C0: calibration refused, eps_calib ") and "exceeds 5 px" in message
     worst = message.split("worst images: ")[1]
@@ -384,5 +386,5 @@ def test_a_focal_far_from_the_manifest_is_refused(simulated, tmp_path):
     (copy / "dataset.yaml").write_text(yaml.safe_dump(manifest))
     with pytest.raises(DmaisError, match=r"camera C2: calibration refused, fx 4\d{4}\.\d px is \d+% from focal_px "
                                          r"30000; fy .*\(worst images: intr_C2_"):
-        run_intrinsics(copy, tmp_path / "results", cameras=["C2"])
+        intrinsics.run_camera(Workspace.open(copy, tmp_path / "results"), "C2")
     assert not (tmp_path / "results" / "intrinsics" / "C2.json").exists()

@@ -9,14 +9,14 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from dmais_pipe.calib.intrinsics import run_intrinsics
 from dmais_pipe.camera import Camera
 from dmais_pipe.dataset import Dataset, write_dataset
 from dmais_pipe.errors import DatasetError, DmaisError
 from dmais_pipe.files import write_png_atomic
 from dmais_pipe.geometry import Rigid3
-from dmais_pipe.markers import detect, identify, refine, run_markers
-from dmais_pipe.markers.stage import collect_observations, run_markers_image, verify_with_pose
+from dmais_pipe.markers import detect, identify, refine
+from dmais_pipe.markers.extract import verify_with_pose
+from dmais_pipe.stages import intrinsics, markers as markers_stage
 from dmais_pipe.sim.render import MarkerBoard, RenderSettings, render_image
 from dmais_pipe.workspace import Workspace
 
@@ -306,10 +306,9 @@ def small_dataset(root, seed=0):
     return poses, control
 
 
-@pytest.mark.parametrize("jobs", [1, 2])
-def test_run_markers_writes_results(tmp_path, jobs):
+def test_markers_stage_writes_results(tmp_path):
     poses, control = small_dataset(tmp_path / "data")
-    out = run_markers(tmp_path / "data", tmp_path / "results", jobs=jobs)
+    out = markers_stage.run(Workspace.open(tmp_path / "data", tmp_path / "results"))[-1]
     assert out == tmp_path / "results" / "observations.csv"
     observations = pd.read_csv(out, dtype={"point_id": str, "image": str}, keep_default_na=False)
     assert list(observations.columns) == ["image", "camera", "point_id", "u", "v"]
@@ -330,30 +329,33 @@ def test_run_markers_writes_results(tmp_path, jobs):
 
 def test_per_image_jobs_and_stage_collection_equal_one_run(tmp_path):
     small_dataset(tmp_path / "data")
-    whole = Workspace.open(tmp_path / "data",
-                           run_markers(tmp_path / "data", tmp_path / "whole", jobs=1).parent).load_observations()
+    whole = Workspace.open(tmp_path / "data", tmp_path / "whole")
+    markers_stage.run(whole)
+    jobs = Workspace.open(tmp_path / "data", tmp_path / "jobs")
     for image in ("i1", "i0"):
-        assert run_markers_image(tmp_path / "data", tmp_path / "jobs", image) == tmp_path / "jobs" / "markers" / f"{image}.csv"
+        assert markers_stage.run_image(jobs, image) == [tmp_path / "jobs" / "markers" / f"{image}.csv"]
     with pytest.raises(DmaisError, match="'hand'"):  # observations given: nothing to extract
-        run_markers_image(tmp_path / "data", tmp_path / "jobs", "hand")
-    collected = collect_observations(tmp_path / "data", tmp_path / "jobs", "intrinsics")
+        markers_stage.run_image(jobs, "hand")
+    [collected] = markers_stage.collect(jobs, "intrinsics")
     assert collected == tmp_path / "jobs" / "observations" / "intrinsics.csv"
     per_stage = Workspace.open(tmp_path / "data", tmp_path / "jobs").load_observations()
     pd.testing.assert_frame_equal(per_stage.sort_values(["image", "point_id"]).reset_index(drop=True),
-                                  whole.sort_values(["image", "point_id"]).reset_index(drop=True))
+                                  whole.load_observations().sort_values(["image", "point_id"]).reset_index(drop=True))
     (tmp_path / "jobs" / "markers" / "i0.csv").unlink()
     with pytest.raises(DmaisError, match="i0.csv"):
-        collect_observations(tmp_path / "data", tmp_path / "jobs", "intrinsics")
+        markers_stage.collect(jobs, "intrinsics")
 
 
-def test_run_markers_missing_or_corrupt_image(tmp_path):
+def test_markers_stage_missing_or_corrupt_image(tmp_path):
     small_dataset(tmp_path / "data")
+    workspace = Workspace.open(tmp_path / "data", tmp_path / "results")
     (tmp_path / "data" / "images" / "i1.png").unlink()
     with pytest.raises(DatasetError, match="i1"):
-        run_markers(tmp_path / "data", tmp_path / "results")
+        markers_stage.run(workspace)
+    assert not (tmp_path / "results").exists()  # checked before any work
     (tmp_path / "data" / "images" / "i1.png").write_bytes(b"not a png")
     with pytest.raises(DatasetError, match="i1.*cannot be decoded"):
-        run_markers(tmp_path / "data", tmp_path / "results", jobs=2)
+        markers_stage.run(workspace)
 
 
 def test_markers_say_why_nothing_is_identified(tmp_path, caplog):
@@ -363,9 +365,9 @@ def test_markers_say_why_nothing_is_identified(tmp_path, caplog):
     images = pd.read_csv(tmp_path / "data" / "images.csv", dtype=str, keep_default_na=False)
     images.loc[images["image"] == "i0", ["prior_qw", "prior_qx", "prior_qy", "prior_qz"]] = ""
     images.to_csv(tmp_path / "data" / "images.csv", index=False)
-    with caplog.at_level("WARNING", logger="dmais_pipe.markers.stage"):
-        run_markers_image(tmp_path / "data", tmp_path / "results", "i0")
-        run_markers_image(tmp_path / "data", tmp_path / "results", "i1")
+    with caplog.at_level("WARNING", logger="dmais_pipe.markers.extract"):
+        markers_stage.run_image(Workspace.open(tmp_path / "data", tmp_path / "results"), "i0")
+        markers_stage.run_image(Workspace.open(tmp_path / "data", tmp_path / "results"), "i1")
     said = [r.getMessage() for r in caplog.records]
     assert len(said) == 1 and said[0].startswith("markers i0: ") and "none can be identified" in said[0], said
     assert said[0].endswith("intrinsics images are identified from their prior centre and attitude and the camera's "
@@ -374,12 +376,13 @@ def test_markers_say_why_nothing_is_identified(tmp_path, caplog):
     manifest = (tmp_path / "data" / "dataset.yaml").read_text().replace("focal_px: 2000.0", "")
     (tmp_path / "data" / "dataset.yaml").write_text(manifest)
     caplog.clear()
-    with caplog.at_level("WARNING", logger="dmais_pipe.markers.stage"):
-        run_markers_image(tmp_path / "data", tmp_path / "results", "i1")
+    with caplog.at_level("WARNING", logger="dmais_pipe.markers.extract"):
+        markers_stage.run_image(Workspace.open(tmp_path / "data", tmp_path / "results"), "i1")
     assert [r.getMessage().split("; ")[-1] for r in caplog.records] == ["missing focal_px of camera C0 in dataset.yaml"]
-    collect_observations(tmp_path / "data", tmp_path / "results", "intrinsics")
+    workspace = Workspace.open(tmp_path / "data", tmp_path / "results")
+    markers_stage.collect(workspace, "intrinsics")
     with pytest.raises(DmaisError, match=r"camera C0: none of its 2 calibration images has an identified observation"):
-        run_intrinsics(tmp_path / "data", tmp_path / "results")
+        intrinsics.run(workspace)
 
 
 def test_pose_verification_drops_swapped_ids_and_keeps_the_rest():

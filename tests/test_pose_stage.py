@@ -9,7 +9,8 @@ import pandas as pd
 import pytest
 
 from dmais_pipe.errors import DmaisError
-from dmais_pipe.pose.stage import COLUMNS, merge_poses, run_pose
+from dmais_pipe.pose.flight import COLUMNS
+from dmais_pipe.stages import pose
 from dmais_pipe.workspace import Workspace
 
 from conftest import observation_only
@@ -24,9 +25,9 @@ def dataset(simulated_dataset):
 
 def test_poses_of_every_frame_match_the_truth(dataset, tmp_path):
     with pytest.raises(DmaisError, match="rig.json"):
-        run_pose(dataset, tmp_path)
+        pose.run(Workspace.open(dataset, tmp_path))[0]
     shutil.copy(dataset / "truth" / "rig.json", tmp_path / "rig.json")
-    path = run_pose(dataset, tmp_path)
+    path = pose.run(Workspace.open(dataset, tmp_path))[0]
     assert path == tmp_path / "poses.csv"
     poses = pd.read_csv(path, dtype={"frame": str, "group": str})
     assert list(poses.columns) == COLUMNS
@@ -36,30 +37,30 @@ def test_poses_of_every_frame_match_the_truth(dataset, tmp_path):
     assert np.median(error) < 0.3  # 4 px noise at 350 m: the paper's ~0.1 m
     assert poses["eps_proj_px"].between(1, 10).all()
 
-    subset = run_pose(dataset, tmp_path, cameras=["C2", "C0"])
+    subset = pose.run(Workspace.open(dataset, tmp_path), cameras=["C2", "C0"])[0]
     assert subset.name == "poses_02.csv"
     assert set(pd.read_csv(subset)["cameras"]) <= {"C0+C2", "C0", "C2"}
     with pytest.raises(DmaisError, match="unknown camera"):
-        run_pose(dataset, tmp_path, cameras=["C9"])
+        pose.run(Workspace.open(dataset, tmp_path), cameras=["C9"])
 
 
 def test_per_group_jobs_merge_into_the_same_poses(dataset, tmp_path):
     shutil.copy(dataset / "truth" / "rig.json", tmp_path / "rig.json")
-    whole = pd.read_csv(run_pose(dataset, tmp_path, cameras=["C0", "C1"]), dtype={"frame": str, "group": str})
+    whole = pd.read_csv(pose.run(Workspace.open(dataset, tmp_path), cameras=["C0", "C1"])[0], dtype={"frame": str, "group": str})
     groups = sorted(set(whole["group"]))
     assert len(groups) > 1
-    parts = [run_pose(dataset, tmp_path, cameras=["C0", "C1"], groups=[g], out=tmp_path / "parts" / f"{g}.csv")
+    parts = [pose.run(Workspace.open(dataset, tmp_path), cameras=["C0", "C1"], groups=[g], out=tmp_path / "parts" / f"{g}.csv")[0]
              for g in groups]
     (tmp_path / "poses_01.csv").unlink()
-    merged = merge_poses(dataset, tmp_path, parts[::-1], cameras=["C1", "C0"])
+    merged = pose.merge(Workspace.open(dataset, tmp_path), parts[::-1], cameras=["C1", "C0"])[0]
     assert merged == tmp_path / "poses_01.csv"
     columns = [c for c in COLUMNS if c != "time_ms"]
     pd.testing.assert_frame_equal(pd.read_csv(merged, dtype={"frame": str, "group": str})[columns], whole[columns])
     with pytest.raises(DmaisError, match="more than one"):
-        merge_poses(dataset, tmp_path, [parts[0], parts[0]], cameras=["C0", "C1"])
+        pose.merge(Workspace.open(dataset, tmp_path), [parts[0], parts[0]], cameras=["C0", "C1"])[0]
     pd.read_csv(parts[0]).drop(columns="time_ms").to_csv(tmp_path / "bad.csv", index=False)
-    with pytest.raises(DmaisError, match="bad.csv: columns"):
-        merge_poses(dataset, tmp_path, [tmp_path / "bad.csv"])
+    with pytest.raises(DmaisError, match="bad.csv.*time_ms"):
+        pose.merge(Workspace.open(dataset, tmp_path), [tmp_path / "bad.csv"])[0]
 
 
 def test_a_group_without_a_solvable_frame_leaves_an_empty_part(dataset, tmp_path, caplog):
@@ -73,14 +74,14 @@ def test_a_group_without_a_solvable_frame_leaves_an_empty_part(dataset, tmp_path
     observations["camera"] = observations["image"].map(dict(zip(images["image"], images["camera"])))
     observations[~observations["image"].isin(lost_images)].to_csv(tmp_path / "observations.csv", index=False)
 
-    part = run_pose(dataset, tmp_path, groups=[lost_group], out=tmp_path / "parts" / "lost.csv")
+    part = pose.run(Workspace.open(dataset, tmp_path), groups=[lost_group], out=tmp_path / "parts" / "lost.csv")[0]
     assert "could be solved" in caplog.text
     assert list(pd.read_csv(part).columns) == COLUMNS and pd.read_csv(part).empty
-    other = run_pose(dataset, tmp_path, groups=sorted(set(frames["group"]))[1:2], out=tmp_path / "parts" / "other.csv")
-    merged = pd.read_csv(merge_poses(dataset, tmp_path, [part, other]), dtype={"frame": str, "group": str})
+    other = pose.run(Workspace.open(dataset, tmp_path), groups=sorted(set(frames["group"]))[1:2], out=tmp_path / "parts" / "other.csv")[0]
+    merged = pd.read_csv(pose.merge(Workspace.open(dataset, tmp_path), [part, other])[0], dtype={"frame": str, "group": str})
     assert len(merged) and lost_group not in set(merged["group"])
     with pytest.raises(DmaisError, match="none of the 1 per-group pose files"):
-        merge_poses(dataset, tmp_path, [part])
+        pose.merge(Workspace.open(dataset, tmp_path), [part])[0]
 
 
 def _swap_ids(observations: pd.DataFrame, rows: np.ndarray, frame_of: dict) -> pd.DataFrame:
@@ -99,7 +100,7 @@ def test_robust_pose_with_40_percent_swapped_ids_is_as_good_as_without_them(data
     A minimal-sample consensus is tens of pixels off at the far cameras, so correct points there
     are only recovered by local optimisation that re-selects after every refit."""
     from dmais_pipe.dataset import Dataset
-    from dmais_pipe.pose.stage import estimate_poses
+    from dmais_pipe.pose.flight import estimate_poses
     from dmais_pipe.rig import Rig
 
     data, rig = Dataset.load(dataset), Rig.load(dataset / "truth" / "rig.json")

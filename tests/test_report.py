@@ -15,12 +15,13 @@ from dmais_pipe.calib.extrinsics import extrinsics_tables
 from dmais_pipe.calib.intrinsics import TABLE_COLUMNS
 from dmais_pipe.dataset import flight_observations
 from dmais_pipe.errors import DmaisError
-from dmais_pipe.evaluate import conf_table, pose_methods_table, run_evaluate
+from dmais_pipe.evaluate import conf_table, pose_methods_table
 from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
-from dmais_pipe.report.html import SECTIONS, benchmark_table, write_report
-from dmais_pipe.report.paper import PAPER_DIR, PAPER_TABLES, compare_with_paper, paper_notes, write_paper_comparisons
-from dmais_pipe.pose.stage import pixel_residuals
+from dmais_pipe.report.html import SECTIONS, benchmark_table
+from dmais_pipe.report.paper import PAPER_DIR, PAPER_TABLES, compare_with_paper, paper_comparisons, paper_notes
+from dmais_pipe.pose.flight import pixel_residuals
 from dmais_pipe.rig import Rig
+from dmais_pipe.stages import evaluate, report
 from dmais_pipe.workspace import POSE_OBSERVATION_COLUMNS, Workspace
 
 from conftest import observation_only
@@ -103,7 +104,7 @@ def write_results(dataset, results) -> None:
     for label in ("0", "012", "01234"):
         names = "+".join(truth.camera_names[int(d)] for d in label)
         poses_from_truth(dataset, names).to_csv(results / f"poses_{label}.csv", index=False)
-    run_evaluate(dataset, results)
+    evaluate.run(Workspace.open(dataset, results))
     rows = []
     for name, camera in truth.cameras.items():
         record = {"camera": name, **camera.to_dict(), "std": {"fx": 2.5, "fy": 2.4, "cx": 1.1, "cy": 0.9, "d": 0.01},
@@ -148,9 +149,16 @@ def results(dataset, tmp_path_factory):
 # ------------------------------------------------------------------------------ the report
 
 
+def render(dataset, results, html, **options):
+    """The report stage on `results`: the comparisons with the paper, then the page; its path."""
+    written = report.run(Workspace.open(dataset, results), html, **options)
+    assert html in written
+    return html
+
+
 def test_report_has_every_section_and_is_self_contained(dataset, results, tmp_path):
     write_benchmarks(tmp_path / "benchmarks")
-    out = write_report(dataset, results, tmp_path / "report" / "report.html", benchmarks_dir=tmp_path / "benchmarks")
+    out = render(dataset, results, tmp_path / "report" / "report.html", benchmarks=tmp_path / "benchmarks")
     page = parse(out)
     assert page.ids == SECTION_IDS
     assert list(page.missing) == ["markers"] and "observations given" in page.missing["markers"]  # no images
@@ -166,22 +174,20 @@ def test_report_has_every_section_and_is_self_contained(dataset, results, tmp_pa
 def test_missing_inputs_make_sections_say_so(dataset, tmp_path):
     empty = tmp_path / "results"
     empty.mkdir()
-    out = write_report(tmp_path / "no-dataset", empty, tmp_path / "report.html")
-    page = parse(out)
+    with pytest.raises(DmaisError, match="no-dataset"):  # the report is of a dataset: it must load
+        render(tmp_path / "no-dataset", empty, tmp_path / "report.html")
+    page = parse(render(dataset, empty, tmp_path / "report.html"))
     assert page.ids == SECTION_IDS
-    assert set(page.missing) == set(SECTION_IDS)
-    assert "is not a dataset directory" in page.missing["dataset"]
-    assert "intrinsics is missing" in page.missing["intrinsics"]
+    assert set(page.missing) == set(SECTION_IDS) - {"dataset"}
+    assert "intrinsics holds no" in page.missing["intrinsics"]
     assert "rig.json is missing" in page.missing["rig"]
     assert "evaluation.csv is missing" in page.missing["frames"]
     assert "conf.csv is missing" in page.missing["subsets"]
     assert "no benchmark folder" in page.missing["stages"]
-    # With the dataset but still no results: the dataset section is drawn.
-    page = parse(write_report(dataset, empty, tmp_path / "report2.html"))
-    assert "dataset" not in page.missing and "poses.csv is missing" in page.missing["residuals"]
+    assert "poses.csv is missing" in page.missing["residuals"]
     # A malformed table costs its section only.
     pd.DataFrame({"frame": ["x"], "eps_pos_m": [0.1]}).to_csv(empty / "evaluation.csv", index=False)
-    page = parse(write_report(dataset, empty, tmp_path / "report3.html"))
+    page = parse(render(dataset, empty, tmp_path / "report3.html"))
     assert page.ids == SECTION_IDS and "malformed input: KeyError" in page.missing["frames"]
 
 
@@ -199,7 +205,7 @@ def test_layout_figure_is_embedded_and_text_escaped(dataset, results, tmp_path):
     (mine / "figures").mkdir()
     (mine / "figures" / "extrinsics_layout.svg").write_text(
         '<svg xmlns="http://www.w3.org/2000/svg" width="10" height="10"><circle r="4"/></svg>')
-    out = write_report(copy, mine, tmp_path / "report.html")
+    out = render(copy, mine, tmp_path / "report.html")
     text = out.read_text()
     assert "<script" not in text and "<b>bold" not in text
     assert "&lt;script&gt;alert(1)&lt;/script&gt;" in text and "&lt;b&gt;bold&lt;/b&gt; &amp; co" in text
@@ -262,19 +268,23 @@ def test_paper_tables_have_our_columns_and_the_published_numbers(dataset):
     assert published("time_points")["paper_ms"].tolist() == [0.34, 0.44, 0.55, 0.75, 0.96, 1.14, 1.36]
 
 
-def test_write_paper_comparisons(results, tmp_path):
-    written = write_paper_comparisons(results, tmp_path)
-    assert {p.name for p in written} == {f"{name}_vs_paper.csv" for name in PAPER_TABLES}
-    intrinsics = pd.read_csv(tmp_path / "intrinsics_vs_paper.csv")
+def test_paper_comparisons_are_written_by_the_report_stage(dataset, results, tmp_path):
+    workspace = Workspace.open(dataset, results)
+    ours = {name: workspace.load_table(name, spec.keys) for name, spec in PAPER_TABLES.items()}
+    assert set(paper_comparisons(ours)) == set(PAPER_TABLES)
+    written = report.run(workspace, tmp_path / "report.html")
+    assert {workspace.table_path(f"{name}_vs_paper") for name in PAPER_TABLES} <= set(written)
+    assert {p.name for p in (tmp_path / "tables").glob("*_vs_paper.csv")} == {f"{n}_vs_paper.csv" for n in PAPER_TABLES}
+    intrinsics = pd.read_csv(workspace.table_path("intrinsics_vs_paper"))
     # our dlt_lm baseline meets the paper's Bouguet row; BabelCalib has no counterpart of ours
     bouguet = intrinsics[(intrinsics["method"] == "bouguet") & (intrinsics["quantity"] == "fx")]
     assert bouguet["ours"].notna().all() and bouguet["paper"].notna().all()
     assert intrinsics.loc[intrinsics["method"] == "babelcalib", "ours"].isna().all()
-    conf = pd.read_csv(tmp_path / "conf_vs_paper.csv", dtype={"subset": str, "group": str})
+    conf = pd.read_csv(workspace.table_path("conf_vs_paper"), dtype={"subset": str, "group": str})
     row = conf[(conf["group"] == "1") & (conf["subset"] == "012") & (conf["quantity"] == "eps_proj_mean_px")]
     assert len(row) == 1 and row["paper"].item() == 4.398
     assert row["ratio"].item() == pytest.approx(row["ours"].item() / 4.398)
-    time_points = pd.read_csv(tmp_path / "time_points_vs_paper.csv")
+    time_points = pd.read_csv(workspace.table_path("time_points_vs_paper"))
     assert time_points["ratio"].iloc[0] == pytest.approx(0.2 / 0.34)
 
 
@@ -282,7 +292,7 @@ def test_paper_notes_cover_every_table_and_reach_the_report(dataset, results, tm
     notes = paper_notes()
     assert set(notes) == set(PAPER_TABLES) and all(len(text) > 80 for text in notes.values())
     (results / "tables" / "extrinsics_note.txt").write_text("Without the priors the centres move by 1 cm.")
-    html = write_report(dataset, results, tmp_path / "report.html").read_text()
+    html = render(dataset, results, tmp_path / "report.html").read_text()
     assert html.count('<p class="note">') == len(notes) + 1
     assert "This run: Without the priors the centres move by 1 cm." in html
     (tmp_path / "paper").mkdir()
@@ -293,7 +303,7 @@ def test_paper_notes_cover_every_table_and_reach_the_report(dataset, results, tm
 
 def test_marker_quality_flags_the_image_whose_corners_are_poor():
     """Per image and camera: counts, sigma quantiles; an image 5x worse than its camera's others is flagged."""
-    from dmais_pipe.report.markers import camera_quality, image_quality
+    from dmais_pipe.markers.quality import camera_quality, image_quality
 
     rng = np.random.default_rng(0)
 

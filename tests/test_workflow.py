@@ -97,6 +97,9 @@ def snakemake(workdir: Path, *options: str, timeout: int = 120) -> subprocess.Co
     ({"dataset": "x", "dataset_dir": "d", "datset": "typo"}, "config: (top level): Additional properties are not "
      "allowed ('datset' was unexpected)"),
     ({"dataset": "x", "dataset_dir": "d", "subsets": ["0", "a"]}, "config: subsets.1: 'a' does not match"),
+    ({"dataset": "x", "dataset_dir": "d", "pose": {"robustt": True}}, "config: pose: Additional properties are not "
+     "allowed ('robustt' was unexpected)"),
+    ({"dataset": "x", "dataset_dir": "d", "intrinsics": {"conf": "fast"}}, "config: intrinsics.conf: 'fast' is not one of"),
     ({"dataset": "x", "dataset_dir": "d", "simulate": "s.yaml"}, "config: give either dataset_dir"),
     ({"dataset": "x"}, "config: give either dataset_dir"),
     (None, "no configuration: run with --configfile"),
@@ -142,15 +145,19 @@ def test_a_users_dataset_is_only_read(tmp_path):
     work.mkdir()
     (work / "mysite.yaml").write_text(yaml.safe_dump(
         {"dataset": "mysite", "dataset_dir": str(site), "subsets": ["0"], "bench_pose": {"repeats": 1,
-                                                                                        "batch_frames": 2}}))
+                                                                                        "batch_frames": 2},
+         "intrinsics": {"methods": ["ours"]}, "pose": {"conf": "robust", "robust_threshold_px": 15}}))
 
-    dry = snakemake(work, "--configfile", "mysite.yaml", "--cores", "2", "-n")
+    dry = snakemake(work, "--configfile", "mysite.yaml", "--cores", "2", "-n", "-p")
     assert dry.returncode == 0, dry.stderr[-3000:]
     assert "simulate" not in dry.stdout
+    assert "--conf robust --set robust_threshold_px=15" in dry.stdout  # the config's stage settings
+    assert "--set methods=ours" in dry.stdout
     run = snakemake(work, "--configfile", "mysite.yaml", "--cores", "2", timeout=900)
     assert run.returncode == 0, run.stderr[-3000:]
 
     assert (work / "reports/mysite/report.html").is_file() and (work / "results/mysite/poses.csv").is_file()
+    assert set(pd.read_csv(work / "results/mysite/tables/intrinsics.csv")["method"]) == {"ours"}
     assert _fingerprint(site) == before
 
 

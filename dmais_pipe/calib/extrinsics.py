@@ -10,9 +10,9 @@
    points and intrinsics constant, plus soft camera-centre priors when used (`calib.rig_ba`: pycolmap's
    rig bundle adjuster by default, or our scipy Levenberg-Marquardt; both reach the same optimum).
 
-`run_extrinsics` runs the calibration with and without the priors (the paper's comparison,
-tab:extrinsics_R, tab:extrinsics_t and the layout figure fig:extrinsics) and writes RESULTS/rig.json
-and the COLMAP rig config RESULTS/rig_config.json from the requested case.
+The extrinsics stage (`stages.extrinsics`) runs the calibration with and without the priors (the
+paper's comparison, tab:extrinsics_R, tab:extrinsics_t and the layout figure fig:extrinsics) and
+writes rig.json and its COLMAP rig config (`colmap_rig_config`) from the requested case.
 """
 
 from __future__ import annotations
@@ -20,14 +20,12 @@ from __future__ import annotations
 import logging
 import posixpath
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from ..camera import Camera
 from ..errors import DmaisError
-from ..files import write_json_atomic, write_text_atomic
 from ..geometry import Rigid3, average_rotations, euler_zyx_from_rotation
 from ..rig import Rig
 from .localize import DEFAULT_CENTER_SIGMA_M, DEFAULT_PIXEL_SIGMA_PX, localize_image
@@ -39,11 +37,7 @@ MIN_REFERENCE_POINTS = 6  # a placement whose reference image has fewer is skipp
 MIN_POINTS = 4  # other images with fewer observations are skipped
 PRIOR_CENTER = ("prior_x", "prior_y", "prior_z")
 DEFAULT_BACKEND = "pycolmap"  # rig refinement: "pycolmap" or "scipy" (calib.rig_ba); both reach the same optimum
-RIG_CONFIG = "rig_config.json"  # COLMAP rig config beside rig.json
-LAYOUT_FIGURE = Path("figures") / "extrinsics_layout.svg"
-EXTRINSICS_NOTE = Path("tables") / "extrinsics_note.txt"  # why the no-prior case deviates as it does
 NOISE_RATIO = 3.0  # eps_t beyond this many standard deviations is called systematic in that note
-LAYOUT_LABELS = ("with camera-centre priors (known)", "without priors (unknown)")
 
 
 class CameraNotLinkedError(DmaisError):
@@ -278,78 +272,6 @@ def _prior_note(t: pd.DataFrame, R: pd.DataFrame, unknown: ExtrinsicsResult) -> 
         f"would need intrinsics off by ~1 %. The paper's description of its field (millimetre survey, 0.2-0.6 px "
         f"reprojection errors in tab:intrinsics, 2 m markers 2-10 m high) does not by itself explain its deviations."
     )
-
-
-# ------------------------------------------------------------------------------ the stage
-
-
-def _load_intrinsics(workspace, names) -> dict[str, tuple[Camera, float | None]]:
-    cameras = {}
-    for name in names:
-        camera, record = workspace.load_intrinsics(name)
-        cameras[name] = (camera, record.get("eps_calib_px"))
-    return cameras
-
-
-def run_extrinsics(dataset_dir, results_dir, use_priors: bool = True,
-                   center_sigma: float = DEFAULT_CENTER_SIGMA_M, backend: str = DEFAULT_BACKEND) -> list[Path]:
-    """`dmais extrinsics DATASET --out RESULTS`.
-
-    Writes RESULTS/rig.json (calibrated with the camera-centre priors when `use_priors` and the
-    images carry them) and its COLMAP twin RESULTS/rig_config.json, RESULTS/extrinsics/
-    rig_{known,unknown}.json for both cases and, when both cases can run, RESULTS/tables/
-    extrinsics_R.csv, extrinsics_t.csv (with standard deviations and a note per row, `annotate_tables`),
-    tables/extrinsics_note.txt and RESULTS/figures/extrinsics_layout.svg. `backend` picks
-    the rig refinement ("pycolmap" or "scipy", `calib.rig_ba`). Returns the written paths.
-    """
-    from ..workspace import Workspace
-
-    workspace = Workspace.open(dataset_dir, results_dir)
-    dataset = workspace.dataset
-    images = dataset.images_of("extrinsics")
-    if images.empty:
-        raise DmaisError(f"{dataset.root}: no extrinsics images")
-    observations = workspace.load_observations()
-    observations = observations[observations["image"].isin(set(images["image"]))]
-    names = [c for c in dataset.cameras if c in set(images["camera"]) or c == dataset.reference_camera]
-    loaded = _load_intrinsics(workspace, names)
-    cameras = {c: cam for c, (cam, _) in loaded.items()}
-    # Per-axis pixel sigma from the intrinsic calibration's RMS point distance (eps / sqrt 2).
-    pixel_sigma = {c: (float(eps) / np.sqrt(2.0) if eps and np.isfinite(eps) and eps > 0 else DEFAULT_PIXEL_SIGMA_PX)
-                   for c, (_, eps) in loaded.items()}
-    has_priors = bool(images[list(PRIOR_CENTER)].notna().all(axis=1).any())
-    cases = [True, False] if has_priors else [False]
-    if use_priors and not has_priors:
-        log.warning("extrinsics: no camera-centre priors in %s; calibrating without", dataset.root / "images.csv")
-    written: list[Path] = []
-    out: dict[bool, ExtrinsicsResult] = {}
-    for case in cases:
-        log.info("extrinsics: calibrating %s camera-centre priors", "with" if case else "without")
-        out[case] = calibrate_extrinsics(cameras, dataset.reference_camera, images, observations, dataset.points,
-                                         use_priors=case, center_sigma=center_sigma, pixel_sigma=pixel_sigma,
-                                         backend=backend)
-        label = "known" if case else "unknown"
-        written.append(workspace.save_rig(out[case].rig, case=label, **out[case].extra()))
-    chosen = out[use_priors and has_priors]
-    written.insert(0, workspace.save_rig(chosen.rig, **chosen.extra()))
-    prefixes = image_prefixes(dataset.images, chosen.rig.camera_names)
-    written.insert(1, write_json_atomic(workspace.rig_config_path, colmap_rig_config(chosen.rig, prefixes)))
-    if len(out) == 2:
-        written += _write_comparison(workspace, out[True], out[False])
-    return written
-
-
-def _write_comparison(workspace, known: ExtrinsicsResult, unknown: ExtrinsicsResult) -> list[Path]:
-    """tab:extrinsics_R, tab:extrinsics_t (with standard deviations and notes), their note and the layout figure."""
-    from ..report.layout import write_layout_svg
-
-    table_R, table_t, note = annotate_tables(*extrinsics_tables(known.rig, unknown.rig), known, unknown)
-    log.info("extrinsics: %s", note)
-    return [workspace.save_table("extrinsics_R", table_R, float_format="%.6f"),
-            workspace.save_table("extrinsics_t", table_t, float_format="%.6f"),
-            write_text_atomic(workspace.root / EXTRINSICS_NOTE, note + "\n"),
-            write_layout_svg(workspace.root / LAYOUT_FIGURE, [known.rig, unknown.rig], list(LAYOUT_LABELS),
-                             title="Camera layout in the rig frame (fig:extrinsics)")]
 
 
 # ------------------------------------------------------------------------------ COLMAP rig config

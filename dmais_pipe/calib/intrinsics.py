@@ -14,7 +14,7 @@ distance over the calibration images; eps_eval the same over the held-out images
 re-estimating only their poses with the intrinsics fixed. Parameter standard deviations come from
 the covariance (J^T J)^-1 sigma^2, sigma^2 = SSR / (2 n_obs - n_params).
 
-Baselines (`run_intrinsics` writes them to tables/intrinsics.csv beside "ours"):
+Baselines (the intrinsics stage writes them to tables/intrinsics.csv beside "ours"):
 - `opencv`: cv2.calibrateCamera with the one-coefficient model (k1 = d), seeded with the image
   centre and a nominal focal length (a non-planar field needs CALIB_USE_INTRINSIC_GUESS);
 - `dlt_lm`: Bouguet/Tsai-style, full intrinsics from a per-image normalized DLT (H&Z alg. 7.1,
@@ -27,11 +27,9 @@ from __future__ import annotations
 import logging
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import cv2
 import numpy as np
-import pandas as pd
 from scipy.optimize import least_squares
 
 from ..camera import Camera, image_centre, project_unmasked
@@ -462,107 +460,3 @@ def calibrate_camera_dlt_lm(points_world_per_image, uv_per_image, width: int, he
     poses = {k: estimate_pose(camera0, X, uv)[0] for k, (X, uv) in calib.items()}
     camera, poses, residuals, cov = bundle_adjust(camera0, poses, calib)
     return _finish(name, "dlt_lm", camera, poses, residuals, cov, calib, evals, centre, skipped)
-
-
-# ------------------------------------------------------------------------------ the stage
-
-
-def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tuple[dict, dict]:
-    X, uv = {}, {}
-    for image in images:
-        obs = observations[observations["image"] == image]
-        X[image] = points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
-        uv[image] = obs[["u", "v"]].to_numpy(dtype=float)
-    return X, uv
-
-
-def calibrated_cameras(dataset) -> list[str]:
-    """The dataset's cameras that have intrinsics images, in manifest order."""
-    cameras = dataset.cameras_with_intrinsics_images()
-    if not cameras:
-        raise DmaisError(f"{dataset.root}: no intrinsics images")
-    return cameras
-
-
-def run_intrinsics(dataset_dir, results_dir, methods: Sequence[str] = METHODS,
-                   cameras: Sequence[str] | None = None, limits: Plausibility = Plausibility()) -> list[Path]:
-    """`dmais intrinsics DATASET --out RESULTS [--camera C]`: calibrate cameras with intrinsics images.
-
-    Writes RESULTS/intrinsics/<camera>.json ("ours") and <camera>.methods.csv (that camera's row of
-    every method) per camera; with `cameras` None (every camera) also RESULTS/tables/intrinsics.csv
-    (tab:intrinsics). The workflow calibrates one camera per job and then writes the table with
-    `write_intrinsics_table`. A calibration beyond `limits` stops the stage before anything of
-    that camera is written. Returns the written paths.
-    """
-    from ..workspace import Workspace
-
-    unknown = set(methods) - set(METHODS)
-    if unknown or "ours" not in methods:
-        raise DmaisError(f"intrinsics methods must include 'ours' and be among {METHODS}, got {list(methods)}")
-    workspace = Workspace.open(dataset_dir, results_dir)
-    dataset = workspace.dataset
-    available = calibrated_cameras(dataset)
-    chosen = available if cameras is None else list(cameras)
-    missing = [c for c in chosen if c not in available]
-    if missing:
-        raise DmaisError(f"intrinsics: camera(s) {missing} have no intrinsics images in {dataset.root / 'images.csv'}"
-                         f" (cameras with some: {available})")
-    observations = workspace.load_observations()
-    written: list[Path] = []
-    for k, name in enumerate(chosen, 1):
-        log.info("intrinsics %d/%d: camera %s", k, len(chosen), name)
-        ours, methods_rows = _calibrate_dataset_camera(dataset, observations, name, methods, limits)
-        written += workspace.save_intrinsics(name, ours.to_dict(), methods_rows)
-    if cameras is None:
-        written.append(_write_table(workspace))
-    return written
-
-
-def _calibrate_dataset_camera(dataset, observations: pd.DataFrame, name: str, methods: Sequence[str],
-                              limits: Plausibility) -> tuple[IntrinsicsResult, pd.DataFrame]:
-    """Our calibration of one camera and every method's table row."""
-    spec = dataset.cameras[name]
-    calib_images = dataset.images_of("intrinsics", name, "calib")["image"].tolist()
-    eval_images = dataset.images_of("intrinsics", name, "eval")["image"].tolist()
-    log.info("camera %s: %d calib + %d eval images", name, len(calib_images), len(eval_images))
-    if not observations["image"].isin(calib_images).any():
-        raise DmaisError(f"camera {name}: none of its {len(calib_images)} calibration images has an identified "
-                         "observation; `dmais markers` identifies markers from each image's prior centre and "
-                         "attitude and the camera's focal_px (see its warnings, and docs/dataset.md, "
-                         "'What each stage needs')")
-    X, uv = _per_image(observations, dataset.points, calib_images)
-    eX, euv = _per_image(observations, dataset.points, eval_images)
-    common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name)
-    ours = calibrate_camera(X, uv, spec.width, spec.height, **common)
-    check_plausible(ours, spec.focal_px, limits)
-    rows = [ours.table_row()]
-    baselines = {"opencv": lambda: calibrate_camera_opencv(
-                     X, uv, spec.width, spec.height, spec.focal_px or float(np.mean(list(ours.pnpf_focal_px.values()))),
-                     warn_skipped=False, **common),
-                 "dlt_lm": lambda: calibrate_camera_dlt_lm(X, uv, spec.width, spec.height, warn_skipped=False, **common)}
-    for method in [m for m in METHODS if m in methods and m != "ours"]:
-        try:
-            rows.append(baselines[method]().table_row())
-        except DmaisError as error:
-            log.warning("%s", error)
-            rows.append({"method": method, "camera": name})
-    return ours, pd.DataFrame(rows, columns=list(TABLE_COLUMNS))
-
-
-def write_intrinsics_table(dataset_dir, results_dir) -> Path:
-    """RESULTS/tables/intrinsics.csv from every calibrated camera's <camera>.methods.csv."""
-    from ..workspace import Workspace
-
-    return _write_table(Workspace.open(dataset_dir, results_dir))
-
-
-def _write_table(workspace) -> Path:
-    cameras = calibrated_cameras(workspace.dataset)
-    absent = [str(workspace.methods_path(c)) for c in cameras if not workspace.methods_path(c).is_file()]
-    if absent:
-        raise DmaisError(f"intrinsics table: missing {absent}; run `dmais intrinsics --camera` for those cameras")
-    table = pd.concat([workspace.load_methods(c) for c in cameras], ignore_index=True)
-    order = {m: i for i, m in enumerate(METHODS)}
-    table = table.sort_values(["camera", "method"], key=lambda s: s.map(order) if s.name == "method" else s,
-                              kind="stable")
-    return workspace.save_table("intrinsics", table[list(TABLE_COLUMNS)])

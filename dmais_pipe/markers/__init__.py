@@ -3,6 +3,6 @@
 from .detect import detect
 from .identify import identify
 from .refine import refine
-from .stage import predicted_projections, process_image, run_markers
+from .extract import predicted_projections, process_image
 
-__all__ = ["detect", "identify", "predicted_projections", "process_image", "refine", "run_markers"]
+__all__ = ["detect", "identify", "predicted_projections", "process_image", "refine"]

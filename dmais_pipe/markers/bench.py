@@ -24,7 +24,7 @@ from ..rig import Rig
 from .detect import detect
 from .identify import identify
 from .refine import refine
-from .stage import predicted_projections
+from .extract import predicted_projections
 
 log = logging.getLogger(__name__)
 MATCH_PX = 2.0
@@ -58,7 +58,7 @@ def bench_markers(dataset_dir, out_csv=None, rig_path=None, images=None, seed: i
         found = detect(pixels)
         seconds = time.perf_counter() - started
         uv = found[["u", "v"]].to_numpy()
-        prediction = predicted_projections(dataset, image, None, rig)
+        prediction = predicted_projections(dataset, image, rig)
         ids = np.full(len(uv), "", dtype=object)
         if prediction is not None and len(uv):
             ids = identify(uv, prediction[0], prediction[1], (width, height))

@@ -13,7 +13,7 @@ The modules: `statistics` (the O(n) statistics of eq. objfun3), `generate` -> `_
 (the sympy derivation of eq. EF6), `template` -> `_template.json` (the elimination template),
 `_kernels.pyx` (the compiled core), `solver` (the API), `gp3p` (minimal solver), `refine`
 (Levenberg-Marquardt on angular residuals, Cramer-Rao bound), `robust`, `bench` (`dmais bench
-pose`) and `stage` (`dmais pose`).
+pose`) and `flight` (every flight frame of a dataset, for the pose stage `stages.pose`).
 """
 
 from __future__ import annotations

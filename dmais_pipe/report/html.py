@@ -10,7 +10,6 @@ from __future__ import annotations
 import base64
 import html
 import io
-import json
 import logging
 from collections.abc import Callable
 from functools import cached_property
@@ -20,15 +19,13 @@ import numpy as np
 import pandas as pd
 from matplotlib.figure import Figure
 
-from ..dataset import Dataset
 from ..errors import DmaisError
-from ..evaluate import ALL_GROUPS, TRUE_ERROR_COLUMNS, pose_methods_table
+from ..evaluate import ALL_GROUPS, TRUE_ERROR_COLUMNS
 from ..files import write_text_atomic
 from ..rig import Rig
 from ..workspace import Workspace, pose_observations_path
 from .dataset import rig_table, summary_table
-from .markers import FLAG_FACTOR, FLAG_MIN_SIGMA_PX, camera_quality, image_quality
-from .paper import PAPER_TABLES, paper_comparisons, paper_notes, read_table
+from .paper import PAPER_TABLES, paper_notes
 
 log = logging.getLogger(__name__)
 
@@ -44,7 +41,6 @@ SECTIONS = (
     ("stages", "Processing time per stage"),
     ("paper", "Comparison with the paper"),
 )
-LAYOUT_FIGURE = Path("figures") / "extrinsics_layout.svg"
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "d")
 RATIO_LIMITS = (0.5, 2.0)
 _MAX_TABLE_ROWS = 400
@@ -57,14 +53,15 @@ class MissingInput(Exception):
 # ------------------------------------------------------------------------------ the page
 
 
-def write_report(dataset_dir: str | Path, results_dir: str | Path, out_html: str | Path,
-                 benchmarks_dir: str | Path | None = None, paper_dir: str | Path | None = None) -> Path:
-    """Write the HTML report of RESULTS (with DATASET) to `out_html` atomically; returns its path.
+def write_report(workspace: Workspace, out_html: str | Path, benchmarks_dir: str | Path | None = None,
+                 paper_dir: str | Path | None = None) -> Path:
+    """Write the HTML report of the workspace's results to `out_html` atomically; returns its path.
 
-    benchmarks_dir: folder of snakemake benchmark files (*.tsv, searched recursively), optional.
-    paper_dir: the published tables (default: the package's paper_tables).
+    It renders what the stages wrote (the evaluate stage's statistics, the report stage's
+    comparisons with the paper). benchmarks_dir: folder of snakemake benchmark files (*.tsv,
+    searched recursively), optional. paper_dir: the published tables (default: the package's).
     """
-    context = _Context(Path(dataset_dir), Path(results_dir), benchmarks_dir, paper_dir)
+    context = _Context(workspace, benchmarks_dir, paper_dir)
     builders = {"dataset": _dataset_section, "markers": _markers_section, "intrinsics": _intrinsics_section, "rig": _rig_section,
                 "residuals": _residuals_section, "frames": _frames_section, "subsets": _subsets_section,
                 "runtime": _runtime_section, "stages": _stages_section, "paper": _paper_section}
@@ -76,30 +73,25 @@ def write_report(dataset_dir: str | Path, results_dir: str | Path, out_html: str
 class _Context:
     """Paths and lazily loaded inputs shared by the sections; loading raises MissingInput."""
 
-    def __init__(self, dataset_dir: Path, results: Path, benchmarks_dir, paper_dir):
-        self.dataset_dir, self.results = dataset_dir, results
+    def __init__(self, workspace: Workspace, benchmarks_dir, paper_dir):
+        self.workspace, self.dataset, self.results = workspace, workspace.dataset, workspace.root
         self.benchmarks_dir = None if benchmarks_dir is None else Path(benchmarks_dir)
         self.paper_dir = paper_dir
 
     @property
     def name(self) -> str:
-        try:
-            return self.dataset.name
-        except (MissingInput, DmaisError):
-            return self.dataset_dir.name
+        return self.dataset.name
 
     def intro(self) -> str:
-        return (f"Dataset <code>{_esc(self.dataset_dir)}</code>, results <code>{_esc(self.results)}</code>. "
+        return (f"Dataset <code>{_esc(self.dataset.root)}</code>, results <code>{_esc(self.results)}</code>. "
                 "Units: metres, pixels, arc-minutes (&prime;); eps_pos is the distance to the POS reference "
                 "after the lever-arm calibration, eps_ang = eps_proj &times; angular resolution.")
 
     @cached_property
-    def dataset(self) -> Dataset:
-        return Dataset.load(self.dataset_dir)
-
-    @cached_property
     def rig(self) -> Rig:
-        return Rig.load(self.require("rig.json", "run `dmais extrinsics`"))
+        if not self.workspace.has_rig():
+            raise MissingInput(f"{self.workspace.rig_path} is missing (run `dmais extrinsics`).")
+        return self.workspace.load_rig()
 
     @cached_property
     def truth_rig(self) -> Rig | None:
@@ -110,15 +102,12 @@ class _Context:
         except DmaisError:
             return None
 
-    def require(self, relative: str | Path, hint: str) -> Path:
-        path = self.results / relative
-        if not path.exists():
-            raise MissingInput(f"{path} is missing ({hint}).")
-        return path
-
     def table(self, name: str, hint: str) -> pd.DataFrame:
-        keys = PAPER_TABLES[name].keys if name in PAPER_TABLES else ()
-        return read_table(self.require(Path("tables") / f"{name}.csv", hint), keys)
+        """tables/<name>.csv (keys as text), or MissingInput with the hint."""
+        table = self.workspace.load_table(name, PAPER_TABLES[name].keys if name in PAPER_TABLES else ())
+        if table is None:
+            raise MissingInput(f"{self.workspace.table_path(name)} is missing ({hint}).")
+        return table
 
 
 def _build(builder: Callable[[_Context], str], context: _Context, key: str) -> str:
@@ -163,19 +152,15 @@ def _dataset_section(ctx: _Context) -> str:
 
 
 def _markers_section(ctx: _Context) -> str:
-    workspace = Workspace(ctx.dataset, ctx.results)
-    extracted = [i for i in ctx.dataset.images_to_extract() if workspace.markers_path(i).is_file()]
-    if not extracted:
-        raise MissingInput("no markers/<image>.csv: no image's markers were extracted (observations given, "
-                           "or run `dmais markers`).")
-    markers = {image: workspace.load_markers(image) for image in extracted}
-    camera_of = dict(zip(ctx.dataset.images["image"], ctx.dataset.images["camera"]))
-    images = image_quality(markers, camera_of)
+    images = ctx.table("marker_images", "no image's markers were extracted (observations given), or run "
+                       "`dmais markers` and `dmais evaluate`")
+    markers = {image: ctx.workspace.load_markers(image) for image in images["image"]}
+    camera_of = dict(zip(images["image"], images["camera"]))
     caption = ("Sub-pixel standard deviation (per axis) of every refined corner, from the residual of its fit, "
-               "per camera (log scale). Images are flagged when their median exceeds "
-               f"{FLAG_FACTOR:g}x their camera's median and {FLAG_MIN_SIGMA_PX:g} px.")
+               "per camera (log scale). Images are flagged when their median is well above their camera's "
+               "median (`dmais evaluate`, settings flag_factor and flag_min_sigma_px).")
     parts = [_figure(_svg(marker_sigma_figure(markers, camera_of)), caption),
-             _table(camera_quality(images, markers, camera_of))]
+             _table(ctx.table("marker_cameras", "run `dmais evaluate`"))]
     flagged = images[images["flagged"]]
     if len(flagged):
         parts += ["<p>Flagged images (poor corners):</p>", _table(flagged.drop(columns="flagged"))]
@@ -198,19 +183,19 @@ def marker_sigma_figure(markers: dict[str, pd.DataFrame], camera_of: dict[str, s
 
 
 def _intrinsics_section(ctx: _Context) -> str:
-    folder = ctx.require("intrinsics", "run `dmais intrinsics`")
-    records = [json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))]
+    workspace = ctx.workspace
+    records = [workspace.load_intrinsics(c)[1] for c in ctx.dataset.cameras if workspace.intrinsics_path(c).is_file()]
     if not records:
-        raise MissingInput(f"{folder} holds no <camera>.json (run `dmais intrinsics`).")
+        raise MissingInput(f"{workspace.root / 'intrinsics'} holds no <camera>.json (run `dmais intrinsics`).")
     parts = ["<p>Calibrated intrinsics (eq. 2-3 model) &plusmn; one standard deviation from the "
              "covariance of the final Levenberg-Marquardt; eps_calib / eps_eval are RMS reprojection "
              "distances on the calibration / held-out images.</p>", _table(intrinsics_table(records))]
     truth = ctx.truth_rig
     if truth is not None:
         parts += ["<p>Calibrated minus true values (simulator):</p>", _table(_intrinsics_vs_truth(records, truth))]
-    baselines = ctx.results / "tables" / "intrinsics.csv"
-    if baselines.is_file():
-        parts += ["<p>All methods (tab:intrinsics layout):</p>", _table(pd.read_csv(baselines))]
+    baselines = workspace.load_table("intrinsics")
+    if baselines is not None:
+        parts += ["<p>All methods (tab:intrinsics layout):</p>", _table(baselines)]
     return "\n".join(parts)
 
 
@@ -247,34 +232,34 @@ def _intrinsics_vs_truth(records: list[dict], truth: Rig) -> pd.DataFrame:
 
 def _rig_section(ctx: _Context) -> str:
     parts = []
-    layout = ctx.results / LAYOUT_FIGURE
+    layout = ctx.workspace.layout_figure_path
     if layout.is_file():
         parts.append(_figure(_svg_file(layout), "Camera centres and optical axes in the rig frame, calibrated with "
                              "and without the RTK camera-centre priors."))
     else:
         rigs = _rig_variants(ctx)
         if not rigs:
-            raise MissingInput(f"{ctx.results / 'rig.json'} is missing (run `dmais extrinsics`).")
+            raise MissingInput(f"{ctx.workspace.rig_path} is missing (run `dmais extrinsics`).")
         parts.append(_figure(_svg(rig_layout_figure(rigs)), "Camera centres (dots) and optical axes (lines) in the "
                              "rig frame (C0's; z drawn downwards, the way the cameras look); " + ", ".join(rigs) + "."))
-    if (ctx.results / "rig.json").is_file():
+    if ctx.workspace.has_rig():
         parts += ["<p>rig.json: rig_from_cam as ZYX Euler angles (deg) and camera centres (m).</p>",
                   _table(rig_table(ctx.rig))]
     for name, caption in (("extrinsics_R", "Relative rotations with known / unknown initial positions "
                            "(tab:extrinsics_R)"), ("extrinsics_t", "Relative translations (tab:extrinsics_t)")):
-        path = ctx.results / "tables" / f"{name}.csv"
-        if path.is_file():
-            parts += [f"<p>{_esc(caption)}:</p>", _table(pd.read_csv(path))]
+        table = ctx.workspace.load_table(name)
+        if table is not None:
+            parts += [f"<p>{_esc(caption)}:</p>", _table(table)]
     return "\n".join(parts)
 
 
 def _rig_variants(ctx: _Context) -> dict[str, Rig]:
     """Rigs to draw: with and without priors when both exist, else rig.json; plus the truth."""
     rigs = {}
-    for label, path in (("with priors", "extrinsics/rig_known.json"), ("without priors", "extrinsics/rig_unknown.json")):
-        if (ctx.results / path).is_file():
-            rigs[label] = Rig.load(ctx.results / path)
-    if not rigs and (ctx.results / "rig.json").is_file():
+    for label, case in (("with priors", "known"), ("without priors", "unknown")):
+        if ctx.workspace.case_rig_path(case).is_file():
+            rigs[label] = Rig.load(ctx.workspace.case_rig_path(case))
+    if not rigs and ctx.workspace.has_rig():
         rigs["rig.json"] = ctx.rig
     if rigs and ctx.truth_rig is not None:
         rigs["truth"] = ctx.truth_rig
@@ -282,8 +267,9 @@ def _rig_variants(ctx: _Context) -> dict[str, Rig]:
 
 
 def _residuals_section(ctx: _Context) -> str:
-    workspace = Workspace(ctx.dataset, ctx.results)
-    ctx.require(workspace.poses_path().name, "run `dmais pose`")
+    workspace = ctx.workspace
+    if not workspace.poses_path().is_file():
+        raise MissingInput(f"{workspace.poses_path()} is missing (run `dmais pose`).")
     observations = workspace.load_pose_observations()
     if observations is None:
         raise MissingInput(f"{pose_observations_path(workspace.poses_path())} is missing (run `dmais pose`).")
@@ -295,30 +281,19 @@ def _residuals_section(ctx: _Context) -> str:
                "bottom: histogram of the distances. Projections use rig.json and poses.csv; the observations "
                "each pose was solved from (RANSAC's inliers with --robust).")
     return "\n".join([_figure(_svg(residual_figure(residuals, ctx.rig, cameras)), caption),
-                      _table(residual_table(residuals, cameras))])
-
-
-def residual_table(residuals: pd.DataFrame, cameras: list[str]) -> pd.DataFrame:
-    """Per camera: observations, RMS / median / max distance (px), mean du, dv (px)."""
-    rows = []
-    for camera in cameras:
-        r = residuals[residuals["camera"] == camera]
-        d = np.hypot(r["du"], r["dv"])
-        rows.append({"camera": camera, "observations": len(r), "rms_px": float(np.sqrt(np.mean(d**2))),
-                     "median_px": float(np.median(d)), "max_px": float(d.max()),
-                     "mean_du_px": float(r["du"].mean()), "mean_dv_px": float(r["dv"].mean())})
-    return pd.DataFrame(rows)
+                      _table(ctx.table("residuals", "run `dmais evaluate`"))])
 
 
 def _frames_section(ctx: _Context) -> str:
-    evaluation = pd.read_csv(ctx.require("evaluation.csv", "run `dmais evaluate`"), dtype={"frame": str, "group": str})
+    evaluation = ctx.workspace.load_evaluation()
+    if evaluation is None:
+        raise MissingInput(f"{ctx.workspace.evaluation_path()} is missing (run `dmais evaluate`).")
     parts = [_figure(_svg(frame_errors_figure(evaluation)),
                      "Errors of every frame in file order, coloured by flight group. eps_pos after removing each "
                      "group's mean offset to the POS (the lever arm)."
                      + (" True errors against the simulator's truth in the last panels." if
                         TRUE_ERROR_COLUMNS[0] in evaluation else ""))]
-    table_path = ctx.results / "tables" / "pose_methods.csv"
-    table = read_table(table_path, ["group"]) if table_path.is_file() else pose_methods_table(evaluation)
+    table = ctx.table("pose_methods", "run `dmais evaluate`")
     parts += ["<p>Per group mean and standard deviation (tab:pose_methods):</p>", _table(table)]
     if len(evaluation) <= _MAX_TABLE_ROWS:
         parts += ["<details><summary>Every frame</summary>", _table(evaluation), "</details>"]
@@ -382,7 +357,8 @@ def benchmark_table(folder: str | Path) -> pd.DataFrame:
 
 
 def _paper_section(ctx: _Context) -> str:
-    comparisons = paper_comparisons(ctx.results, ctx.paper_dir)
+    comparisons = {name: table for name in PAPER_TABLES
+                   if (table := ctx.workspace.load_table(f"{name}_vs_paper")) is not None}
     if not comparisons:
         raise MissingInput(f"No table of {ctx.results / 'tables'} has a published counterpart yet.")
     low, high = RATIO_LIMITS
@@ -395,9 +371,9 @@ def _paper_section(ctx: _Context) -> str:
         flagged = table.assign(flag=np.where((table["ratio"] < low) | (table["ratio"] > high), "!", ""))
         parts += [f"<h3>{_esc(name)}</h3>"]
         parts += [f'<p class="note">{_esc(notes[name])}</p>'] if name in notes else []
-        run_note = ctx.results / "tables" / "extrinsics_note.txt"  # the extrinsics stage explains its run
-        if name == "extrinsics_t" and run_note.is_file():
-            parts.append(f'<p class="note">This run: {_esc(run_note.read_text().strip())}</p>')
+        run_note = ctx.workspace.load_extrinsics_note()  # the extrinsics stage explains its run
+        if name == "extrinsics_t" and run_note:
+            parts.append(f'<p class="note">This run: {_esc(run_note)}</p>')
         parts.append(_table(flagged))
     return "\n".join(parts)
 

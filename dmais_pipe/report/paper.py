@@ -26,7 +26,6 @@ import pandas as pd
 import yaml
 
 from ..errors import DmaisError
-from ..files import write_csv_atomic
 
 log = logging.getLogger(__name__)
 
@@ -128,22 +127,22 @@ def read_table(path: str | Path, keys: Sequence[str]) -> pd.DataFrame:
     return pd.read_csv(path, dtype={k: str for k in keys})
 
 
-def paper_comparisons(results_dir: str | Path, paper_dir: str | Path | None = None) -> dict[str, pd.DataFrame]:
+def paper_comparisons(ours: Mapping[str, pd.DataFrame], paper_dir: str | Path | None = None
+                      ) -> dict[str, pd.DataFrame]:
     """name -> compare_with_paper(...) for every table of PAPER_TABLES present on both sides.
 
-    Ours are RESULTS/tables/<name>.csv, the paper's `paper_dir`/<name>.csv (default: the package's paper_tables).
+    ours: name -> our table (its key columns as text); the paper's are `paper_dir`/<name>.csv
+    (default: the package's paper_tables).
     """
-    tables = Path(results_dir) / "tables"
     paper_dir = Path(paper_dir) if paper_dir is not None else PAPER_DIR
     out = {}
     for name, spec in PAPER_TABLES.items():
-        ours_path, paper_path = tables / f"{name}.csv", paper_dir / f"{name}.csv"
-        if not ours_path.is_file() or not paper_path.is_file():
-            log.info("paper comparison %s skipped: %s missing", name,
-                     ours_path if not ours_path.is_file() else paper_path)
+        paper_path = paper_dir / f"{name}.csv"
+        if name not in ours or not paper_path.is_file():
+            log.info("paper comparison %s skipped: %s missing", name, "our table" if name not in ours else paper_path)
             continue
-        ours = _aliased(read_table(ours_path, spec.keys), spec.aliases)
-        out[name] = compare_with_paper(ours, read_table(paper_path, spec.keys), spec.keys, spec.columns)
+        table = _aliased(ours[name], spec.aliases)
+        out[name] = compare_with_paper(table, read_table(paper_path, spec.keys), spec.keys, spec.columns)
     return out
 
 
@@ -165,12 +164,3 @@ def _aliased(frame: pd.DataFrame, aliases: Mapping[str, Mapping[str, str]]) -> p
         if column in frame:
             frame[column] = frame[column].map(lambda v: mapping.get(v, v))
     return frame
-
-
-def write_paper_comparisons(results_dir: str | Path, out_dir: str | Path,
-                            paper_dir: str | Path | None = None) -> list[Path]:
-    """Write `out_dir`/<name>_vs_paper.csv for every table present; returns the written paths."""
-    written = []
-    for name, table in paper_comparisons(results_dir, paper_dir).items():
-        written.append(write_csv_atomic(Path(out_dir) / f"{name}_vs_paper.csv", table))
-    return written

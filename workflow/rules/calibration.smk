@@ -8,6 +8,7 @@ rule intrinsics:
     params:
         dataset_dir=folder_of("manifest"),
         results=folder_of("json", up=1),
+        settings=stage_settings("intrinsics"),
     log:
         f"{LOGS}/intrinsics/{{camera}}.log",
     benchmark:
@@ -15,7 +16,8 @@ rule intrinsics:
     conda:
         DMAIS_ENV
     shell:
-        "dmais intrinsics {params.dataset_dir} --out {params.results} --camera {wildcards.camera} > {log} 2>&1"
+        "dmais intrinsics {params.dataset_dir} --out {params.results} --camera {wildcards.camera} {params.settings} "
+        "> {log} 2>&1"
 
 
 rule intrinsics_table:
@@ -49,6 +51,7 @@ rule extrinsics:
     params:
         dataset_dir=folder_of("manifest"),
         results=folder_of("rig"),
+        settings=stage_settings("extrinsics"),
     log:
         f"{LOGS}/extrinsics.log",
     benchmark:
@@ -56,4 +59,4 @@ rule extrinsics:
     conda:
         DMAIS_ENV
     shell:
-        "dmais extrinsics {params.dataset_dir} --out {params.results} > {log} 2>&1"
+        "dmais extrinsics {params.dataset_dir} --out {params.results} {params.settings} > {log} 2>&1"

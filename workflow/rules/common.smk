@@ -1,5 +1,6 @@
 import functools
 import json
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -11,7 +12,6 @@ DATASET_DIR = f"{RESULTS}/dataset" if config.get("simulate") else config["datase
 REPORTS = f"reports/{DATASET}"
 LOGS = f"logs/{DATASET}"
 BENCHMARKS = f"benchmarks/{DATASET}"
-POSE = config.get("pose", {})
 #: Camera subsets of tab:conf, as camera indexes in the manifest's order ("01" = first two cameras).
 SUBSETS = config.get("subsets", ["0", "01", "012", "1234"])
 BENCH_POSE = {"repeats": 50, "batch_frames": 100, **config.get("bench_pose", {})}
@@ -87,8 +87,18 @@ def subset_labels():
     return [s for s in SUBSETS if all(int(k) < n for k in s) and len(set(s)) < n]
 
 
-def pose_flags():
-    return " ".join(f"--{key}" for key in ("robust", "refine") if POSE.get(key))
+def stage_settings(stage):
+    """The workflow config's section of `stage` as `dmais <stage>` options: `--conf NAME` and one
+    `--set KEY=VALUE` per setting (the defaults are the code's; docs/design.md, "Stage settings")."""
+    section = dict(config.get(stage) or {})
+    options = ["--conf", section.pop("conf")] if "conf" in section else []
+    for key, value in section.items():
+        if isinstance(value, bool):
+            value = str(value).lower()
+        elif isinstance(value, list):
+            value = ",".join(str(v) for v in value)
+        options += ["--set", f"{key}={value}"]
+    return " ".join(shlex.quote(str(option)) for option in options)
 
 
 def marker_inputs(wildcards):

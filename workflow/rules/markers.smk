@@ -6,6 +6,7 @@ rule markers:
     params:
         dataset_dir=folder_of("manifest"),
         results=folder_of("csv", up=1),
+        settings=stage_settings("markers"),
     log:
         f"{LOGS}/markers/{{image}}.log",
     benchmark:
@@ -13,7 +14,8 @@ rule markers:
     conda:
         DMAIS_ENV
     shell:
-        "dmais markers {params.dataset_dir} --out {params.results} --image {wildcards.image} > {log} 2>&1"
+        "dmais markers {params.dataset_dir} --out {params.results} --image {wildcards.image} {params.settings} "
+        "> {log} 2>&1"
 
 
 rule observations:

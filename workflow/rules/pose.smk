@@ -12,7 +12,7 @@ rule pose_group:
         dataset_dir=folder_of("manifest"),
         results=folder_of("csv", up=2),
         cameras=lambda wildcards: ",".join(subset_cameras(wildcards.subset)),
-        flags=pose_flags(),
+        settings=stage_settings("pose"),
     log:
         f"{LOGS}/pose/{{subset}}/{{group}}.log",
     benchmark:
@@ -21,7 +21,7 @@ rule pose_group:
         DMAIS_ENV
     shell:
         "dmais pose {params.dataset_dir} --out {params.results} --cameras {params.cameras} "
-        "--groups {wildcards.group} --csv {output.csv} {params.flags} > {log} 2>&1"
+        "--groups {wildcards.group} --csv {output.csv} {params.settings} > {log} 2>&1"
 
 
 rule poses:

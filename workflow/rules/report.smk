@@ -7,10 +7,12 @@ rule evaluate:
     output:
         evaluation=f"{RESULTS}/evaluation.csv",
         pose_methods=f"{RESULTS}/tables/pose_methods.csv",
+        residuals=f"{RESULTS}/tables/residuals.csv",
         **({"conf": f"{RESULTS}/tables/conf.csv"} if SUBSETS else {}),
     params:
         dataset_dir=folder_of("manifest"),
         results=folder_of("evaluation"),
+        settings=stage_settings("evaluate"),
     log:
         f"{LOGS}/evaluate.log",
     benchmark:
@@ -18,7 +20,7 @@ rule evaluate:
     conda:
         DMAIS_ENV
     shell:
-        "dmais evaluate {params.dataset_dir} --out {params.results} > {log} 2>&1"
+        "dmais evaluate {params.dataset_dir} --out {params.results} {params.settings} > {log} 2>&1"
 
 
 rule bench_pose:
@@ -53,10 +55,11 @@ rule report:
         dataset_dir=folder_of("manifest"),
         results=folder_of("evaluation"),
         benchmarks=BENCHMARKS,
+        settings=stage_settings("report"),
     log:
         f"{LOGS}/report.log",
     conda:
         DMAIS_ENV
     shell:
         "dmais report {params.dataset_dir} --out {params.results} --html {output.html} "
-        "--benchmarks {params.benchmarks} > {log} 2>&1"
+        "--benchmarks {params.benchmarks} {params.settings} > {log} 2>&1"

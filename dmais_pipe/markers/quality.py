@@ -1,4 +1,4 @@
-"""Quality of the extracted markers per image and per camera, for the report's marker section.
+"""Quality of the extracted markers per image and per camera (tables the evaluate stage writes).
 
 Every corner carries the refinement's standard deviation sigma_px (per axis) and its fit residual
 (markers/<image>.csv). An image is flagged when its median sigma_px is both above
@@ -15,9 +15,11 @@ FLAG_FACTOR = 3.0
 FLAG_MIN_SIGMA_PX = 0.05
 
 
-def image_quality(markers: dict[str, pd.DataFrame], camera_of: dict[str, str]) -> pd.DataFrame:
+def image_quality(markers: dict[str, pd.DataFrame], camera_of: dict[str, str], factor: float = FLAG_FACTOR,
+                  min_sigma_px: float = FLAG_MIN_SIGMA_PX) -> pd.DataFrame:
     """One row per image: camera, image, detected, identified, median and 95th-percentile sigma_px,
-    median fit_residual, flagged. markers: image -> its markers table (Workspace.load_markers)."""
+    median fit_residual, flagged (median sigma above min_sigma_px and factor x its camera's median).
+    markers: image -> its markers table (Workspace.load_markers)."""
     rows = []
     for image, table in markers.items():
         sigma = table["sigma_px"].to_numpy(float)
@@ -28,8 +30,7 @@ def image_quality(markers: dict[str, pd.DataFrame], camera_of: dict[str, str]) -
     frame = pd.DataFrame(rows, columns=["camera", "image", "detected", "identified", "sigma_median_px",
                                         "sigma_p95_px", "fit_residual_median"])
     camera_median = frame.groupby("camera")["sigma_median_px"].transform("median")
-    frame["flagged"] = ((frame["sigma_median_px"] > FLAG_FACTOR * camera_median)
-                        & (frame["sigma_median_px"] > FLAG_MIN_SIGMA_PX))
+    frame["flagged"] = (frame["sigma_median_px"] > factor * camera_median) & (frame["sigma_median_px"] > min_sigma_px)
     return frame
 
 

@@ -1,0 +1,195 @@
+"""Markers of one image: detect, refine and identify diagonal markers, then verify the ids.
+
+`process_image` returns one image's detections (u, v, score, sigma_px, fit_residual, point_id;
+point_id '' when unidentified); `observation_table` turns the identified detections of a stage's
+images, with the dataset's own observations, into observation rows. Reading and writing results
+is the markers stage's (`stages.markers`).
+
+Predicted projections for identification come from the priors:
+- calibration images: images.csv prior centre + prior attitude (cam_from_world) with, for
+  extrinsics images, the calibrated camera when the stage has one (RESULTS/intrinsics/<camera>.json),
+  else (and always for intrinsics images) a nominal pinhole (dataset.yaml focal_px, principal point
+  at the image centre, no distortion);
+- flight images: frames.csv POS position + INS attitude (rig_from_world) and the calibrated rig;
+  without a rig (before `dmais extrinsics`) flight detections stay unidentified.
+
+Ids of calibration images are then verified with a pose: a PnPf fit (pose and focal length,
+principal point at the centre, no distortion) to the identified detections; ids whose residual
+exceeds the gate (VERIFY_GATE_PX) are dropped one at a time, worst first. The gate leaves room for
+the unmodelled distortion (up to ~25 px at the corners of a 45000 px, d = 3 camera) while a wrong
+id, a neighbouring marker hundreds of pixels away, fails it.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pandas as pd
+
+from ..camera import Camera, image_centre, project_unmasked
+from ..dataset import Dataset
+from ..errors import DmaisError
+from ..geometry import Rigid3
+from ..rig import Rig
+from ..calib.pnpf import solve_pnpf
+from .detect import detect
+from .identify import identify
+
+log = logging.getLogger(__name__)
+
+OBSERVATION_COLUMNS = ["image", "camera", "point_id", "u", "v"]
+PREDICTION_MARGIN_PX = 3000.0  # keep predictions this far outside the image (attitude prior errors)
+VERIFY_GATE_PX = 40.0
+
+
+def _nominal_camera(dataset: Dataset, camera: str, calibrated: Camera | None) -> Camera | None:
+    if calibrated is not None:
+        return calibrated
+    spec = dataset.cameras[camera]
+    if not spec.focal_px:
+        return None
+    return Camera(spec.focal_px, spec.focal_px, *image_centre(spec.width, spec.height), 0.0, spec.width, spec.height)
+
+
+def _prediction_model(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None):
+    """(camera, cam_from_world, points) that predict where `image` sees the known points, or a
+    sentence saying what is missing for that (which priors, focal_px, the calibrated rig)."""
+    row = dataset.images[dataset.images["image"] == image].iloc[0]
+    camera_name = row["camera"]
+    if row["stage"] == "flight":
+        if rig is None:
+            return "flight images are identified with the calibrated rig, and RESULTS has no rig.json yet " \
+                   "(run `dmais extrinsics` first)"
+        if camera_name not in rig.cameras:
+            return f"camera {camera_name} is not in rig.json"
+        frame = dataset.frames[dataset.frames["frame"] == row["placement"]].iloc[0]
+        q = frame[["prior_qw", "prior_qx", "prior_qy", "prior_qz"]].to_numpy(dtype=float)
+        centre = frame[["pos_x", "pos_y", "pos_z"]].to_numpy(dtype=float)
+        if not np.all(np.isfinite(q)):
+            return f"frame {row['placement']!r} of frames.csv has no prior_qw..prior_qz (the INS attitude)"
+        rig_from_world = Rigid3.from_quat(q, np.zeros(3))
+        rig_from_world = Rigid3.from_quat(q, -rig_from_world.R @ centre)
+        points = dataset.ground_points if len(dataset.ground_points) else dataset.points
+        return rig.cameras[camera_name], rig.cam_from_rig[camera_name] * rig_from_world, points
+    q = row[["prior_qw", "prior_qx", "prior_qy", "prior_qz"]].to_numpy(dtype=float)
+    centre = row[["prior_x", "prior_y", "prior_z"]].to_numpy(dtype=float)
+    missing = [f"{name} in images.csv" for name, values in (("prior_x..prior_z (camera centre)", centre),
+                                                            ("prior_qw..prior_qz (attitude)", q))
+               if not np.all(np.isfinite(values))]
+    # Intrinsics images are the calibration's input: identified with the nominal camera only,
+    # so that their ids never depend on an earlier calibration.
+    camera = _nominal_camera(dataset, camera_name, calibrated if row["stage"] == "extrinsics" else None)
+    if camera is None:
+        missing.append(f"focal_px of camera {camera_name} in dataset.yaml")
+    if missing:
+        return (f"{row['stage']} images are identified from their prior centre and attitude and the camera's "
+                f"focal_px; missing {' and '.join(missing)}")
+    R = Rigid3.from_quat(q, np.zeros(3)).R
+    return camera, Rigid3(R, -R @ centre), dataset.control_points
+
+
+def identification_gap(dataset: Dataset, image: str, rig: Rig | None = None,
+                       calibrated: Camera | None = None) -> str | None:
+    """Why the markers of `image` cannot be identified (docs/dataset.md, "What each stage needs"),
+    or None when the priors and camera model to predict them are there."""
+    model = _prediction_model(dataset, image, rig, calibrated)
+    return model if isinstance(model, str) else None
+
+
+def predicted_projections(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None,
+                          margin_px: float = PREDICTION_MARGIN_PX):
+    """(uv (m, 2), point ids (m,)) of the known points predicted in `image` from the priors, or None
+    when the priors (or a camera model) are missing. Only points in front of the camera and within
+    margin_px of the image are kept. rig: for flight images; calibrated: the image camera's
+    calibrated intrinsics, used for extrinsics images."""
+    model = _prediction_model(dataset, image, rig, calibrated)
+    if isinstance(model, str):
+        return None
+    camera, cam_from_world, points = model
+    xyz = points[["x", "y", "z"]].to_numpy(dtype=float)
+    uv = camera.project(cam_from_world.apply(xyz))
+    m = margin_px
+    keep = (np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > -m) & (uv[:, 0] < camera.width + m)
+            & (uv[:, 1] > -m) & (uv[:, 1] < camera.height + m))
+    return uv[keep], points.index.to_numpy(dtype=object)[keep]
+
+
+# ------------------------------------------------------------------------------ per image
+
+
+def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None,
+                  margin_px: float = PREDICTION_MARGIN_PX, gate_px: float = VERIFY_GATE_PX) -> pd.DataFrame:
+    """Detections of one image with ids: DataFrame of `detect`'s columns and point_id ('' when unidentified).
+
+    rig, calibrated: as `predicted_projections`; margin_px: how far outside the image predictions
+    are kept; gate_px: the pose verification's residual gate for calibration images.
+    """
+    pixels = dataset.read_image(image)
+    found = detect(pixels)
+    found["point_id"] = ""
+    prediction = predicted_projections(dataset, image, rig, calibrated, margin_px)
+    if prediction is None and len(found):
+        log.warning("markers %s: %d detected, none can be identified: %s", image, len(found),
+                    identification_gap(dataset, image, rig, calibrated))
+    if prediction is not None and len(found):
+        uv, ids = prediction
+        height, width = pixels.shape
+        found["point_id"] = identify(found[["u", "v"]].to_numpy(), uv, ids, (width, height))
+        if dataset.images.loc[dataset.images["image"] == image, "stage"].iloc[0] != "flight":
+            found["point_id"] = verify_with_pose(found[["u", "v"]].to_numpy(), found["point_id"].to_numpy(),
+                                                 dataset.points, image_centre(width, height), gate_px)
+        if not (found["point_id"] != "").any():
+            log.warning("markers %s: %d detected, none identified: the priors predict %d known point(s) near the "
+                        "image and none matches a detection (check the prior centre and attitude, and focal_px)",
+                        image, len(found), len(uv))
+    return found
+
+
+def verify_with_pose(uv: np.ndarray, ids: np.ndarray, points: pd.DataFrame, principal_point,
+                     gate_px: float = VERIFY_GATE_PX) -> np.ndarray:
+    """Ids (n,) ('' = none) of detections uv (n, 2) that one camera pose explains.
+
+    Fits pose + focal length (PnPf) to the identified detections and drops the worst id while its
+    residual exceeds gate_px. With too few ids left for a fit, all are dropped: an id no
+    pose confirms is not trusted.
+    """
+    ids = np.asarray(ids, dtype=object).copy()
+    while True:
+        keep = np.flatnonzero(ids != "")
+        if len(keep) == 0:
+            return ids
+        X = points.loc[ids[keep], ["x", "y", "z"]].to_numpy(dtype=float)
+        try:
+            cam_from_world, focal = solve_pnpf(X, uv[keep], principal_point)
+        except DmaisError:
+            ids[keep] = ""
+            return ids
+        # the nominal pinhole (d = 0); PnPf's pose has every point in front, where nothing is masked
+        uv_fit = project_unmasked(cam_from_world.apply(X), focal, focal, *principal_point, 0.0)
+        residual = np.hypot(*(uv_fit - uv[keep]).T)
+        worst = int(np.argmax(residual))
+        if residual[worst] <= gate_px:
+            return ids
+        ids[keep[worst]] = ""
+
+
+def observation_table(dataset: Dataset, images: list[str], markers: dict[str, pd.DataFrame],
+                      stage: str | None = None) -> pd.DataFrame:
+    """OBSERVATION_COLUMNS rows: the identified markers of `images` (image -> markers frame) and the
+    dataset's own observations (of `stage`'s images only, when given)."""
+    camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
+    rows = []
+    for image in images:
+        ok = markers[image][markers[image]["point_id"] != ""]
+        rows.append(pd.DataFrame({"image": image, "camera": camera_of[image], "point_id": ok["point_id"],
+                                  "u": ok["u"], "v": ok["v"]}))
+    own = dataset.observations
+    if stage is not None:
+        own = own[own["image"].isin(dataset.images_of(stage)["image"])]
+    if len(own):
+        rows.append(pd.DataFrame({"image": own["image"], "camera": own["image"].map(camera_of),
+                                  "point_id": own["point_id"], "u": own["u"], "v": own["v"]}))
+    if not rows:
+        return pd.DataFrame({c: pd.Series(dtype=float if c in "uv" else object) for c in OBSERVATION_COLUMNS})
+    return pd.concat(rows, ignore_index=True)[OBSERVATION_COLUMNS]

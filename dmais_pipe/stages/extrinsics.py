@@ -1,0 +1,95 @@
+"""`dmais extrinsics`: calibrate the rig, cam_from_rig of every camera (calib.extrinsics).
+
+Writes rig.json (calibrated with the RTK camera-centre priors when the conf uses them and the
+images carry them) and its COLMAP twin rig_config.json, extrinsics/rig_{known,unknown}.json for
+both cases and, when both cases can run, the paper's comparison: tables/extrinsics_R.csv,
+extrinsics_t.csv (with standard deviations and a note per row), tables/extrinsics_note.txt and
+figures/extrinsics_layout.svg.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..calib.extrinsics import (DEFAULT_BACKEND, PRIOR_CENTER, ExtrinsicsResult, annotate_tables, calibrate_extrinsics,
+                                colmap_rig_config, extrinsics_tables, image_prefixes)
+from ..calib.localize import DEFAULT_CENTER_SIGMA_M, DEFAULT_PIXEL_SIGMA_PX
+from ..calib.rig_ba import BACKENDS
+from ..errors import DmaisError
+from ..report.layout import write_layout_svg
+from ..workspace import Workspace
+
+log = logging.getLogger(__name__)
+
+LAYOUT_LABELS = ("with camera-centre priors (known)", "without priors (unknown)")
+
+
+@dataclass(frozen=True)
+class Conf:
+    """use_priors: rig.json from the calibration with the camera-centre priors (when the images have
+    them); center_sigma_m: the priors' standard deviation; backend: the rig bundle adjuster,
+    "pycolmap" or "scipy" (calib.rig_ba; both reach the same optimum)."""
+
+    use_priors: bool = True
+    center_sigma_m: float = DEFAULT_CENTER_SIGMA_M
+    backend: str = DEFAULT_BACKEND
+
+
+#: "paper": with the RTK priors, as the paper's rig; "no_priors": the reprojections alone.
+CONFS = {"paper": Conf(), "no_priors": Conf(use_priors=False)}
+
+
+def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
+    """Calibrate with and without priors (when the images have them) and write the results."""
+    if conf.backend not in BACKENDS:
+        raise DmaisError(f"extrinsics: backend {conf.backend!r} is not one of {', '.join(BACKENDS)}")
+    dataset = workspace.dataset
+    images = dataset.images_of("extrinsics")
+    if images.empty:
+        raise DmaisError(f"{dataset.root}: no extrinsics images")
+    has_priors = bool(images[list(PRIOR_CENTER)].notna().all(axis=1).any())
+    if conf.use_priors and not has_priors:
+        log.warning("extrinsics: no camera-centre priors in %s; calibrating without", dataset.root / "images.csv")
+    results = {case: _calibrate(workspace, conf, case) for case in ([True, False] if has_priors else [False])}
+    chosen = results[conf.use_priors and has_priors]
+    written = [workspace.save_rig(chosen.rig, **chosen.extra()),
+               workspace.save_rig_config(colmap_rig_config(chosen.rig,
+                                                           image_prefixes(dataset.images, chosen.rig.camera_names)))]
+    written += [workspace.save_rig(result.rig, case="known" if case else "unknown", **result.extra())
+                for case, result in results.items()]
+    if len(results) == 2:
+        written += _write_comparison(workspace, results[True], results[False])
+    return written
+
+
+def _calibrate(workspace: Workspace, conf: Conf, use_priors: bool) -> ExtrinsicsResult:
+    dataset = workspace.dataset
+    images = dataset.images_of("extrinsics")
+    observations = workspace.load_observations()
+    observations = observations[observations["image"].isin(set(images["image"]))]
+    names = [c for c in dataset.cameras if c in set(images["camera"]) or c == dataset.reference_camera]
+    cameras, pixel_sigma = {}, {}
+    for name in names:
+        cameras[name], record = workspace.load_intrinsics(name)
+        # per-axis pixel sigma from the intrinsic calibration's RMS point distance (eps / sqrt 2)
+        eps = record.get("eps_calib_px")
+        pixel_sigma[name] = float(eps) / np.sqrt(2.0) if eps and np.isfinite(eps) and eps > 0 else DEFAULT_PIXEL_SIGMA_PX
+    log.info("extrinsics: calibrating %s camera-centre priors", "with" if use_priors else "without")
+    return calibrate_extrinsics(cameras, dataset.reference_camera, images, observations, dataset.points,
+                                use_priors=use_priors, center_sigma=conf.center_sigma_m, pixel_sigma=pixel_sigma,
+                                backend=conf.backend)
+
+
+def _write_comparison(workspace: Workspace, known: ExtrinsicsResult, unknown: ExtrinsicsResult) -> list[Path]:
+    """tab:extrinsics_R, tab:extrinsics_t (with standard deviations and notes), their note and the layout figure."""
+    table_R, table_t, note = annotate_tables(*extrinsics_tables(known.rig, unknown.rig), known, unknown)
+    log.info("extrinsics: %s", note)
+    return [workspace.save_table("extrinsics_R", table_R, float_format="%.6f"),
+            workspace.save_table("extrinsics_t", table_t, float_format="%.6f"),
+            workspace.save_extrinsics_note(note),
+            write_layout_svg(workspace.layout_figure_path, [known.rig, unknown.rig], list(LAYOUT_LABELS),
+                             title="Camera layout in the rig frame (fig:extrinsics)")]

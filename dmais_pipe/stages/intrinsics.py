@@ -1,0 +1,121 @@
+"""`dmais intrinsics`: calibrate every camera that has intrinsics images (calib.intrinsics).
+
+- `run_camera` (the workflow's job per camera): RESULTS/intrinsics/<camera>.json (ours) and
+  <camera>.methods.csv (that camera's row of every method). A calibration beyond the conf's
+  plausibility bounds stops the job before anything of that camera is written;
+- `write_table`: RESULTS/tables/intrinsics.csv (tab:intrinsics) from every camera's methods file;
+- `run`: every camera, then the table.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from ..calib.intrinsics import (METHODS, TABLE_COLUMNS, IntrinsicsResult, Plausibility, calibrate_camera,
+                                calibrate_camera_dlt_lm, calibrate_camera_opencv, check_plausible)
+from ..errors import DmaisError
+from ..workspace import Workspace
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Conf:
+    """methods: "ours" and the baselines to run beside it (tab:intrinsics); max_eps_calib_px,
+    max_focal_deviation: the plausibility bounds (calib.intrinsics.Plausibility)."""
+
+    methods: tuple = METHODS
+    max_eps_calib_px: float = Plausibility.max_eps_calib_px
+    max_focal_deviation: float = Plausibility.max_focal_deviation
+
+
+#: "paper": ours and both baselines of tab:intrinsics; "ours": the paper's procedure alone (faster).
+CONFS = {"paper": Conf(), "ours": Conf(methods=("ours",))}
+
+
+def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
+    """Every camera with intrinsics images, then tables/intrinsics.csv."""
+    written = []
+    for name in calibrated_cameras(workspace):
+        written += run_camera(workspace, name, conf)
+    return written + write_table(workspace)
+
+
+def run_camera(workspace: Workspace, name: str, conf: Conf = Conf()) -> list[Path]:
+    """One camera's calibration (ours, checked) and every method's table row."""
+    unknown = set(conf.methods) - set(METHODS)
+    if unknown or "ours" not in conf.methods:
+        raise DmaisError(f"intrinsics: methods must include 'ours' and be among {', '.join(METHODS)}, "
+                         f"got {', '.join(conf.methods)}")
+    available = calibrated_cameras(workspace)
+    if name not in available:
+        raise DmaisError(f"intrinsics: camera {name} has no intrinsics images in "
+                         f"{workspace.dataset.root / 'images.csv'} (cameras with some: {available})")
+    ours, rows = _calibrate(workspace, name, conf)
+    return workspace.save_intrinsics(name, ours.to_dict(), rows)
+
+
+def calibrated_cameras(workspace: Workspace) -> list[str]:
+    """The dataset's cameras that have intrinsics images, in manifest order."""
+    cameras = workspace.dataset.cameras_with_intrinsics_images()
+    if not cameras:
+        raise DmaisError(f"{workspace.dataset.root}: no intrinsics images")
+    return cameras
+
+
+def write_table(workspace: Workspace) -> list[Path]:
+    """RESULTS/tables/intrinsics.csv from every calibrated camera's <camera>.methods.csv."""
+    cameras = calibrated_cameras(workspace)
+    absent = [str(workspace.methods_path(c)) for c in cameras if not workspace.methods_path(c).is_file()]
+    if absent:
+        raise DmaisError(f"intrinsics table: missing {absent}; run `dmais intrinsics --camera` for those cameras")
+    table = pd.concat([workspace.load_methods(c) for c in cameras], ignore_index=True)
+    order = {m: i for i, m in enumerate(METHODS)}
+    table = table.sort_values(["camera", "method"], key=lambda s: s.map(order) if s.name == "method" else s,
+                              kind="stable")
+    return [workspace.save_table("intrinsics", table[list(TABLE_COLUMNS)])]
+
+
+def _calibrate(workspace: Workspace, name: str, conf: Conf) -> tuple[IntrinsicsResult, pd.DataFrame]:
+    dataset, observations = workspace.dataset, workspace.load_observations()
+    calib_images = dataset.images_of("intrinsics", name, "calib")["image"].tolist()
+    eval_images = dataset.images_of("intrinsics", name, "eval")["image"].tolist()
+    log.info("camera %s: %d calib + %d eval images", name, len(calib_images), len(eval_images))
+    if not observations["image"].isin(calib_images).any():
+        raise DmaisError(f"camera {name}: none of its {len(calib_images)} calibration images has an identified "
+                         "observation; `dmais markers` identifies markers from each image's prior centre and "
+                         "attitude and the camera's focal_px (see its warnings, and docs/dataset.md, "
+                         "'What each stage needs')")
+    X, uv = _per_image(observations, dataset.points, calib_images)
+    eX, euv = _per_image(observations, dataset.points, eval_images)
+    spec = dataset.cameras[name]
+    common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name)
+    ours = calibrate_camera(X, uv, spec.width, spec.height, **common)
+    check_plausible(ours, spec.focal_px, Plausibility(conf.max_eps_calib_px, conf.max_focal_deviation))
+    focal_guess = spec.focal_px or float(np.mean(list(ours.pnpf_focal_px.values())))
+    baselines = {"opencv": lambda: calibrate_camera_opencv(X, uv, spec.width, spec.height, focal_guess,
+                                                           warn_skipped=False, **common),
+                 "dlt_lm": lambda: calibrate_camera_dlt_lm(X, uv, spec.width, spec.height, warn_skipped=False, **common)}
+    rows = [ours.table_row()]
+    for method in [m for m in METHODS if m in conf.methods and m != "ours"]:
+        try:
+            rows.append(baselines[method]().table_row())
+        except DmaisError as error:
+            log.warning("%s", error)
+            rows.append({"method": method, "camera": name})
+    return ours, pd.DataFrame(rows, columns=list(TABLE_COLUMNS))
+
+
+def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tuple[dict, dict]:
+    """Per image: world points (n, 3) and pixels (n, 2) of its observations."""
+    X, uv = {}, {}
+    for image in images:
+        obs = observations[observations["image"] == image]
+        X[image] = points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
+        uv[image] = obs[["u", "v"]].to_numpy(dtype=float)
+    return X, uv

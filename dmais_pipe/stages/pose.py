@@ -1,0 +1,110 @@
+"""`dmais pose`: the rig pose of every flight frame (pose.flight), for the whole rig or a camera subset.
+
+Reads rig.json and the identified observations; writes poses.csv (every camera) or
+poses_<label>.csv for a camera subset (label = the digits of the cameras' positions in the rig,
+e.g. 012), each with its per-observation file beside it (Workspace.save_poses).
+
+- `run`: every frame (of `groups`, when given). A per-group job with no solvable frame writes an
+  empty part with a warning, so that one group seen badly by a camera subset does not stop the
+  workflow;
+- `merge`: the workflow's per-group parts of one camera set into one poses file; it fails only
+  when every part is empty.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from ..blas import single_threaded_blas
+from ..errors import DmaisError
+from ..pose.flight import COLUMNS, ROBUST_THRESHOLD_PX, estimate_poses
+from ..rig import Rig
+from ..workspace import ResultsError, Workspace
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Conf:
+    """robust: LO-RANSAC against wrong correspondences first; refine: polish every pose on the
+    reprojection error; robust_threshold_px: RANSAC's inlier threshold (an angle per observation:
+    this over its camera's fx)."""
+
+    robust: bool = False
+    refine: bool = False
+    robust_threshold_px: float = ROBUST_THRESHOLD_PX
+
+
+#: "paper": the paper's solver alone; "robust": RANSAC first and a polished pose, for wrong ids.
+CONFS = {"paper": Conf(), "robust": Conf(robust=True, refine=True)}
+
+
+def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = None,
+        groups: list[str] | None = None, out: Path | None = None) -> list[Path]:
+    """Solve the frames (of `groups`) with `cameras` (default every camera); write `out` (default
+    poses.csv or poses_<label>.csv) and its per-observation file."""
+    rig = workspace.load_rig()
+    chosen = _cameras(rig, cameras)
+    with single_threaded_blas():  # small matrices: threads only add hand-offs to time_ms
+        table, per_observation = estimate_poses(workspace.dataset, rig, workspace.load_observations(), chosen,
+                                                conf.robust, conf.refine, groups, conf.robust_threshold_px)
+    if table.empty and not groups:
+        raise DmaisError(f"pose: no flight frame of {workspace.dataset.root} could be solved with cameras {chosen}")
+    if table.empty:
+        log.warning("pose: no flight frame of group(s) %s could be solved with cameras %s", groups, chosen)
+    path = out or poses_path(workspace, rig, chosen)
+    written = workspace.save_poses(table, per_observation, path)
+    if len(table):
+        log.info("pose: %d frames -> %s (median %.2f ms per solve)", len(table), path, table["time_ms"].median())
+    return written
+
+
+def merge(workspace: Workspace, parts: list[Path], cameras: list[str] | None = None,
+          out: Path | None = None) -> list[Path]:
+    """Concatenate per-group pose files (`run(groups=[g], out=part)`) of one camera set, with their
+    per-observation files, into `out` (default poses.csv or poses_<label>.csv)."""
+    if not parts:
+        raise DmaisError("pose: no per-group pose file to merge")
+    rig = workspace.load_rig()
+    chosen = _cameras(rig, cameras)
+    tables, observations = [], []
+    for part in parts:
+        tables.append(workspace.load_poses(part, chosen, empty_ok=True))
+        observations.append(workspace.load_pose_observations(part))
+        if observations[-1] is None:
+            raise ResultsError(part, "has no per-observation file beside it; the per-group pose job writes one")
+    merged = pd.concat(tables, ignore_index=True)
+    if merged.empty:
+        raise DmaisError(f"pose: none of the {len(parts)} per-group pose files has a solved frame")
+    repeated = merged["frame"][merged["frame"].duplicated()]
+    if len(repeated):
+        raise DmaisError(f"pose: frame {repeated.iloc[0]!r} appears in more than one of {[str(p) for p in parts]}")
+    path = out or poses_path(workspace, rig, chosen)
+    return workspace.save_poses(merged.sort_values("frame", kind="stable")[COLUMNS],
+                                pd.concat(observations, ignore_index=True).sort_values("frame", kind="stable"), path)
+
+
+def subset_label(rig: Rig, cameras: list[str]) -> str:
+    """Digits of the cameras' positions in the rig, e.g. ['C0', 'C2'] -> '02'."""
+    names = rig.camera_names
+    return "".join(str(names.index(c)) for c in sorted(cameras, key=names.index))
+
+
+def poses_path(workspace: Workspace, rig: Rig, cameras: list[str]) -> Path:
+    """poses.csv for all cameras, poses_<label>.csv for a subset."""
+    if sorted(cameras) == sorted(rig.camera_names):
+        return workspace.poses_path()
+    return workspace.poses_path(subset_label(rig, cameras))
+
+
+def _cameras(rig: Rig, requested: list[str] | None) -> list[str]:
+    if not requested:
+        return rig.camera_names
+    unknown = sorted(set(requested) - set(rig.camera_names))
+    if unknown:
+        raise DmaisError(f"pose: unknown camera(s) {unknown}; the rig has {rig.camera_names}")
+    return [c for c in rig.camera_names if c in requested]
