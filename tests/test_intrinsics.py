@@ -122,15 +122,23 @@ def board_views(camera: Camera, n_views: int, rng, noise: float = 0.1):
         depth = rng.uniform(0.35, 0.6)
         t = np.array([rng.uniform(-0.12, 0.12) * depth / 0.5, rng.uniform(-0.08, 0.08) * depth / 0.5, depth])
         pose = Rigid3(R, t)
-        uv = camera.project(pose.apply(board))
-        keep = np.isfinite(uv).all(axis=1) & camera.in_image(np.nan_to_num(uv, nan=-1e9), margin=2)
-        if keep.sum() < 30:
+        seen = _observed(camera, board, pose.apply(board), rng, noise)
+        if seen is None:
             continue
         name = f"view{len(points)}"
-        points[name] = board[keep]
-        pixels[name] = uv[keep] + rng.normal(scale=noise, size=(keep.sum(), 2))
+        points[name], pixels[name] = seen
         poses[name] = pose
     return points, pixels, poses
+
+
+def _observed(camera: Camera, points: np.ndarray, points_cam: np.ndarray, rng, noise: float):
+    """The points (n, 3) whose camera-frame positions points_cam (n, 3) land in the image, and their
+    pixels with Gaussian noise; None when fewer than 30 do."""
+    uv = camera.project(points_cam)
+    keep = np.isfinite(uv).all(axis=1) & camera.in_image(np.nan_to_num(uv, nan=-1e9), margin=2)
+    if keep.sum() < 30:
+        return None
+    return points[keep], uv[keep] + rng.normal(scale=noise, size=(keep.sum(), 2))
 
 
 def field_views(camera: Camera, n_views: int, rng, noise: float = 0.1):
@@ -140,13 +148,11 @@ def field_views(camera: Camera, n_views: int, rng, noise: float = 0.1):
     while len(points) < n_views:
         R = Rotation.from_euler("xyz", rng.uniform(-0.4, 0.4, 3)).as_matrix()
         t = np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(2.5, 4.0)])
-        uv = camera.project(field @ R.T + t)
-        keep = np.isfinite(uv).all(axis=1) & camera.in_image(np.nan_to_num(uv, nan=-1e9), margin=2)
-        if keep.sum() < 30:
+        seen = _observed(camera, field, field @ R.T + t, rng, noise)
+        if seen is None:
             continue
         name = f"view{len(points)}"
-        points[name] = field[keep]
-        pixels[name] = uv[keep] + rng.normal(scale=noise, size=(keep.sum(), 2))
+        points[name], pixels[name] = seen
     return points, pixels
 
 
