@@ -8,8 +8,8 @@ CORES ?= 2
 
 .PHONY: install run paper test lint clean
 
-# The pose solver's compiled core is rebuilt when its source changes.
-$(STAMP): pyproject.toml setup.py dmais_pipe/pose/_kernels.pyx
+# The pose solver's compiled cores are rebuilt when their sources change.
+$(STAMP): pyproject.toml setup.py dmais_pipe/pose/_kernels.pyx dmais_pipe/pose/_refine.pyx
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'

@@ -9,6 +9,22 @@ figures (dmais_pipe/report/paper_tables/time_points.csv), and the fraction of ou
 dual certifies as global minima (`GeneralizedPose.certified`). Batch throughput is frames per second of
 `solve_batch` over many 50-point frames, in one thread and in as many as the machine has cores.
 OpenBLAS runs single-threaded meanwhile (see `single_threaded_blas`).
+
+Refinement (`--refine`) and robust mode (`--robust`) on the same frames, each beside a C++ reference:
+
+- refine: `refine_pose` from our solver's solution against PoseLib's generalized refinement
+  (`poselib.refine_generalized_absolute_pose`, LM with the plain squared loss) from the same pose.
+  The costs differ in their units, not in their minima at this field of view: ours is the sum of
+  squared sines of the ray angles (the tangent-plane residuals of `refine.py`), PoseLib's the sum
+  of squared pixel reprojection errors. PoseLib is given the points centred on their mean (in map
+  coordinates it needs ~15 iterations instead of 2) and its per-camera lists, built outside the
+  timing; ours centres inside it. PoseLib is optional (`pip install -e '.[bench]'`): without it
+  its columns are NaN and the bench says so.
+- robust: `solve_robust` (LO-RANSAC over gP3P, then the global solver on the inliers) against
+  pycolmap's generalized LO-RANSAC with refinement (`estimate_and_refine_generalized_absolute_pose`)
+  on the frames with 40% wrong ids (each of a random 40% of the observations given the world
+  point of another one of them), both with a 12 px threshold; rotation errors against the truth
+  and the count of frames where a method found no pose.
 """
 
 from __future__ import annotations
@@ -24,11 +40,19 @@ from scipy.spatial.transform import Rotation
 from ..blas import single_threaded_blas
 from ..files import write_csv_atomic
 from ..geometry import rotation_error
+from ..errors import PoseError
+from .refine import refine_pose
+from .robust import solve_robust
 from .solver import solve_batch, solve_generalized_pose
 
 POINT_COUNTS = (10, 50, 100, 200, 300, 400, 500)
 PAPER_TABLE = Path(__file__).resolve().parents[1] / "report" / "paper_tables" / "time_points.csv"
 FOCAL_PX, WIDTH, HEIGHT, NOISE_PX = 45000.0, 4096, 3000, 4.0
+#: Robust columns: the fraction of observations given a wrong id, and both methods' inlier threshold.
+WRONG_IDS, ROBUST_THRESHOLD_PX = 0.4, 12.0
+COSTS_NOTE = ("refine costs: ours sum of squared sines of the ray angles (tangent-plane residuals), PoseLib sum of "
+              "squared pixel reprojection errors (plain loss); robust: both LO-RANSAC, {threshold:g} px threshold, "
+              "{wrong:.0%} wrong ids")
 #: (tilt, azimuth) in degrees of the optical axes of C0..C4 in the rig frame (C0's camera frame).
 DMAIS_AXES = ((0, 0), (45, 0), (45, 90), (45, 180), (45, 270))
 
@@ -87,27 +111,79 @@ def _pycolmap_solver():
         R, centre = dmais_cam_from_rig(k)
         cams_from_rig.append(pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ centre))
     options = pycolmap.RANSACOptions()
-    options.max_error = 12.0
+    options.max_error = ROBUST_THRESHOLD_PX
 
     def solve(cams, uv, points):
         # COLMAP puts the centre of the top-left pixel at (0.5, 0.5)
         result = pycolmap.estimate_and_refine_generalized_absolute_pose(
             uv + 0.5, points, [int(c) for c in cams], cams_from_rig, [camera] * 5, options)
+        if result is None:
+            raise PoseError("pycolmap found no pose")
         pose = result["rig_from_world"]
         return pose.rotation.matrix(), np.asarray(pose.translation)
 
     return solve
 
 
-def _median_ms(solve, frames) -> tuple[float, float]:
-    """Median time per solve (ms) and median rotation error (arc-min) over frames."""
-    times, errors = [], []
+def _poselib_refiner():
+    """PoseLib's generalized refinement as refine(cams, uv, points, R0, t0) -> (R, t), timing only
+    the call (inputs per camera and centred beforehand), or None when poselib is not installed."""
+    try:
+        import poselib
+    except ImportError:
+        return None
+    rig = []
+    for k in range(5):
+        R, centre = dmais_cam_from_rig(k)
+        pose = poselib.CameraPose()
+        pose.R, pose.t = R, -R @ centre
+        rig.append(pose)
+    # PoseLib's pixel centres are at integer coordinates, like ours
+    camera = {"model": "PINHOLE", "width": WIDTH, "height": HEIGHT,
+              "params": [FOCAL_PX, FOCAL_PX, (WIDTH - 1) / 2, (HEIGHT - 1) / 2]}
+    options = {"loss_type": "TRIVIAL"}
+
+    def refine(cams, uv, points, R0, t0):
+        centroid = points.mean(axis=0)
+        pixels = [np.ascontiguousarray(uv[cams == k]) for k in range(5)]
+        world = [np.ascontiguousarray(points[cams == k] - centroid) for k in range(5)]
+        start = poselib.CameraPose()
+        start.R, start.t = R0, t0 + R0 @ centroid
+        begin = time.perf_counter()
+        pose, _ = poselib.refine_generalized_absolute_pose(pixels, world, start, rig, [camera] * 5, options)
+        elapsed = time.perf_counter() - begin
+        return pose.R, pose.t - pose.R @ centroid, elapsed
+
+    return refine
+
+
+def with_wrong_ids(rng, points: np.ndarray, fraction: float = WRONG_IDS) -> np.ndarray:
+    """Points (n, 3) with a random `fraction` of them given the world point of another one of them
+    (a cyclic shift within that subset: every one of them is wrong)."""
+    points = points.copy()
+    wrong = rng.permutation(len(points))[: int(round(fraction * len(points)))]
+    points[wrong] = points[np.roll(wrong, 1)]
+    return points
+
+
+def _median_ms(solve, frames) -> tuple[float, float, int]:
+    """Median time per solve (ms), median rotation error (arc-min) and the number of frames with no
+    pose (a PoseError or a non-finite rotation) over frames; solve returns (R, t) or (R, t, seconds)
+    where it times itself."""
+    times, errors, failed = [], [], 0
     for cams, uv, points, (R, _) in frames:
         start = time.perf_counter()
-        R_est, _ = solve(cams, uv, points)
-        times.append(time.perf_counter() - start)
-        errors.append(rotation_error(R_est, R))
-    return float(np.median(times) * 1e3), float(np.rad2deg(np.median(errors)) * 60)
+        try:
+            found = solve(cams, uv, points)
+        except PoseError:
+            found = None
+        times.append(found[2] if found is not None and len(found) == 3 else time.perf_counter() - start)
+        if found is None or not np.isfinite(found[0]).all():
+            failed += 1
+            errors.append(np.pi)
+        else:
+            errors.append(rotation_error(found[0], R))
+    return float(np.median(times) * 1e3), float(np.rad2deg(np.median(errors)) * 60), failed
 
 
 def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int = 0) -> pd.DataFrame:
@@ -123,17 +199,52 @@ def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int
         certified.append(pose.certified)
         return pose.R, pose.t
 
+    starts = {}  # our solver's solution per frame: where both refinements start
+
+    def ours_refine(cams, uv, points):
+        origins, directions = _rays(cams, uv)
+        R0, t0 = starts[id(points)]
+        begin = time.perf_counter()
+        refined = refine_pose(origins, directions, points, R0, t0)
+        return refined.R, refined.t, time.perf_counter() - begin
+
+    poselib_refine = _poselib_refiner()
+
+    def poselib(cams, uv, points):
+        return poselib_refine(cams, uv, points, *starts[id(points)])
+
+    def ours_robust(cams, uv, points):
+        origins, directions = _rays(cams, uv)
+        result = solve_robust(origins, directions, points, ROBUST_THRESHOLD_PX / FOCAL_PX)
+        return result.R, result.t
+
     colmap = _pycolmap_solver()
     rows = []
     with single_threaded_blas():
         for n in POINT_COUNTS:
             frames = [dmais_frame(rng, n) for _ in range(repeats)]
             certified.clear()
-            ours_ms, ours_err = _median_ms(ours, frames)
-            colmap_ms, colmap_err = _median_ms(colmap, frames)
+            ours_ms, ours_err, _ = _median_ms(ours, frames)
+            colmap_ms, colmap_err, _ = _median_ms(colmap, frames)
+            for cams, uv, points, _ in frames:
+                pose = solve_generalized_pose(*_rays(cams, uv), points)
+                starts[id(points)] = (pose.R, pose.t)
+            refine_ms, refine_err, _ = _median_ms(ours_refine, frames)
+            poselib_ms, poselib_err = np.nan, np.nan
+            if poselib_refine is not None:
+                poselib_ms, poselib_err, _ = _median_ms(poselib, frames)
+            starts.clear()
+            wrong = [(cams, uv, with_wrong_ids(rng, points), truth) for cams, uv, points, truth in frames]
+            robust_ms, robust_err, robust_failed = _median_ms(ours_robust, wrong)
+            colmap_robust_ms, colmap_robust_err, colmap_failed = _median_ms(colmap, wrong)
             rows.append({"n_points": n, "ours_ms": ours_ms, "pycolmap_ms": colmap_ms,
                          "paper_ms": float(paper.get(n, np.nan)), "ours_rot_err_arcmin": ours_err,
-                         "pycolmap_rot_err_arcmin": colmap_err, "ours_certified": float(np.mean(certified))})
+                         "pycolmap_rot_err_arcmin": colmap_err, "ours_certified": float(np.mean(certified)),
+                         "ours_refine_ms": refine_ms, "poselib_refine_ms": poselib_ms,
+                         "ours_refine_rot_err_arcmin": refine_err, "poselib_refine_rot_err_arcmin": poselib_err,
+                         "ours_robust_ms": robust_ms, "pycolmap_robust_ms": colmap_robust_ms,
+                         "ours_robust_rot_err_arcmin": robust_err, "pycolmap_robust_rot_err_arcmin": colmap_robust_err,
+                         "ours_robust_failed": robust_failed, "pycolmap_robust_failed": colmap_failed})
         frames = [dmais_frame(rng, 50) for _ in range(batch_frames)]
         problems = [(*_rays(cams, uv), points) for cams, uv, points, _ in frames]
         batch = []
@@ -144,6 +255,9 @@ def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int
                           "frames_per_s": batch_frames / (time.perf_counter() - start)})
     table = pd.DataFrame(rows)
     print(table.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
+    print(COSTS_NOTE.format(threshold=ROBUST_THRESHOLD_PX, wrong=WRONG_IDS))
+    if poselib_refine is None:
+        print("poselib_refine_ms: skipped: poselib not installed (pip install -e '.[bench]')")
     for run in batch:
         print(f"batch: {run['frames_per_s']:.0f} frames/s in {run['workers']} thread(s) "
               f"(50 points per frame, rays precomputed, {batch_frames} frames)")

@@ -32,7 +32,8 @@ import numpy as np
 
 from ..errors import PoseError
 from ..geometry import exp_so3, skew
-from .statistics import validate_correspondences
+from . import _refine
+from .statistics import ZERO_DIRECTION, validate_correspondences
 
 #: Iteration limit of `refine_pose`.
 MAX_ITERATIONS = 50
@@ -121,30 +122,27 @@ def refine_pose(origins, directions, points, R, t, sigma: float | None = None,
     sigma: a-priori standard deviation of one residual component in radians, or None to use the
     a-posteriori estimate (needs n >= 4; for n == 3 the covariance is NaN). Parameter order of
     the covariance: (omega_x, omega_y, omega_z, t_x, t_y, t_z).
+
+    The iteration runs compiled (`_refine.refine`): damped Gauss-Newton steps on the 6-vector
+    (omega, delta_t), J^T J and J^T r accumulated point by point from the analytic Jacobian. It
+    works about the points' centroid m (t' = t + R m): with map coordinates (|M| ~ 1e6 m) the
+    rotation and translation steps are so correlated that the iteration would stall early.
     """
-    v, f, M = validate_correspondences(origins, directions, points)
-    R, t = _checked_pose(R, t)
     if sigma is not None and not (np.isfinite(sigma) and sigma > 0):
         raise PoseError(f"refine_pose: sigma must be a positive number of radians, got {sigma}")
-    bases = tangent_bases(f)
-    # Solve about the points' centroid m (t' = t + R m): with map coordinates (|M| ~ 1e6 m) the
-    # rotation and translation steps are so correlated that the iteration would stall early.
-    m = M.mean(axis=0)
-    R, t_centred, r, J, n_iterations, converged = _levenberg_marquardt(v, bases, M - m, R, t + R @ m,
-                                                                       max_iterations)
-    n = len(M)
-    cost = float(r @ r)
-    if sigma is not None:
-        variance = float(sigma) ** 2
-    else:
-        variance = cost / (2 * n - 6) if n > 3 else np.nan
-    # back to (omega, t): t = t' - exp(omega) R m, so delta_t = delta_t' + [R m]x omega
-    T = np.eye(6)
-    T[3:, :3] = skew(R @ m)
-    return RefinedPose(
-        R=R, t=t_centred - R @ m, covariance=variance * T @ _inverse_normal_matrix(J) @ T.T,
-        residual_rms=float(np.sqrt(cost / n)), n_iterations=n_iterations, converged=converged,
-    )
+    sigma = np.nan if sigma is None else float(sigma)
+    found = _refine.refine(origins, directions, points, R, t, int(max_iterations), STEP_TOLERANCE, COST_TOLERANCE,
+                           sigma, ZERO_DIRECTION)
+    if found is None:  # other input types, or input that fails a check: the Python checks name the fault
+        v, f, M = validate_correspondences(origins, directions, points)
+        R, t = _checked_pose(R, t)
+        found = _refine.refine(v, f, M, R, t, int(max_iterations), STEP_TOLERANCE, COST_TOLERANCE, sigma,
+                               ZERO_DIRECTION)
+        if found is None:
+            raise PoseError("refine_pose: the correspondences or the starting pose are not finite")
+    R, t, covariance, cost, n_iterations, converged = found
+    return RefinedPose(R=R, t=t, covariance=covariance, residual_rms=float(np.sqrt(cost / len(points))),
+                       n_iterations=n_iterations, converged=bool(converged))
 
 
 def cramer_rao_bound(origins, directions, points, R, t, sigma: float) -> tuple[float, float]:
@@ -179,41 +177,6 @@ def _checked_pose(R, t) -> tuple[np.ndarray, np.ndarray]:
         raise PoseError("refine_pose: R is not a rotation matrix")
     U, _, Vt = np.linalg.svd(R)  # re-orthonormalize
     return U @ Vt, t
-
-
-def _levenberg_marquardt(v, bases, M, R, t, max_iterations):
-    """Iterate from (R, t); returns R, t, residuals, Jacobian at the solution, iterations, converged."""
-    size = 1.0 + float(np.abs(M - M.mean(axis=0)).max() + np.abs(t).max())
-    damping = 1e-6
-    r, J = _jacobian(v, bases, M, R, t)
-    cost = float(r @ r)
-    for iteration in range(1, max_iterations + 1):
-        JtJ, Jtr = J.T @ J, J.T @ r
-        while True:
-            step = _damped_step(JtJ, Jtr, damping)
-            R_new, t_new = exp_so3(step[:3]) @ R, t + step[3:]
-            r_new, J_new = _jacobian(v, bases, M, R_new, t_new)
-            cost_new = float(r_new @ r_new)
-            if cost_new <= cost or damping > 1e12:
-                break
-            damping *= 10.0
-        if not cost_new <= cost:
-            return R, t, r, J, iteration, True  # no descent left: at the minimum up to rounding
-        decrease = cost - cost_new
-        R, t, r, J, cost = R_new, t_new, r_new, J_new, cost_new
-        damping = max(damping / 10.0, 1e-12)
-        small_step = max(np.abs(step[:3]).max(), np.abs(step[3:]).max() / size) < STEP_TOLERANCE
-        if small_step or decrease <= COST_TOLERANCE * cost:
-            return R, t, r, J, iteration, True
-    return R, t, r, J, max_iterations, False
-
-
-def _damped_step(JtJ, Jtr, damping) -> np.ndarray:
-    A = JtJ + damping * np.diag(np.maximum(np.diag(JtJ), 1e-300))
-    try:
-        return -np.linalg.solve(A, Jtr)
-    except np.linalg.LinAlgError:
-        return -np.linalg.lstsq(A, Jtr, rcond=None)[0]
 
 
 def _inverse_normal_matrix(J) -> np.ndarray:

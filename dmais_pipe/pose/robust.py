@@ -19,6 +19,9 @@ of pixels off at the far cameras, so correct points there fall just outside thet
 brings them in. The best inlier set then goes to `final_solver` (normally the globally optimal
 solver of `pose.solver`), whose pose re-selects the inliers from all correspondences and is
 re-solved until the set is stable: the returned pose is always the solve of the returned inliers.
+
+The minimal solves with their scores, the scoring and the local refits run compiled (`_refine`:
+`gp3p.py`'s and `refine.py`'s arithmetic); only the sampling and the bookkeeping are Python.
 """
 
 from __future__ import annotations
@@ -30,9 +33,9 @@ from typing import Any, Callable
 import numpy as np
 
 from ..errors import PoseError
-from .gp3p import gp3p_unchecked
-from .refine import ray_errors, refine_pose
-from .statistics import validate_correspondences
+from . import _refine
+from .refine import COST_TOLERANCE, STEP_TOLERANCE
+from .statistics import ZERO_DIRECTION, validate_correspondences
 
 #: Rounds of final solve -> re-selected inliers before giving up on a stable inlier set.
 FINAL_ROUNDS = 10
@@ -89,10 +92,10 @@ def ransac_generalized_pose(
     on minimal samples; seed: of the sampler. Raises PoseError for invalid input, fewer than `min_inliers` correspondences, or
     when no pose has at least `min_inliers` inliers (e.g. all data are outliers).
     """
-    v, f, M = validate_correspondences(origins, directions, points)
+    v, f, M = map(np.ascontiguousarray, validate_correspondences(origins, directions, points))
     _check_options(threshold_rad, confidence, max_iterations, min_inliers)
     n = len(M)
-    threshold_rad = _thresholds(threshold_rad, n)
+    threshold_rad = np.ascontiguousarray(_thresholds(threshold_rad, n), dtype=float)
     if n < min_inliers:
         raise PoseError(f"ransac: {n} correspondences, but at least min_inliers={min_inliers} are needed")
     best, n_iterations = _ransac(v, f, M, threshold_rad, confidence, max_iterations,
@@ -137,11 +140,12 @@ def _ransac(v, f, M, threshold, confidence, max_iterations, rng, local_optimizat
     iteration = 0
     while iteration < min(required, max_iterations):
         iteration += 1
-        sample = _sample(rng, n)
-        for R, t in gp3p_unchecked(v[sample], f[sample], M[sample]):
-            hypothesis = _score(v, f, M, R, t, threshold)
-            if best is not None and hypothesis.cost >= best.cost:
+        i, j, k = _sample(rng, n)
+        # the gP3P poses and their MSAC costs in one compiled call; only a new best is looked at further
+        for R, t, cost in zip(*_refine.sample_hypotheses(v, f, M, threshold, i, j, k)):
+            if best is not None and cost >= best.cost:
                 continue
+            hypothesis = _score(v, f, M, R, t, threshold)
             if local_optimization:
                 hypothesis = _local_optimization(v, f, M, hypothesis, threshold)
             best = hypothesis
@@ -158,10 +162,11 @@ def _sample(rng: np.random.Generator, n: int) -> np.ndarray:
 
 
 def _score(v, f, M, R, t, threshold) -> _Hypothesis:
-    """MSAC score of a pose against per-correspondence thresholds (n,)."""
-    errors = ray_errors(v, f, M, R, t)
-    capped = np.minimum(errors / threshold, 1.0)  # inf (behind the ray) is capped too
-    return _Hypothesis(R=R, t=t, errors=errors, inliers=errors < threshold, cost=float(capped @ capped))
+    """MSAC score of a pose against per-correspondence thresholds (n,): the errors of
+    `refine.ray_errors` and sum_i min(e_i / theta_i, 1)^2 (inf, behind the ray, is capped too),
+    compiled (`_refine.score`)."""
+    errors, cost = _refine.score(v, f, M, R, t, threshold)
+    return _Hypothesis(R=R, t=t, errors=errors, inliers=errors < threshold, cost=cost)
 
 
 def required_iterations(inlier_ratio: float, confidence: float, sample_size: int = 3) -> int:
@@ -181,9 +186,13 @@ def _local_optimization(v, f, M, hypothesis: _Hypothesis, threshold) -> _Hypothe
         selected = current.errors < scale * threshold
         if selected.sum() < 4:
             break
-        refined = refine_pose(v[selected], f[selected], M[selected], current.R, current.t,
-                              sigma=1.0, max_iterations=LO_ITERATIONS)
-        current = _score(v, f, M, refined.R, refined.t, threshold)
+        # refine_pose's iteration without its checks and covariance (the inputs are checked already)
+        refined = _refine.refine(v[selected], f[selected], M[selected], current.R, current.t, LO_ITERATIONS,
+                                 STEP_TOLERANCE, COST_TOLERANCE, 1.0, ZERO_DIRECTION, False)
+        if refined is None:
+            break
+        R, t = refined[:2]
+        current = _score(v, f, M, R, t, threshold)
         if current.cost < best.cost:
             best = current
     return best
@@ -219,8 +228,8 @@ def _final(v, f, M, best: _Hypothesis, threshold, final_solver, n_iterations) ->
 
 def _pose_of(result) -> tuple[np.ndarray, np.ndarray]:
     try:
-        R = np.asarray(result.R, dtype=float)
-        t = np.asarray(result.t, dtype=float)
+        R = np.ascontiguousarray(result.R, dtype=float)
+        t = np.ascontiguousarray(result.t, dtype=float)
     except AttributeError:
         raise PoseError(f"ransac: final_solver returned {type(result).__name__}, without R and t") from None
     if R.shape != (3, 3) or t.shape != (3,) or not (np.isfinite(R).all() and np.isfinite(t).all()):
