@@ -9,7 +9,7 @@ CORES ?= 2
 .PHONY: install run paper test lint clean
 
 # The pose solver's compiled cores are rebuilt when their sources change.
-$(STAMP): pyproject.toml setup.py dmais_pipe/pose/_kernels.pyx dmais_pipe/pose/_refine.pyx
+$(STAMP): pyproject.toml setup.py dmais_pipe/pose/_kernels.pyx dmais_pipe/pose/_refine.pyx dmais_pipe/pose/_small.pxd
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'

@@ -12,7 +12,9 @@ GIL, so one `Kernel` serves several threads at once.
 from libc.math cimport NAN, acos, fabs, isfinite, sqrt
 from libc.stdlib cimport free, malloc
 from libc.string cimport memcpy, memset
-from scipy.linalg.cython_lapack cimport dgebal, dgehrd, dgesvd, dgetrf, dhseqr, dormhr, dsyev, dtrtrs
+from scipy.linalg.cython_lapack cimport dgebal, dgehrd, dgetrf, dhseqr, dormhr, dsyev, dtrtrs
+
+from dmais_pipe.pose._small cimport det3, matmul3, nearest_rotation, solve_linear
 
 import numpy as np
 
@@ -97,14 +99,6 @@ cdef struct Scratch:
 # ------------------------------------------------------------------------------ small matrices
 
 
-cdef inline void matmul3(const double *A, const double *B, double *out) noexcept nogil:
-    """out = A @ B, all (3, 3); out must not alias A or B."""
-    cdef int i, j
-    for i in range(3):
-        for j in range(3):
-            out[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j]
-
-
 cdef inline double trace_product_t(const double *A, const double *B) noexcept nogil:
     """trace(A @ B^T) for (3, 3) A, B."""
     cdef double s = 0.0
@@ -118,41 +112,6 @@ cdef inline double angle_between(const double *A, const double *B) noexcept nogi
     """Angle (rad) of the rotation A @ B^T."""
     cdef double cosine = 0.5 * (trace_product_t(A, B) - 1.0)
     return acos(min(1.0, max(-1.0, cosine)))
-
-
-cdef bint solve_linear(double *A, double *b, int d) noexcept nogil:
-    """Solve A x = b in place (x in b) for A (d, d), by Gaussian elimination with partial
-    pivoting; A is overwritten. False (b unchanged in meaning) if A is singular."""
-    cdef int i, j, k, p
-    cdef double best, tmp, factor
-    for k in range(d):
-        p = k
-        best = fabs(A[k * d + k])
-        for i in range(k + 1, d):
-            if fabs(A[i * d + k]) > best:
-                best, p = fabs(A[i * d + k]), i
-        if best == 0.0:
-            return False
-        if p != k:
-            for j in range(d):
-                tmp = A[k * d + j]; A[k * d + j] = A[p * d + j]; A[p * d + j] = tmp
-            tmp = b[k]; b[k] = b[p]; b[p] = tmp
-        for i in range(k + 1, d):
-            factor = A[i * d + k] / A[k * d + k]
-            for j in range(k, d):
-                A[i * d + j] -= factor * A[k * d + j]
-            b[i] -= factor * b[k]
-    for k in range(d - 1, -1, -1):
-        for j in range(k + 1, d):
-            b[k] -= A[k * d + j] * b[j]
-        b[k] /= A[k * d + k]
-    return True
-
-
-cdef inline double det3(const double *A) noexcept nogil:
-    """Determinant of A (3, 3) (either storage order)."""
-    return (A[0] * (A[4] * A[8] - A[7] * A[5]) - A[3] * (A[1] * A[8] - A[7] * A[2])
-            + A[6] * (A[1] * A[5] - A[4] * A[2]))
 
 
 cdef void cayley_times(const double *q, const double *R, double *out) noexcept nogil:
@@ -172,27 +131,6 @@ cdef void cayley_times(const double *q, const double *R, double *out) noexcept n
     C[7] = 2.0 * (q[1] * q[2] + q[0]) * s
     matmul3(C, R, tmp)
     memcpy(out, tmp, 9 * sizeof(double))
-
-
-cdef void nearest_rotation(double *X) noexcept nogil:
-    """Replace X (3, 3) by the nearest rotation (Frobenius): U diag(1, 1, det U V^T) V^T."""
-    cdef int three = 3, lwork = 64, info = 0
-    cdef double s[3]
-    cdef double U[9]
-    cdef double Vt[9]
-    cdef double work[64]
-    cdef double Q[9]
-    cdef int i, j
-    # X read column-major is X^T = U S Vt; its nearest rotation U D Vt read row-major is nearest(X).
-    dgesvd(b"A", b"A", &three, &three, X, &three, s, U, &three, Vt, &three, work, &lwork, &info)
-    for i in range(3):  # Q = U Vt (column-major)
-        for j in range(3):
-            Q[i + 3 * j] = U[i] * Vt[3 * j] + U[i + 3] * Vt[1 + 3 * j] + U[i + 6] * Vt[2 + 3 * j]
-    if det3(Q) < 0:
-        for i in range(3):
-            for j in range(3):
-                Q[i + 3 * j] -= 2.0 * U[i + 6] * Vt[2 + 3 * j]
-    memcpy(X, Q, 9 * sizeof(double))
 
 
 # ------------------------------------------------------------------------------ cost on SO(3)

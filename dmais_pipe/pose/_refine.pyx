@@ -13,7 +13,9 @@ allocations, so the functions are safe in threads.
 from libc.math cimport INFINITY, NAN, cos, fabs, isfinite, sin, sqrt
 from libc.stdlib cimport free, malloc
 from libc.string cimport memcpy, memset
-from scipy.linalg.cython_lapack cimport dgebal, dgehrd, dgesvd, dhseqr, dsyev
+from scipy.linalg.cython_lapack cimport dgebal, dgehrd, dhseqr, dsyev
+
+from dmais_pipe.pose._small cimport det3, matmul3, nearest_rotation, solve_linear
 
 import numpy as np
 
@@ -37,11 +39,6 @@ cdef enum:
 # ------------------------------------------------------------------------------ small helpers
 
 
-cdef inline double det3(const double *A) noexcept nogil:
-    return (A[0] * (A[4] * A[8] - A[7] * A[5]) - A[3] * (A[1] * A[8] - A[7] * A[2])
-            + A[6] * (A[1] * A[5] - A[4] * A[2]))
-
-
 cdef void exp_so3(const double *w, double *R) noexcept nogil:
     """R (3, 3) = exp([w]x) through the unit quaternion (cos(theta/2), sin(theta/2) w / theta)."""
     cdef double theta2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -63,62 +60,6 @@ cdef void exp_so3(const double *w, double *R) noexcept nogil:
     R[6] = 2.0 * (x * z - y * qw)
     R[7] = 2.0 * (y * z + x * qw)
     R[8] = 1.0 - 2.0 * (x * x + y * y)
-
-
-cdef inline void matmul3(const double *A, const double *B, double *out) noexcept nogil:
-    cdef int i, j
-    for i in range(3):
-        for j in range(3):
-            out[3 * i + j] = A[3 * i] * B[j] + A[3 * i + 1] * B[3 + j] + A[3 * i + 2] * B[6 + j]
-
-
-cdef bint solve_linear(double *A, double *b, int d) noexcept nogil:
-    """Solve A x = b in place (x in b), A (d, d) row-major, Gaussian elimination with partial
-    pivoting; A is overwritten. False if A is singular."""
-    cdef int i, j, k, p
-    cdef double best, tmp, factor
-    for k in range(d):
-        p = k
-        best = fabs(A[k * d + k])
-        for i in range(k + 1, d):
-            if fabs(A[i * d + k]) > best:
-                best, p = fabs(A[i * d + k]), i
-        if best == 0.0:
-            return False
-        if p != k:
-            for j in range(d):
-                tmp = A[k * d + j]; A[k * d + j] = A[p * d + j]; A[p * d + j] = tmp
-            tmp = b[k]; b[k] = b[p]; b[p] = tmp
-        for i in range(k + 1, d):
-            factor = A[i * d + k] / A[k * d + k]
-            for j in range(k, d):
-                A[i * d + j] -= factor * A[k * d + j]
-            b[i] -= factor * b[k]
-    for k in range(d - 1, -1, -1):
-        for j in range(k + 1, d):
-            b[k] -= A[k * d + j] * b[j]
-        b[k] /= A[k * d + k]
-    return True
-
-
-cdef void nearest_rotation(double *X) noexcept nogil:
-    """Replace X (3, 3) by U diag(1, 1, det U V^T) V^T from its SVD X = U S V^T."""
-    cdef int three = 3, lwork = 64, info = 0, i, j
-    cdef double s[3]
-    cdef double U[9]
-    cdef double Vt[9]
-    cdef double work[64]
-    cdef double Q[9]
-    # X read column-major is X^T = U S Vt; its nearest rotation U D Vt read row-major is nearest(X).
-    dgesvd(b"A", b"A", &three, &three, X, &three, s, U, &three, Vt, &three, work, &lwork, &info)
-    for i in range(3):
-        for j in range(3):
-            Q[i + 3 * j] = U[i] * Vt[3 * j] + U[i + 3] * Vt[1 + 3 * j] + U[i + 6] * Vt[2 + 3 * j]
-    if det3(Q) < 0:
-        for i in range(3):
-            for j in range(3):
-                Q[i + 3 * j] -= 2.0 * U[i + 6] * Vt[2 + 3 * j]
-    memcpy(X, Q, 9 * sizeof(double))
 
 
 # ------------------------------------------------------------------------------ refinement
