@@ -18,6 +18,7 @@ import pandas as pd
 from ..evaluate import (POS, angular_errors, conf_table, evaluate_poses, every_camera_eps_proj, group_offsets,
                         mean_focal_px, pose_methods_table, residual_table, subset_cameras, used_observations)
 from ..markers.quality import FLAG_FACTOR, FLAG_MIN_SIGMA_PX, camera_quality, image_quality
+from ..rig import Rig
 from ..workspace import CENTER, ResultsError, Workspace
 
 log = logging.getLogger(__name__)
@@ -36,18 +37,20 @@ CONFS = {"default": Conf()}
 
 
 def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
-    return _poses(workspace) + _residuals(workspace) + _markers(workspace, conf)
+    rig, whole_rig = workspace.load_rig(), workspace.load_pose_observations()
+    return _poses(workspace, rig, whole_rig) + _residuals(workspace, rig, whole_rig) + _markers(workspace, conf)
 
 
-def _poses(workspace: Workspace) -> list[Path]:
-    """evaluation.csv, tab:pose_methods and, per camera subset, evaluation_<label>.csv and tab:conf."""
-    dataset, rig = workspace.dataset, workspace.load_rig()
+def _poses(workspace: Workspace, rig: Rig, whole_rig: pd.DataFrame | None) -> list[Path]:
+    """evaluation.csv, tab:pose_methods and, per camera subset, evaluation_<label>.csv and tab:conf.
+    whole_rig: poses.csv's per-observation table (None when it has none)."""
+    dataset = workspace.dataset
     truth, poses = workspace.load_truth_frames(), workspace.load_poses()
     pos = dataset.frames.set_index("frame").loc[poses["frame"], list(POS)].to_numpy(dtype=float)
     offsets = group_offsets(poses[list(CENTER)].to_numpy(dtype=float), pos, poses["group"])
     for group, offset in offsets.items():
         log.info("lever-arm offset (estimate - POS) of group %s: (%.3f, %.3f, %.3f) m", group, *offset)
-    observations, whole_rig = workspace.load_observations(), workspace.load_pose_observations()
+    observations = workspace.load_observations()
     evaluation = evaluate_poses(poses, dataset, rig, truth, offsets, used_observations(observations, whole_rig))
     table = pose_methods_table(evaluation)
     written = [workspace.save_evaluation(evaluation), workspace.save_table("pose_methods", table)]
@@ -70,14 +73,14 @@ def _poses(workspace: Workspace) -> list[Path]:
     return written
 
 
-def _residuals(workspace: Workspace) -> list[Path]:
-    """tables/residuals.csv: per camera, the residuals of the observations the whole rig's poses used."""
-    observations = workspace.load_pose_observations()
+def _residuals(workspace: Workspace, rig: Rig, observations: pd.DataFrame | None) -> list[Path]:
+    """tables/residuals.csv: per camera, the residuals of the observations the whole rig's poses used
+    (observations: poses.csv's per-observation table)."""
     if observations is None:
         log.warning("%s has no per-observation file beside it: no residual table", workspace.poses_path())
         return _replace_table(workspace, "residuals", None)
     used = observations[observations["used"]].dropna(subset=["du", "dv"])
-    cameras = [c for c in workspace.load_rig().camera_names if c in set(used["camera"])]
+    cameras = [c for c in rig.camera_names if c in set(used["camera"])]
     return [workspace.save_table("residuals", residual_table(used, cameras))]
 
 

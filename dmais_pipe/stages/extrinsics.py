@@ -14,11 +14,13 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 
 from ..calib.extrinsics import (DEFAULT_BACKEND, PRIOR_CENTER, ExtrinsicsResult, annotate_tables, calibrate_extrinsics,
                                 colmap_rig_config, extrinsics_tables, image_prefixes)
 from ..calib.localize import DEFAULT_CENTER_SIGMA_M, DEFAULT_PIXEL_SIGMA_PX
 from ..calib.rig_ba import BACKENDS
+from ..camera import Camera
 from ..errors import DmaisError
 from ..report.layout import write_layout_svg
 from ..workspace import Workspace
@@ -54,7 +56,8 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     has_priors = bool(images[list(PRIOR_CENTER)].notna().all(axis=1).any())
     if conf.use_priors and not has_priors:
         log.warning("extrinsics: no camera-centre priors in %s; calibrating without", dataset.root / "images.csv")
-    results = {case: _calibrate(workspace, conf, case) for case in ([True, False] if has_priors else [False])}
+    inputs = _inputs(workspace)
+    results = {case: _calibrate(workspace, conf, case, *inputs) for case in ([True, False] if has_priors else [False])}
     chosen = results[conf.use_priors and has_priors]
     written = [workspace.save_rig(chosen.rig, **chosen.extra()),
                workspace.save_rig_config(colmap_rig_config(chosen.rig,
@@ -66,7 +69,8 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     return written
 
 
-def _calibrate(workspace: Workspace, conf: Conf, use_priors: bool) -> ExtrinsicsResult:
+def _inputs(workspace: Workspace) -> tuple[pd.DataFrame, dict[str, Camera], dict[str, float]]:
+    """The extrinsics images' observations, the calibrated cameras and each camera's pixel sigma."""
     dataset = workspace.dataset
     images = dataset.images_of("extrinsics")
     observations = workspace.load_observations()
@@ -78,10 +82,16 @@ def _calibrate(workspace: Workspace, conf: Conf, use_priors: bool) -> Extrinsics
         # per-axis pixel sigma from the intrinsic calibration's RMS point distance (eps / sqrt 2)
         eps = record.get("eps_calib_px")
         pixel_sigma[name] = float(eps) / np.sqrt(2.0) if eps and np.isfinite(eps) and eps > 0 else DEFAULT_PIXEL_SIGMA_PX
+    return observations, cameras, pixel_sigma
+
+
+def _calibrate(workspace: Workspace, conf: Conf, use_priors: bool, observations: pd.DataFrame,
+               cameras: dict[str, Camera], pixel_sigma: dict[str, float]) -> ExtrinsicsResult:
+    dataset = workspace.dataset
     log.info("extrinsics: calibrating %s camera-centre priors", "with" if use_priors else "without")
-    return calibrate_extrinsics(cameras, dataset.reference_camera, images, observations, dataset.points,
-                                use_priors=use_priors, center_sigma=conf.center_sigma_m, pixel_sigma=pixel_sigma,
-                                backend=conf.backend)
+    return calibrate_extrinsics(cameras, dataset.reference_camera, dataset.images_of("extrinsics"), observations,
+                                dataset.points, use_priors=use_priors, center_sigma=conf.center_sigma_m,
+                                pixel_sigma=pixel_sigma, backend=conf.backend)
 
 
 def _write_comparison(workspace: Workspace, known: ExtrinsicsResult, unknown: ExtrinsicsResult) -> list[Path]:
