@@ -78,7 +78,7 @@ def _cmd_intrinsics(args) -> None:
         _print(intrinsics.write_table(workspace))
         return
     if args.camera:
-        _print(path for camera in args.camera for path in intrinsics.run_camera(workspace, camera, conf))
+        _print(intrinsics.run_cameras(workspace, args.camera, conf))
     else:
         _print(intrinsics.run(workspace, conf))
 

@@ -44,7 +44,7 @@ def simulated(simulated_dataset, tmp_path_factory):
 def test_per_camera_runs_and_table_equal_one_run(simulated, tmp_path):
     dataset, results, _ = simulated
     for camera in ("C3", "C0", "C1", "C2", "C4"):
-        intrinsics.run_camera(Workspace.open(dataset, tmp_path), camera)
+        intrinsics.run_cameras(Workspace.open(dataset, tmp_path), [camera])
     assert not (tmp_path / "tables" / "intrinsics.csv").exists()
     pd.testing.assert_frame_equal(pd.read_csv(intrinsics.write_table(Workspace.open(dataset, tmp_path))[0]),
                                   pd.read_csv(results / "tables" / "intrinsics.csv"))
@@ -54,11 +54,11 @@ def test_per_camera_runs_and_table_equal_one_run(simulated, tmp_path):
 
 def test_table_names_a_camera_not_calibrated_yet(simulated, tmp_path):
     dataset, _, _ = simulated
-    intrinsics.run_camera(Workspace.open(dataset, tmp_path), "C0")
+    intrinsics.run_cameras(Workspace.open(dataset, tmp_path), ["C0"])
     with pytest.raises(DmaisError, match="C1.methods.csv"):
         intrinsics.write_table(Workspace.open(dataset, tmp_path))[0]
     with pytest.raises(DmaisError, match="C9"):
-        intrinsics.run_camera(Workspace.open(dataset, tmp_path), "C9")
+        intrinsics.run_cameras(Workspace.open(dataset, tmp_path), ["C9"])
 
 
 def test_intrinsics_stage_writes_json_and_table(simulated):
@@ -361,7 +361,7 @@ def test_absurd_calibration_stops_the_stage_and_keeps_the_earlier_result(simulat
     copy = tmp_path / "copy"
     shutil.copytree(dataset, copy)
     results = tmp_path / "results"
-    intrinsics.run_camera(Workspace.open(copy, results), "C0")
+    intrinsics.run_cameras(Workspace.open(copy, results), ["C0"])
     written = {p.name: p.read_bytes() for p in (results / "intrinsics").iterdir()}
 
     images = pd.read_csv(copy / "images.csv")
@@ -373,7 +373,7 @@ def test_absurd_calibration_stops_the_stage_and_keeps_the_earlier_result(simulat
         obs.loc[rows, "point_id"] = rng.permutation(obs.loc[rows, "point_id"].to_numpy())
     obs.to_csv(copy / "observations.csv", index=False)
     with pytest.raises(DmaisError) as info:
-        intrinsics.run_camera(Workspace.open(copy, results), "C0")
+        intrinsics.run_cameras(Workspace.open(copy, results), ["C0"])
     message = str(info.value)
     assert message.startswith("camera C0: calibration refused, eps_calib ") and "exceeds 5 px" in message
     worst = message.split("worst images: ")[1]
@@ -392,5 +392,5 @@ def test_a_focal_far_from_the_manifest_is_refused(simulated, tmp_path):
     (copy / "dataset.yaml").write_text(yaml.safe_dump(manifest))
     with pytest.raises(DmaisError, match=r"camera C2: calibration refused, fx 4\d{4}\.\d px is \d+% from focal_px "
                                          r"30000; fy .*\(worst images: intr_C2_"):
-        intrinsics.run_camera(Workspace.open(copy, tmp_path / "results"), "C2")
+        intrinsics.run_cameras(Workspace.open(copy, tmp_path / "results"), ["C2"])
     assert not (tmp_path / "results" / "intrinsics" / "C2.json").exists()

@@ -1,6 +1,6 @@
 """`dmais intrinsics`: calibrate every camera that has intrinsics images (calib.intrinsics).
 
-- `run_camera` (the workflow's job per camera): RESULTS/intrinsics/<camera>.json (ours) and
+- `run_cameras` (the workflow's job: one camera): RESULTS/intrinsics/<camera>.json (ours) and
   <camera>.methods.csv (that camera's row of every method). A calibration beyond the conf's
   plausibility bounds stops the job before anything of that camera is written;
 - `write_table`: RESULTS/tables/intrinsics.csv (tab:intrinsics) from every camera's methods file;
@@ -40,24 +40,26 @@ CONFS = {"paper": Conf(), "ours": Conf(methods=("ours",))}
 
 def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     """Every camera with intrinsics images, then tables/intrinsics.csv."""
-    written = []
-    for name in calibrated_cameras(workspace):
-        written += run_camera(workspace, name, conf)
-    return written + write_table(workspace)
+    return run_cameras(workspace, calibrated_cameras(workspace), conf) + write_table(workspace)
 
 
-def run_camera(workspace: Workspace, name: str, conf: Conf = Conf()) -> list[Path]:
-    """One camera's calibration (ours, checked) and every method's table row."""
+def run_cameras(workspace: Workspace, names: list[str], conf: Conf = Conf()) -> list[Path]:
+    """Each named camera's calibration (ours, checked) and every method's table row (the
+    workflow's job: one camera). A refused camera stops before anything of it is written."""
     unknown = set(conf.methods) - set(METHODS)
     if unknown or "ours" not in conf.methods:
         raise DmaisError(f"intrinsics: methods must include 'ours' and be among {', '.join(METHODS)}, "
                          f"got {', '.join(conf.methods)}")
     available = calibrated_cameras(workspace)
-    if name not in available:
-        raise DmaisError(f"intrinsics: camera {name} has no intrinsics images in "
-                         f"{workspace.dataset.root / 'images.csv'} (cameras with some: {available})")
-    ours, rows = _calibrate(workspace, name, conf)
-    return workspace.save_intrinsics(name, ours.to_dict(), rows)
+    for name in names:
+        if name not in available:
+            raise DmaisError(f"intrinsics: camera {name} has no intrinsics images in "
+                             f"{workspace.dataset.root / 'images.csv'} (cameras with some: {available})")
+    observations, written = workspace.load_observations(), []
+    for name in names:
+        ours, rows = _calibrate(workspace, name, conf, observations)
+        written += workspace.save_intrinsics(name, ours.to_dict(), rows)
+    return written
 
 
 def calibrated_cameras(workspace: Workspace) -> list[str]:
@@ -81,8 +83,9 @@ def write_table(workspace: Workspace) -> list[Path]:
     return [workspace.save_table("intrinsics", table[list(TABLE_COLUMNS)])]
 
 
-def _calibrate(workspace: Workspace, name: str, conf: Conf) -> tuple[IntrinsicsResult, pd.DataFrame]:
-    dataset, observations = workspace.dataset, workspace.load_observations()
+def _calibrate(workspace: Workspace, name: str, conf: Conf, observations: pd.DataFrame
+               ) -> tuple[IntrinsicsResult, pd.DataFrame]:
+    dataset = workspace.dataset
     calib_images = dataset.images_of("intrinsics", name, "calib")["image"].tolist()
     eval_images = dataset.images_of("intrinsics", name, "eval")["image"].tolist()
     log.info("camera %s: %d calib + %d eval images", name, len(calib_images), len(eval_images))
