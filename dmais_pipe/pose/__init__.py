@@ -11,7 +11,8 @@ The public solvers:
 
 The modules: `statistics` (the O(n) statistics of eq. objfun3), `generate` -> `_equations.py`
 (the sympy derivation of eq. EF6), `template` -> `_template.json` (the elimination template),
-`_kernels.pyx` (the compiled core), `solver` (the API), `gp3p` (minimal solver), `refine`
+`_kernels.pyx` (the compiled core), `_refine.pyx` (refinement, MSAC scoring and gP3P compiled;
+`_small.pxd` holds the small matrix helpers both cimport), `solver` (the API), `gp3p` (minimal solver), `refine`
 (Levenberg-Marquardt on angular residuals, Cramer-Rao bound), `robust`, `bench` (`dmais bench
 pose`) and `flight` (every flight frame of a dataset, for the pose stage `stages.pose`).
 """
