@@ -458,9 +458,10 @@ cdef bint rotation_within_tolerance(const double *R, const double *t) noexcept n
 
 
 cdef double msac(const double *v, const double *f, const double *M, int n, const double *R, const double *t,
-                 const double *threshold, double *errors) noexcept nogil:
+                 const double *threshold, double *errors, double wide, int *wide_count) noexcept nogil:
     """MSAC cost sum_i min(e_i / theta_i, 1)^2 of a pose, with the angular errors e_i of
-    refine.ray_errors (inf behind the ray) written to errors (n,) when given."""
+    refine.ray_errors (inf behind the ray) written to errors (n,) when given, and the count of
+    e_i < wide theta_i to wide_count when given."""
     cdef int i, k
     cdef double p[3]
     cdef double cx, cy, cz, norm, alpha, e, capped, cost = 0.0
@@ -478,7 +479,10 @@ cdef double msac(const double *v, const double *f, const double *M, int n, const
             e = INFINITY
         if errors != NULL:
             errors[i] = e
-        capped = min(e / threshold[i], 1.0)
+        capped = e / threshold[i]
+        if wide_count != NULL and capped < wide:
+            wide_count[0] += 1
+        capped = min(capped, 1.0)
         cost += capped * capped
     return cost
 
@@ -491,7 +495,8 @@ def score(const double[:, ::1] origins, const double[:, ::1] directions, const d
     cdef double[::1] e = errors
     cdef double cost
     with nogil:
-        cost = msac(&origins[0, 0], &directions[0, 0], &points[0, 0], n, &R[0, 0], &t[0], &threshold[0], &e[0])
+        cost = msac(&origins[0, 0], &directions[0, 0], &points[0, 0], n, &R[0, 0], &t[0], &threshold[0], &e[0], 1.0,
+                    NULL)
     return errors, cost
 
 
@@ -840,9 +845,10 @@ def gp3p(const double[:, ::1] origins, const double[:, ::1] directions, const do
 
 
 def sample_hypotheses(const double[:, ::1] origins, const double[:, ::1] directions, const double[:, ::1] points,
-                      const double[::1] threshold, long i0, long i1, long i2):
-    """The gP3P poses of correspondences (i0, i1, i2) and their MSAC costs over all of them:
-    rotations (m, 3, 3), translations (m, 3), costs (m,)."""
+                      const double[::1] threshold, double wide, long i0, long i1, long i2):
+    """The gP3P poses of correspondences (i0, i1, i2), their MSAC costs over all correspondences and
+    how many of these lie within wide x their threshold: rotations (m, 3, 3), translations (m, 3),
+    costs (m,), wide counts (m,)."""
     cdef double v[9]
     cdef double f[9]
     cdef double M[9]
@@ -851,9 +857,12 @@ def sample_hypotheses(const double[:, ::1] origins, const double[:, ::1] directi
     R = np.empty((8, 3, 3))
     t = np.empty((8, 3))
     costs = np.empty(8)
+    counts = np.empty(8, dtype=np.intp)
     cdef double[:, :, ::1] R_view = R
     cdef double[:, ::1] t_view = t
     cdef double[::1] cost_view = costs
+    cdef Py_ssize_t[::1] count_view = counts
+    cdef int count = 0
     idx[0], idx[1], idx[2] = i0, i1, i2
     with nogil:
         for i in range(3):
@@ -863,6 +872,8 @@ def sample_hypotheses(const double[:, ::1] origins, const double[:, ::1] directi
                 M[3 * i + k] = points[idx[i], k]
         m = gp3p_poses(v, f, M, &R_view[0, 0, 0], &t_view[0, 0])
         for i in range(m):
+            count = 0
             cost_view[i] = msac(&origins[0, 0], &directions[0, 0], &points[0, 0], n, &R_view[i, 0, 0],
-                                &t_view[i, 0], &threshold[0], NULL)
-    return R[:m], t[:m], costs[:m]
+                                &t_view[i, 0], &threshold[0], NULL, wide, &count)
+            count_view[i] = count
+    return R[:m], t[:m], costs[:m], counts[:m]
