@@ -13,7 +13,7 @@ allocations, so the functions are safe in threads.
 from libc.math cimport INFINITY, NAN, cos, fabs, isfinite, sin, sqrt
 from libc.stdlib cimport free, malloc
 from libc.string cimport memcpy, memset
-from scipy.linalg.cython_lapack cimport dgebal, dgehrd, dgesvd, dhseqr, dsyev
+from scipy.linalg.cython_lapack cimport dgebal, dgesvd, dlahqr, dsyev
 
 import numpy as np
 
@@ -601,12 +601,11 @@ cdef int univariate(const double *c, double *F, double *alpha, double *beta) noe
 cdef int real_roots(const double *F_in, int length, double *roots) noexcept nogil:
     """Real (and nearly real: |imag| <= IMAG_TOLERANCE (1 + |root|)) roots of F, as numpy's
     polyroots (eigenvalues of the companion matrix) after trimming trailing zeros."""
-    cdef int d, i, k, info = 0, ilo = 0, ihi = 0, one = 1, lwork = 256, count = 0
+    cdef int d, i, info = 0, ilo = 0, ihi = 0, one = 1, count = 0
+    cdef bint no = False
     cdef double F[17]
     cdef double C[16 * 16]
     cdef double scale[16]
-    cdef double tau[16]
-    cdef double work[256]
     cdef double wr[16]
     cdef double wi[16]
     cdef double largest = 0.0
@@ -629,12 +628,10 @@ cdef int real_roots(const double *F_in, int length, double *roots) noexcept nogi
         C[(i - 1) * d + i] = 1.0  # subdiagonal
     for i in range(d):
         C[(d - 1) * d + i] = -F[i] / F[d]
-    dgebal(b"B", &d, C, &d, &ilo, &ihi, scale, &info)
-    dgehrd(&d, &ilo, &ihi, C, &d, tau, work, &lwork, &info)
-    for i in range(d):  # the Hessenberg matrix alone (dgehrd leaves its reflectors below it)
-        for k in range(i + 2, d):
-            C[i * d + k] = 0.0
-    dhseqr(b"E", b"N", &d, &ilo, &ihi, C, &d, wr, wi, NULL, &one, work, &lwork, &info)
+    # The companion matrix is upper Hessenberg already: balance it by scaling alone (which keeps that
+    # form; numpy's eigvals balances too) and run LAPACK's small-matrix QR iteration on it directly.
+    dgebal(b"S", &d, C, &d, &ilo, &ihi, scale, &info)
+    dlahqr(&no, &no, &d, &ilo, &ihi, C, &d, wr, wi, &one, &d, NULL, &d, &info)
     if info != 0:
         return 0
     for i in range(d):
