@@ -13,7 +13,7 @@ allocations, so the functions are safe in threads.
 from libc.math cimport INFINITY, NAN, cos, fabs, isfinite, sin, sqrt
 from libc.stdlib cimport free, malloc
 from libc.string cimport memcpy, memset
-from scipy.linalg.cython_lapack cimport dgebal, dgehrd, dhseqr, dsyev
+from scipy.linalg.cython_lapack cimport dgebal, dlahqr, dsyev
 
 from dmais_pipe.pose._small cimport det3, matmul3, nearest_rotation, solve_linear
 
@@ -399,9 +399,10 @@ cdef bint rotation_within_tolerance(const double *R, const double *t) noexcept n
 
 
 cdef double msac(const double *v, const double *f, const double *M, int n, const double *R, const double *t,
-                 const double *threshold, double *errors) noexcept nogil:
+                 const double *threshold, double *errors, double wide, int *wide_count) noexcept nogil:
     """MSAC cost sum_i min(e_i / theta_i, 1)^2 of a pose, with the angular errors e_i of
-    refine.ray_errors (inf behind the ray) written to errors (n,) when given."""
+    refine.ray_errors (inf behind the ray) written to errors (n,) when given, and the count of
+    e_i < wide theta_i to wide_count when given."""
     cdef int i, k
     cdef double p[3]
     cdef double cx, cy, cz, norm, alpha, e, capped, cost = 0.0
@@ -419,7 +420,10 @@ cdef double msac(const double *v, const double *f, const double *M, int n, const
             e = INFINITY
         if errors != NULL:
             errors[i] = e
-        capped = min(e / threshold[i], 1.0)
+        capped = e / threshold[i]
+        if wide_count != NULL and capped < wide:
+            wide_count[0] += 1
+        capped = min(capped, 1.0)
         cost += capped * capped
     return cost
 
@@ -432,7 +436,8 @@ def score(const double[:, ::1] origins, const double[:, ::1] directions, const d
     cdef double[::1] e = errors
     cdef double cost
     with nogil:
-        cost = msac(&origins[0, 0], &directions[0, 0], &points[0, 0], n, &R[0, 0], &t[0], &threshold[0], &e[0])
+        cost = msac(&origins[0, 0], &directions[0, 0], &points[0, 0], n, &R[0, 0], &t[0], &threshold[0], &e[0], 1.0,
+                    NULL)
     return errors, cost
 
 
@@ -537,12 +542,11 @@ cdef int univariate(const double *c, double *F, double *alpha, double *beta) noe
 cdef int real_roots(const double *F_in, int length, double *roots) noexcept nogil:
     """Real (and nearly real: |imag| <= IMAG_TOLERANCE (1 + |root|)) roots of F, as numpy's
     polyroots (eigenvalues of the companion matrix) after trimming trailing zeros."""
-    cdef int d, i, k, info = 0, ilo = 0, ihi = 0, one = 1, lwork = 256, count = 0
+    cdef int d, i, info = 0, ilo = 0, ihi = 0, one = 1, count = 0
+    cdef bint no = False
     cdef double F[17]
     cdef double C[16 * 16]
     cdef double scale[16]
-    cdef double tau[16]
-    cdef double work[256]
     cdef double wr[16]
     cdef double wi[16]
     cdef double largest = 0.0
@@ -565,12 +569,10 @@ cdef int real_roots(const double *F_in, int length, double *roots) noexcept nogi
         C[(i - 1) * d + i] = 1.0  # subdiagonal
     for i in range(d):
         C[(d - 1) * d + i] = -F[i] / F[d]
-    dgebal(b"B", &d, C, &d, &ilo, &ihi, scale, &info)
-    dgehrd(&d, &ilo, &ihi, C, &d, tau, work, &lwork, &info)
-    for i in range(d):  # the Hessenberg matrix alone (dgehrd leaves its reflectors below it)
-        for k in range(i + 2, d):
-            C[i * d + k] = 0.0
-    dhseqr(b"E", b"N", &d, &ilo, &ihi, C, &d, wr, wi, NULL, &one, work, &lwork, &info)
+    # The companion matrix is upper Hessenberg already: balance it by scaling alone (which keeps that
+    # form; numpy's eigvals balances too) and run LAPACK's small-matrix QR iteration on it directly.
+    dgebal(b"S", &d, C, &d, &ilo, &ihi, scale, &info)
+    dlahqr(&no, &no, &d, &ilo, &ihi, C, &d, wr, wi, &one, &d, NULL, &d, &info)
     if info != 0:
         return 0
     for i in range(d):
@@ -781,9 +783,10 @@ def gp3p(const double[:, ::1] origins, const double[:, ::1] directions, const do
 
 
 def sample_hypotheses(const double[:, ::1] origins, const double[:, ::1] directions, const double[:, ::1] points,
-                      const double[::1] threshold, long i0, long i1, long i2):
-    """The gP3P poses of correspondences (i0, i1, i2) and their MSAC costs over all of them:
-    rotations (m, 3, 3), translations (m, 3), costs (m,)."""
+                      const double[::1] threshold, double wide, long i0, long i1, long i2):
+    """The gP3P poses of correspondences (i0, i1, i2), their MSAC costs over all correspondences and
+    how many of these lie within wide x their threshold: rotations (m, 3, 3), translations (m, 3),
+    costs (m,), wide counts (m,)."""
     cdef double v[9]
     cdef double f[9]
     cdef double M[9]
@@ -792,9 +795,12 @@ def sample_hypotheses(const double[:, ::1] origins, const double[:, ::1] directi
     R = np.empty((8, 3, 3))
     t = np.empty((8, 3))
     costs = np.empty(8)
+    counts = np.empty(8, dtype=np.intp)
     cdef double[:, :, ::1] R_view = R
     cdef double[:, ::1] t_view = t
     cdef double[::1] cost_view = costs
+    cdef Py_ssize_t[::1] count_view = counts
+    cdef int count = 0
     idx[0], idx[1], idx[2] = i0, i1, i2
     with nogil:
         for i in range(3):
@@ -804,6 +810,8 @@ def sample_hypotheses(const double[:, ::1] origins, const double[:, ::1] directi
                 M[3 * i + k] = points[idx[i], k]
         m = gp3p_poses(v, f, M, &R_view[0, 0, 0], &t_view[0, 0])
         for i in range(m):
+            count = 0
             cost_view[i] = msac(&origins[0, 0], &directions[0, 0], &points[0, 0], n, &R_view[i, 0, 0],
-                                &t_view[i, 0], &threshold[0], NULL)
-    return R[:m], t[:m], costs[:m]
+                                &t_view[i, 0], &threshold[0], NULL, wide, &count)
+            count_view[i] = count
+    return R[:m], t[:m], costs[:m], counts[:m]

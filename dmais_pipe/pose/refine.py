@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import PoseError
-from ..geometry import exp_so3, skew
+from ..geometry import skew
 from . import _refine
 from .statistics import ZERO_DIRECTION, validate_correspondences
 
@@ -39,7 +39,7 @@ from .statistics import ZERO_DIRECTION, validate_correspondences
 MAX_ITERATIONS = 50
 #: Stop when the step is below this (radians for omega, relative to the scene size for t).
 STEP_TOLERANCE = 1e-12
-#: Stop when the cost decreases by less than this fraction.
+#: Stop when the cost decreases, or the Gauss-Newton model predicts it to decrease, by less than this fraction.
 COST_TOLERANCE = 1e-14
 
 
