@@ -127,7 +127,7 @@ MAX_SIGMA_PX = 0.5  # corners less certain than this are rejected
 MIN_EDGE_ANGLE = np.radians(15.0)  # edges closer than this in direction are degenerate
 NO_CLEAN_X = "no clean X at the fit"
 REASONS = ("no X pattern", "no convergence", "moved too far", "degenerate edges", "blur exceeds window", "poor fit",
-           "uncertain", NO_CLEAN_X)
+           "uncertain", NO_CLEAN_X, "asymmetric at the corner (a shadow edge or an occluder)")
 
 
 @dataclass
@@ -209,7 +209,9 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
         for array, value in zip((params, cov, rms, converged), fitted):
             array[todo] = value
         smallest = np.maximum(MIN_RADIUS, 2.0 * np.nan_to_num(params[:, 4], nan=1.0) + 1.0)
+    params, cov, rms, converged, radius, shadowed = _symmetric_window(img, params, cov, rms, converged, radius)
     reason = _reasons(params, cov, rms, converged, uv, limit, radius)
+    reason[shadowed & np.all(np.isfinite(params), axis=1)] = ASYMMETRIC
     # A shadow edge or an occluder at the corner itself can leave a fit of small residual away
     # from it (the model's blur and levels absorb the step): not even the smallest ring about the
     # fitted centre is a clean X there.
@@ -227,6 +229,46 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
 
 
 SHRINK = 0.75
+REACH_PX = 1.0  # px beyond the window the symmetry is checked: the blur of an edge just outside
+MAX_ASYMMETRY = 0.1  # RMS difference of opposite ring samples / contrast, beyond what noise explains
+ASYMMETRIC = "asymmetric at the corner (a shadow edge or an occluder)"
+
+
+def _symmetric_window(img, params, cov, rms, converged, radius):
+    """The fits (params (n, 7), cov (n, 2, 2), rms (n,), converged (n,)) and window radii (n,)
+    with every window cut to the point-symmetric part about its fitted centre (`symmetric_radius`)
+    and refitted where that cut it; shadowed (n,): True where even MIN_RADIUS or 2 blurs + 1 px is
+    not symmetric. A blurred X-corner is point symmetric however foreshortened; a shadow edge
+    inside the window is not, and the fit would move the corner towards it."""
+    ok = np.all(np.isfinite(params), axis=1) & np.isfinite(radius)
+    limit = np.full(len(params), np.inf)
+    if ok.any():
+        limit[ok] = symmetric_radius(img, params[ok, :2], 2.0 * np.abs(params[ok, 6]), rms[ok], radius[ok])
+    smallest = np.maximum(MIN_RADIUS, 2.0 * np.nan_to_num(params[:, 4], nan=1.0) + 1.0)
+    shadowed = ok & (limit < smallest)
+    cut = ok & ~shadowed & (limit < radius)
+    if cut.any():
+        radius = np.where(cut, np.floor(limit * 4.0) / 4.0, radius)
+        fitted = _fit_round(img, params[cut, :2], params[cut], radius[cut])
+        for array, value in zip((params, cov, rms, converged), fitted):
+            array[cut] = value
+    return params, cov, rms, converged, radius, shadowed
+
+
+def symmetric_radius(img: np.ndarray, centre: np.ndarray, contrast: np.ndarray, noise: np.ndarray,
+                     radius: np.ndarray) -> np.ndarray:
+    """(n,) the radius (px) up to which rings about centre (n, 2), 1 px apart up to `radius` (n,)
+    + REACH_PX (a blurred edge reaches into the window from outside it), are point symmetric: RMS of (opposite sample differences) <= MAX_ASYMMETRY x contrast (n,)
+    and 2 x the noise (n,) added in quadrature; the first asymmetric ring's radius - 1 px (minus
+    REACH_PX where the ring is beyond the window), inf where all are symmetric."""
+    radii = np.arange(2.0, float(np.nanmax(radius)) + 1.0 + REACH_PX)
+    values = sample(img, centre[:, None, None, :] + radii[None, :, None, None] * _ring_offsets(1.0)[None, None])
+    half = values.shape[2] // 2
+    asym = np.sqrt(np.mean((values[:, :, :half] - values[:, :, half:]) ** 2, axis=2))  # (n, r)
+    allowed = np.sqrt((MAX_ASYMMETRY * contrast) ** 2 + 2.0 * (2.0 * noise) ** 2)
+    bad = (asym > allowed[:, None]) & (radii[None] <= radius[:, None] + REACH_PX)
+    first = np.where(bad.any(axis=1), radii[np.argmax(bad, axis=1)], np.inf)
+    return np.where(first > radius, first - REACH_PX, first) - 1.0
 
 
 def _window_radius(img: np.ndarray, centre: np.ndarray, radius) -> np.ndarray:
