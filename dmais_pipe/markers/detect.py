@@ -214,9 +214,12 @@ def shadowed_x(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: fl
     simply not found."""
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     # Cheap first: the point-symmetric part of the smallest ring, where a shadow line through the
-    # centre adds only a constant, must already look like an X.
-    values = np.log(np.maximum(sample(img, uv[:, None, :] + _ring_offsets(SHADOW_RADII[0], SHADOW_SAMPLES)[None]), 1.0))
-    ok = _ring_stats(values + np.roll(values, SHADOW_SAMPLES // 2, axis=1))[0] >= 0.5
+    # centre adds only a constant, must already look like an X of some contrast (not noise along a
+    # straight edge, where it is flat).
+    offsets = _ring_offsets(SHADOW_RADII[0], SHADOW_SAMPLES)
+    values = np.log(np.maximum(sample(img, uv[:, None, :] + offsets[None]), 1.0))
+    quality, high, low, _ = _ring_stats(0.5 * (values + np.roll(values, SHADOW_SAMPLES // 2, axis=1)))
+    ok = (quality >= 0.5) & (high - low >= MIN_SHADOW_LOG)
     direction = None
     for radius in SHADOW_RADII:
         if not ok.any():
