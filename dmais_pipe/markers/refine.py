@@ -237,8 +237,8 @@ ASYMMETRIC = "asymmetric at the corner (a shadow edge or an occluder)"
 def _symmetric_window(img, params, cov, rms, converged, radius):
     """The fits (params (n, 7), cov (n, 2, 2), rms (n,), converged (n,)) and window radii (n,)
     with every window cut to the point-symmetric part about its fitted centre (`symmetric_radius`)
-    and refitted where that cut it, twice (the refit moves the centre); shadowed (n,): True where
-    not even MIN_RADIUS or 2 blurs + 1 px is symmetric, or the final window is not (to 1 px). A blurred
+    and refitted where that cut it, twice (the refit moves the centre), checked once more at the
+    final centre; shadowed (n,): True where not even MIN_RADIUS or 2 blurs + 1 px is. A blurred
     X-corner is point symmetric however foreshortened; a shadow edge inside the window is not, and
     the fit would move the corner towards it."""
     shadowed = np.zeros(len(params), dtype=bool)
@@ -248,13 +248,9 @@ def _symmetric_window(img, params, cov, rms, converged, radius):
         if ok.any():
             limit[ok] = symmetric_radius(img, params[ok, :2], 2.0 * np.abs(params[ok, 6]), rms[ok], radius[ok])
         smallest = np.maximum(MIN_RADIUS, 2.0 * np.nan_to_num(params[:, 4], nan=1.0) + 1.0)
-        cut = ok & (limit < radius)
-        if attempt == 2:
-            shadowed |= ok & ((limit < radius - 1.0) | (limit < smallest))
-            break
-        shadowed |= cut & (limit < smallest)
-        cut &= ~shadowed
-        if not cut.any():
+        shadowed |= ok & (limit < smallest)
+        cut = ok & ~shadowed & (limit < radius)
+        if attempt == 2 or not cut.any():
             break
         radius = np.where(cut, np.floor(limit * 4.0) / 4.0, radius)
         fitted = _fit_round(img, params[cut, :2], params[cut], radius[cut])
