@@ -217,7 +217,7 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
     # fitted centre is a clean X there.
     good = reason == ""
     unclean = np.zeros(n, dtype=bool)
-    unclean[good] = clean_radius(img, params[good, :2]) <= 0
+    unclean[good] = clean_radius(img, params[good, :2], radii=_RADII[_RADII < 8.0]) <= 0  # the first rings decide
     reason[unclean] = NO_CLEAN_X
     good = reason == ""
     out.uv[:] = np.where(good[:, None], params[:, :2], np.nan)
