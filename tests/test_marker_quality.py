@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
+from scipy.special import ndtr
 
 from dmais_pipe.markers import detect
 from dmais_pipe.markers.bench_photos import PHOTOS, board_corners
@@ -128,6 +129,100 @@ def test_effects_are_off_by_default_and_seeded():
     textured = marker_scene(rng(), 40, 20, replace(base, ground_texture_dn=25.0))[0].astype(float)
     high = lambda im: im - cv2.GaussianBlur(im, (0, 0), 3.0)  # noqa: E731
     assert high(textured)[:20].std() > 1.5 * high(plain.astype(float))[:20].std()  # after the 1 px optical blur
+
+
+def test_overlapping_shadows_darken_once():
+    """Two shadows over the same ground take the direct sun once: nowhere less than 1 - depth of
+    the light (large markers, whose shadows overlap their neighbours'; no noise)."""
+    settings = regime_settings(1.0, 0.0)
+    plain = marker_scene(np.random.default_rng(2), 150, 10, settings)[0].astype(float)
+    shaded = marker_scene(np.random.default_rng(2), 150, 10, replace(settings, shadow_fraction=1.0))[0].astype(float)
+    lit = plain > 60  # where rounding to 8 bits leaves the ratio meaningful
+    ratio = shaded[lit] / plain[lit]
+    assert ratio.min() > 1.0 - settings.shadow_depth - 0.03
+    assert np.mean(ratio < 0.5) > 0.1  # and there is shade
+
+
+def in_the_shade(image, truth, offset, angle_deg, depth=0.6, noise=3.0, seed=2):
+    """image (h, w) with a straight shadow edge (blurred 1.2 px, `depth`) `offset` px beyond each
+    true corner (n, 2), at `angle_deg`, within 40 px of it, and `noise` DN added; uint8."""
+    ys, xs = np.mgrid[0:image.shape[0], 0:image.shape[1]].astype(float)
+    light = np.ones(image.shape)
+    normal = np.radians(angle_deg)
+    for u, v in truth:
+        near = np.hypot(xs - u, ys - v) < 40
+        beyond = np.cos(normal) * (xs - u) + np.sin(normal) * (ys - v) - offset
+        light[near] = 1.0 - depth * ndtr(beyond[near] / 1.2)
+    noisy = image * light + np.random.default_rng(seed).normal(0.0, noise, image.shape)
+    return np.clip(noisy + 0.5, 0, 255).astype(np.uint8)
+
+
+@pytest.fixture(scope="module")
+def quiet_scene():
+    """Six 45 px markers foreshortened by 30 deg, blur 1.2 px, no noise (each test adds its own)."""
+    image, truth, _ = marker_scene(np.random.default_rng(4), 45, 30, regime_settings(1.2, 0.0))
+    return image.astype(float), truth
+
+
+@pytest.mark.parametrize("light", [0.4, 0.3])
+def test_markers_wholly_in_the_shade_are_detected(quiet_scene, light):
+    """A marker in the shade keeps ~40% of its contrast: below the fixed 50 DN of before, above
+    the threshold set from the quiet image's clutter."""
+    image, truth = quiet_scene
+    shaded = np.clip(image * light + np.random.default_rng(1).normal(0, 3.0, image.shape) + 0.5, 0, 255)
+    frame = detect(shaded.astype(np.uint8))
+    distance, _ = cKDTree(frame[["u", "v"]].to_numpy()).query(truth)
+    assert len(frame) == len(truth) and distance.max() < 0.15
+
+
+def test_contrast_threshold_follows_the_clutter():
+    """Quiet ground: the floor; gravel (20 DN at 2.5 px grain, which forms X-like blobs of 40-50
+    DN): the full threshold."""
+    import importlib
+
+    detection = importlib.import_module("dmais_pipe.markers.detect")
+    quiet = marker_scene(np.random.default_rng(3), 40, 20, regime_settings(1.0, 3.0))[0]
+    gravel = marker_scene(np.random.default_rng(3), 40, 20, replace(regime_settings(1.0, 3.0), ground_texture_dn=20.0,
+                                                                     ground_grain_px=2.5))[0]
+    threshold = [detection.contrast_threshold(cv2.pyrDown(im.astype(np.float32)), 1.0) for im in (quiet, gravel)]
+    assert threshold == [detection.MIN_CONTRAST_FLOOR, detection.MIN_CONTRAST]
+
+
+@pytest.mark.parametrize("offset", [0.0, 2.0, 4.0])
+def test_shadow_edge_at_the_corner_is_rejected_not_shifted(quiet_scene, offset):
+    """A shadow edge within 4 px of the corner: `detect` returns no corner more than 0.1 px off,
+    and some of them are rejected with a reason; `refine_corners` from starts near the truth
+    returns each within 0.1 px or rejects it with a reason, most of them (0.2-1.5 px off before)."""
+    image, truth = quiet_scene
+    rejected_near = 0
+    for angle in (10.0, 70.0, 150.0):
+        shaded = in_the_shade(image, truth, offset, angle)
+        frame, rejected = detect(shaded, with_rejected=True)
+        found = frame[["u", "v"]].to_numpy()
+        if len(found):
+            distance = cKDTree(truth).query(found)[0]
+            assert distance.max() < 0.1 or distance[distance < 2.0].max(initial=0.0) < 0.1
+            assert np.all((distance < 0.1) | (distance > 5.0))  # nothing shifted, nothing new nearby
+        if len(rejected):
+            rejected_near += int(np.count_nonzero(cKDTree(rejected[["u", "v"]].to_numpy()).query(truth)[0] < 3.0))
+        corners = refine_corners(shaded, starts(truth, np.random.default_rng(int(angle))))
+        error = np.linalg.norm(corners.uv - truth, axis=1)
+        assert np.all(np.where(np.isnan(error), corners.reason != "", error < 0.1))
+        assert np.count_nonzero(np.isnan(error)) >= 4
+    assert rejected_near >= 3
+
+
+def test_shadow_edge_off_the_corner_does_not_shift_it(quiet_scene):
+    """A shadow edge 6 px from the corner, inside the window the marker allows: the window is cut
+    to the part that is point symmetric about the corner; every corner within 0.1 px (0.15-0.2 px
+    off before)."""
+    image, truth = quiet_scene
+    for angle in (35.0, 100.0):
+        shaded = in_the_shade(image, truth, 6.0, angle)
+        distance, _ = cKDTree(detect(shaded)[["u", "v"]].to_numpy()).query(truth)
+        assert distance.max() < 0.1
+        corners = refine_corners(shaded, starts(truth, np.random.default_rng(int(angle))))
+        assert np.linalg.norm(corners.uv - truth, axis=1).max() < 0.1
 
 
 # ------------------------------------------------------------------------------ real photographs

@@ -2,8 +2,14 @@
 
 1. Candidates: on the half-resolution level of the image pyramid (X-corners look the same at every
    scale, so one level serves markers from ~20 px to thousands of px), the saddle response
-   Ixy^2 - Ixx Iyy of the Gaussian-smoothed image, local maxima above a threshold tied to the
-   minimum contrast.
+   Ixy^2 - Ixx Iyy of the Gaussian-smoothed image, local maxima above a threshold tied to
+   MIN_CONTRAST (loose enough for markers of less contrast, e.g. in the shade).
+   The minimum contrast of the ring tests is set from the image's clutter (`clutter`: noise and
+   ground texture at the scale of the smallest markers), between MIN_CONTRAST_FLOOR and
+   MIN_CONTRAST: a marker in the shade keeps ~40% of its contrast, which quiet ground leaves far
+   above anything the ground itself forms, while gravel or a cluttered photograph keeps the full
+   threshold. An X-corner that a shadow edge crosses near its centre fails the ring tests; it is
+   reported as rejected with that reason (`shadowed_x`), not returned.
 2. Verification at full resolution by rings around the candidate (`refine.ring_quality`): an
    X-corner ring is two-valued, point symmetric and changes level exactly four times (two dark
    opposite sectors, two bright opposite sectors), whatever the rotation, foreshortening or
@@ -14,22 +20,28 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import cv2
 import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from .refine import _ring_offsets, as_float_image, clean_radius, refine_corners, ring_quality, sample, seed
+from .refine import (_ring_offsets, _ring_stats, as_float_image, clean_radius, refine_corners, ring_quality, sample,
+                     seed)
 
 COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
 REJECTED_COLUMNS = ["u", "v", "reason"]
-MIN_CONTRAST = 50.0  # DN (8-bit) between the bright and the dark sectors
+MIN_CONTRAST = 50.0  # DN (8-bit) between the bright and the dark sectors, at most
+MIN_CONTRAST_FLOOR = 25.0  # DN (8-bit): the threshold on the quietest images
+CLUTTER_FACTOR = 15.0  # threshold = factor x clutter, within [floor, MIN_CONTRAST]
 MIN_QUALITY = 0.7  # ring quality (bimodality x point symmetry) at the verification radii
 PRE_QUALITY = 0.3  # looser quality of the prefilter at the unrefined candidate position
 MIN_CLEAN_RADIUS = 4.0  # px: the ring must stay an X up to at least this radius
 RESPONSE_FACTOR = 0.004  # response threshold = (factor * min contrast)^2 at the half-resolution level
 MAX_CANDIDATES = 20000
 DUPLICATE_PX = 2.0
+SHADOW_REASON = "shadow edge at the corner"
 
 
 def _empty() -> pd.DataFrame:
@@ -45,11 +57,37 @@ def _dn_scale(image: np.ndarray) -> float:
     return max(bright / 220.0, 1e-6)
 
 
-def candidates(img: np.ndarray, min_contrast: float) -> np.ndarray:
-    """(k, 2) full-resolution candidate positions, strongest first (at most MAX_CANDIDATES)."""
+def clutter(level: np.ndarray) -> float:
+    """Robust standard deviation (image units) of a band-pass (Gaussians of 1 and 2 px) of the
+    half-resolution level (h, w) on tiles spread over it (`_tiles`): pixel noise and fine ground
+    texture, where the few markers and edges of an image do not move the median."""
+    band = np.concatenate([(cv2.GaussianBlur(t, (0, 0), 1.0) - cv2.GaussianBlur(t, (0, 0), 2.0)).ravel()
+                           for t in _tiles(level)])
+    return float(1.4826 * np.median(np.abs(band)))  # a band-pass has zero mean
+
+
+def _tiles(level: np.ndarray, size: int = 80, count: int = 4) -> list[np.ndarray]:
+    """count x count square tiles (size px) spread evenly over the image (h, w), or the whole
+    image when it is not much larger: a sample of its texture at a fraction of the cost."""
+    height, width = level.shape
+    if height * width <= 4 * count * count * size * size:
+        return [level]
+    return [level[y:y + size, x:x + size] for y in np.linspace(0, height - size, count).astype(int)
+            for x in np.linspace(0, width - size, count).astype(int)]
+
+
+def contrast_threshold(level: np.ndarray, dn_scale: float) -> float:
+    """The minimum contrast (image units) for the half-resolution level (h, w) of an image whose
+    8-bit DN are `dn_scale` of its units: CLUTTER_FACTOR x its clutter within the bounds."""
+    return float(np.clip(CLUTTER_FACTOR * clutter(level), MIN_CONTRAST_FLOOR * dn_scale, MIN_CONTRAST * dn_scale))
+
+
+def candidates(img: np.ndarray, min_contrast: float, level: np.ndarray | None = None) -> np.ndarray:
+    """(k, 2) full-resolution candidate positions, strongest first (at most MAX_CANDIDATES);
+    `level`: cv2.pyrDown(img) if already made."""
     if min(img.shape) < 8:
         return np.zeros((0, 2))
-    level = cv2.pyrDown(img)
+    level = cv2.pyrDown(img) if level is None else level
     smooth = cv2.GaussianBlur(level, (0, 0), 1.0)
     dxx = cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=3)
     dyy = cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=3)
@@ -67,7 +105,7 @@ def candidates(img: np.ndarray, min_contrast: float) -> np.ndarray:
     return np.column_stack([2.0 * xs[order], 2.0 * ys[order]]).astype(float)
 
 
-def detect(image, min_contrast: float = MIN_CONTRAST, min_quality: float = MIN_QUALITY,
+def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QUALITY,
            refine_points: bool = True, with_rejected: bool = False):
     """Every diagonal marker (X-corner) of a (h, w) 8/16-bit grayscale image.
 
@@ -75,23 +113,31 @@ def detect(image, min_contrast: float = MIN_CONTRAST, min_quality: float = MIN_Q
     (ring quality x min(largest clean ring radius, 10 px) / 10 px: higher is surer), sigma_px (the
     refinement's standard deviation per axis, px: a weight 1 / sigma^2) and fit_residual (the
     model fit's RMS residual / contrast), sorted by v then u. min_contrast is in 8-bit DN (scaled
-    to the bright end of 16-bit images). Markers whose X-corner is nearer than ~5 px to the image
-    border are not found. With `with_rejected`, also a DataFrame u, v, reason of the verified
-    X-corners the refinement rejected (e.g. a poor fit: a shadow edge or an occluder through it).
+    to the bright end of 16-bit images); None: set from the image's clutter (`contrast_threshold`).
+    Markers whose X-corner is nearer than ~5 px to the image border are not found. With
+    `with_rejected`, also a DataFrame u, v, reason of the X-corners found but not returned: those
+    the ring tests failed because a shadow edge crosses them near the centre (SHADOW_REASON, at the
+    unrefined position, ~1 px) and the verified ones the refinement rejected (e.g. a poor fit).
     """
     raw = np.asarray(image)
     img = as_float_image(raw)
-    contrast = min_contrast * _dn_scale(raw)
-    cand = _verified(img, contrast, min_quality)
-    rejected = pd.DataFrame({name: pd.Series(dtype=object if name == "reason" else float) for name in REJECTED_COLUMNS})
+    level = cv2.pyrDown(img) if min(img.shape) >= 8 else None
+    if min_contrast is not None or level is None:
+        contrast = (MIN_CONTRAST if min_contrast is None else min_contrast) * _dn_scale(raw)
+    else:
+        contrast = contrast_threshold(level, _dn_scale(raw))
+    lit_contrast = MIN_CONTRAST * _dn_scale(raw) if min_contrast is None else contrast
+    (cand, radius, quality), shadowed = _verified(img, contrast, min_quality, level, lit_contrast)
+    rejected = pd.DataFrame({"u": shadowed[:, 0], "v": shadowed[:, 1], "reason": SHADOW_REASON})
+    rejected = rejected.astype({"reason": object})
     if len(cand) == 0:
         return (_empty(), rejected) if with_rejected else _empty()
-    cand, radius, quality = cand
     sigma = fit = np.full(len(cand), np.nan)
     if refine_points:
         corners = refine_corners(img, cand)
         ok = np.all(np.isfinite(corners.uv), axis=1)
-        rejected = pd.DataFrame({"u": cand[~ok, 0], "v": cand[~ok, 1], "reason": corners.reason[~ok]})
+        failed = pd.DataFrame({"u": cand[~ok, 0], "v": cand[~ok, 1], "reason": corners.reason[~ok]})
+        rejected = pd.concat([rejected, failed], ignore_index=True) if len(failed) else rejected
         cand, radius, quality = corners.uv[ok], radius[ok], quality[ok]
         sigma, fit = corners.sigma_px[ok], corners.fit_residual[ok]
         # The refined centre must still be the centre of a clean X.
@@ -107,37 +153,139 @@ def detect(image, min_contrast: float = MIN_CONTRAST, min_quality: float = MIN_Q
     return (frame, rejected) if with_rejected else frame
 
 
-def _verified(img: np.ndarray, contrast: float, min_quality: float):
+def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.ndarray | None = None,
+              lit_contrast: float = 0.0):
     """(candidates (k, 2), clean radius (k,), ring quality (k,)) of the X-corners that pass the
-    ring tests, unrefined (centred by `seed`); an empty tuple when there are none."""
+    ring tests, unrefined (centred by `seed`), and the positions (j, 2) of candidates that fail
+    them as X-corners crossed by a shadow edge near the centre (`shadowed_x`) whose lit side has
+    at least `lit_contrast`."""
     height, width = img.shape
-    cand = candidates(img, contrast)
+    none = (np.zeros((0, 2)), np.zeros(0), np.zeros(0))
+    # The saddle response threshold stays at the full contrast's: it is loose enough for markers in
+    # the shade (the same recall over the effects grid), and the candidates (the cost) stay few.
+    lit_contrast = max(contrast, lit_contrast)
+    cand = candidates(img, lit_contrast, level)
     if len(cand) == 0:
-        return ()
+        return none, np.zeros((0, 2))
     # Prefilter at the unrefined position: a ring of radius 4 px must already look like an X.
     values = sample(img, cand[:, None, :] + _ring_offsets(4.0)[None])
     quality, ring_contrast = ring_quality(values)
-    cand = cand[(quality >= PRE_QUALITY) & (np.abs(ring_contrast) >= contrast)]
-    if len(cand) == 0:
-        return ()
+    passed = (quality >= PRE_QUALITY) & (np.abs(ring_contrast) >= contrast)
+    # A shadowed X keeps its full contrast on the lit side: the rest is texture.
+    spread = values.max(axis=1) - values.min(axis=1) >= lit_contrast
+    failed, cand = cand[~passed & spread], cand[passed]
     seeded = seed(img, cand, 3.0)
     cand = seeded[np.all(np.isfinite(seeded), axis=1)]
     cand = cand[(cand[:, 0] >= 0) & (cand[:, 0] <= width - 1) & (cand[:, 1] >= 0) & (cand[:, 1] <= height - 1)]
     cand = cand[_dedupe(cand, np.ones(len(cand)))]
-    if len(cand) == 0:
-        return ()
     radius = clean_radius(img, cand, min_quality=min_quality)
     good = radius >= MIN_CLEAN_RADIUS
+    failed = np.vstack([failed, cand[~good]])
+    shadowed = failed[shadowed_x(img, failed, lit_contrast, min_quality)] if len(failed) else failed
+    shadowed = shadowed[_dedupe(shadowed, np.ones(len(shadowed)))]
     cand, radius = cand[good], radius[good]
     if len(cand) == 0:
-        return ()
+        return none, shadowed
     # Contrast and quality on a ring well inside the clean area, away from the blurred centre.
     probe = np.clip(0.5 * radius, 3.0, 12.0)[:, None, None]
     quality, ring_contrast = ring_quality(sample(img, cand[:, None, :] + probe * _ring_offsets(1.0)[None]))
     good = np.abs(ring_contrast) >= contrast
-    if not good.any():
-        return ()
-    return cand[good], radius[good], quality[good]
+    return (cand[good], radius[good], quality[good]), shadowed
+
+
+SHADOW_RADII = (4.0, 6.0, 8.0)  # px, rings of the shadowed-X test
+SHADOW_SAMPLES = 24  # samples per ring of the shadowed-X test
+MIN_SHADOW_LOG = 0.3  # least darkening in the shade, as a step of log(intensity): ~26% of the light
+SAME_RATIO = 0.6  # the log contrast on either side of the shadow line: at least this share of the other's
+_SHADOW_LINES = [(phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.5, 0.0, 0.5)]
+
+
+def shadowed_x(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: float = MIN_QUALITY) -> np.ndarray:
+    """(n,) True where points uv (n, 2) are an X-corner crossed near its centre by a straight shadow
+    edge. A shadow multiplies the light: on a ring of log values it adds a step g on the arc beyond
+    a line. With the best line (direction in 15 deg steps, within half the radius of the centre)
+    and step taken away, every ring of SHADOW_RADII must be a clean X (ring quality >= min_quality,
+    levels >= `contrast` apart on the lit side), the step a real darkening (-g >= MIN_SHADOW_LOG)
+    and the line's direction the same within 30 deg on every ring; the line must cross the X's
+    edges, not run along one. A T-junction or an L-corner (a marker's outline) splits a ring too,
+    but no step turns their rings into an X: the shade keeps a shadowed X's two levels in the same
+    ratio, the background beyond an outline has one. Misses many shadowed X-corners (the edge
+    farther than half a ring radius from the candidate, or along an edge of the X): those are
+    simply not found."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    # Cheap first: the point-symmetric part of the smallest ring, where a shadow line through the
+    # centre adds only a constant, must already look like an X of some contrast (not noise along a
+    # straight edge, where it is flat).
+    offsets = _ring_offsets(SHADOW_RADII[0], SHADOW_SAMPLES)
+    values = np.log(np.maximum(sample(img, uv[:, None, :] + offsets[None]), 1.0))
+    quality, high, low, _ = _ring_stats(0.5 * (values + np.roll(values, SHADOW_SAMPLES // 2, axis=1)))
+    ok = (quality >= 0.5) & (high - low >= MIN_SHADOW_LOG)
+    direction = None
+    for radius in SHADOW_RADII:
+        if not ok.any():
+            break
+        values = np.log(np.maximum(sample(img, uv[ok, None, :] + _ring_offsets(radius, SHADOW_SAMPLES)[None]), 1.0))
+        good, phi = _best_shadow_line(values, contrast, min_quality)
+        if direction is not None:
+            good &= np.abs(np.angle(np.exp(1j * (phi - direction[ok])))) <= np.radians(30.0)
+            direction[ok] = phi
+        else:
+            direction = np.where(ok, 0.0, np.nan)
+            direction[ok] = phi
+        ok[np.nonzero(ok)[0][~good]] = False
+    return ok
+
+
+def _best_shadow_line(values: np.ndarray, contrast: float, min_quality: float):
+    """For log rings (m, k): (passes (m,), shadow direction (m,)) of the line (of _SHADOW_LINES)
+    whose step, least-squares fitted to the rings' point asymmetry and taken away, leaves the best
+    X; passes where that X has quality >= min_quality, contrast >= `contrast` and the step darkens."""
+    m, k = values.shape
+    shade, h = _shadow_masks(k)  # (l, k) each
+    anti = values - np.roll(values, k // 2, axis=1)
+    g = anti @ h.T / (h * h).sum(axis=1)  # (m, l) log step of each line
+    lit = values[:, None, :] - g[:, :, None] * shade[None]
+    quality, high, low, bright = (a.reshape(m, len(shade), *a.shape[1:])
+                                  for a in _ring_stats(np.exp(lit).reshape(-1, k)))
+    # Both levels of the X on both sides of the line, in the same ratio (a shadow takes the same
+    # share of light from both): a step over one level (the background beyond an outline) or over
+    # texture is no shadow of the X.
+    both, ratio = np.ones((m, len(shade)), dtype=bool), []
+    for side in (shade, 1.0 - shade):
+        on_bright, on_dark = bright * side[None], ~bright * side[None]
+        n_bright, n_dark = on_bright.sum(axis=2), on_dark.sum(axis=2)
+        both &= (n_bright >= 3) & (n_dark >= 3)
+        ratio.append((lit * on_bright).sum(axis=2) / np.maximum(n_bright, 1)
+                     - (lit * on_dark).sum(axis=2) / np.maximum(n_dark, 1))
+    both &= np.minimum(*ratio) >= SAME_RATIO * np.maximum(*ratio)
+    # The line must cross the X's edges, not run along one: an outline T-junction whose background
+    # lies near the geometric mean of the cells' levels reads as an X shadowed along an edge.
+    ends = bright[:, np.arange(len(shade))[:, None, None], _line_ends(k)]  # (m, l, 2, w)
+    both &= np.all(ends == ends[..., :1], axis=(2, 3))
+    good = both & (quality >= min_quality) & (high - low >= contrast) & (-g >= MIN_SHADOW_LOG)
+    best = np.argmax(np.where(good, quality, -1.0), axis=1)
+    return good.any(axis=1), np.array([phi for phi, _ in _SHADOW_LINES])[best]
+
+
+@lru_cache(maxsize=4)
+def _line_ends(k: int, half_width: int = 1) -> np.ndarray:
+    """(l, 2, 2 half_width + 1) ring sample indexes about the two points where each line of
+    _SHADOW_LINES crosses a ring of k samples."""
+    ends = []
+    for phi, t in _SHADOW_LINES:
+        crossing = [phi + np.arccos(t), phi - np.arccos(t)]
+        centre = np.rint(np.mod(crossing, 2.0 * np.pi) / (2.0 * np.pi) * k - 0.5).astype(int)
+        ends.append(np.mod(centre[:, None] + np.arange(-half_width, half_width + 1)[None], k))
+    return np.array(ends)
+
+
+@lru_cache(maxsize=4)
+def _shadow_masks(k: int):
+    """(shade (l, k) 0/1 of each ring sample beyond each line of _SHADOW_LINES, its point
+    asymmetry shade - shade(opposite) (l, k))."""
+    angle = 2.0 * np.pi * (np.arange(k) + 0.5) / k
+    shade = np.array([(np.cos(angle - phi) > t) for phi, t in _SHADOW_LINES], dtype=float)
+    return shade, shade - np.roll(shade, k // 2, axis=1)
 
 
 def _dedupe(points: np.ndarray, score: np.ndarray) -> np.ndarray:

@@ -125,7 +125,9 @@ def clean_radius(image: np.ndarray, uv: np.ndarray, min_quality: float = 0.6,
 REJECT_RESIDUAL = 0.08  # fit RMS residual / contrast above which a corner is rejected
 MAX_SIGMA_PX = 0.5  # corners less certain than this are rejected
 MIN_EDGE_ANGLE = np.radians(15.0)  # edges closer than this in direction are degenerate
-REASONS = ("no X pattern", "no convergence", "moved too far", "degenerate edges", "poor fit", "uncertain")
+NO_CLEAN_X = "no clean X at the fit"
+REASONS = ("no X pattern", "no convergence", "moved too far", "degenerate edges", "blur exceeds window", "poor fit",
+           "uncertain", NO_CLEAN_X, "asymmetric at the corner (a shadow edge or an occluder)")
 
 
 @dataclass
@@ -165,9 +167,11 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
     neighbouring cell), at least 2.5 x the fitted blur + 1 px where the marker allows, within [3, 40]
     px and inside the image. The fit runs twice, the second window centred on the first result.
     A corner is rejected (NaN, with a reason) when no X is found, the fit does not converge, moves
-    more than `max_shift` (default 3 px) from uv, its edges are nearly parallel, its residual exceeds
-    REJECT_RESIDUAL of the contrast (e.g. a shadow edge or an occluder through it) or its
-    uncertainty exceeds MAX_SIGMA_PX.
+    more than `max_shift` (default 3 px) from uv, its edges are nearly parallel, its fitted blur
+    exceeds the window radius (no edge in the window, only a smooth saddle), its residual exceeds
+    REJECT_RESIDUAL of the contrast (e.g. a shadow edge or an occluder through it), its
+    uncertainty exceeds MAX_SIGMA_PX, or no ring about the fitted centre is a clean X (NO_CLEAN_X:
+    a shadow edge through the corner itself).
     """
     img = as_float_image(image)
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
@@ -195,7 +199,7 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
         again = clean_radius(img, centre)
         radius = _window_radius(img, centre, np.where(again > 0, again, radius))
     for attempt in range(3):
-        todo = np.ones(n, dtype=bool) if attempt == 0 else (_reasons(params, cov, rms, converged, uv, limit)
+        todo = np.ones(n, dtype=bool) if attempt == 0 else (_reasons(params, cov, rms, converged, uv, limit, radius)
                                                             == "poor fit") & (radius * SHRINK >= smallest)
         if not todo.any():
             break
@@ -205,7 +209,16 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
         for array, value in zip((params, cov, rms, converged), fitted):
             array[todo] = value
         smallest = np.maximum(MIN_RADIUS, 2.0 * np.nan_to_num(params[:, 4], nan=1.0) + 1.0)
-    reason = _reasons(params, cov, rms, converged, uv, limit)
+    params, cov, rms, converged, radius, shadowed = _symmetric_window(img, params, cov, rms, converged, radius)
+    reason = _reasons(params, cov, rms, converged, uv, limit, radius)
+    reason[shadowed & np.all(np.isfinite(params), axis=1)] = ASYMMETRIC
+    # A shadow edge or an occluder at the corner itself can leave a fit of small residual away
+    # from it (the model's blur and levels absorb the step): not even the smallest ring about the
+    # fitted centre is a clean X there.
+    good = reason == ""
+    unclean = np.zeros(n, dtype=bool)
+    unclean[good] = clean_radius(img, params[good, :2], radii=_RADII[_RADII < 8.0]) <= 0  # the first rings decide
+    reason[unclean] = NO_CLEAN_X
     good = reason == ""
     out.uv[:] = np.where(good[:, None], params[:, :2], np.nan)
     out.sigma_px[:] = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
@@ -216,6 +229,50 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
 
 
 SHRINK = 0.75
+REACH_PX = 1.0  # px beyond the window the symmetry is checked: the blur of an edge just outside
+MAX_ASYMMETRY = 0.1  # RMS difference of opposite ring samples / contrast, beyond what noise explains
+ASYMMETRIC = "asymmetric at the corner (a shadow edge or an occluder)"
+
+
+def _symmetric_window(img, params, cov, rms, converged, radius):
+    """The fits (params (n, 7), cov (n, 2, 2), rms (n,), converged (n,)) and window radii (n,)
+    with every window cut to the point-symmetric part about its fitted centre (`symmetric_radius`)
+    and refitted where that cut it, twice (the refit moves the centre), checked once more at the
+    final centre; shadowed (n,): True where not even MIN_RADIUS or 2 blurs + 1 px is. A blurred
+    X-corner is point symmetric however foreshortened; a shadow edge inside the window is not, and
+    the fit would move the corner towards it."""
+    shadowed = np.zeros(len(params), dtype=bool)
+    for attempt in range(3):
+        ok = np.all(np.isfinite(params), axis=1) & np.isfinite(radius) & ~shadowed
+        limit = np.full(len(params), np.inf)
+        if ok.any():
+            limit[ok] = symmetric_radius(img, params[ok, :2], 2.0 * np.abs(params[ok, 6]), rms[ok], radius[ok])
+        smallest = np.maximum(MIN_RADIUS, 2.0 * np.nan_to_num(params[:, 4], nan=1.0) + 1.0)
+        shadowed |= ok & (limit < smallest)
+        cut = ok & ~shadowed & (limit < radius)
+        if attempt == 2 or not cut.any():
+            break
+        radius = np.where(cut, np.floor(limit * 4.0) / 4.0, radius)
+        fitted = _fit_round(img, params[cut, :2], params[cut], radius[cut])
+        for array, value in zip((params, cov, rms, converged), fitted):
+            array[cut] = value
+    return params, cov, rms, converged, radius, shadowed
+
+
+def symmetric_radius(img: np.ndarray, centre: np.ndarray, contrast: np.ndarray, noise: np.ndarray,
+                     radius: np.ndarray) -> np.ndarray:
+    """(n,) the radius (px) up to which rings about centre (n, 2), 1 px apart up to `radius` (n,)
+    + REACH_PX (a blurred edge reaches into the window from outside it), are point symmetric: RMS of (opposite sample differences) <= MAX_ASYMMETRY x contrast (n,)
+    and 2 x the noise (n,) added in quadrature; the first asymmetric ring's radius - 1 px (minus
+    REACH_PX where the ring is beyond the window), inf where all are symmetric."""
+    radii = np.arange(2.0, float(np.nanmax(radius)) + 1.0 + REACH_PX)
+    values = sample(img, centre[:, None, None, :] + radii[None, :, None, None] * _ring_offsets(1.0)[None, None])
+    half = values.shape[2] // 2
+    asym = np.sqrt(np.mean((values[:, :, :half] - values[:, :, half:]) ** 2, axis=2))  # (n, r)
+    allowed = np.sqrt((MAX_ASYMMETRY * contrast) ** 2 + 2.0 * (2.0 * noise) ** 2)
+    bad = (asym > allowed[:, None]) & (radii[None] <= radius[:, None] + REACH_PX)
+    first = np.where(bad.any(axis=1), radii[np.argmax(bad, axis=1)], np.inf)
+    return np.where(first > radius, first - REACH_PX, first) - 1.0
 
 
 def _window_radius(img: np.ndarray, centre: np.ndarray, radius) -> np.ndarray:
@@ -242,8 +299,8 @@ def _fit_round(img, centre, params, radius):
     return out
 
 
-def _reasons(params, cov, rms, converged, uv, limit) -> np.ndarray:
-    """(n,) '' for a good fit, else why the corner is rejected (REASONS)."""
+def _reasons(params, cov, rms, converged, uv, limit, window) -> np.ndarray:
+    """(n,) '' for a good fit (window radius (n,) px), else why the corner is rejected (REASONS)."""
     p = params[:, :2]
     sigma = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
     residual = rms / np.maximum(2.0 * np.abs(params[:, 6]), 1e-9)
@@ -251,6 +308,9 @@ def _reasons(params, cov, rms, converged, uv, limit) -> np.ndarray:
     reason = np.full(len(p), "", dtype=object)
     reason[sigma > MAX_SIGMA_PX] = "uncertain"
     reason[residual > REJECT_RESIDUAL] = "poor fit"
+    # Blurred wider than its window the model is a smooth saddle, whose centre any smooth shading
+    # (a shadow edge through the corner) sets, with a small residual and a tiny sigma.
+    reason[params[:, 4] > window] = "blur exceeds window"
     reason[edge_angle < np.sin(MIN_EDGE_ANGLE)] = "degenerate edges"
     reason[~(np.hypot(*(p - uv).T) <= limit)] = "moved too far"
     reason[~(converged & np.all(np.isfinite(p), axis=1) & np.isfinite(sigma))] = "no convergence"

@@ -7,7 +7,7 @@ streams, so turning one on changes nothing else in the image:
   contrast and grain, e.g. grass (~25 DN, 1 px), gravel (~20 DN, 2-3 px), asphalt (~8 DN, 0.5 px);
 - cast shadows: a straight shadow edge (Gaussian penumbra) through a marker, the light on its far
   side reduced by `shadow_depth`, within a disc 1.5 marker sizes in radius (the shadow of a pole, a
-  wire, a tree), before the optical blur;
+  wire, a tree), before the optical blur; overlapping shadows darken as one (their union);
 - occluders: a flat object of random grey hiding the outer third of one cell of a board;
 - motion blur: a line PSF of a given length along the flight direction, centred (the corner stays
   at its mid-exposure position); defocus: a disc PSF;
@@ -39,8 +39,11 @@ def occlude_and_shadow(image: np.ndarray, camera, cam_from_world, boards, rng: n
     """Paint occluders and cast shadows over the boards chosen by settings (in place, float32).
 
     The same numbers are drawn for every board whatever the settings, so the choice of boards and
-    the geometry depend only on the seed and the fractions.
+    the geometry depend only on the seed and the fractions. Overlapping shadows darken once (the
+    union of the shaded areas): in either shadow the direct sunlight is gone, and the skylight left
+    does not depend on how many objects block the sun.
     """
+    shade = np.zeros_like(image) if settings.shadow_fraction > 0 else None
     for board in boards:
         draws = rng.uniform(size=9)
         centre, size = _board_in_image(camera, cam_from_world, board)
@@ -50,7 +53,9 @@ def occlude_and_shadow(image: np.ndarray, camera, cam_from_world, boards, rng: n
             _occlude(image, camera, cam_from_world, board, draws[1:5])
         if draws[5] < settings.shadow_fraction:
             offset = (draws[6:8] - 0.5) * 0.5 * size
-            _shadow(image, centre + offset, np.pi * draws[8] * 2.0, size, settings)
+            _shadow(shade, centre + offset, np.pi * draws[8] * 2.0, size, settings)
+    if shade is not None:
+        image *= 1.0 - np.float32(settings.shadow_depth) * shade
 
 
 def _board_in_image(camera, cam_from_world, board):
@@ -101,10 +106,11 @@ def _fill_polygon(image: np.ndarray, uv: np.ndarray, level: float) -> None:
     patch += np.float32(level) * coverage
 
 
-def _shadow(image: np.ndarray, point: np.ndarray, angle: float, size: float, settings) -> None:
-    """Darken (in place) the side of the line through `point` (2,) at `angle` beyond its normal,
-    by `shadow_depth`, with a Gaussian penumbra, within a disc of SHADOW_EXTENT x size about it."""
-    height, width = image.shape
+def _shadow(shade: np.ndarray, point: np.ndarray, angle: float, size: float, settings) -> None:
+    """Add to the shade map (h, w) in [0, 1] (in place, by maximum) the side of the line through
+    `point` (2,) at `angle` beyond its normal, with a Gaussian penumbra, within a disc of
+    SHADOW_EXTENT x size about it."""
+    height, width = shade.shape
     radius = SHADOW_EXTENT * max(size, 4.0)
     x0, y0 = np.maximum(np.floor(point - radius).astype(int), 0)
     x1, y1 = np.minimum(np.ceil(point + radius).astype(int) + 1, [width, height])
@@ -115,7 +121,7 @@ def _shadow(image: np.ndarray, point: np.ndarray, angle: float, size: float, set
     distance = np.float32(np.cos(angle)) * dx + np.float32(np.sin(angle)) * dy
     edge = ndtr(distance / max(settings.shadow_penumbra_px, 1e-3)).astype(np.float32)
     disc = np.clip(radius - np.hypot(dx, dy), 0.0, 1.0)  # the shadow's far outline: 1 px soft
-    image[y0:y1, x0:x1] *= 1.0 - np.float32(settings.shadow_depth) * edge * disc
+    np.maximum(shade[y0:y1, x0:x1], edge * disc, out=shade[y0:y1, x0:x1])
 
 
 def blur_motion_and_defocus(image: np.ndarray, settings) -> np.ndarray:
