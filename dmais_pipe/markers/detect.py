@@ -29,6 +29,7 @@ from scipy.spatial import cKDTree
 
 from .refine import (_ring_offsets, _ring_stats, as_float_image, clean_radius, refine_corners, ring_quality, sample,
                      seed)
+from .shadow import SHADOW_REASON, shadowed_corners
 
 COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
 REJECTED_COLUMNS = ["u", "v", "reason"]
@@ -41,7 +42,6 @@ MIN_CLEAN_RADIUS = 4.0  # px: the ring must stay an X up to at least this radius
 RESPONSE_FACTOR = 0.004  # response threshold = (factor * min contrast)^2 at the half-resolution level
 MAX_CANDIDATES = 20000
 DUPLICATE_PX = 2.0
-SHADOW_REASON = "shadow edge at the corner"
 
 
 def _empty() -> pd.DataFrame:
@@ -127,10 +127,10 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
     else:
         contrast = contrast_threshold(level, _dn_scale(raw))
     lit_contrast = MIN_CONTRAST * _dn_scale(raw) if min_contrast is None else contrast
-    (cand, radius, quality), shadowed = _verified(img, contrast, min_quality, level, lit_contrast)
+    (cand, radius, quality), shadowed, shade = _verified(img, contrast, min_quality, level, lit_contrast)
     rejected = pd.DataFrame({"u": shadowed[:, 0], "v": shadowed[:, 1], "reason": SHADOW_REASON})
     rejected = rejected.astype({"reason": object})
-    if len(cand) == 0:
+    if len(cand) == 0 and len(shade[0]) == 0:
         return (_empty(), rejected) if with_rejected else _empty()
     sigma = fit = np.full(len(cand), np.nan)
     if refine_points:
@@ -146,6 +146,9 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
         lost = pd.DataFrame({"u": cand[~ok, 0], "v": cand[~ok, 1], "reason": "no clean X at the fit"})
         rejected = pd.concat([rejected, lost], ignore_index=True) if len(lost) else rejected
         cand, radius, quality, sigma, fit = cand[ok], radius[ok], quality[ok], sigma[ok], fit[ok]
+    # X-corners a shadow edge crosses come fitted with it (`shadow.shadowed_corners`).
+    cand, radius, quality, sigma, fit = (np.concatenate([a, b]) for a, b in zip((cand, radius, quality, sigma, fit),
+                                                                                 shade))
     score = np.clip(quality * np.minimum(radius, 10.0) / 10.0, 0.0, 1.0)
     keep = _dedupe(cand, score)
     frame = pd.DataFrame({"u": cand[keep, 0], "v": cand[keep, 1], "score": score[keep], "sigma_px": sigma[keep],
@@ -166,7 +169,7 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
     lit_contrast = max(contrast, lit_contrast)
     cand = candidates(img, lit_contrast, level)
     if len(cand) == 0:
-        return none, np.zeros((0, 2))
+        return none, np.zeros((0, 2)), tuple(np.zeros((0, 2)) if i == 0 else np.zeros(0) for i in range(5))
     # Prefilter at the unrefined position: a ring of radius 4 px must already look like an X.
     values = sample(img, cand[:, None, :] + _ring_offsets(4.0)[None])
     quality, ring_contrast = ring_quality(values)
@@ -181,16 +184,23 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
     radius = clean_radius(img, cand, min_quality=min_quality)
     good = radius >= MIN_CLEAN_RADIUS
     failed = np.vstack([failed, cand[~good]])
-    shadowed = failed[shadowed_x(img, failed, lit_contrast, min_quality)] if len(failed) else failed
-    shadowed = shadowed[_dedupe(shadowed, np.ones(len(shadowed)))]
+    failed = failed[_dedupe(failed, np.ones(len(failed)))]
+    shade_uv, shade_radius, shade_sigma, shade_fit, why = shadowed_corners(img, failed, contrast, min_quality,
+                                                                           MIN_CLEAN_RADIUS)
+    fitted = why == ""
+    shade = (shade_uv[fitted], shade_radius[fitted], np.full(fitted.sum(), min_quality), shade_sigma[fitted],
+             shade_fit[fitted])
+    unfitted = failed[why == None]  # noqa: E711 (an object array)
+    shadowed = unfitted[shadowed_x(img, unfitted, lit_contrast, min_quality)] if len(unfitted) else unfitted
+    shadowed = np.vstack([failed[why == SHADOW_REASON], shadowed])
     cand, radius = cand[good], radius[good]
     if len(cand) == 0:
-        return none, shadowed
+        return none, shadowed, shade
     # Contrast and quality on a ring well inside the clean area, away from the blurred centre.
     probe = np.clip(0.5 * radius, 3.0, 12.0)[:, None, None]
     quality, ring_contrast = ring_quality(sample(img, cand[:, None, :] + probe * _ring_offsets(1.0)[None]))
     good = np.abs(ring_contrast) >= contrast
-    return (cand[good], radius[good], quality[good]), shadowed
+    return (cand[good], radius[good], quality[good]), shadowed, shade
 
 
 SHADOW_RADII = (4.0, 6.0, 8.0)  # px, rings of the shadowed-X test
