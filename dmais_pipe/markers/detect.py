@@ -8,8 +8,10 @@
    ground texture at the scale of the smallest markers), between MIN_CONTRAST_FLOOR and
    MIN_CONTRAST: a marker in the shade keeps ~40% of its contrast, which quiet ground leaves far
    above anything the ground itself forms, while gravel or a cluttered photograph keeps the full
-   threshold. An X-corner that a shadow edge crosses near its centre fails the ring tests; it is
-   reported as rejected with that reason (`shadowed_x`), not returned.
+   threshold. An X-corner that a shadow edge crosses near its centre fails the ring tests: it is
+   fitted with the shadow edge in the model (`shadow.shadowed_corners`) and returned where that
+   fit passes its checks, else reported as rejected with that reason (SHADOW_REASON; also where
+   the stricter ring test `shadowed_x` finds a shadowed X the fit did not start on).
 2. Verification at full resolution by rings around the candidate (`refine.ring_quality`): an
    X-corner ring is two-valued, point symmetric and changes level exactly four times (two dark
    opposite sectors, two bright opposite sectors), whatever the rotation, foreshortening or
@@ -116,8 +118,10 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
     to the bright end of 16-bit images); None: set from the image's clutter (`contrast_threshold`).
     Markers whose X-corner is nearer than ~5 px to the image border are not found. With
     `with_rejected`, also a DataFrame u, v, reason of the X-corners found but not returned: those
-    the ring tests failed because a shadow edge crosses them near the centre (SHADOW_REASON, at the
-    unrefined position, ~1 px) and the verified ones the refinement rejected (e.g. a poor fit).
+    the ring tests failed because a shadow edge crosses them near the centre and whose fit with the
+    shadow edge failed its checks (SHADOW_REASON, at the unrefined position, ~1 px) and the
+    verified ones the refinement rejected (e.g. a poor fit). The corners fitted with a shadow edge
+    have the ring quality MIN_QUALITY in their score (their rings pass only with the shade divided out).
     """
     raw = np.asarray(image)
     img = as_float_image(raw)
@@ -219,9 +223,8 @@ def shadowed_x(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: fl
     and the line's direction the same within 30 deg on every ring; the line must cross the X's
     edges, not run along one. A T-junction or an L-corner (a marker's outline) splits a ring too,
     but no step turns their rings into an X: the shade keeps a shadowed X's two levels in the same
-    ratio, the background beyond an outline has one. Misses many shadowed X-corners (the edge
-    farther than half a ring radius from the candidate, or along an edge of the X): those are
-    simply not found."""
+    ratio, the background beyond an outline has one. Used for the rejections' reason where the
+    fit with the shadow edge (`shadow.shadowed_corners`) did not start."""
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     # Cheap first: the point-symmetric part of the smallest ring, where a shadow line through the
     # centre adds only a constant, must already look like an X of some contrast (not noise along a

@@ -5,9 +5,14 @@ line, while the X-corner itself stays point symmetric about its centre. The ring
 `detect` fail such a corner (its rings are no longer two-valued or point symmetric), and the plain
 model fit of `refine` would move the corner towards the shadow edge. Here the corner is fitted
 with the shadow edge in the model (`xfit.shaded_model`): the line, its blur and the share of light
-it takes are fitted with the X, the corner comes from the X part. Started from the best straight
-step on a log ring about the candidate (`_best_step`), verified with the shade divided out: the
-rings about the fitted corner must then be a clean X (`refine.clean_radius`).
+it takes are fitted with the X. Started from the best straight step on a log ring about the
+candidate (`_best_step`, the same on a wider ring), fitted in a small window, then in the window of
+the clean X with the shade divided out. The product of the blurred factors is not the blurred
+product where the shadow edge crosses an edge of the X, which moves that fit's corner by up to
+~0.2 px: the corner returned is that of a final fit of the X alone to the pixels beside the shadow
+edge with the shade divided out (`_unshaded_fit`), and it must agree with the first within
+AGREE_PX. Verified with the shade divided out: the rings about the corner must be a clean X
+(`refine.clean_radius`) beyond MIN_CLEAN_PX.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ MIN_CROSSING = np.radians(10.0)  # the shadow edge and either edge of the X, at 
 MAX_MOVE_PX = 8.0
 CLEAR_BLURS = 1.75  # a shadow edge along an edge of the X: at least this many blurs from the corner
 AGREE_PX = 0.08  # the two fits' corners, at most this apart
+UNSHADED_ROUNDS = 3
 BAND_BLURS = 2.5  # half-width of the band about the shadow edge the final fit leaves out, in its blurs
 MIN_CLEAN_PX = 7.0  # px: the X with the shade divided out must stay clean beyond this radius
 _STEPS = [(phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.6, -0.3, 0.0, 0.3, 0.6)]
@@ -136,12 +142,19 @@ def _unshaded_fit(img, corner, params, window, cov, rms, converged):
         idx = np.nonzero(ok & (window == value))[0]
         x, y, values, weights = xfit.window(img, corner[idx], float(value))
         x, y = x - corner[idx, :1], y - corner[idx, 1:]
-        shade, light = _light(params[idx], x, y)
         edge = (np.cos(params[idx, 7:8]) * x + np.sin(params[idx, 7:8]) * y - params[idx, 8:9]) / params[idx, 9:10]
         weights = weights * (np.abs(edge) > BAND_BLURS)
-        start = params[idx, :7].copy()
-        start[:, :2] = 0.0
-        fitted = xfit.fit(start, x, y, values / np.maximum(light, 1e-3), weights)
+        shaded = edge > 0
+        kept = 1.0 - params[idx, 10:11]  # the share of light in the shade
+        fitted = (params[idx, :7].copy(),)
+        fitted[0][:, :2] = 0.0
+        for _ in range(UNSHADED_ROUNDS):
+            # Outside the band the shade is a constant factor: fit the X to the pixels with it
+            # divided out, then the factor to the shaded pixels given the X, and again.
+            fitted = xfit.fit(fitted[0], x, y, np.where(shaded, values / np.maximum(kept, 1e-3), values), weights)
+            corner_model = xfit.model(fitted[0], x, y, jacobian=False)[0]
+            w = weights * shaded
+            kept = ((w * values * corner_model).sum(1) / np.maximum((w * corner_model**2).sum(1), 1e-12))[:, None]
         new = corner[idx] + fitted[0][:, :2]
         moved = _line_about(np.column_stack([fitted[0], params[idx, 7:]]), corner[idx], new)
         corner[idx], params[idx], cov[idx], rms[idx], converged[idx] = new, moved, fitted[1], fitted[2], fitted[3]

@@ -168,9 +168,10 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=m
     dof = np.maximum(np.count_nonzero(weights > 0, axis=1) - n_params, 1)
     sigma2 = (weights * r**2).sum(1) / np.maximum(sw, 1e-12) * np.count_nonzero(weights > 0, axis=1) / dof
     cov = np.full((n, 2, 2), np.nan)
-    ok = np.isfinite(hess).all(axis=(1, 2)) & (np.abs(np.linalg.det(hess)) > 0)
-    if ok.any():
-        inv = np.linalg.inv(hess[ok])
-        cov[ok] = (sigma2[ok, None, None] * (inv @ meat[ok] @ inv))[:, :2, :2]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # a degenerate fit (a shade of no area): NaN
+        ok = np.isfinite(hess).all(axis=(1, 2)) & (np.abs(np.linalg.det(hess)) > 0)
+        if ok.any():
+            inv = np.linalg.inv(hess[ok])
+            cov[ok] = (sigma2[ok, None, None] * (inv @ meat[ok] @ inv))[:, :2, :2]
     rms = np.sqrt((weights * r**2).sum(1) / np.maximum(sw, 1e-12))
     return params, cov, rms, converged
