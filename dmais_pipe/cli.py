@@ -159,6 +159,7 @@ def _parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     commands = parser.add_subparsers(dest="command", required=True)
 
     simulate = commands.add_parser("simulate", help="write a synthetic DMAIS dataset with ground truth")
@@ -232,10 +233,7 @@ def _parser() -> argparse.ArgumentParser:
     report.add_argument("--benchmarks", type=Path, help="folder of snakemake benchmark files (stage times)")
     report.set_defaults(run=_cmd_report)
     for stage in (markers, intrinsics, extrinsics, pose, evaluate, report):
-        stage.add_argument("--conf", help="named settings of the stage (docs/design.md, 'Stage settings'; "
-                                          "default: its first)")
-        stage.add_argument("--set", action="append", metavar="KEY=VALUE",
-                           help="change one setting of the conf (repeatable), e.g. --set robust=true")
+        _add_settings(stage)
 
     summarize = commands.add_parser("summarize", help="write a dataset summary (CSV + HTML) to a report folder")
     summarize.add_argument("dataset", type=Path)
@@ -260,6 +258,30 @@ def _parser() -> argparse.ArgumentParser:
     bench_pose.add_argument("--batch-frames", type=int, default=200, help="frames in the batch-throughput run")
     bench_pose.set_defaults(run=_cmd_bench_pose)
     return parser
+
+
+def _add_settings(parser: argparse.ArgumentParser) -> None:
+    """--conf and --set, with every setting, its default and the named confs listed under --help."""
+    from importlib import import_module
+
+    from .stages import settings_help
+
+    confs = import_module(f"dmais_pipe.stages.{parser.prog.split()[-1]}").CONFS
+    parser.add_argument("--conf", metavar="NAME",
+                        help=f"named settings of the stage: {', '.join(confs)} (default: {next(iter(confs))})")
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="change one setting of the conf (repeatable); the settings are listed below")
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = settings_help(confs) + "\n\nSee docs/design.md, 'Stage settings'."
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("dmais_pipe")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -20,17 +20,19 @@ from ..evaluate import (POS, angular_errors, conf_table, evaluate_poses, every_c
 from ..markers.quality import FLAG_FACTOR, FLAG_MIN_SIGMA_PX, camera_quality, image_quality
 from ..rig import Rig
 from ..workspace import CENTER, ResultsError, Workspace
+from . import setting
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class Conf:
-    """flag_factor, flag_min_sigma_px: an image's markers are flagged as poor when their median
-    sigma exceeds both flag_factor x its camera's median and flag_min_sigma_px."""
+    """The evaluation's settings; an image's markers are flagged as poor when their median sigma
+    exceeds both flag_factor x its camera's median and flag_min_sigma_px."""
 
-    flag_factor: float = FLAG_FACTOR
-    flag_min_sigma_px: float = FLAG_MIN_SIGMA_PX
+    flag_factor: float = setting(FLAG_FACTOR, "flag an image whose median marker sigma exceeds this many times "
+                                              "its camera's median", above=0)
+    flag_min_sigma_px: float = setting(FLAG_MIN_SIGMA_PX, "... and exceeds this (px)", minimum=0)
 
 
 CONFS = {"default": Conf()}

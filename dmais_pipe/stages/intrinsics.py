@@ -20,18 +20,21 @@ from ..calib.intrinsics import (METHODS, TABLE_COLUMNS, IntrinsicsResult, Plausi
                                 calibrate_camera_dlt_lm, calibrate_camera_opencv, check_plausible)
 from ..errors import DmaisError
 from ..workspace import Workspace
+from . import setting
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class Conf:
-    """methods: "ours" and the baselines to run beside it (tab:intrinsics); max_eps_calib_px,
-    max_focal_deviation: the plausibility bounds (calib.intrinsics.Plausibility)."""
+    """The methods to run and the plausibility bounds of a result (calib.intrinsics.Plausibility)."""
 
-    methods: tuple = METHODS
-    max_eps_calib_px: float = Plausibility.max_eps_calib_px
-    max_focal_deviation: float = Plausibility.max_focal_deviation
+    methods: tuple = setting(METHODS, "'ours' and the baselines to run beside it (tab:intrinsics)")
+    max_eps_calib_px: float = setting(Plausibility.max_eps_calib_px,
+                                      "refuse a calibration whose eps_calib exceeds this (px)", above=0)
+    max_focal_deviation: float = setting(Plausibility.max_focal_deviation,
+                                         "refuse fx, fy further than this fraction from focal_px or from each other",
+                                         above=0)
 
 
 #: "paper": ours and both baselines of tab:intrinsics; "ours": the paper's procedure alone (faster).

@@ -24,19 +24,20 @@ from ..errors import DmaisError
 from ..pose.flight import COLUMNS, ROBUST_THRESHOLD_PX, estimate_poses
 from ..rig import Rig
 from ..workspace import ResultsError, Workspace
+from . import setting
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class Conf:
-    """robust: LO-RANSAC against wrong correspondences first; refine: polish every pose on the
-    reprojection error; robust_threshold_px: RANSAC's inlier threshold (an angle per observation:
-    this over its camera's fx)."""
+    """How every frame is solved (pose.flight)."""
 
-    robust: bool = False
-    refine: bool = False
-    robust_threshold_px: float = ROBUST_THRESHOLD_PX
+    robust: bool = setting(False, "LO-RANSAC against wrong correspondences before the paper's solver")
+    refine: bool = setting(False, "polish every pose on the reprojection error")
+    robust_threshold_px: float = setting(
+        ROBUST_THRESHOLD_PX, "RANSAC's inlier threshold (px; an angle per observation: this over its camera's fx)",
+        above=0)
 
 
 #: "paper": the paper's solver alone; "robust": RANSAC first and a polished pose, for wrong ids.

@@ -90,7 +90,7 @@ def subset_labels():
 def stage_settings(stage):
     """The workflow config's section of `stage` as `dmais <stage>` options: `--conf NAME` and one
     `--set KEY=VALUE` per setting (the defaults are the code's; docs/design.md, "Stage settings")."""
-    section = dict(config.get(stage) or {})
+    section = dict(GIVEN_SETTINGS[stage])
     options = ["--conf", section.pop("conf")] if "conf" in section else []
     for key, value in section.items():
         if isinstance(value, bool):
