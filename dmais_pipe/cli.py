@@ -74,6 +74,11 @@ def _cmd_intrinsics(args) -> None:
     conf = _conf(args, intrinsics, ("max_eps_calib_px", args.max_eps_px),
                  ("max_focal_deviation", args.max_focal_deviation))
     workspace = _workspace(args)
+    if args.import_file:
+        if not args.camera:
+            raise DmaisError(f"intrinsics: --import {args.import_file} needs --camera NAME (one per camera of the file)")
+        _print(intrinsics.import_cameras(workspace, args.camera, args.import_file, conf))
+        return
     if args.table:
         _print(intrinsics.write_table(workspace))
         return
@@ -141,6 +146,13 @@ def _cmd_evaluate(args) -> None:
     _print(evaluate.run(_workspace(args), conf))
 
 
+def _cmd_export_colmap(args) -> None:
+    from .stages import export
+
+    conf = _conf(args, export, ("formats", args.format))
+    _print(export.run(_workspace(args), conf))
+
+
 def _cmd_report(args) -> None:
     from .stages import report
 
@@ -193,6 +205,9 @@ def _parser() -> argparse.ArgumentParser:
     only.add_argument("--table", action="store_true",
                       help="only write tables/intrinsics.csv from the cameras' intrinsics/<camera>.methods.csv")
     defaults = IntrinsicsConf()
+    intrinsics.add_argument("--import", dest="import_file", type=Path, metavar="FILE",
+                            help="take the --camera's intrinsics from an OpenCV calibration file (YAML/XML/JSON) or "
+                                 "a COLMAP cameras.txt / cameras.bin instead of calibrating")
     intrinsics.add_argument("--max-eps-px", type=float,
                             help=f"refuse a calibration whose eps_calib exceeds this (px; default {defaults.max_eps_calib_px})")
     intrinsics.add_argument("--max-focal-deviation", type=float,
@@ -225,13 +240,19 @@ def _parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--out", type=Path, required=True, help="results folder (with poses.csv)")
     evaluate.set_defaults(run=_cmd_evaluate)
 
+    export = commands.add_parser("export-colmap", help="the rig and the solved flight frames as a COLMAP model")
+    export.add_argument("dataset", type=Path)
+    export.add_argument("--out", type=Path, required=True, help="results folder (with rig.json and poses.csv)")
+    export.add_argument("--format", choices=("text", "binary"), help="only this format (default: both)")
+    export.set_defaults(run=_cmd_export_colmap)
+
     report = commands.add_parser("report", help="write the self-contained HTML report")
     report.add_argument("dataset", type=Path)
     report.add_argument("--out", type=Path, required=True, help="results folder")
     report.add_argument("--html", type=Path, required=True, help="report file, e.g. reports/demo/report.html")
     report.add_argument("--benchmarks", type=Path, help="folder of snakemake benchmark files (stage times)")
     report.set_defaults(run=_cmd_report)
-    for stage in (markers, intrinsics, extrinsics, pose, evaluate, report):
+    for stage in (markers, intrinsics, extrinsics, pose, evaluate, export, report):
         stage.add_argument("--conf", help="named settings of the stage (docs/design.md, 'Stage settings'; "
                                           "default: its first)")
         stage.add_argument("--set", action="append", metavar="KEY=VALUE",
