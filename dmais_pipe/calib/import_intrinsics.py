@@ -11,7 +11,7 @@ are taken and d minimizes sum |ours(x; d) - theirs(x)|^2, linear in d:
 
 The residual (max / RMS px over the grid) is the conversion's cost; above `max_residual_px` the
 camera is refused, naming the largest coefficient that our model cannot represent. A model that is
-ours (other coefficients zero) converts exactly (d = k1, residual 0).
+ours (other coefficients zero) converts exactly (d = k1; residual ~1e-12 px, rounding).
 
 Pixel conventions: OpenCV's files use ours (centre of the top-left pixel at (0, 0)); COLMAP's put
 it at (0.5, 0.5), so its principal point is shifted by -0.5 px.
@@ -36,7 +36,6 @@ from .rig_ba import COLMAP_PIXEL_OFFSET
 OPENCV_COEFFICIENTS = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
 DEFAULT_MAX_RESIDUAL_PX = 0.1
 GRID_STEPS = 33  # grid points per image side for the fit
-_UNDISTORT_CRITERIA = (3, 200, 1e-15)  # cv2.TERM_CRITERIA_COUNT | EPS, iterations, epsilon
 
 #: COLMAP models that are OpenCV's pinhole model with some coefficients: parameter names in
 #: COLMAP's order; "f" is fx = fy.
@@ -89,7 +88,7 @@ def read_opencv_file(path: Path) -> ForeignCamera:
     try:
         storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
         opened = storage.isOpened()
-    except cv2.error as error:
+    except (cv2.error, SystemError) as error:  # OpenCV's parser errors surface as either
         raise DmaisError(f"{path}: not an OpenCV FileStorage file ({_first_line(error)})") from None
     if not opened:
         raise DmaisError(f"{path}: not an OpenCV FileStorage file")
@@ -184,13 +183,17 @@ def one_coefficient_camera(foreign: ForeignCamera, name: str,
     u, v = np.meshgrid(np.linspace(-0.5, foreign.width - 0.5, GRID_STEPS),
                        np.linspace(-0.5, foreign.height - 0.5, GRID_STEPS))
     grid = np.column_stack([u.ravel(), v.ravel()])
-    xy = cv2.undistortPointsIter(grid.reshape(-1, 1, 2), K, coefficients, None, None,
-                                 _UNDISTORT_CRITERIA).reshape(-1, 2)
+    # the richer model's undistorted points of the grid (OpenCV's iterative inverse, approximate: the fit
+    # compares both models at these points, so they need only cover the image)
+    xy = cv2.undistortPoints(grid.reshape(-1, 1, 2), K, coefficients).reshape(-1, 2)
     rays = np.column_stack([xy, np.ones(len(xy))])
     theirs = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, coefficients)[0].reshape(-1, 2)
     linear = xy * [foreign.fx, foreign.fy] + [foreign.cx, foreign.cy]  # the pinhole part, ours at d = 0
     slope = xy * [foreign.fx, foreign.fy] * np.sum(xy**2, axis=1, keepdims=True)  # d(ours) / dd
-    d = float(np.sum(slope * (theirs - linear)) / np.sum(slope**2)) if np.any(slope) else 0.0
+    if not any(v for k, v in foreign.distortion.items() if k != "k1"):
+        d = foreign.distortion.get("k1", 0.0)  # our model already: exact
+    else:
+        d = float(np.sum(slope * (theirs - linear)) / np.sum(slope**2))
     residual = np.linalg.norm(linear + d * slope - theirs, axis=1)
     conversion = Conversion(Camera(foreign.fx, foreign.fy, foreign.cx, foreign.cy, d, foreign.width, foreign.height),
                             float(residual.max()), float(np.sqrt(np.mean(residual**2))))
