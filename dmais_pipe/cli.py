@@ -76,7 +76,8 @@ def _cmd_intrinsics(args) -> None:
     workspace = _workspace(args)
     if args.import_file:
         if not args.camera:
-            raise DmaisError(f"intrinsics: --import {args.import_file} needs --camera NAME (one per camera of the file)")
+            raise DmaisError(f"intrinsics: --import {args.import_file} needs --camera NAME "
+                             "(one per camera of the file)")
         _print(intrinsics.import_cameras(workspace, args.camera, args.import_file, conf))
         return
     if args.table:

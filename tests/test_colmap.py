@@ -14,7 +14,6 @@ import yaml
 from dmais_pipe import cli
 from dmais_pipe.colmap import MODEL_FILES, camera_prefixes, colmap_image_names
 from dmais_pipe.geometry import Rigid3
-from dmais_pipe.rig import Rig
 from dmais_pipe.stages import export
 from dmais_pipe.workspace import POSE_COLUMNS, Workspace
 
@@ -85,7 +84,8 @@ def test_the_model_reads_back_with_every_pose_camera_and_track(results, fmt):
         frame_ids = {flight.at[image_of[model.images[i.id].name], "placement"] for i in frame.image_ids}
         (frame_name,) = frame_ids
         row = poses.loc[frame_name]
-        rig_from_world = Rigid3.from_quat(row[["qw", "qx", "qy", "qz"]].to_numpy(float), row[["tx", "ty", "tz"]].to_numpy(float))
+        rig_from_world = Rigid3.from_quat(row[["qw", "qx", "qy", "qz"]].to_numpy(float),
+                                          row[["tx", "ty", "tz"]].to_numpy(float))
         np.testing.assert_allclose(_matrix(frame.rig_from_world), _ours(rig_from_world), atol=1e-9)
         for data_id in frame.image_ids:
             image = model.images[data_id.id]

@@ -90,7 +90,8 @@ def test_a_converted_model_states_the_residual_it_leaves(dataset):
     conversion = one_coefficient_camera(foreign, "C2", max_residual_px=1.0)
     # the stated residual, recomputed with our Camera and OpenCV's projection on the same grid
     camera, K = conversion.camera, conversion.camera.K
-    u, v = np.meshgrid(np.linspace(-0.5, camera.width - 0.5, GRID_STEPS), np.linspace(-0.5, camera.height - 0.5, GRID_STEPS))
+    u, v = np.meshgrid(np.linspace(-0.5, camera.width - 0.5, GRID_STEPS),
+                       np.linspace(-0.5, camera.height - 0.5, GRID_STEPS))
     xy = cv2.undistortPoints(np.column_stack([u.ravel(), v.ravel()]).reshape(-1, 1, 2), K,
                              foreign.coefficients()).reshape(-1, 2)
     rays = np.column_stack([xy, np.ones(len(xy))])

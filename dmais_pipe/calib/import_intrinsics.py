@@ -99,7 +99,8 @@ def read_opencv_file(path: Path) -> ForeignCamera:
     if K[0, 1] != 0:
         raise DmaisError(f"{path}: camera_matrix has skew {K[0, 1]:g}; our model has none")
     if len(coefficients) not in (4, 5, 8, 12, 14):
-        raise DmaisError(f"{path}: distortion_coefficients has {len(coefficients)} values; OpenCV's have 4, 5, 8, 12 or 14")
+        raise DmaisError(f"{path}: distortion_coefficients has {len(coefficients)} values; "
+                         "OpenCV's have 4, 5, 8, 12 or 14")
     size = [_integer(storage, key, path) for key in ("image_width", "image_height")]
     return ForeignCamera(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), *size, model="OpenCV",
                          distortion=dict(zip(OPENCV_COEFFICIENTS, map(float, coefficients))))

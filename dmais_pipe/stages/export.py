@@ -53,7 +53,8 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     for fmt in conf.formats:
         written += write_model(reconstruction, workspace.colmap_model_dir(fmt), fmt)
     written.append(write_json_atomic(workspace.colmap_dir / "rig_config.json", colmap_rig_config(rig, prefixes)))
-    if any(path and names.get(image, path) != path for image, path in zip(dataset.images["image"], dataset.images["path"])):
+    images = zip(dataset.images["image"], dataset.images["path"])
+    if any(path and names.get(image, path) != path for image, path in images):
         _link_cameras(workspace, list(prefixes))
     return written
 
