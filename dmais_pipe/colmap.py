@@ -70,24 +70,12 @@ def flight_reconstruction(rig: Rig, poses: pd.DataFrame, images: pd.DataFrame, n
     import pycolmap
 
     rec = pycolmap.Reconstruction()
-    order = camera_order(rig)
-    camera_ids = {name: k + 1 for k, name in enumerate(order)}
-    colmap_rig = pycolmap.Rig(rig_id=RIG_ID)
-    for name, camera_id in camera_ids.items():
-        rec.add_camera(colmap_camera(rig.cameras[name], camera_id))
-        sensor = rec.cameras[camera_id].sensor_id
-        if name == rig.reference_camera:
-            colmap_rig.add_ref_sensor(sensor)
-        else:
-            colmap_rig.add_sensor(sensor, _colmap_rigid(rig.cam_from_rig[name]))
-    rec.add_rig(colmap_rig)
-
+    camera_ids = _add_rig(rec, rig)
     used = observations[observations["used"]]
-    point_ids = sorted(set(used["point_id"]))
-    missing = sorted(set(point_ids) - set(points.index))
+    missing = sorted(set(used["point_id"]) - set(points.index))
     if missing:
         raise DmaisError(f"COLMAP export: observed point(s) {', '.join(missing[:5])} are not control or ground points")
-    tracks = {p: pycolmap.Track() for p in point_ids}
+    tracks = {p: pycolmap.Track() for p in sorted(set(used["point_id"]))}
     flight = images[(images["stage"] == "flight") & images["camera"].isin(camera_ids)]
     by_frame = {frame: rows for frame, rows in flight.groupby("placement", sort=False)}
     by_image = {image: rows for image, rows in observations.groupby("image", sort=False)}
@@ -97,9 +85,9 @@ def flight_reconstruction(rig: Rig, poses: pd.DataFrame, images: pd.DataFrame, n
         for image in by_frame.get(row.frame, flight.iloc[:0]).itertuples(index=False):
             image_id += 1
             obs = by_image.get(image.image, observations.iloc[:0])
+            uv = colmap_pixels(obs[["u", "v"]].to_numpy(dtype=float).reshape(-1, 2))
             frame_images.append(pycolmap.Image(name=names[image.image], camera_id=camera_ids[image.camera],
-                                               image_id=image_id,
-                                               keypoints=colmap_pixels(obs[["u", "v"]].to_numpy(float).reshape(-1, 2))))
+                                               image_id=image_id, keypoints=uv))
             for point2D_idx, (point_id, is_used) in enumerate(zip(obs["point_id"], obs["used"])):
                 if is_used:
                     tracks[point_id].add_element(image_id, point2D_idx)
@@ -108,6 +96,23 @@ def flight_reconstruction(rig: Rig, poses: pd.DataFrame, images: pd.DataFrame, n
         rec.add_point3D(points.loc[point_id, ["x", "y", "z"]].to_numpy(dtype=float), track)
     rec.update_point_3d_errors()
     return rec
+
+
+def _add_rig(rec, rig: Rig) -> dict[str, int]:
+    """The rig's cameras (ids 1, 2, ... in `camera_order`) and rig RIG_ID; returns camera name -> id."""
+    import pycolmap
+
+    camera_ids = {name: k + 1 for k, name in enumerate(camera_order(rig))}
+    colmap_rig = pycolmap.Rig(rig_id=RIG_ID)
+    for name, camera_id in camera_ids.items():
+        rec.add_camera(colmap_camera(rig.cameras[name], camera_id))
+        sensor = rec.cameras[camera_id].sensor_id
+        if name == rig.reference_camera:
+            colmap_rig.add_ref_sensor(sensor)
+        else:
+            colmap_rig.add_sensor(sensor, _colmap_rigid(rig.cam_from_rig[name]))
+    rec.add_rig(colmap_rig)
+    return camera_ids
 
 
 def write_model(reconstruction, folder: str | Path, fmt: str) -> list[Path]:
