@@ -65,11 +65,15 @@ def test_a_colmap_cameras_file_imports_in_camera_id_order(dataset, tmp_path):
     # a hand-written SIMPLE_RADIAL line (COLMAP's pixel convention: the principal point - 0.5 is ours)
     spec = workspace.dataset.cameras["C2"]
     (tmp_path / "one" / "cameras.txt").parent.mkdir()
-    (tmp_path / "one" / "cameras.txt").write_text(
-        f"# Camera list\n1 SIMPLE_RADIAL {spec.width} {spec.height} 5000 {spec.width / 2} {spec.height / 2} -0.05\n")
+    (tmp_path / "one" / "cameras.txt").write_text(f"# Camera list\n1 SIMPLE_RADIAL {spec.width} {spec.height} "
+                                                  f"{spec.focal_px} {spec.width / 2} {spec.height / 2} -0.05\n")
     intrinsics.import_cameras(workspace, ["C2"], tmp_path / "one" / "cameras.txt")
-    assert workspace.load_intrinsics("C2")[0] == Camera(5000.0, 5000.0, spec.width / 2 - 0.5, spec.height / 2 - 0.5,
-                                                        -0.05, spec.width, spec.height)
+    assert workspace.load_intrinsics("C2")[0] == Camera(spec.focal_px, spec.focal_px, spec.width / 2 - 0.5,
+                                                        spec.height / 2 - 0.5, -0.05, spec.width, spec.height)
+    # another camera's file (focal far from the manifest's focal_px) is refused
+    (tmp_path / "one" / "cameras.txt").write_text(f"1 SIMPLE_RADIAL {spec.width} {spec.height} 5000 2048 1500 0\n")
+    with pytest.raises(DmaisError, match=r"camera C2: .* 89% from dataset.yaml's focal_px"):
+        intrinsics.import_cameras(workspace, ["C2"], tmp_path / "one" / "cameras.txt")
 
 
 def _foreign(dataset, **distortion) -> ForeignCamera:

@@ -139,6 +139,7 @@ def import_cameras(workspace: Workspace, names: list[str], source: Path, conf: C
         if (foreign[name].width, foreign[name].height) != (spec.width, spec.height):
             raise DmaisError(f"camera {name}: {source} is for {foreign[name].width}x{foreign[name].height} images, "
                              f"dataset.yaml says {spec.width}x{spec.height}")
+        _check_nominal_focal(name, foreign[name], spec.focal_px, conf.max_focal_deviation, source)
         conversions[name] = one_coefficient_camera(foreign[name], name, conf.max_import_residual_px)
     written = []
     for name, conversion in conversions.items():
@@ -149,6 +150,16 @@ def import_cameras(workspace: Workspace, names: list[str], source: Path, conf: C
         row = {"method": "imported", **{k: record[k] for k in ("camera", "fx", "fy", "cx", "cy", "d")}}
         written += workspace.save_intrinsics(name, record, pd.DataFrame([row], columns=list(TABLE_COLUMNS)))
     return written
+
+
+def _check_nominal_focal(name: str, foreign: ForeignCamera, focal_px: float | None, max_deviation: float,
+                         source: Path) -> None:
+    """Refuse a file whose focal lengths are far from the manifest's focal_px (another camera's file?)."""
+    deviation = max(abs(f / focal_px - 1.0) for f in (foreign.fx, foreign.fy)) if focal_px else 0.0
+    if not deviation <= max_deviation:
+        raise DmaisError(f"camera {name}: {source} has fx {foreign.fx:.1f}, fy {foreign.fy:.1f} px, {deviation:.0%} "
+                         f"from dataset.yaml's focal_px {focal_px:g} (limit {max_deviation:.0%}, "
+                         "--max-focal-deviation); is it another camera's file?")
 
 
 def _foreign_cameras(source: Path, names: list[str]) -> dict[str, ForeignCamera]:
