@@ -158,3 +158,26 @@ def test_the_cli_writes_one_format_and_a_missing_pose_file_is_one_line(results, 
 def test_the_workflow_schema_knows_the_export_settings():
     section = yaml.safe_load(SCHEMA.read_text())["properties"]["export"]["properties"]
     assert set(section) == {"conf", "formats"} and section["conf"]["enum"] == list(export.CONFS)
+
+
+def test_images_sharing_a_folder_are_found_through_the_camera_links(results, tmp_path):
+    """A dataset whose cameras share one image folder (as the simulator's): names "<camera>/<path>" and
+    RESULTS/colmap/images/<camera> links to the dataset, through which every image file is found."""
+    dataset = tmp_path / "dataset"
+    shutil.copytree(results.dataset.root, dataset)
+    images = pd.read_csv(dataset / "images.csv", dtype=str, keep_default_na=False)
+    flight = images["stage"] == "flight"
+    images.loc[flight, "path"] = "images/flight/" + images.loc[flight, "image"] + ".png"
+    images.to_csv(dataset / "images.csv", index=False)
+    (dataset / "images" / "flight").mkdir(parents=True)
+    for path in images.loc[flight, "path"]:
+        (dataset / path).write_bytes(b"")  # existence is all the export needs
+    out = tmp_path / "results"
+    shutil.copytree(results.root, out, ignore=shutil.ignore_patterns("colmap"))
+    workspace = Workspace.open(dataset, out)
+    export.run(workspace, export.Conf(formats=("text",)))
+    model = pycolmap.Reconstruction(workspace.colmap_model_dir("text"))
+    names = sorted(image.name for image in model.images.values())
+    assert names == sorted(f"{c}/{p}" for c, p in zip(images.loc[flight, "camera"], images.loc[flight, "path"]))
+    assert all((workspace.colmap_dir / "images" / name).is_file() for name in names)
+    assert not (results.colmap_dir / "images").exists()  # the observation-only dataset has nothing to link
