@@ -74,6 +74,12 @@ def _cmd_intrinsics(args) -> None:
     conf = _conf(args, intrinsics, ("max_eps_calib_px", args.max_eps_px),
                  ("max_focal_deviation", args.max_focal_deviation))
     workspace = _workspace(args)
+    if args.import_file:
+        if not args.camera:
+            raise DmaisError(f"intrinsics: --import {args.import_file} needs --camera NAME "
+                             "(one per camera of the file)")
+        _print(intrinsics.import_cameras(workspace, args.camera, args.import_file, conf))
+        return
     if args.table:
         _print(intrinsics.write_table(workspace))
         return
@@ -141,6 +147,13 @@ def _cmd_evaluate(args) -> None:
     _print(evaluate.run(_workspace(args), conf))
 
 
+def _cmd_export_colmap(args) -> None:
+    from .stages import export
+
+    conf = _conf(args, export, ("formats", args.format))
+    _print(export.run(_workspace(args), conf))
+
+
 def _cmd_report(args) -> None:
     from .stages import report
 
@@ -194,6 +207,9 @@ def _parser() -> argparse.ArgumentParser:
     only.add_argument("--table", action="store_true",
                       help="only write tables/intrinsics.csv from the cameras' intrinsics/<camera>.methods.csv")
     defaults = IntrinsicsConf()
+    intrinsics.add_argument("--import", dest="import_file", type=Path, metavar="FILE",
+                            help="take the --camera's intrinsics from an OpenCV calibration file (YAML/XML/JSON) or "
+                                 "a COLMAP cameras.txt / cameras.bin instead of calibrating")
     intrinsics.add_argument("--max-eps-px", type=float,
                             help=f"refuse a calibration whose eps_calib exceeds this (px; default {defaults.max_eps_calib_px})")
     intrinsics.add_argument("--max-focal-deviation", type=float,
@@ -226,14 +242,21 @@ def _parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--out", type=Path, required=True, help="results folder (with poses.csv)")
     evaluate.set_defaults(run=_cmd_evaluate)
 
+    export = commands.add_parser("export-colmap", help="the rig and the solved flight frames as a COLMAP model")
+    export.add_argument("dataset", type=Path)
+    export.add_argument("--out", type=Path, required=True, help="results folder (with rig.json and poses.csv)")
+    export.add_argument("--format", choices=("text", "binary"), help="only this format (default: both)")
+    export.set_defaults(run=_cmd_export_colmap)
+
     report = commands.add_parser("report", help="write the self-contained HTML report")
     report.add_argument("dataset", type=Path)
     report.add_argument("--out", type=Path, required=True, help="results folder")
     report.add_argument("--html", type=Path, required=True, help="report file, e.g. reports/demo/report.html")
     report.add_argument("--benchmarks", type=Path, help="folder of snakemake benchmark files (stage times)")
     report.set_defaults(run=_cmd_report)
-    for stage in (markers, intrinsics, extrinsics, pose, evaluate, report):
-        _add_settings(stage)
+    for stage, module in ((markers, "markers"), (intrinsics, "intrinsics"), (extrinsics, "extrinsics"), (pose, "pose"),
+                          (evaluate, "evaluate"), (export, "export"), (report, "report")):
+        _add_settings(stage, module)
 
     summarize = commands.add_parser("summarize", help="write a dataset summary (CSV + HTML) to a report folder")
     summarize.add_argument("dataset", type=Path)
@@ -260,13 +283,13 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _add_settings(parser: argparse.ArgumentParser) -> None:
+def _add_settings(parser: argparse.ArgumentParser, stage: str) -> None:
     """--conf and --set, with every setting, its default and the named confs listed under --help."""
     from importlib import import_module
 
     from .stages import settings_help
 
-    confs = import_module(f"dmais_pipe.stages.{parser.prog.split()[-1]}").CONFS
+    confs = import_module(f"dmais_pipe.stages.{stage}").CONFS
     parser.add_argument("--conf", metavar="NAME",
                         help=f"named settings of the stage: {', '.join(confs)} (default: {next(iter(confs))})")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",

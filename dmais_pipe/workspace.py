@@ -86,6 +86,15 @@ class Workspace:
         """The rig in COLMAP's rig config layout, beside rig.json."""
         return self.root / "rig_config.json"
 
+    @property
+    def colmap_dir(self) -> Path:
+        """RESULTS/colmap: the COLMAP export (`dmais export-colmap`)."""
+        return self.root / "colmap"
+
+    def colmap_model_dir(self, fmt: str) -> Path:
+        """RESULTS/colmap/<fmt>: the sparse model as COLMAP text (fmt "text") or binary ("binary") files."""
+        return self.colmap_dir / fmt
+
     def case_rig_path(self, case: str) -> Path:
         """extrinsics/rig_<case>.json: the rig calibrated with (known) or without (unknown) RTK priors."""
         return self.root / "extrinsics" / f"rig_{case}.json"

@@ -10,10 +10,10 @@ import yaml
 
 from dmais_pipe import cli
 from dmais_pipe.errors import DmaisError
-from dmais_pipe.stages import configure, evaluate, extrinsics, intrinsics, markers, pose, report
+from dmais_pipe.stages import configure, evaluate, export, extrinsics, intrinsics, markers, pose, report
 
 STAGES = {"markers": markers, "intrinsics": intrinsics, "extrinsics": extrinsics, "pose": pose,
-          "evaluate": evaluate, "report": report}
+          "evaluate": evaluate, "export": export, "report": report}
 SCHEMA = Path(__file__).resolve().parents[1] / "workflow" / "schemas" / "config.schema.yaml"
 
 

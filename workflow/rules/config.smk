@@ -6,7 +6,7 @@ from snakemake.utils import validate
 
 CONFIG_SCHEMA = "../schemas/config.schema.yaml"  # relative to this file
 #: The stages whose config section holds `dmais <stage>` settings (docs/design.md, "Stage settings").
-STAGES = ("markers", "intrinsics", "extrinsics", "pose", "evaluate", "report")
+STAGES = ("markers", "intrinsics", "extrinsics", "pose", "evaluate", "export", "report")
 
 
 def check_config(config):
