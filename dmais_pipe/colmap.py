@@ -26,7 +26,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from .calib.rig_ba import _add_frame, _colmap_rigid, colmap_pixels, opencv_params
+from .calib.rig_ba import add_colmap_frame, colmap_rigid, colmap_pixels, opencv_params
 from .camera import Camera
 from .errors import DmaisError
 from .geometry import Rigid3
@@ -91,7 +91,7 @@ def flight_reconstruction(rig: Rig, poses: pd.DataFrame, images: pd.DataFrame, n
             for point2D_idx, (point_id, is_used) in enumerate(zip(obs["point_id"], obs["used"])):
                 if is_used:
                     tracks[point_id].add_element(image_id, point2D_idx)
-        _add_frame(rec, frame_id, RIG_ID, rig_from_world_of(row), frame_images)
+        add_colmap_frame(rec, frame_id, RIG_ID, rig_from_world_of(row), frame_images)
     for point_id, track in tracks.items():  # ids 1, 2, ... in sorted point-id order
         rec.add_point3D(points.loc[point_id, ["x", "y", "z"]].to_numpy(dtype=float), track)
     rec.update_point_3d_errors()
@@ -110,7 +110,7 @@ def _add_rig(rec, rig: Rig) -> dict[str, int]:
         if name == rig.reference_camera:
             colmap_rig.add_ref_sensor(sensor)
         else:
-            colmap_rig.add_sensor(sensor, _colmap_rigid(rig.cam_from_rig[name]))
+            colmap_rig.add_sensor(sensor, colmap_rigid(rig.cam_from_rig[name]))
     rec.add_rig(colmap_rig)
     return camera_ids
 
