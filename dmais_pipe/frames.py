@@ -40,26 +40,70 @@ class FrameObservations:
         return len(self.uv)
 
 
-def frame_observations(dataset: Dataset, rig: Rig, observations: pd.DataFrame,
-                       cameras: Sequence[str] | None = None, groups: Sequence[str] | None = None
-                       ) -> Iterator[FrameObservations]:
-    """The flight frames with observations (of `cameras`, of `groups` if given), sorted by frame id.
+@dataclass(frozen=True)
+class FlightObservations:
+    """The observations of every flight frame at once, grouped by frame (F frames, N observations).
+
+    frames, groups: (F,) str, sorted by frame id; bounds: (F + 1,) int, frame k's observations are
+    rows bounds[k]:bounds[k + 1]; frame_index: (N,) int, each row's frame; the (N,) and (N, k) arrays
+    as in FrameObservations. Every (N, 3) array is C-contiguous, so a frame's rows go to the
+    compiled solver without a copy.
+    """
+
+    frames: np.ndarray
+    groups: np.ndarray
+    bounds: np.ndarray
+    frame_index: np.ndarray
+    cameras: np.ndarray
+    images: np.ndarray
+    point_ids: np.ndarray
+    uv: np.ndarray
+    points: np.ndarray
+    origins: np.ndarray
+    directions: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def frame(self, k: int) -> FrameObservations:
+        """Frame k's observations."""
+        part = slice(self.bounds[k], self.bounds[k + 1])
+        return FrameObservations(str(self.frames[k]), str(self.groups[k]), self.cameras[part], self.images[part],
+                                 self.point_ids[part], self.uv[part], self.points[part], self.origins[part],
+                                 self.directions[part])
+
+
+def flight_observations_by_frame(dataset: Dataset, rig: Rig, observations: pd.DataFrame,
+                                 cameras: Sequence[str] | None = None, groups: Sequence[str] | None = None
+                                 ) -> FlightObservations:
+    """The flight frames with observations (of `cameras`, of `groups` if given), sorted by frame id,
+    with their rays, in one vectorised pass.
 
     observations: image, camera, point_id, u, v (Workspace.load_observations).
     """
     obs = flight_observations(dataset, observations, cameras)
-    group_of = dict(zip(dataset.frames["frame"], dataset.frames["group"]))
+    group_of = pd.Series(dataset.frames["group"].to_numpy(str), index=dataset.frames["frame"].to_numpy(str))
     if groups:
         obs = obs[obs["frame"].map(group_of).isin(list(groups))]
     obs = obs.sort_values("frame", kind="stable")
     camera = obs["camera"].to_numpy(str)
-    uv = obs[["u", "v"]].to_numpy(float)
-    points = dataset.points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(float)
+    uv = np.ascontiguousarray(obs[["u", "v"]].to_numpy(float))
+    points = np.ascontiguousarray(dataset.points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(float))
     origins, directions = rig.rays_of(camera, uv) if len(obs) else (np.zeros((0, 3)), np.zeros((0, 3)))
     frame = obs["frame"].to_numpy(str)
     starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]]) if len(frame) else np.zeros(0, int)
-    image, point_id = obs["image"].to_numpy(str), obs["point_id"].to_numpy(str)
-    for start, stop in zip(starts, np.r_[starts[1:], len(frame)]):
-        part = slice(start, stop)
-        yield FrameObservations(frame[start], str(group_of[frame[start]]), camera[part], image[part],
-                                point_id[part], uv[part], points[part], origins[part], directions[part])
+    frames = frame[starts]
+    return FlightObservations(frames, group_of.loc[frames].to_numpy(str), np.r_[starts, len(frame)],
+                              np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(frame)])), camera,
+                              obs["image"].to_numpy(str), obs["point_id"].to_numpy(str), uv, points,
+                              np.ascontiguousarray(origins), np.ascontiguousarray(directions))
+
+
+def frame_observations(dataset: Dataset, rig: Rig, observations: pd.DataFrame,
+                       cameras: Sequence[str] | None = None, groups: Sequence[str] | None = None
+                       ) -> Iterator[FrameObservations]:
+    """The flight frames with observations (of `cameras`, of `groups` if given), sorted by frame id
+    (`flight_observations_by_frame`, one frame at a time)."""
+    flight = flight_observations_by_frame(dataset, rig, observations, cameras, groups)
+    for k in range(len(flight)):
+        yield flight.frame(k)
