@@ -22,7 +22,7 @@ import pandas as pd
 from .camera import Camera
 from .dataset import STAGES, Dataset, Table, read_observation_table, read_table
 from .errors import DatasetError, DmaisError
-from .files import write_csv_atomic, write_json_atomic, write_text_atomic
+from .files import csv_text, write_csv_atomic, write_json_atomic, write_text_atomic
 from .rig import Rig
 
 log = logging.getLogger(__name__)
@@ -218,8 +218,8 @@ class Workspace:
     def save_poses(self, poses: pd.DataFrame, observations: pd.DataFrame, path: Path) -> list[Path]:
         """A poses file (POSE_COLUMNS, then any extra columns) and, beside it, its per-observation file."""
         extras = [c for c in poses.columns if c not in POSE_COLUMNS]
-        return [write_csv_atomic(path, poses[[*POSE_COLUMNS, *extras]]),
-                write_csv_atomic(pose_observations_path(path), observations[list(POSE_OBSERVATION_COLUMNS)])]
+        return [write_text_atomic(path, csv_text(poses[[*POSE_COLUMNS, *extras]])),
+                write_text_atomic(pose_observations_path(path), csv_text(observations[list(POSE_OBSERVATION_COLUMNS)]))]
 
     def load_poses(self, path: Path | None = None, allowed_cameras: Sequence[str] | None = None,
                    empty_ok: bool = False) -> pd.DataFrame:
