@@ -32,6 +32,8 @@ import numpy as np
 from ..geometry import euler_zyx_from_rotation, euler_zyx_rates, skew
 from .refine import _jacobian, inverse_normal_matrices, tangent_bases
 
+#: Frames per block of `pose_uncertainty` (~60 MB of Jacobians at 40 observations a frame).
+BLOCK_FRAMES = 1024
 #: Fewest residual degrees of freedom (2n - 6) for a frame's own noise estimate (n >= 5 points).
 MIN_DEGREES_OF_FREEDOM = 4
 ARCMIN_PER_RAD = 60.0 * 180.0 / np.pi
@@ -82,7 +84,8 @@ def frame_noise_px(residuals_px, frame_index, n_frames: int, calibrated_px: floa
 
 def pose_uncertainty(origins, directions, points, focal_px, frame_index, R, t, noise_px,
                      own_noise=None, object_space: bool = True) -> PoseUncertainty:
-    """The uncertainty of F poses solved from their used observations (module docstring).
+    """The uncertainty of F poses solved from their used observations (module docstring), in blocks
+    of BLOCK_FRAMES frames to bound the memory of the per-observation Jacobians.
 
     origins, directions, points: (N, 3) the used observations' rays (rig frame) and world points,
     grouped by frame; focal_px (N,) their cameras' focal lengths; frame_index (N,) their frame in
@@ -91,6 +94,23 @@ def pose_uncertainty(origins, directions, points, focal_px, frame_index, R, t, n
     paper's eq. objfun (True) or the angular residuals (refined, False).
     """
     R, t = np.asarray(R, dtype=float).reshape(-1, 3, 3), np.asarray(t, dtype=float).reshape(-1, 3)
+    noise_px = np.asarray(noise_px, dtype=float)
+    own = np.ones(len(R), bool) if own_noise is None else np.asarray(own_noise, bool)
+    firsts = range(0, max(len(R), 1), BLOCK_FRAMES)
+    bounds = np.searchsorted(frame_index, [*firsts, len(R)])
+    blocks = [_block_covariances(origins[a:b], directions[a:b], points[a:b], focal_px[a:b], frame_index[a:b] - first,
+                                 R[first:first + BLOCK_FRAMES], t[first:first + BLOCK_FRAMES], object_space)
+              for first, a, b in zip(firsts, bounds[:-1], bounds[1:])]
+    position, angles = (np.concatenate(parts) for parts in zip(*blocks))
+    return PoseUncertainty(attitude=heading_pitch_roll(R), sigma_position=noise_px[:, None] * _sigmas(position),
+                           sigma_attitude=noise_px[:, None] * _sigmas(angles) * ARCMIN_PER_RAD, noise_px=noise_px,
+                           own_noise=own)
+
+
+def _block_covariances(origins, directions, points, focal_px, frame_index, R, t, object_space: bool
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Covariances (F, 3, 3) of the rig centre and of (heading, pitch, roll) for unit pixel noise, of
+    one block of frames (arguments as `pose_uncertainty`'s, frame_index from 0)."""
     n_frames = len(R)
     counts = np.maximum(np.bincount(frame_index, minlength=n_frames), 1)
     centroid = np.stack([np.bincount(frame_index, points[:, k], minlength=n_frames) for k in range(3)], axis=1)
@@ -108,17 +128,11 @@ def pose_uncertainty(origins, directions, points, focal_px, frame_index, R, t, n
     A, B = _frame_sums(J, [np.repeat(weight, 2), np.repeat(weight**2 / np.asarray(focal_px, dtype=float) ** 2, 2)],
                        frame_index, n_frames)
     A_inverse = inverse_normal_matrices(A)
-    covariance = np.asarray(noise_px, dtype=float)[:, None, None] ** 2 * (A_inverse @ B @ A_inverse)
-
+    covariance = A_inverse @ B @ A_inverse
     G = -np.swapaxes(R, 1, 2) @ np.concatenate([skew(t_centred), np.broadcast_to(np.eye(3), R.shape)], axis=2)
-    position = G @ covariance @ np.swapaxes(G, 1, 2)
-    attitude = heading_pitch_roll(R)
-    E_inverse = np.linalg.inv(euler_zyx_rates(np.radians(attitude)))
-    angles = E_inverse @ covariance[:, :3, :3] @ np.swapaxes(E_inverse, 1, 2)
-    own = np.ones(n_frames, bool) if own_noise is None else np.asarray(own_noise, bool)
-    return PoseUncertainty(attitude=attitude, sigma_position=_sigmas(position),
-                           sigma_attitude=_sigmas(angles) * ARCMIN_PER_RAD, noise_px=np.asarray(noise_px, float),
-                           own_noise=own)
+    E_inverse = np.linalg.inv(euler_zyx_rates(np.radians(heading_pitch_roll(R))))
+    return (G @ covariance @ np.swapaxes(G, 1, 2),
+            E_inverse @ covariance[:, :3, :3] @ np.swapaxes(E_inverse, 1, 2))
 
 
 def _frame_sums(J, weights, frame_index, n_frames: int) -> list[np.ndarray]:
