@@ -19,15 +19,11 @@ from .rig import Rig
 
 
 @dataclass(frozen=True)
-class FrameObservations:
-    """The observations of one flight frame (n of them, in the order of the observations table).
+class ObservationRows:
+    """Observations (n of them): cameras, images, point_ids (n,) str; uv: (n, 2) pixels; points:
+    (n, 3) world points (m); origins, directions: (n, 3) the generalized rays in the rig frame (the
+    paper's v_i, f_i)."""
 
-    cameras, images, point_ids: (n,) str; uv: (n, 2) pixels; points: (n, 3) world points (m);
-    origins, directions: (n, 3) the generalized rays in the rig frame (the paper's v_i, f_i).
-    """
-
-    frame: str
-    group: str
     cameras: np.ndarray
     images: np.ndarray
     point_ids: np.ndarray
@@ -36,31 +32,31 @@ class FrameObservations:
     origins: np.ndarray
     directions: np.ndarray
 
+
+@dataclass(frozen=True, kw_only=True)
+class FrameObservations(ObservationRows):
+    """The observations of one flight frame, in the order of the observations table."""
+
+    frame: str
+    group: str
+
     def __len__(self) -> int:
         return len(self.uv)
 
 
-@dataclass(frozen=True)
-class FlightObservations:
+@dataclass(frozen=True, kw_only=True)
+class FlightObservations(ObservationRows):
     """The observations of every flight frame at once, grouped by frame (F frames, N observations).
 
     frames, groups: (F,) str, sorted by frame id; bounds: (F + 1,) int, frame k's observations are
-    rows bounds[k]:bounds[k + 1]; frame_index: (N,) int, each row's frame; the (N,) and (N, k) arrays
-    as in FrameObservations. Every (N, 3) array is C-contiguous, so a frame's rows go to the
-    compiled solver without a copy.
+    rows bounds[k]:bounds[k + 1]; frame_index: (N,) int, each row's frame. Every (N, 3) array is
+    C-contiguous, so a frame's rows go to the compiled solver without a copy.
     """
 
     frames: np.ndarray
     groups: np.ndarray
     bounds: np.ndarray
     frame_index: np.ndarray
-    cameras: np.ndarray
-    images: np.ndarray
-    point_ids: np.ndarray
-    uv: np.ndarray
-    points: np.ndarray
-    origins: np.ndarray
-    directions: np.ndarray
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -68,9 +64,9 @@ class FlightObservations:
     def frame(self, k: int) -> FrameObservations:
         """Frame k's observations."""
         part = slice(self.bounds[k], self.bounds[k + 1])
-        return FrameObservations(str(self.frames[k]), str(self.groups[k]), self.cameras[part], self.images[part],
-                                 self.point_ids[part], self.uv[part], self.points[part], self.origins[part],
-                                 self.directions[part])
+        rows = (self.cameras, self.images, self.point_ids, self.uv, self.points, self.origins, self.directions)
+        return FrameObservations(*(array[part] for array in rows), frame=str(self.frames[k]),
+                                 group=str(self.groups[k]))
 
 
 def flight_observations_by_frame(dataset: Dataset, rig: Rig, observations: pd.DataFrame,
@@ -92,11 +88,11 @@ def flight_observations_by_frame(dataset: Dataset, rig: Rig, observations: pd.Da
     origins, directions = rig.rays_of(camera, uv) if len(obs) else (np.zeros((0, 3)), np.zeros((0, 3)))
     frame = obs["frame"].to_numpy(str)
     starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]]) if len(frame) else np.zeros(0, int)
-    frames = frame[starts]
-    return FlightObservations(frames, group_of.loc[frames].to_numpy(str), np.r_[starts, len(frame)],
-                              np.repeat(np.arange(len(starts)), np.diff(np.r_[starts, len(frame)])), camera,
-                              obs["image"].to_numpy(str), obs["point_id"].to_numpy(str), uv, points,
-                              np.ascontiguousarray(origins), np.ascontiguousarray(directions))
+    frames, bounds = frame[starts], np.r_[starts, len(frame)]
+    return FlightObservations(camera, obs["image"].to_numpy(str), obs["point_id"].to_numpy(str), uv, points,
+                              np.ascontiguousarray(origins), np.ascontiguousarray(directions), frames=frames,
+                              groups=group_of.loc[frames].to_numpy(str), bounds=bounds,
+                              frame_index=np.repeat(np.arange(len(starts)), np.diff(bounds)))
 
 
 def frame_observations(dataset: Dataset, rig: Rig, observations: pd.DataFrame,
