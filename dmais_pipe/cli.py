@@ -164,7 +164,7 @@ def _cmd_report(args) -> None:
 def _cmd_bench_pose(args) -> None:
     from .pose.bench import bench_pose
 
-    bench_pose(args.csv, repeats=args.repeats, batch_frames=args.batch_frames)
+    bench_pose(args.csv, repeats=args.repeats, batch_frames=args.batch_frames, stage_frames=args.stage_frames)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -275,10 +275,13 @@ def _parser() -> argparse.ArgumentParser:
     bench_markers.add_argument("--seed", type=int, default=0, help="seed of the synthetic suites")
     bench_markers.add_argument("--images", type=int, help="images per cell (regimes: 4) or per effect (effects: 10)")
     bench_markers.set_defaults(run=_cmd_bench_markers)
-    bench_pose = benches.add_parser("pose", help="pose solver time vs points (tab:time_points) and batch throughput")
+    bench_pose = benches.add_parser(
+        "pose", help="pose solver time vs points (tab:time_points), batch and pose-stage throughput")
     bench_pose.add_argument("--csv", type=Path, default=Path("reports/bench/pose_time_points.csv"))
     bench_pose.add_argument("--repeats", type=int, default=200, help="solves per point count and method")
     bench_pose.add_argument("--batch-frames", type=int, default=200, help="frames in the batch-throughput run")
+    bench_pose.add_argument("--stage-frames", type=int, default=10_000,
+                            help="frames of the generated flight in the pose-stage throughput run (0: skip it)")
     bench_pose.set_defaults(run=_cmd_bench_pose)
     return parser
 
