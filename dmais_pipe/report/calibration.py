@@ -29,7 +29,7 @@ def residual_quiver_figure(residuals: dict[str, pd.DataFrame], sizes: dict[str, 
         for split, colour in SPLIT_COLOURS.items():
             rows = table[table["split"] == split]
             ax.quiver(rows["u"], rows["v"], gain * rows["du"], gain * rows["dv"], color=colour, angles="xy",
-                      scale_units="xy", scale=1.0, width=0.006, label=split)
+                      scale_units="xy", scale=1.0, width=0.006, label=split, rasterized=True)
         ax.set_xlim(-0.5, width - 0.5)
         ax.set_ylim(height - 0.5, -0.5)
         ax.set_aspect("equal")

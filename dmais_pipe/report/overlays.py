@@ -19,12 +19,15 @@ CROP_LIMITS_PX = (64, 900)
 IDENTIFIED, UNIDENTIFIED = "lime", "red"
 
 
-def display_pixels(pixels: np.ndarray) -> np.ndarray:
-    """(h, w) uint8 for display: the 0.5-99.5 percentile range of an 8- or 16-bit image stretched to 0-255."""
-    sample = pixels[::8, ::8]
-    low, high = np.percentile(sample, (0.5, 99.5))
-    if high <= low:
-        high = low + 1
+def display_range(pixels: np.ndarray) -> tuple[float, float]:
+    """(low, high): the 0.5 and 99.5 percentiles of an image's values (on every 8th pixel), high > low."""
+    low, high = np.percentile(pixels[::8, ::8], (0.5, 99.5))
+    return float(low), float(max(high, low + 1))
+
+
+def stretched(pixels: np.ndarray, value_range: tuple[float, float]) -> np.ndarray:
+    """(h, w) uint8 for display: `value_range` of an 8- or 16-bit image stretched to 0-255."""
+    low, high = value_range
     return np.clip((pixels.astype(np.float32) - low) * (255.0 / (high - low)), 0, 255).astype(np.uint8)
 
 
@@ -58,23 +61,24 @@ def marker_montage(rows: list[tuple[str, np.ndarray, pd.DataFrame]], crops: int 
     widths = [2.2] + [1.0] * crops
     axes = fig.subplots(len(rows), crops + 1, squeeze=False, gridspec_kw={"width_ratios": widths})
     for row_axes, (label, pixels, markers) in zip(axes, rows):
-        shown = display_pixels(pixels)
-        _overview(row_axes[0], shown, markers, label)
+        value_range = display_range(pixels)
+        _overview(row_axes[0], pixels, value_range, markers, label)
         side = crop_size_px(markers)
         chosen = pick_markers(markers, crops)
         for ax, (_, marker) in zip(row_axes[1:], chosen.iterrows()):
-            _crop(ax, shown, marker, side)
+            _crop(ax, pixels, value_range, marker, side)
         for ax in row_axes[1 + len(chosen):]:
             ax.axis("off")
     fig.tight_layout(pad=0.4)
     return fig
 
 
-def _overview(ax, shown: np.ndarray, markers: pd.DataFrame, label: str) -> None:
-    height, width = shown.shape
+def _overview(ax, pixels: np.ndarray, value_range, markers: pd.DataFrame, label: str) -> None:
+    height, width = pixels.shape
     scale = OVERVIEW_WIDTH_PX / width
-    small = cv2.resize(shown, (OVERVIEW_WIDTH_PX, max(1, round(height * scale))), interpolation=cv2.INTER_AREA)
-    ax.imshow(small, cmap="gray", vmin=0, vmax=255, extent=(-0.5, width - 0.5, height - 0.5, -0.5))
+    small = cv2.resize(pixels, (OVERVIEW_WIDTH_PX, max(1, round(height * scale))), interpolation=cv2.INTER_AREA)
+    ax.imshow(stretched(small, value_range), cmap="gray", vmin=0, vmax=255, interpolation="nearest",
+              extent=(-0.5, width - 0.5, height - 0.5, -0.5))
     known = markers["point_id"] != ""
     ax.scatter(markers.loc[known, "u"], markers.loc[known, "v"], s=40, facecolors="none",
                edgecolors=IDENTIFIED, linewidths=0.9)
@@ -88,17 +92,17 @@ def _overview(ax, shown: np.ndarray, markers: pd.DataFrame, label: str) -> None:
     ax.set_yticks([])
 
 
-def _crop(ax, shown: np.ndarray, marker: pd.Series, side: int) -> None:
+def _crop(ax, pixels: np.ndarray, value_range, marker: pd.Series, side: int) -> None:
     """A `side` x `side` window centred on the marker, resampled to CROP_DISPLAY_PX, the detection marked."""
-    height, width = shown.shape
+    height, width = pixels.shape
     u, v = float(marker["u"]), float(marker["v"])
     left = int(np.clip(round(u - side / 2), 0, max(width - side, 0)))
     top = int(np.clip(round(v - side / 2), 0, max(height - side, 0)))
-    window = shown[top:top + side, left:left + side]
+    window = stretched(pixels[top:top + side, left:left + side], value_range)
     if window.shape[1] > CROP_DISPLAY_PX:
         window = cv2.resize(window, (CROP_DISPLAY_PX, CROP_DISPLAY_PX), interpolation=cv2.INTER_AREA)
     right, bottom = left + min(side, width), top + min(side, height)
-    ax.imshow(window, cmap="gray", vmin=0, vmax=255, extent=(left - 0.5, right - 0.5, bottom - 0.5, top - 0.5))
+    ax.imshow(window, cmap="gray", vmin=0, vmax=255, interpolation="nearest", extent=(left - 0.5, right - 0.5, bottom - 0.5, top - 0.5))
     identified = marker["point_id"] != ""
     ax.scatter([u], [v], s=60, marker="+", color=IDENTIFIED if identified else UNIDENTIFIED, linewidths=1.0)
     ax.set_title(marker["point_id"] if identified else "unidentified", fontsize=7)
