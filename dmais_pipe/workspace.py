@@ -44,6 +44,8 @@ TRUTH_COLUMNS = ("frame", "group", *QUAT, *TRANSLATION, *CENTER)
 #: residual (fraction of the marker's contrast), and its point id ('' when unidentified).
 MARKER_COLUMNS = ("u", "v", "score", "sigma_px", "fit_residual", "point_id")
 MARKER_REQUIRED = ("u", "v", "score", "point_id")
+#: intrinsics/<camera>.residuals.csv: per observation of our calibration, observed minus projected (px).
+CALIBRATION_RESIDUAL_COLUMNS = ("image", "split", "point_id", "u", "v", "du", "dv")
 SUBSET_FILE = re.compile(r"^poses_(\d+)\.csv$")
 
 
@@ -81,6 +83,10 @@ class Workspace:
     def methods_path(self, camera: str) -> Path:
         """One camera's rows of tables/intrinsics.csv, every method."""
         return self.root / "intrinsics" / f"{camera}.methods.csv"
+
+    def calibration_residuals_path(self, camera: str) -> Path:
+        """Per observation of our intrinsic calibration of `camera`: its residual (calib and eval images)."""
+        return self.root / "intrinsics" / f"{camera}.residuals.csv"
 
     @property
     def rig_path(self) -> Path:
@@ -199,6 +205,19 @@ class Workspace:
         if not path.is_file():
             raise DmaisError(f"intrinsics table: missing {path}; run `dmais intrinsics --camera {camera}`")
         return pd.read_csv(path, dtype={"method": str, "camera": str})
+
+    def save_calibration_residuals(self, camera: str, residuals: pd.DataFrame) -> Path:
+        return write_csv_atomic(self.calibration_residuals_path(camera), residuals[list(CALIBRATION_RESIDUAL_COLUMNS)])
+
+    def load_calibration_residuals(self, camera: str) -> pd.DataFrame | None:
+        """image, split, point_id (str), u, v, du, dv (float) of `camera`'s calibration; None when absent."""
+        path = self.calibration_residuals_path(camera)
+        if not path.is_file():
+            return None
+        with results_errors():
+            table = read_table(path, CALIBRATION_RESIDUAL_COLUMNS)
+            return pd.DataFrame({**{c: table.text(c) for c in CALIBRATION_RESIDUAL_COLUMNS[:3]},
+                                 **{c: table.floats(c) for c in CALIBRATION_RESIDUAL_COLUMNS[3:]}})
 
     def save_rig(self, rig: Rig, case: str | None = None, **extra) -> Path:
         """rig.json (case None) or extrinsics/rig_<case>.json; `extra` keys are stored beside the rig."""

@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import zipfile
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -80,10 +81,20 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
 
     parser = Headings()
     parser.feed((tmp_path / "reports/tiny/report.html").read_text())
-    assert parser.headings == ["Dataset", "Marker quality per camera", "Intrinsics per camera", "Rig layout", "Reprojection residuals per camera",
-                               "Per-frame pose errors", "Camera subsets", "Runtime versus number of points",
-                               "Processing time per stage", "Comparison with the paper"]
+    assert parser.headings == ["Dataset", "Marker quality per camera", "Detected markers on the images",
+                               "Intrinsics per camera", "Rig layout", "Fields of view on the ground",
+                               "Reprojection residuals per camera", "Per-frame pose errors",
+                               "Attitude error: the paper's proxy and the truth", "Camera subsets",
+                               "Runtime versus number of points", "Processing time per stage", "Comparison with the paper"]
     assert "Not available" not in (tmp_path / "reports/tiny/report.html").read_text()
+
+    # `snakemake --report` carries the tables and the report's figures (report() in the rules)
+    zipped = snakemake(tmp_path, "--configfile", str(tmp_path / "config.yaml"), "--report", "report.zip", timeout=300)
+    assert zipped.returncode == 0, zipped.stderr[-3000:]
+    with zipfile.ZipFile(tmp_path / "report.zip") as archive:
+        names = {Path(name).name for name in archive.namelist()}
+    assert {"fov_ground.svg", "markers_flight.jpg", "calibration_residuals.svg", "intrinsics.csv", "conf.csv",
+            "pose_methods_vs_paper.csv", "evaluation.csv", "report.html"} <= names
 
 
 def snakemake(workdir: Path, *options: str, timeout: int = 120) -> subprocess.CompletedProcess:

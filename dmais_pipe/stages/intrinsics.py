@@ -1,7 +1,8 @@
 """`dmais intrinsics`: calibrate every camera that has intrinsics images (calib.intrinsics).
 
-- `run_cameras` (the workflow's job: one camera): RESULTS/intrinsics/<camera>.json (ours) and
-  <camera>.methods.csv (that camera's row of every method). A calibration beyond the conf's
+- `run_cameras` (the workflow's job: one camera): RESULTS/intrinsics/<camera>.json (ours),
+  <camera>.methods.csv (that camera's row of every method) and <camera>.residuals.csv (our
+  calibration's residual per observation, calibration and held-out images). A calibration beyond the conf's
   plausibility bounds stops the job before anything of that camera is written;
 - `write_table`: RESULTS/tables/intrinsics.csv (tab:intrinsics) from every camera's methods file;
 - `run`: every camera, then the table;
@@ -24,7 +25,7 @@ from ..calib.intrinsics import (METHODS, TABLE_COLUMNS, IntrinsicsResult, Plausi
 from ..calib.import_intrinsics import (DEFAULT_MAX_RESIDUAL_PX, ForeignCamera, imported_record, one_coefficient_camera,
                                        read_colmap_cameras, read_opencv_file)
 from ..errors import DmaisError
-from ..workspace import Workspace
+from ..workspace import CALIBRATION_RESIDUAL_COLUMNS, Workspace
 from . import setting
 
 log = logging.getLogger(__name__)
@@ -70,6 +71,8 @@ def run_cameras(workspace: Workspace, names: list[str], conf: Conf = Conf()) -> 
     for name in names:
         ours, rows = _calibrate(workspace, name, conf, observations)
         written += workspace.save_intrinsics(name, ours.to_dict(), rows)
+        written.append(workspace.save_calibration_residuals(name, residual_table(workspace.dataset, ours,
+                                                                                observations)))
     return written
 
 
@@ -176,6 +179,20 @@ def _foreign_cameras(source: Path, names: list[str]) -> dict[str, ForeignCamera]
     if len(names) != 1:
         raise DmaisError(f"{source}: an OpenCV calibration file holds one camera; give exactly one --camera")
     return {names[0]: read_opencv_file(source)}
+
+
+def residual_table(dataset, result: IntrinsicsResult, observations: pd.DataFrame) -> pd.DataFrame:
+    """One row per observation of every image `result` used: image, split, point_id, u, v and the
+    residual du, dv observed minus projected (px). Observations are matched to the residuals by
+    their order within the image, the order `_per_image` gave them to the calibration."""
+    split_of = dict(zip(dataset.images["image"], dataset.images["split"]))
+    parts = []
+    for image, residuals in result.image_residuals_px.items():
+        obs = observations[observations["image"] == image]
+        parts.append(pd.DataFrame({"image": image, "split": split_of[image], "point_id": obs["point_id"].to_numpy(),
+                                   "u": obs["u"].to_numpy(float), "v": obs["v"].to_numpy(float),
+                                   "du": -residuals[:, 0], "dv": -residuals[:, 1]}))
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=list(CALIBRATION_RESIDUAL_COLUMNS))
 
 
 def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tuple[dict, dict]:
