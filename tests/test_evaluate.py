@@ -1,7 +1,9 @@
-"""Pose evaluation: lever-arm removal, eps_ang conversion, truth errors, tables and bad inputs."""
+"""Pose evaluation: the POS lever arm and INS boresight, eps_pos's two readings, eps_ang conversion,
+truth errors, tables and bad inputs."""
 
 from __future__ import annotations
 
+import logging
 import shutil
 
 import numpy as np
@@ -20,7 +22,8 @@ from dmais_pipe.evaluate import (
     subset_cameras,
     true_errors,
 )
-from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
+from dmais_pipe.geometry import Rigid3, exp_so3, quat_from_rotation, rotation_from_euler_zyx
+from dmais_pipe.pos_calibration import attitude_spread, calibration_table, fit_boresight, fit_lever_arm
 from dmais_pipe.rig import Rig
 from dmais_pipe.stages import evaluate, pose
 from dmais_pipe.workspace import ResultsError, Workspace
@@ -127,19 +130,28 @@ def test_evaluate_stage_writes_errors_and_tables(dataset, results):
     evaluation = read(results / "evaluation.csv")
     poses = read(results / "poses.csv")
     assert list(evaluation.columns) == list(poses.columns) + [
-        "eps_pos_m", "eps_ang_arcmin", "true_pos_err_m", "true_ang_err_arcmin", "crb_pos_m", "crb_ang_arcmin"]
+        "eps_pos_m", "eps_pos_group_m", "eps_ang_arcmin", "true_pos_err_m", "true_ang_err_arcmin", "crb_pos_m",
+        "crb_ang_arcmin"]
 
-    # eps_pos by hand: estimate - POS minus its group mean.
+    # eps_pos_group by hand: estimate - POS minus its group mean.
     frames = read(dataset / "frames.csv").set_index("frame").loc[evaluation["frame"]]
     delta = evaluation[["x", "y", "z"]].to_numpy() - frames[["pos_x", "pos_y", "pos_z"]].to_numpy()
     expected = np.empty(len(delta))
     for group in evaluation["group"].unique():
         mine = (evaluation["group"] == group).to_numpy()
         expected[mine] = np.linalg.norm(delta[mine] - delta[mine].mean(axis=0), axis=1)
-    np.testing.assert_allclose(evaluation["eps_pos_m"], expected, atol=1e-9)
-    # The lever arm (0.37 m) is gone: what remains is the POS noise (2-3 cm per axis).
+    np.testing.assert_allclose(evaluation["eps_pos_group_m"], expected, atol=1e-9)
+    # eps_pos by hand from lever_arm.csv: centre + R^T lever - POS with each pose's own rotation.
+    lever = read(results / "tables" / "lever_arm.csv").set_index("parameter")
+    assert lever.index.tolist()[:3] == ["lever_x", "lever_y", "lever_z"] and (lever["sigma"] > 0).all()
+    R = [Rigid3.from_quat([r.qw, r.qx, r.qy, r.qz], [r.tx, r.ty, r.tz]).R for r in evaluation.itertuples()]
+    moved = np.einsum("nji,j->ni", np.array(R), lever.loc[["lever_x", "lever_y", "lever_z"], "value"].to_numpy())
+    np.testing.assert_allclose(evaluation["eps_pos_m"], np.linalg.norm(delta + moved, axis=1), atol=1e-9)
+    # The lever arm (0.37 m) is gone: what remains is the POS noise (2-3 cm per axis) and the 5 cm SHIFT,
+    # which the per-group offsets absorb and the lever arm does not.
     assert np.linalg.norm(delta, axis=1).min() > 0.3
-    assert evaluation["eps_pos_m"].max() < 0.15
+    assert evaluation["eps_pos_m"].max() < 0.15 and evaluation["eps_pos_group_m"].max() < 0.15
+    assert evaluation["eps_pos_m"].mean() > evaluation["eps_pos_group_m"].mean() + 0.01
 
     rig = Rig.load(results / "rig.json")
     focal = np.mean([(c.fx + c.fy) / 2 for c in rig.cameras.values()])
@@ -153,6 +165,8 @@ def test_evaluate_stage_writes_errors_and_tables(dataset, results):
     by_group = evaluation.groupby("group")
     np.testing.assert_allclose(table["eps_pos_mean_m"][:5], by_group["eps_pos_m"].mean(), rtol=1e-9)
     np.testing.assert_allclose(table["eps_pos_std_m"][:5], by_group["eps_pos_m"].std(ddof=1), rtol=1e-9)
+    np.testing.assert_allclose(table["eps_pos_group_mean_m"][:5], by_group["eps_pos_group_m"].mean(), rtol=1e-9)
+    np.testing.assert_allclose(table["eps_pos_group_std_m"][:5], by_group["eps_pos_group_m"].std(ddof=1), rtol=1e-9)
     np.testing.assert_allclose(table["eps_proj_mean_px"][:5], by_group["eps_proj_px"].mean(), rtol=1e-9)
     np.testing.assert_allclose(table["time_mean_ms"].iloc[-1], evaluation["time_ms"].mean(), rtol=1e-9)
     np.testing.assert_allclose(table["true_pos_err_median_m"], 0.05, atol=1e-6)
@@ -172,16 +186,24 @@ def test_evaluate_stage_writes_errors_and_tables(dataset, results):
 def test_subsets_use_the_full_rigs_lever_arm_and_fill_conf(dataset, results):
     bias = np.array([0.5, 0.0, 0.0])
     poses_from_truth(dataset, cameras="C0", shift=SHIFT + bias).to_csv(results / "poses_0.csv", index=False)
-    poses_from_truth(dataset).to_csv(results / "poses_01234.csv", index=False)
     written = evaluate.run(Workspace.open(dataset, results))
-    assert {results / "evaluation_0.csv", results / "evaluation_01234.csv", results / "tables" / "conf.csv"} <= set(written)
+    assert {results / "evaluation_0.csv", results / "tables" / "conf.csv"} <= set(written)
+    assert not (results / "evaluation_01234.csv").exists()  # the full rig is evaluation.csv
     full = read(results / "evaluation.csv")
     single = read(results / "evaluation_0.csv")
-    # Same frames, every estimate moved by `bias`: the full rig's offsets leave the bias in the error.
+    # Same frames and attitudes, every estimate moved by `bias`: the full rig's lever arm and group
+    # offsets leave the bias in the error.
     frames = read(dataset / "frames.csv").set_index("frame").loc[full["frame"]]
     delta = full[["x", "y", "z"]].to_numpy() - frames[["pos_x", "pos_y", "pos_z"]].to_numpy()
     mean = full.assign(dx=delta[:, 0], dy=delta[:, 1], dz=delta[:, 2]).groupby("group")[["dx", "dy", "dz"]].transform("mean")
-    np.testing.assert_allclose(single["eps_pos_m"], np.linalg.norm(delta - mean.to_numpy() + bias, axis=1), atol=1e-9)
+    np.testing.assert_allclose(single["eps_pos_group_m"], np.linalg.norm(delta - mean.to_numpy() + bias, axis=1),
+                               atol=1e-9)
+    lever = read(results / "tables" / "lever_arm.csv").set_index("parameter").loc[["lever_x", "lever_y", "lever_z"],
+                                                                                  "value"].to_numpy()
+    R = np.array([Rigid3.from_quat([r.qw, r.qx, r.qy, r.qz], [0, 0, 0]).R for r in single.itertuples()])
+    np.testing.assert_allclose(single["eps_pos_m"], np.linalg.norm(delta + bias + np.einsum("nji,j->ni", R, lever),
+                                                                   axis=1), atol=1e-9)
+    assert (single["eps_pos_m"] > 0.35).all()
     rig = Rig.load(results / "rig.json")
     c0 = rig.cameras["C0"]
     np.testing.assert_allclose(single["eps_ang_arcmin"], single["eps_proj_px"] / ((c0.fx + c0.fy) / 2) / ARCMIN)
@@ -213,6 +235,13 @@ def test_subsets_use_the_full_rigs_lever_arm_and_fill_conf(dataset, results):
     np.testing.assert_allclose(single["eps_ang_all_arcmin"], single["eps_proj_all_px"] / all_focal / ARCMIN)
     zero = conf[(conf["subset"] == "0") & (conf["group"] == "all")]
     assert zero["eps_proj_mean_px"].iloc[0] == pytest.approx(single["eps_proj_all_px"].mean())
+
+    # A subset file of every camera is tab:conf's #01234 in place of poses.csv.
+    poses_from_truth(dataset, shift=SHIFT + bias).to_csv(results / "poses_01234.csv", index=False)
+    evaluate.run(Workspace.open(dataset, results))
+    conf = read(results / "tables" / "conf.csv")
+    everything = conf[conf["subset"] == "01234"].set_index("group")
+    assert len(conf) == 12 and (everything["eps_pos_mean_m"] > table["eps_pos_mean_m"] + 0.3).all()
 
     # Without subset files a rerun leaves no stale conf table behind.
     (results / "poses_0.csv").unlink()

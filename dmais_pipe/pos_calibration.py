@@ -1,0 +1,184 @@
+"""POS / INS calibration of the rig as POS users know it: one lever arm and one boresight.
+
+Lever arm: the POS reference point (GNSS antenna / IMU centre) in the rig frame, l (m), so that
+
+    POS position = rig centre + world_from_rig.R @ l          (per frame)
+
+estimated once over every frame by linear least squares from the estimated rig poses. With the
+rotations R_i = world_from_rig of the frames and d_i = POS_i - centre_i, the normal equations are
+(sum R_i^T W R_i) l = sum R_i^T W d_i, W the inverse of a diagonal noise covariance per world axis
+(estimated from a first unweighted fit's residuals: the vertical scatter of a POS and of a
+nadir-looking rig differs from the horizontal one). The 1-sigma of l comes from the covariance
+s0^2 (sum R_i^T W R_i)^-1, s0^2 the weighted residual variance over 3n - 3 degrees of freedom;
+it assumes independent frames, so frames that share errors (the same ground markers, one
+in-flight mounting per group) make it optimistic.
+
+Observability: l alone is determined by one frame. What needs the attitude to change is telling
+a lever arm from a constant world-frame offset (a datum or antenna-height error of the POS): a
+rig axis that keeps one world direction in every frame (the heading turns about the vertical, so
+a nadir rig's optical axis always points down) takes any world offset along that direction into
+its lever-arm component. `attitude_spread` measures this per rig axis; when every axis keeps its
+direction (all frames share one attitude) the lever arm is not estimated and one world offset
+POS - centre is used instead, with a warning.
+
+Boresight: the small rotation B = imu_from_rig between the rig and the INS whose attitude
+frames.csv gives (prior_q*, the INS's rig_from_world): INS attitude_i = B @ rig_from_world_i.
+B is the rotation average of INS_i @ R_est_i^T (their small-angle least-squares mean), reported
+as a rotation vector in the rig axes with the standard error of the per-frame rotation vectors.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from .geometry import average_rotations, log_so3
+
+log = logging.getLogger(__name__)
+
+ARCMIN_PER_RAD = 180.0 * 60.0 / np.pi
+RIG_AXES = ("x", "y", "z")
+
+
+@dataclass(frozen=True)
+class LeverArm:
+    """The POS offset fitted over all frames.
+
+    value: (3,) metres, the lever arm in the rig frame (frame 'rig'), or with frame 'world' (the
+    degenerate case) a world-frame offset POS - rig centre; covariance: (3, 3) of value;
+    n_frames: frames fitted; residual_rms_m: (3,) RMS residual per world axis.
+    """
+
+    value: np.ndarray
+    covariance: np.ndarray
+    frame: str
+    n_frames: int
+    residual_rms_m: np.ndarray
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance))
+
+    def pos_offsets(self, world_from_rig: np.ndarray) -> np.ndarray:
+        """(n, 3) predicted POS - rig centre of frames with rotations world_from_rig (n, 3, 3)."""
+        world_from_rig = np.asarray(world_from_rig, dtype=float).reshape(-1, 3, 3)
+        if self.frame == "world":
+            return np.broadcast_to(self.value, (len(world_from_rig), 3)).copy()
+        return world_from_rig @ self.value
+
+    def position_errors(self, centers, pos, world_from_rig) -> np.ndarray:
+        """(n,) |centre + offset - POS| (m) of estimated centres (n, 3), POS positions (n, 3) and
+        estimated rotations world_from_rig (n, 3, 3)."""
+        predicted = np.asarray(centers, dtype=float) + self.pos_offsets(world_from_rig)
+        return np.linalg.norm(predicted - np.asarray(pos, dtype=float), axis=1)
+
+
+@dataclass(frozen=True)
+class Boresight:
+    """imu_from_rig as a rotation vector (3,) in radians (rig axes), its covariance (3, 3), the
+    frames fitted and the RMS angle (rad) of the per-frame residual rotations."""
+
+    rotvec: np.ndarray
+    covariance: np.ndarray
+    n_frames: int
+    residual_rms_rad: float
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance))
+
+
+def attitude_spread(world_from_rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How far each rig axis turns between frames: (angles (3,) rad, rig axes (3, 3) as rows,
+    world directions (3, 3) as rows), from the SVD of the mean rotation M = mean_i R_i = U S V^T.
+
+    A rig axis V_k that every frame maps to the same world direction U_k has S_k = 1 (angle 0):
+    along it a lever arm and a world offset are one and the same. angle_k = arccos(S_k) is the
+    RMS-like spread of that axis' world direction. world_from_rig: (n, 3, 3).
+    """
+    M = np.asarray(world_from_rig, dtype=float).reshape(-1, 3, 3).mean(axis=0)
+    U, S, Vt = np.linalg.svd(M)
+    return np.arccos(np.clip(S, -1.0, 1.0)), Vt, U.T
+
+
+def fit_lever_arm(centers, pos, world_from_rig, min_spread_rad: float) -> LeverArm:
+    """The lever arm l of POS = centre + R l over all frames (weighted linear least squares).
+
+    centers, pos: (n, 3) estimated rig centres and POS positions; world_from_rig: (n, 3, 3) the
+    estimated rotations. When every rig axis turns by less than min_spread_rad (attitude_spread),
+    the frames share one attitude and a world offset POS - centre is fitted instead (warning).
+    """
+    R = np.asarray(world_from_rig, dtype=float).reshape(-1, 3, 3)
+    d = np.asarray(pos, dtype=float) - np.asarray(centers, dtype=float)
+    angles, axes, directions = attitude_spread(R)
+    if angles.max() < min_spread_rad:
+        log.warning("lever arm: the %d frames share one attitude (every rig axis turns by at most %.2f deg, "
+                    "below %.2f deg): a rig-frame lever arm cannot be told from a world offset, so eps_pos "
+                    "removes one world offset POS - estimate instead", len(R), np.degrees(angles.max()),
+                    np.degrees(min_spread_rad))
+        return _fit_offset(d, np.broadcast_to(np.eye(3), R.shape), "world")
+    for angle, axis, direction in zip(angles, axes, directions):
+        if angle < min_spread_rad:
+            log.info("lever arm: rig axis (%.3f, %.3f, %.3f) keeps world direction (%.3f, %.3f, %.3f) within "
+                     "%.2f deg in every frame; along it the lever arm also holds any constant POS offset",
+                     *axis, *direction, np.degrees(angle))
+    return _fit_offset(d, R, "rig")
+
+
+def _fit_offset(d: np.ndarray, A: np.ndarray, frame: str) -> LeverArm:
+    """Weighted least squares of d_i = A_i x (d: (n, 3), A: (n, 3, 3)), weights per world axis
+    from the residuals of the unweighted fit; covariance s0^2 N^-1 (NaN with one frame)."""
+    n = len(d)
+    weights = np.ones(3)
+    for _ in range(2):
+        N = np.einsum("nji,j,njk->ik", A, weights, A)
+        x = np.linalg.solve(N, np.einsum("nji,j,nj->i", A, weights, d))
+        residuals = d - A @ x
+        if n < 2:
+            break
+        variance = np.maximum((residuals**2).sum(axis=0) / (n - 1), 1e-12)
+        weights = 1.0 / variance
+    if n < 2:
+        covariance = np.full((3, 3), np.nan)
+    else:
+        s0_squared = float(np.sum(residuals**2 * weights) / (3 * n - 3))
+        covariance = s0_squared * np.linalg.inv(np.einsum("nji,j,njk->ik", A, weights, A))
+    return LeverArm(x, covariance, frame, n, np.sqrt(np.mean(residuals**2, axis=0)))
+
+
+def fit_boresight(rig_from_world_est, rig_from_world_ins) -> Boresight:
+    """imu_from_rig B of INS_i = B @ R_i over all frames: the rotation average of INS_i R_i^T.
+
+    rig_from_world_est: (n, 3, 3) the estimated attitudes; rig_from_world_ins: (n, 3, 3) the INS's.
+    The covariance is that of the mean of the per-frame rotation vectors about B (NaN with one frame).
+    """
+    est = np.asarray(rig_from_world_est, dtype=float).reshape(-1, 3, 3)
+    ins = np.asarray(rig_from_world_ins, dtype=float).reshape(-1, 3, 3)
+    per_frame = ins @ np.swapaxes(est, -1, -2)
+    B = average_rotations(per_frame)
+    residuals = log_so3(per_frame @ B.T).reshape(-1, 3)
+    n = len(per_frame)
+    covariance = np.cov(residuals.T, ddof=1) / n if n > 1 else np.full((3, 3), np.nan)
+    return Boresight(log_so3(B), covariance, n, float(np.sqrt(np.mean(np.sum(residuals**2, axis=1)))))
+
+
+def calibration_table(lever: LeverArm, boresight: Boresight | None = None, truth: dict | None = None
+                      ) -> pd.DataFrame:
+    """tables/lever_arm.csv: parameter, value, sigma, unit [, truth], one row per parameter.
+
+    Parameters: lever_x/y/z (m, rig frame) or, in the degenerate case, world_offset_x/y/z (m, world
+    frame, POS - estimate); boresight_x/y/z (arc-min, the rotation vector of imu_from_rig in rig
+    axes). truth: parameter -> the simulator's value (the lever arm, the boresight), optional.
+    """
+    prefix = "lever" if lever.frame == "rig" else "world_offset"
+    rows = [(f"{prefix}_{a}", v, s, "m") for a, v, s in zip(RIG_AXES, lever.value, lever.sigma)]
+    if boresight is not None:
+        rows += [(f"boresight_{a}", v * ARCMIN_PER_RAD, s * ARCMIN_PER_RAD, "arcmin")
+                 for a, v, s in zip(RIG_AXES, boresight.rotvec, boresight.sigma)]
+    table = pd.DataFrame(rows, columns=["parameter", "value", "sigma", "unit"])
+    if truth:
+        table["truth"] = table["parameter"].map(truth).astype(float)
+    return table
