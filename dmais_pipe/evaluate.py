@@ -92,9 +92,9 @@ def world_from_rig_rotations(poses: pd.DataFrame) -> np.ndarray:
 
 def fit_pos_lever_arm(poses: pd.DataFrame, dataset: Dataset, min_spread_deg: float = 5.0) -> LeverArm:
     """The lever arm (pos_calibration.fit_lever_arm) of `poses` (Workspace.load_poses) against the
-    POS positions of dataset.frames."""
+    POS positions of dataset.frames; the frames of a flight group share an error."""
     return fit_lever_arm(poses[list(CENTER)].to_numpy(dtype=float), pos_positions(poses, dataset),
-                         world_from_rig_rotations(poses), np.radians(min_spread_deg))
+                         world_from_rig_rotations(poses), np.radians(min_spread_deg), poses["group"])
 
 
 def pos_positions(poses: pd.DataFrame, dataset: Dataset) -> np.ndarray:

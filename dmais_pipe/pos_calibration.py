@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
+from scipy import optimize
 
 from .geometry import average_rotations, log_so3
 
@@ -104,49 +105,111 @@ def attitude_spread(world_from_rig) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return np.arccos(np.clip(S, -1.0, 1.0)), Vt, U.T
 
 
-def fit_lever_arm(centers, pos, world_from_rig, min_spread_rad: float) -> LeverArm:
+def fit_lever_arm(centers, pos, world_from_rig, min_spread_rad: float, groups=None) -> LeverArm:
     """The lever arm l of POS = centre + R l over all frames (weighted linear least squares).
 
     centers, pos: (n, 3) estimated rig centres and POS positions; world_from_rig: (n, 3, 3) the
-    estimated rotations. When every rig axis turns by less than min_spread_rad (attitude_spread),
-    the frames share one attitude and a world offset POS - centre is fitted instead (warning).
+    estimated rotations; groups: (n,) labels of frames that share errors (flight groups: the same
+    ground markers and in-flight mounting), None for independent frames. When every rig axis turns
+    by less than min_spread_rad (attitude_spread), the frames share one attitude and a world offset
+    POS - centre is fitted instead (warning).
     """
     R = np.asarray(world_from_rig, dtype=float).reshape(-1, 3, 3)
     d = np.asarray(pos, dtype=float) - np.asarray(centers, dtype=float)
+    groups = np.zeros(len(d), dtype=int) if groups is None else np.unique(np.asarray(groups).astype(str),
+                                                                         return_inverse=True)[1]
     angles, axes, directions = attitude_spread(R)
     if angles.max() < min_spread_rad:
         log.warning("lever arm: the %d frames share one attitude (every rig axis turns by at most %.2f deg, "
                     "below %.2f deg): a rig-frame lever arm cannot be told from a world offset, so eps_pos "
                     "removes one world offset POS - estimate instead", len(R), np.degrees(angles.max()),
                     np.degrees(min_spread_rad))
-        return _fit_offset(d, np.broadcast_to(np.eye(3), R.shape), "world")
+        return _fit_offset(d, np.broadcast_to(np.eye(3), R.shape), groups, "world")
     for angle, axis, direction in zip(angles, axes, directions):
         if angle < min_spread_rad:
             log.info("lever arm: rig axis (%.3f, %.3f, %.3f) keeps world direction (%.3f, %.3f, %.3f) within "
                      "%.2f deg in every frame; along it the lever arm also holds any constant POS offset",
                      *axis, *direction, np.degrees(angle))
-    return _fit_offset(d, R, "rig")
+    return _fit_offset(d, R, groups, "rig")
 
 
-def _fit_offset(d: np.ndarray, A: np.ndarray, frame: str) -> LeverArm:
-    """Weighted least squares of d_i = A_i x (d: (n, 3), A: (n, 3, 3)), weights per world axis
-    from the residuals of the unweighted fit; covariance s0^2 N^-1 (NaN with one frame)."""
-    n = len(d)
+def _fit_offset(d: np.ndarray, A: np.ndarray, groups: np.ndarray, frame: str) -> LeverArm:
+    """Least squares of d_i = A_i x (d: (n, 3), A: (n, 3, 3)) weighted per world axis, with the
+    error of a frame the sum of a part shared by its group and its own part, both with a variance
+    per world axis (`variance_components`); the weights 1 / (shared + own) come from an unweighted
+    first fit. Covariance of x: N^-1 M N^-1 with N = sum A_i^T W A_i and M the covariance of
+    sum A_i^T W e_i under that error model (N^-1 when nothing is shared); NaN with one frame.
+    groups: (n,) ints."""
     weights = np.ones(3)
     for _ in range(2):
         N = np.einsum("nji,j,njk->ik", A, weights, A)
         x = np.linalg.solve(N, np.einsum("nji,j,nj->i", A, weights, d))
         residuals = d - A @ x
-        if n < 2:
-            break
-        variance = np.maximum((residuals**2).sum(axis=0) / (n - 1), 1e-12)
-        weights = 1.0 / variance
-    if n < 2:
-        covariance = np.full((3, 3), np.nan)
-    else:
-        s0_squared = float(np.sum(residuals**2 * weights) / (3 * n - 3))
-        covariance = s0_squared * np.linalg.inv(np.einsum("nji,j,njk->ik", A, weights, A))
-    return LeverArm(x, covariance, frame, n, np.sqrt(np.mean(residuals**2, axis=0)))
+        if len(d) < 2:
+            return LeverArm(x, np.full((3, 3), np.nan), frame, len(d), np.abs(residuals[0]))
+        own, shared = variance_components(residuals, A, weights, groups)
+        weights = 1.0 / np.maximum(own + shared, 1e-12)
+    N_inv = np.linalg.inv(np.einsum("nji,j,njk->ik", A, weights, A))
+    WA = A * weights[None, :, None]
+    M = np.einsum("nji,j,njk->ik", WA, own, WA)
+    for g in np.unique(groups):
+        S = WA[groups == g].sum(axis=0)
+        M += S.T @ (shared[:, None] * S)
+    return LeverArm(x, N_inv @ M @ N_inv, frame, len(d), np.sqrt(np.mean(residuals**2, axis=0)))
+
+
+def variance_components(residuals, A, weights, groups) -> tuple[np.ndarray, np.ndarray]:
+    """Per world axis k, the variances of the two parts of a frame's error e_i = b_g(i) + u_i:
+    own (u, independent per frame) and shared (b, one per group), from the residuals of the
+    weighted fit d_i = A_i x.
+
+    Moment estimates (Henderson's method, Searle, Casella & McCulloch, "Variance Components",
+    ch. 5): the sums of squares Q_total,k = sum_i r_ik^2 and Q_between,k = sum_g m_g rbar_gk^2 are
+    set to their expectations under the model, tr(P (I - H) K_c (I - H)^T) per component c with H
+    the fit's hat matrix, so the degrees of freedom the fit takes from the group means are
+    accounted for; solved with non-negative least squares. With fewer than two groups, or no group
+    of two frames, nothing is shared. residuals: (n, 3); A: (n, 3, 3); weights: (3,); groups: (n,)
+    ints 0..G-1. Returns own (3,), shared (3,).
+    """
+    residuals = np.asarray(residuals, dtype=float)
+    n = len(residuals)
+    sizes = np.bincount(groups)
+    separable = len(sizes) >= 2 and n > len(sizes)
+    # A component or statistic is (world axis k, M): it touches axis k of every frame i through row
+    # i of M (None: the identity, one column per frame), so its matrix over the 3n stacked residuals
+    # is M on axis k (e.g. Q_between,k = |M^T r_k|^2).
+    in_group = np.eye(len(sizes))[groups]
+    owns = [(k, None) for k in range(3)]
+    shares = [(k, in_group) for k in range(3)] if separable else []
+    means = [(k, in_group / np.sqrt(sizes)) for k in range(3)] if separable else []
+    N_inv = np.linalg.inv(np.einsum("nji,j,njk->ik", A, weights, A))
+    statistics = owns + means
+    Q = np.array([np.sum(_transposed_times(M, residuals[:, k]) ** 2) for k, M in statistics])
+    T = np.array([[_residual_moment(P, L, A, weights, N_inv) for L in owns + shares] for P in statistics])
+    theta = optimize.nnls(T, Q)[0]
+    return theta[:3], theta[3:] if separable else np.zeros(3)
+
+
+def _residual_moment(P: tuple[int, np.ndarray], L: tuple[int, np.ndarray], A: np.ndarray, weights: np.ndarray,
+                     N_inv: np.ndarray) -> float:
+    """|P^T (I - H) L|_F^2 over the stacked residuals, H = A N_inv A^T W the fit's hat matrix: the
+    expected |P^T r|^2 per unit of a variance component with covariance L L^T. P, L: (axis, (n, a)
+    map) as in variance_components; A: (n, 3, 3); weights: (3,)."""
+    (k, Mp), (kl, Ml) = P, L
+    U = _transposed_times(Mp, A[:, k, :])  # (a, 3)
+    V = _transposed_times(Ml, weights[kl] * A[:, kl, :]) @ N_inv.T  # (b, 3): the transpose of N_inv A^T W M
+    moment = np.trace((U.T @ U) @ (V.T @ V))
+    if k != kl:
+        return float(moment)
+    if Mp is None and Ml is None:  # S = P^T L = I_n, without forming it
+        return float(len(A) - 2.0 * np.sum(U * V) + moment)
+    S = Ml if Mp is None else (Mp.T if Ml is None else Mp.T @ Ml)
+    return float(np.sum(S**2) - 2.0 * np.sum(S * (U @ V.T)) + moment)
+
+
+def _transposed_times(M: np.ndarray | None, X: np.ndarray) -> np.ndarray:
+    """M^T X, with M None standing for the identity."""
+    return X if M is None else M.T @ X
 
 
 def fit_boresight(rig_from_world_est, rig_from_world_ins) -> Boresight:

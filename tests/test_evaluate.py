@@ -25,6 +25,7 @@ from dmais_pipe.evaluate import (
 from dmais_pipe.geometry import Rigid3, exp_so3, quat_from_rotation, rotation_from_euler_zyx
 from dmais_pipe.pos_calibration import attitude_spread, calibration_table, fit_boresight, fit_lever_arm
 from dmais_pipe.rig import Rig
+from dmais_pipe.sim.config import DEFAULTS
 from dmais_pipe.stages import evaluate, pose
 from dmais_pipe.workspace import ResultsError, Workspace
 
@@ -91,6 +92,164 @@ def test_position_errors_remove_the_mean_offset_per_group():
     given = {"a": offset["a"] + [0.0, 0.0, 0.5]}
     np.testing.assert_allclose(position_errors(estimated, reference, groups, given)[:2],
                                np.hypot(0.1, 0.5), atol=1e-12)
+
+
+LEVER = np.array([0.15, -0.08, 0.32])
+POS_SIGMA = np.array([0.02, 0.02, 0.05])  # per world axis: the vertical is the noisier
+
+
+def hovering_attitudes(rng, n: int, tilt_deg: float = 3.0, heading=None) -> np.ndarray:
+    """(n, 3, 3) world_from_rig of a nadir rig (rig z = world down) at random headings (or
+    `heading` rad for all), tilted by N(0, tilt_deg) per axis."""
+    down = np.diag([1.0, -1.0, -1.0])
+    headings = rng.uniform(0, 2 * np.pi, n) if heading is None else np.full(n, heading)
+    turns = exp_so3(np.outer(headings, [0.0, 0.0, 1.0]))
+    tilts = exp_so3(rng.normal(0.0, np.radians(tilt_deg), (n, 3))) if tilt_deg else np.eye(3)
+    return tilts @ turns @ down
+
+
+def pos_of(rng, centers, world_from_rig, lever=LEVER) -> np.ndarray:
+    """POS = centre + R lever + N(0, POS_SIGMA) per world axis."""
+    return centers + world_from_rig @ lever + rng.normal(0.0, 1.0, centers.shape) * POS_SIGMA
+
+
+def test_lever_arm_is_recovered_within_its_uncertainty():
+    rng = np.random.default_rng(3)
+    n = 40
+    R = hovering_attitudes(rng, n)
+    centers = rng.uniform(-2000, 2000, (n, 3))
+    trials = [fit_lever_arm(centers, pos_of(rng, centers, R), R, np.radians(5.0)) for _ in range(400)]
+    first = trials[0]
+    assert first.frame == "rig" and first.n_frames == n
+    assert np.all(np.abs(first.value - LEVER) < 3 * first.sigma)
+    # Independent reference: generalized least squares with the true noise, solved by lstsq on the
+    # whitened 3n x 3 system; the fit's own weights come from its residuals and must agree.
+    A = (R / POS_SIGMA[None, :, None]).reshape(-1, 3)
+    pos = pos_of(np.random.default_rng(3), centers, R)
+    gls = np.linalg.lstsq(A, ((pos - centers) / POS_SIGMA).reshape(-1), rcond=None)[0]
+    mine = fit_lever_arm(centers, pos, R, np.radians(5.0))
+    assert np.all(np.abs(mine.value - gls) < 0.2 * mine.sigma)
+    # The sigma is the spread of the estimates over noise draws, and errors / sigma are ~N(0, 1).
+    values = np.array([t.value for t in trials])
+    sigmas = np.array([t.sigma for t in trials])
+    np.testing.assert_allclose(values.std(axis=0), sigmas.mean(axis=0), rtol=0.15)
+    assert 0.62 < np.mean(np.abs(values - LEVER) < sigmas) < 0.74
+    # The rig z axis points down in every frame, where the POS is noisier (5 cm): its sigma is the largest.
+    assert sigmas.mean(axis=0)[2] > 2 * sigmas.mean(axis=0)[:2].max()
+    assert np.all(np.abs(values.mean(axis=0) - LEVER) < 3 * sigmas.mean(axis=0) / np.sqrt(len(trials)))
+
+
+def grouped_flight(rng, groups: int = 5, frames: int = 6):
+    """(world_from_rig (n, 3, 3), centres (n, 3), group labels (n,)): each group hovers at its own
+    heading, its frames tilted by 0.2 deg."""
+    R = np.concatenate([hovering_attitudes(rng, frames, tilt_deg=0.2, heading=h)
+                        for h in rng.uniform(0, 2 * np.pi, groups)])
+    return R, rng.uniform(-500, 500, (groups * frames, 3)), np.repeat(np.arange(groups), frames)
+
+
+def test_variance_components_match_a_dense_computation():
+    """Henderson-style moments: E[r^T P r] = tr(P (I - H) K (I - H)^T), written out with dense
+    3n x 3n matrices, solved by NNLS; the module does it with sparse selectors and 3 x 3 algebra."""
+    from scipy.optimize import nnls
+
+    from dmais_pipe.pos_calibration import variance_components
+
+    rng = np.random.default_rng(11)
+    R, _, groups = grouped_flight(rng, groups=3, frames=4)
+    n = len(R)
+    residuals, weights = rng.normal(0.0, [0.02, 0.03, 0.05], (n, 3)), np.array([1.0, 0.5, 0.2])
+    A, W = R.reshape(3 * n, 3), np.diag(np.tile(weights, n))
+    I_H = np.eye(3 * n) - A @ np.linalg.inv(A.T @ W @ A) @ A.T @ W
+    axis = [np.diag(np.tile(np.eye(3)[k], n)) for k in range(3)]
+    same_group = (groups[:, None] == groups[None, :]).astype(float)
+    shared = [np.kron(same_group, np.diag(np.eye(3)[k])) for k in range(3)]
+    means = [np.kron(same_group / np.bincount(groups)[groups][None, :], np.diag(np.eye(3)[k])) for k in range(3)]
+    statistics, components = axis + means, axis + shared
+    r = residuals.reshape(-1)
+    T = np.array([[np.trace(P @ I_H @ K @ I_H.T) for K in components] for P in statistics])
+    expected = nnls(T, np.array([r @ P @ r for P in statistics]))[0]
+    own, between = variance_components(residuals, R, weights, groups)
+    np.testing.assert_allclose(np.concatenate([own, between]), expected, rtol=1e-9, atol=1e-15)
+
+
+def test_errors_shared_by_a_group_widen_the_lever_arms_sigma():
+    """A group's frames share an error (same ground markers): its sigma must follow the spread of
+    the estimates, where treating the frames as independent understates it about twofold."""
+    rng = np.random.default_rng(8)
+    R, centers, groups = grouped_flight(rng)
+    shared, own = np.array([0.03, 0.03, 0.04]), np.array([0.02, 0.02, 0.03])
+    values, sigmas, independent = [], [], []
+    for _ in range(120):
+        error = rng.normal(0.0, 1.0, (5, 3))[groups] * shared + rng.normal(0.0, 1.0, (len(R), 3)) * own
+        pos = centers + R @ LEVER + error
+        fit = fit_lever_arm(centers, pos, R, np.radians(5.0), groups)
+        values.append(fit.value)
+        sigmas.append(fit.sigma)
+        independent.append(fit_lever_arm(centers, pos, R, np.radians(5.0)).sigma)
+    spread = np.std(values, axis=0)
+    np.testing.assert_allclose(np.sqrt(np.mean(np.square(sigmas), axis=0)), spread, rtol=0.25)
+    assert np.all(np.mean(independent, axis=0) < 0.65 * spread)
+
+
+def test_one_attitude_falls_back_to_a_world_offset(caplog):
+    rng = np.random.default_rng(4)
+    n = 12
+    R = hovering_attitudes(rng, n, tilt_deg=0.0, heading=0.7)
+    centers = rng.uniform(-100, 100, (n, 3))
+    pos = pos_of(rng, centers, R)
+    with caplog.at_level(logging.WARNING):
+        fit = fit_lever_arm(centers, pos, R, np.radians(5.0))
+    assert fit.frame == "world"
+    assert "share one attitude" in caplog.text and "world offset" in caplog.text
+    np.testing.assert_allclose(fit.value, (pos - centers).mean(axis=0), atol=1e-12)
+    np.testing.assert_allclose(fit.position_errors(centers, pos, R),
+                               np.linalg.norm(pos - centers - (pos - centers).mean(axis=0), axis=1), atol=1e-12)
+    np.testing.assert_allclose(fit.sigma, POS_SIGMA / np.sqrt(n), rtol=0.5)
+    table = calibration_table(fit)
+    assert table["parameter"].tolist() == ["world_offset_x", "world_offset_y", "world_offset_z"]
+    assert table["unit"].tolist() == ["m"] * 3
+
+
+def test_headings_about_the_vertical_leave_the_rig_axis_along_it_unseparated(caplog):
+    rng = np.random.default_rng(5)
+    R = hovering_attitudes(rng, 20, tilt_deg=0.0)
+    angles, axes, directions = attitude_spread(R)
+    # the rig z axis (the optical axis of C0) always points down; x and y turn with the heading
+    assert angles.min() < 1e-6 and np.degrees(np.sort(angles)[1:]).min() > 30
+    k = int(np.argmin(angles))
+    assert abs(axes[k] @ [0, 0, 1]) > 1 - 1e-9 and abs(directions[k] @ [0, 0, 1]) > 1 - 1e-9
+    centers = rng.uniform(-100, 100, (20, 3))
+    with caplog.at_level(logging.INFO):
+        fit = fit_lever_arm(centers, pos_of(rng, centers, R), R, np.radians(5.0))
+    assert fit.frame == "rig" and "keeps world direction" in caplog.text
+    assert np.all(np.abs(fit.value - LEVER) < 3 * fit.sigma)
+
+
+def test_boresight_recovers_a_small_rotation():
+    rng = np.random.default_rng(6)
+    n = 40
+    rig_from_world = np.swapaxes(hovering_attitudes(rng, n), -1, -2)
+    truth = np.radians([0.3, -0.2, 0.5])
+    B = exp_so3(truth)
+    exact = fit_boresight(rig_from_world, B @ rig_from_world)
+    np.testing.assert_allclose(exact.rotvec, truth, atol=1e-12)
+    trials = []
+    for _ in range(200):
+        noise = exp_so3(rng.normal(0.0, np.radians(0.5), (n, 3)))
+        trials.append(fit_boresight(rig_from_world, noise @ B @ rig_from_world))
+    assert np.all(np.abs(trials[0].rotvec - truth) < 3 * trials[0].sigma)
+    values = np.array([t.rotvec for t in trials])
+    sigmas = np.array([t.sigma for t in trials])
+    np.testing.assert_allclose(sigmas.mean(axis=0), np.radians(0.5) / np.sqrt(n), rtol=0.1)
+    np.testing.assert_allclose(values.std(axis=0), sigmas.mean(axis=0), rtol=0.2)
+    world_from_rig = np.swapaxes(rig_from_world, -1, -2)
+    lever = fit_lever_arm(np.zeros((n, 3)), pos_of(rng, np.zeros((n, 3)), world_from_rig), world_from_rig, 0.1)
+    table = calibration_table(lever, trials[0], {"lever_x": 0.15, "boresight_z": 30.0})
+    assert table["parameter"].tolist()[3:] == ["boresight_x", "boresight_y", "boresight_z"]
+    assert table.set_index("parameter").loc["boresight_z", "value"] == pytest.approx(
+        np.degrees(trials[0].rotvec[2]) * 60)
+    assert table["unit"].tolist() == ["m"] * 3 + ["arcmin"] * 3
+    assert table["truth"].isna().sum() == 4
 
 
 def test_angular_resolution_and_eps_ang():
@@ -248,6 +407,44 @@ def test_subsets_use_the_full_rigs_lever_arm_and_fill_conf(dataset, results):
     (results / "poses_01234.csv").unlink()
     evaluate.run(Workspace.open(dataset, results))
     assert not (results / "tables" / "conf.csv").exists()
+
+
+def test_solved_flight_recovers_the_simulators_lever_arm_and_boresight(dataset, tmp_path):
+    """End to end: the pose stage's poses of the simulated flight, then evaluate. The simulator puts
+    the POS at centre + R^T lever (lever_arm_m) and the INS attitude at boresight @ rig_from_world
+    (ins_boresight_deg); lever_arm.csv's truth column holds both, and the estimates must lie within
+    3 sigma of them."""
+    results = tmp_path / "results"
+    results.mkdir()
+    shutil.copy(dataset / "truth" / "rig.json", results / "rig.json")
+    pose.run(Workspace.open(dataset, results), pose.Conf())
+    evaluate.run(Workspace.open(dataset, results))
+    table = read(results / "tables" / "lever_arm.csv").set_index("parameter")
+    simulated = DEFAULTS["flight"]
+    np.testing.assert_allclose(table.loc[["lever_x", "lever_y", "lever_z"], "truth"], simulated["lever_arm_m"])
+    np.testing.assert_allclose(table.loc[["boresight_x", "boresight_y", "boresight_z"], "truth"],
+                               np.multiply(simulated["ins_boresight_deg"], 60.0))
+    assert np.all(np.abs(table["value"] - table["truth"]) < 3 * table["sigma"]), table
+    # 15 frames: the lever arm to a few centimetres, the boresight to a few arc-minutes of its ~30'
+    assert table["sigma"].iloc[:3].max() < 0.05 and table["sigma"].iloc[3:].max() < 15.0
+
+
+def test_stage_settings_boresight_and_attitude_spread(dataset, results, caplog):
+    evaluate.run(Workspace.open(dataset, results), evaluate.Conf(boresight=False))
+    assert read(results / "tables" / "lever_arm.csv")["parameter"].tolist() == ["lever_x", "lever_y", "lever_z"]
+    with_lever_arm = read(results / "evaluation.csv")["eps_pos_m"].mean()
+    # Every frame within 200 deg of one attitude "is" one attitude: the named fallback, a world offset.
+    with caplog.at_level(logging.WARNING):
+        evaluate.run(Workspace.open(dataset, results), evaluate.Conf(min_attitude_spread_deg=200.0))
+    assert "share one attitude" in caplog.text
+    table = read(results / "tables" / "lever_arm.csv")
+    assert table["parameter"].tolist()[:3] == ["world_offset_x", "world_offset_y", "world_offset_z"]
+    evaluation = read(results / "evaluation.csv")
+    frames = read(dataset / "frames.csv").set_index("frame").loc[evaluation["frame"]]
+    offset = frames[["pos_x", "pos_y", "pos_z"]].to_numpy() - evaluation[["x", "y", "z"]].to_numpy()
+    np.testing.assert_allclose(table["value"].iloc[:3], offset.mean(axis=0), atol=1e-9)
+    # the lever arm's horizontal 0.17 m, turned with the heading, is now error
+    assert evaluation["eps_pos_m"].mean() > with_lever_arm + 0.05
 
 
 # ------------------------------------------------------------------------------ bad inputs
