@@ -2,16 +2,17 @@
 
 Lever arm: the POS reference point (GNSS antenna / IMU centre) in the rig frame, l (m), so that
 
-    POS position = rig centre + world_from_rig.R @ l          (per frame)
+    POS position = rig centre + world_from_rig @ l          (per frame, rotations only)
 
 estimated once over every frame by linear least squares from the estimated rig poses. With the
 rotations R_i = world_from_rig of the frames and d_i = POS_i - centre_i, the normal equations are
-(sum R_i^T W R_i) l = sum R_i^T W d_i, W the inverse of a diagonal noise covariance per world axis
-(estimated from a first unweighted fit's residuals: the vertical scatter of a POS and of a
-nadir-looking rig differs from the horizontal one). The 1-sigma of l comes from the covariance
-s0^2 (sum R_i^T W R_i)^-1, s0^2 the weighted residual variance over 3n - 3 degrees of freedom;
-it assumes independent frames, so frames that share errors (the same ground markers, one
-in-flight mounting per group) make it optimistic.
+(sum R_i^T W R_i) l = sum R_i^T W d_i, W the inverse of a diagonal noise variance per world axis
+(the vertical scatter of a POS and of a nadir-looking rig differs from the horizontal one). The
+frames of a flight group share part of their error (the same ground markers and their survey,
+one in-flight mounting), so the residuals are split per world axis into a variance shared by a
+group and one of each frame (`variance_components`, estimated from a first unweighted fit), and
+the 1-sigma of l is the covariance of the estimate under that model. Treating the frames as
+independent would understate it about twofold on the simulated flights.
 
 Observability: l alone is determined by one frame. What needs the attitude to change is telling
 a lever arm from a constant world-frame offset (a datum or antenna-height error of the POS): a

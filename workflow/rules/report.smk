@@ -7,6 +7,7 @@ rule evaluate:
     output:
         evaluation=f"{RESULTS}/evaluation.csv",
         pose_methods=f"{RESULTS}/tables/pose_methods.csv",
+        lever_arm=f"{RESULTS}/tables/lever_arm.csv",
         residuals=f"{RESULTS}/tables/residuals.csv",
         **({"conf": f"{RESULTS}/tables/conf.csv"} if SUBSETS else {}),
     params:
