@@ -531,3 +531,8 @@ def test_robust_outliers_leave_the_errors_and_the_bound(dataset, tmp_path):
     assert (with_outliers > 3 * subset["eps_proj_all_px"]).all(), (with_outliers, subset["eps_proj_all_px"])
     evaluation = read(results / "evaluation.csv")
     assert evaluation["crb_pos_m"].notna().all() and (evaluation["crb_pos_m"] < 0.5).all()
+    # tab:conf's full rig (#01234, from poses.csv) is reprojected from the observations its own poses used
+    conf = read(results / "tables" / "conf.csv").set_index(["group", "subset"])
+    assert set(conf.index.get_level_values("subset")) == {"012", "01234"}
+    assert (evaluation["cameras"] == ALL).all()
+    assert conf.loc[("all", "01234"), "eps_proj_mean_px"] == pytest.approx(evaluation["eps_proj_px"].mean(), rel=1e-6)

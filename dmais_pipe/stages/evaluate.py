@@ -2,10 +2,10 @@
 
 Writes evaluation.csv, evaluation_<label>.csv per camera subset, tables/lever_arm.csv (the POS
 lever arm and the INS boresight, pos_calibration), tables/pose_methods.csv, tables/conf.csv (when
-subsets were solved; with the full rig as the label of all its cameras), tables/residuals.csv (flight residuals per camera of the
-observations each pose used) and, when markers were extracted, tables/marker_cameras.csv and
-tables/marker_images.csv (marker quality, markers.quality). The report renders these files and
-computes nothing of its own.
+subsets were solved; the full rig is the label of all its cameras), tables/residuals.csv (flight
+residuals per camera of the observations each pose used) and, when markers were extracted,
+tables/marker_cameras.csv and tables/marker_images.csv (marker quality, markers.quality). The
+report renders these files and computes nothing of its own.
 """
 
 from __future__ import annotations
@@ -66,8 +66,8 @@ def _poses(workspace: Workspace, rig: Rig, whole_rig: pd.DataFrame | None, conf:
     for group, offset in offsets.items():
         log.info("mean offset (estimate - POS) of group %s: (%.3f, %.3f, %.3f) m", group, *offset)
     observations = workspace.load_observations()
-    used = used_observations(observations, whole_rig)
-    evaluation = evaluate_poses(poses, dataset, rig, truth, offsets, used, lever_arm)
+    used_by_rig = used_observations(observations, whole_rig)
+    evaluation = evaluate_poses(poses, dataset, rig, truth, offsets, used_by_rig, lever_arm)
     table = pose_methods_table(evaluation)
     written = [workspace.save_table("lever_arm", calibration_table(lever_arm, boresight, _simulator_truth(dataset))),
                workspace.save_evaluation(evaluation), workspace.save_table("pose_methods", table)]
@@ -83,7 +83,7 @@ def _poses(workspace: Workspace, rig: Rig, whole_rig: pd.DataFrame | None, conf:
         written.append(workspace.save_evaluation(subsets[label], label))
     full_rig = "".join(str(k) for k in range(len(rig.camera_names)))  # tab:conf's #01234
     if subsets and full_rig not in subsets:
-        subsets[full_rig] = _with_every_camera(evaluation, dataset, rig, used)
+        subsets[full_rig] = _with_every_camera(evaluation, dataset, rig, used_by_rig)
     written += _replace_table(workspace, "conf", conf_table(subsets, rig) if subsets else None)
     for row in table.itertuples(index=False):
         log.info("group %s: %d frames, eps_pos %.3f m (per-group offset: %.3f m), eps_ang %.3f', eps_proj %.3f px, "
