@@ -447,6 +447,15 @@ def test_stage_settings_boresight_and_attitude_spread(dataset, results, caplog):
     assert evaluation["eps_pos_m"].mean() > with_lever_arm + 0.05
 
 
+def test_extra_poses_columns_are_carried_through(dataset, results):
+    poses = read(results / "poses.csv")
+    poses.assign(heading_deg=12.5, heading_sigma_deg=0.01).to_csv(results / "poses.csv", index=False)
+    evaluate.run(Workspace.open(dataset, results))
+    evaluation = read(results / "evaluation.csv")
+    assert (evaluation["heading_deg"] == 12.5).all() and evaluation["eps_pos_m"].notna().all()
+    assert read(results / "tables" / "lever_arm.csv")["value"].notna().all()
+
+
 # ------------------------------------------------------------------------------ bad inputs
 
 
