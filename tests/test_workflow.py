@@ -44,7 +44,7 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
     }))
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(
         {"dataset": "tiny", "simulate": "sim.yaml", "subsets": ["0", "012"],
-         "bench_pose": {"repeats": 2, "batch_frames": 5}}))
+         "bench_pose": {"repeats": 2, "batch_frames": 5, "stage_frames": 0}}))
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     command = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path),
                "--configfile", str(tmp_path / "config.yaml"), "--cores", "2"]
@@ -146,7 +146,8 @@ def test_a_users_dataset_is_only_read(tmp_path):
     work.mkdir()
     (work / "mysite.yaml").write_text(yaml.safe_dump(
         {"dataset": "mysite", "dataset_dir": str(site), "subsets": ["0"], "bench_pose": {"repeats": 1,
-                                                                                        "batch_frames": 2},
+                                                                                        "batch_frames": 2,
+                                                                                        "stage_frames": 0},
          "intrinsics": {"methods": ["ours"]}, "pose": {"conf": "robust", "robust_threshold_px": 15}}))
 
     dry = snakemake(work, "--configfile", "mysite.yaml", "--cores", "2", "-n", "-p")

@@ -257,7 +257,7 @@ def _solved_by_scipy(problem: _RigProblem, max_nfev: int) -> RigBAResult:
 # ------------------------------------------------------------------------------ pycolmap backend
 
 
-def _colmap_rigid(T: Rigid3):
+def colmap_rigid(T: Rigid3):
     import pycolmap
 
     return pycolmap.Rigid3d(pycolmap.Rotation3d(T.R), T.t)
@@ -320,16 +320,16 @@ def _add_rig(rec, cameras: dict[str, Camera], names: list[str], rig_from_cam: di
     rig = pycolmap.Rig(rig_id=1)
     rig.add_ref_sensor(rec.cameras[camera_ids[names[0]]].sensor_id)
     for c in names[1:]:
-        rig.add_sensor(rec.cameras[camera_ids[c]].sensor_id, _colmap_rigid(rig_from_cam[c].inverse()))
+        rig.add_sensor(rec.cameras[camera_ids[c]].sensor_id, colmap_rigid(rig_from_cam[c].inverse()))
     rec.add_rig(rig)
     return camera_ids
 
 
-def _add_frame(rec, frame_id: int, rig_id: int, rig_from_world: Rigid3, images: list) -> None:
+def add_colmap_frame(rec, frame_id: int, rig_id: int, rig_from_world: Rigid3, images: list) -> None:
     import pycolmap
 
     frame = pycolmap.Frame(frame_id=frame_id, rig_id=rig_id)
-    frame.rig_from_world = _colmap_rigid(rig_from_world)
+    frame.rig_from_world = colmap_rigid(rig_from_world)
     for image in images:
         image.frame_id = frame_id
         frame.add_data_id(image.data_id)
@@ -367,7 +367,7 @@ def _build_scene(cameras: dict[str, Camera], reference: str, blocks: list[ImageB
         images = [pycolmap.Image(name=b.image, keypoints=colmap_pixels(b.uv) / sig[b.camera],
                                  camera_id=camera_ids[b.camera], image_id=image_id)
                   for b, image_id in zip(blocks, image_ids) if b.placement == j]
-        _add_frame(rec, fid, 1, rig_from_world[j], images)
+        add_colmap_frame(rec, fid, 1, rig_from_world[j], images)
 
     points, block_points = _unique_points(blocks)
     tracks = [pycolmap.Track() for _ in points]
@@ -400,7 +400,7 @@ def _add_shadows(rec, blocks, block_points, points, tracks, rig_from_cam, rig_fr
         X_cam = cam_from_world.apply(points[idx])
         image = pycolmap.Image(name=f"shadow of {b.image}", keypoints=X_cam[:, :2] / X_cam[:, 2:],
                                camera_id=camera_id, image_id=image_id)
-        _add_frame(rec, frame_id, 2, cam_from_world, [image])
+        add_colmap_frame(rec, frame_id, 2, cam_from_world, [image])
         for q, i in enumerate(idx):
             tracks[i].add_element(image_id, q)
         centres.append(cam_from_world.center)

@@ -27,22 +27,24 @@ from ..markers.quality import FLAG_FACTOR, FLAG_MIN_SIGMA_PX, camera_quality, im
 from ..pos_calibration import Boresight, LeverArm, calibration_table, fit_boresight
 from ..rig import Rig
 from ..workspace import CENTER, QUAT, ResultsError, Workspace
+from . import setting
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class Conf:
-    """flag_factor, flag_min_sigma_px: an image's markers are flagged as poor when their median
-    sigma exceeds both flag_factor x its camera's median and flag_min_sigma_px.
-    boresight: also estimate the INS boresight (when frames.csv has the INS attitude of every frame).
-    min_attitude_spread_deg: below this spread of the rig's attitude over the frames a lever arm
-    cannot be told from a world offset, and eps_pos removes a world offset (pos_calibration)."""
+    """The evaluation's settings; an image's markers are flagged as poor when their median sigma
+    exceeds both flag_factor x its camera's median and flag_min_sigma_px. The POS calibration:
+    pos_calibration."""
 
-    flag_factor: float = FLAG_FACTOR
-    flag_min_sigma_px: float = FLAG_MIN_SIGMA_PX
-    boresight: bool = True
-    min_attitude_spread_deg: float = 5.0
+    flag_factor: float = setting(FLAG_FACTOR, "flag an image whose median marker sigma exceeds this many times "
+                                              "its camera's median", above=0)
+    flag_min_sigma_px: float = setting(FLAG_MIN_SIGMA_PX, "... and exceeds this (px)", minimum=0)
+    boresight: bool = setting(True, "also estimate the INS boresight from frames.csv's INS attitudes (prior_q*)")
+    min_attitude_spread_deg: float = setting(
+        5.0, "below this attitude spread over the frames a lever arm cannot be told from a world offset, which is "
+             "fitted instead", minimum=0)
 
 
 CONFS = {"default": Conf()}

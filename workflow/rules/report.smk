@@ -28,9 +28,11 @@ rule bench_pose:
     output:
         csv=f"{RESULTS}/tables/time_points.csv",
         batch=f"{RESULTS}/tables/time_points_batch.csv",
+        **({"stage": f"{RESULTS}/tables/time_points_stage.csv"} if BENCH_POSE["stage_frames"] else {}),
     params:
         repeats=BENCH_POSE["repeats"],
         batch_frames=BENCH_POSE["batch_frames"],
+        stage_frames=BENCH_POSE["stage_frames"],
     log:
         f"{LOGS}/bench_pose.log",
     benchmark:
@@ -39,7 +41,7 @@ rule bench_pose:
         DMAIS_ENV
     shell:
         "dmais bench pose --csv {output.csv} --repeats {params.repeats} --batch-frames {params.batch_frames} "
-        "> {log} 2>&1"
+        "--stage-frames {params.stage_frames} > {log} 2>&1"
 
 
 rule report:
