@@ -74,10 +74,11 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
     assert len(poses) == 5 and (results / "poses_0.csv").is_file() and (results / "poses_012.csv").is_file()
     evaluation = pd.read_csv(results / "evaluation.csv")
     assert evaluation["true_pos_err_m"].median() < 0.5 and evaluation["true_ang_err_arcmin"].median() < 5
-    for table in ("intrinsics", "extrinsics_R", "extrinsics_t", "pose_methods", "conf", "time_points"):
+    for table in ("intrinsics", "extrinsics_R", "extrinsics_t", "pose_methods", "conf", "lever_arm", "time_points"):
         assert (results / "tables" / f"{table}.csv").is_file(), table
         assert (tmp_path / "reports/tiny/tables" / f"{table}.csv").is_file(), table
-    assert set(pd.read_csv(results / "tables" / "conf.csv", dtype={"subset": str})["subset"]) == {"0", "012"}
+    # the subsets, and the whole rig of poses.csv as tab:conf's #01234
+    assert set(pd.read_csv(results / "tables" / "conf.csv", dtype={"subset": str})["subset"]) == {"0", "012", "01234"}
 
     parser = Headings()
     parser.feed((tmp_path / "reports/tiny/report.html").read_text())

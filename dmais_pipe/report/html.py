@@ -438,12 +438,16 @@ def _frames_section(ctx: _Context) -> str:
     if evaluation is None:
         raise MissingInput(f"{ctx.workspace.evaluation_path()} is missing (run `dmais evaluate`).")
     parts = [_figure(_svg(frame_errors_figure(evaluation)),
-                     "Errors of every frame in file order, coloured by flight group. eps_pos after removing each "
-                     "group's mean offset to the POS (the lever arm)."
+                     "Errors of every frame in file order, coloured by flight group. eps_pos: distance to the POS "
+                     "position after the one lever arm fitted over all frames (table below); eps_pos_group: after "
+                     "removing each group's mean offset to the POS instead (a literal reading of the paper's "
+                     "\"average offset\", which absorbs each group's bias)."
                      + (" True errors against the simulator's truth in the last panels." if
                         TRUE_ERROR_COLUMNS[0] in evaluation else ""))]
+    parts.append(_pos_calibration_part(ctx))
     table = ctx.table("pose_methods", "run `dmais evaluate`")
-    parts += ["<p>Per group mean and standard deviation (tab:pose_methods):</p>", _table(table)]
+    parts += ["<p>Per group mean and standard deviation (tab:pose_methods); eps_pos_* with the lever arm "
+              "(compared with the paper), eps_pos_group_* with the per-group mean offsets:</p>", _table(table)]
     if len(evaluation) <= _MAX_TABLE_ROWS:
         parts += ["<details><summary>Every frame</summary>", _table(evaluation), "</details>"]
     return "\n".join(parts)
@@ -488,16 +492,37 @@ def attitude_figure(evaluation: pd.DataFrame, truth_column: str):
     return fig
 
 
+def _pos_calibration_part(ctx: _Context) -> str:
+    """tables/lever_arm.csv with what its rows mean (or a line saying it is missing)."""
+    table = ctx.workspace.load_table("lever_arm")
+    if table is None:
+        return _missing(f"{ctx.workspace.table_path('lever_arm')} is missing (run `dmais evaluate`).")
+    world = table["parameter"].str.startswith("world_offset").any()
+    text = ("The frames share one attitude, so no lever arm could be told from a world offset: eps_pos removes "
+            "one world-frame offset POS - estimate (m)." if world else
+            "POS lever arm: the POS reference point in the rig frame (POS = rig centre + R_world_from_rig l), "
+            "fitted once over every frame of poses.csv and applied to every camera subset; 1-sigma with an error "
+            "shared by a group's frames.")
+    if table["parameter"].str.startswith("boresight").any():
+        text += (" INS boresight: imu_from_rig as a rotation vector in the rig axes (INS attitude = B "
+                 "rig_from_world), from frames.csv's INS attitudes.")
+    if "truth" in table:
+        text += " truth: the simulator's values."
+    return "\n".join([f"<p>{_esc(text)}</p>", _table(table)])
+
+
 def _subsets_section(ctx: _Context) -> str:
     conf = ctx.table("conf", "run `dmais pose --cameras ...` per subset, then `dmais evaluate`")
-    caption = ("Mean errors per camera subset (label = camera indexes, e.g. 012 = C0, C1, C2) and flight group; "
-               "log scale.")
+    caption = ("Mean errors per camera subset (label = camera indexes, e.g. 012 = C0, C1, C2; the full rig of "
+               "poses.csv is the label of all its cameras) and flight group; log scale. eps_pos with the full rig's "
+               "lever arm, eps_pos_group with the full rig's per-group mean offsets.")
     return "\n".join([_figure(_svg(subset_figure(conf)), caption), _table(conf_wide(conf))])
 
 
 def conf_wide(conf: pd.DataFrame) -> pd.DataFrame:
     """tab:conf's layout: rows (group, metric), one column per subset label."""
-    metrics = [c for c in ("eps_pos_mean_m", "eps_ang_mean_arcmin", "eps_proj_mean_px") if c in conf]
+    metrics = [c for c in ("eps_pos_mean_m", "eps_pos_group_mean_m", "eps_ang_mean_arcmin", "eps_proj_mean_px")
+               if c in conf]
     long = conf.melt(id_vars=["group", "subset"], value_vars=metrics, var_name="metric")
     labels = list(dict.fromkeys(conf["subset"]))
     wide = long.pivot_table(index=["group", "metric"], columns="subset", values="value", sort=False)
@@ -622,7 +647,10 @@ def residual_figure(residuals: pd.DataFrame, rig: Rig, cameras: list[str]):
 
 def frame_errors_figure(evaluation: pd.DataFrame):
     """eps_pos, eps_ang, eps_proj (and the true errors) per frame, coloured by group."""
-    panels = [("eps_pos_m", "eps_pos (m)"), ("eps_ang_arcmin", "eps_ang (′)"), ("eps_proj_px", "eps_proj (px)")]
+    panels = [(c, label) for c, label in (("eps_pos_m", "eps_pos, lever arm (m)"),
+                                          ("eps_pos_group_m", "eps_pos, group offsets (m)"),
+                                          ("eps_ang_arcmin", "eps_ang (′)"), ("eps_proj_px", "eps_proj (px)"))
+              if c in evaluation]
     panels += [(c, label) for c, label in zip(TRUE_ERROR_COLUMNS, ("true position error (m)",
                                                                    "true attitude error (′)")) if c in evaluation]
     fig = Figure(figsize=(9, 1.9 * len(panels) + 0.4))
@@ -640,12 +668,14 @@ def frame_errors_figure(evaluation: pd.DataFrame):
 
 def subset_figure(conf: pd.DataFrame):
     """Grouped bars per subset label (x) and group (bars), one panel per metric, log scale."""
-    metrics = [(c, label) for c, label in (("eps_pos_mean_m", "eps_pos (m)"), ("eps_ang_mean_arcmin", "eps_ang (′)"),
+    metrics = [(c, label) for c, label in (("eps_pos_mean_m", "eps_pos, lever arm (m)"),
+                                           ("eps_pos_group_mean_m", "eps_pos, group offsets (m)"),
+                                           ("eps_ang_mean_arcmin", "eps_ang (′)"),
                                            ("eps_proj_mean_px", "eps_proj (px)")) if c in conf]
     labels = list(dict.fromkeys(conf["subset"]))
     groups = [g for g in dict.fromkeys(conf["group"]) if g != ALL_GROUPS] or [ALL_GROUPS]
     width = 0.8 / len(groups)
-    fig = Figure(figsize=(4 * len(metrics), 3.4))
+    fig = Figure(figsize=(3.4 * len(metrics), 3.4))
     axes = fig.subplots(1, len(metrics), squeeze=False)[0]
     x = np.arange(len(labels))
     for ax, (column, name) in zip(axes, metrics):

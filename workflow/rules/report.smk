@@ -9,6 +9,8 @@ rule evaluate:
                           subcategory="Pose"),
         pose_methods=report(f"{RESULTS}/tables/pose_methods.csv", caption="../report/pose_methods.rst",
                             category="Tables", subcategory="Pose"),
+        lever_arm=report(f"{RESULTS}/tables/lever_arm.csv", caption="../report/lever_arm.rst", category="Tables",
+                         subcategory="Pose"),
         residuals=report(f"{RESULTS}/tables/residuals.csv", caption="../report/flight_residuals.rst",
                          category="Tables", subcategory="Pose"),
         **({"conf": report(f"{RESULTS}/tables/conf.csv", caption="../report/conf.rst", category="Tables",
