@@ -587,6 +587,7 @@ cdef void hessenberg(double *A, int n, double *reflectors, double *tau) noexcept
     cdef double alpha, tail, norm, beta, inverse, dot
     cdef double w[N_SOLUTIONS]
     cdef double *v
+    cdef double *column
     for k in range(n - 2):
         v = reflectors + k * n
         memset(v, 0, n * sizeof(double))
@@ -606,21 +607,24 @@ cdef void hessenberg(double *A, int n, double *reflectors, double *tau) noexcept
             v[i] = A[k * n + i] * inverse
             A[k * n + i] = 0.0
         A[k * n + k + 1] = beta
-        for j in range(k + 1, n):  # A <- H_k A, columns k + 1 on
+        for j in range(k + 1, n):  # A <- H_k A, columns k + 1 on (pointers: see hessenberg_eigenvalues)
+            column = A + j * n
             dot = 0.0
             for i in range(k + 1, n):
-                dot += v[i] * A[j * n + i]
+                dot += v[i] * column[i]
             dot *= tau[k]
             for i in range(k + 1, n):
-                A[j * n + i] -= dot * v[i]
+                column[i] -= dot * v[i]
         memset(w, 0, n * sizeof(double))  # A <- A H_k: w = A v, A -= tau w v^T
         for j in range(k + 1, n):
+            column = A + j * n
             for i in range(n):
-                w[i] += A[j * n + i] * v[j]
+                w[i] += column[i] * v[j]
         for j in range(k + 1, n):
+            column = A + j * n
             dot = tau[k] * v[j]
             for i in range(n):
-                A[j * n + i] -= dot * w[i]
+                column[i] -= dot * w[i]
 
 
 cdef int hessenberg_eigenvalues(double *A, int n, double *wr, double *wi) noexcept nogil:
@@ -629,8 +633,12 @@ cdef int hessenberg_eigenvalues(double *A, int n, double *wr, double *wi) noexce
     Schur form (Golub and Van Loan, Matrix Computations, 7.5), with exceptional shifts every 10th
     iteration. Complex pairs come with the positive imaginary part first. Returns 0, or -1 when
     an eigenvalue takes more than 30 iterations."""
-    cdef int hi = n - 1, low, k, j, i, rows, last, its = 0
-    cdef double norm = 0.0, s, trace, det, x, y, z, beta, tau, v1, v2, inverse, p, q, root, h11
+    cdef int hi = n - 1, low, k, j, i, rows, its = 0
+    cdef double norm = 0.0, s, trace, det, x, y, z, beta, tau, v1, v2, inverse, p, h11
+    cdef double *column
+    cdef double *next_column
+    cdef double *third
+    cdef double *entry
     for i in range(n * n):
         norm = max(norm, fabs(A[i]))
     while hi >= 0:
@@ -686,27 +694,34 @@ cdef int hessenberg_eigenvalues(double *A, int n, double *wr, double *wi) noexce
                 A[(k - 1) * n + k + 1] = 0.0
                 if rows == 3:
                     A[(k - 1) * n + k + 2] = 0.0
+            # through pointers: indices computed in C int under -fwrapv keep GCC from vectorizing
+            column = A + k * n
             if rows == 3:
+                entry = column + k  # A[k, k]
                 for j in range(k, hi + 1):  # rows k..k+2 <- (I - tau u u^T) rows, u = (1, v1, v2)
-                    p = tau * (A[j * n + k] + v1 * A[j * n + k + 1] + v2 * A[j * n + k + 2])
-                    A[j * n + k] -= p
-                    A[j * n + k + 1] -= p * v1
-                    A[j * n + k + 2] -= p * v2
-                last = min(k + 3, hi)
-                for i in range(low, last + 1):  # columns k..k+2 <- columns (I - tau u u^T)
-                    p = tau * (A[k * n + i] + v1 * A[(k + 1) * n + i] + v2 * A[(k + 2) * n + i])
-                    A[k * n + i] -= p
-                    A[(k + 1) * n + i] -= p * v1
-                    A[(k + 2) * n + i] -= p * v2
+                    p = tau * (entry[0] + v1 * entry[1] + v2 * entry[2])
+                    entry[0] -= p
+                    entry[1] -= p * v1
+                    entry[2] -= p * v2
+                    entry += n
+                next_column, third = column + n, column + 2 * n
+                for i in range(low, min(k + 3, hi) + 1):  # columns k..k+2 <- columns (I - tau u u^T)
+                    p = tau * (column[i] + v1 * next_column[i] + v2 * third[i])
+                    column[i] -= p
+                    next_column[i] -= p * v1
+                    third[i] -= p * v2
             else:
+                entry = column + k  # A[k, k]
                 for j in range(k, hi + 1):
-                    p = tau * (A[j * n + k] + v1 * A[j * n + k + 1])
-                    A[j * n + k] -= p
-                    A[j * n + k + 1] -= p * v1
+                    p = tau * (entry[0] + v1 * entry[1])
+                    entry[0] -= p
+                    entry[1] -= p * v1
+                    entry += n
+                next_column = column + n
                 for i in range(low, hi + 1):
-                    p = tau * (A[k * n + i] + v1 * A[(k + 1) * n + i])
-                    A[k * n + i] -= p
-                    A[(k + 1) * n + i] -= p * v1
+                    p = tau * (column[i] + v1 * next_column[i])
+                    column[i] -= p
+                    next_column[i] -= p * v1
     return 0
 
 
@@ -858,6 +873,33 @@ cdef void reduce_to_basis(const double *T, int m, int n_columns, int n_reducible
         factor = 1.0 / row[first + a]
         for j in range(n_basis):
             X[a * n_basis + j] *= factor
+
+
+def action_matrix_eigen(const double[:, ::1] A, units=(0, 1, 2, 3)):
+    """Eigenvalues (40,) complex of A (40, 40) by `action_eigenvalues`, and for each real shift in
+    them the `eigenvector_units` at the rows `units` (4,), as (40, 4) (NaN where complex); None
+    if the QR iteration fails. For tests: the solver calls these without Python."""
+    cdef double M[N_SOLUTIONS * N_SOLUTIONS]
+    cdef long rows[4]
+    cdef Eigen e
+    cdef double v[4]
+    cdef int i, j
+    if A.shape[0] != N_SOLUTIONS or A.shape[1] != N_SOLUTIONS:
+        raise ValueError(f"A must be ({N_SOLUTIONS}, {N_SOLUTIONS})")
+    for i in range(4):
+        rows[i] = units[i]
+    for i in range(N_SOLUTIONS):
+        for j in range(N_SOLUTIONS):
+            M[j * N_SOLUTIONS + i] = A[i, j]
+    if action_eigenvalues(M, rows, &e) != 0:
+        return None
+    values = np.array([complex(e.wr[i], e.wi[i]) for i in range(N_SOLUTIONS)])
+    vectors = np.full((N_SOLUTIONS, 4), np.nan)
+    for i in range(N_SOLUTIONS):
+        if e.wi[i] == 0.0:
+            eigenvector_units(&e, e.wr[i], v)
+            vectors[i] = [v[0], v[1], v[2], v[3]]
+    return values, vectors
 
 
 cdef bint unit_directions(const double *v, const double *d, const double *M, int n, double zero, double *f) noexcept nogil:
