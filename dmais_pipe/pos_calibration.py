@@ -31,7 +31,7 @@ as a rotation vector in the rig axes with the standard error of the per-frame ro
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -51,7 +51,9 @@ class LeverArm:
 
     value: (3,) metres, the lever arm in the rig frame (frame 'rig'), or with frame 'world' (the
     degenerate case) a world-frame offset POS - rig centre; covariance: (3, 3) of value;
-    n_frames: frames fitted; residual_rms_m: (3,) RMS residual per world axis.
+    n_frames: frames fitted; residual_rms_m: (3,) RMS residual per world axis; fixed_axes: (k, 3)
+    unit rig axes that keep one world direction in every frame: along them the lever arm cannot be
+    told from a constant POS offset, whatever its sigma says.
     """
 
     value: np.ndarray
@@ -59,6 +61,7 @@ class LeverArm:
     frame: str
     n_frames: int
     residual_rms_m: np.ndarray
+    fixed_axes: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     @property
     def sigma(self) -> np.ndarray:
@@ -126,12 +129,12 @@ def fit_lever_arm(centers, pos, world_from_rig, min_spread_rad: float, groups=No
                     "removes one world offset POS - estimate instead", len(R), np.degrees(angles.max()),
                     np.degrees(min_spread_rad))
         return _fit_offset(d, np.broadcast_to(np.eye(3), R.shape), groups, "world")
-    for angle, axis, direction in zip(angles, axes, directions):
-        if angle < min_spread_rad:
-            log.info("lever arm: rig axis (%.3f, %.3f, %.3f) keeps world direction (%.3f, %.3f, %.3f) within "
-                     "%.2f deg in every frame; along it the lever arm also holds any constant POS offset",
-                     *axis, *direction, np.degrees(angle))
-    return _fit_offset(d, R, groups, "rig")
+    fixed = angles < min_spread_rad
+    for angle, axis, direction in zip(angles[fixed], axes[fixed], directions[fixed]):
+        log.warning("lever arm: rig axis (%.3f, %.3f, %.3f) keeps world direction (%.3f, %.3f, %.3f) within "
+                    "%.2f deg in every frame; along it the lever arm also holds any constant POS offset "
+                    "(e.g. a height bias), which no sigma accounts for", *axis, *direction, np.degrees(angle))
+    return replace(_fit_offset(d, R, groups, "rig"), fixed_axes=np.asarray(axes)[fixed].reshape(-1, 3))
 
 
 def _fit_offset(d: np.ndarray, A: np.ndarray, groups: np.ndarray, frame: str) -> LeverArm:
@@ -231,7 +234,7 @@ def fit_boresight(rig_from_world_est, rig_from_world_ins) -> Boresight:
 
 def calibration_table(lever: LeverArm, boresight: Boresight | None = None, truth: dict | None = None
                       ) -> pd.DataFrame:
-    """tables/lever_arm.csv: parameter, value, sigma, unit [, truth], one row per parameter.
+    """tables/lever_arm.csv: parameter, value, sigma, unit, note [, truth], one row per parameter.
 
     Parameters: lever_x/y/z (m, rig frame) or, in the degenerate case, world_offset_x/y/z (m, world
     frame, POS - estimate); boresight_x/y/z (arc-min, the rotation vector of imu_from_rig in rig
@@ -243,6 +246,11 @@ def calibration_table(lever: LeverArm, boresight: Boresight | None = None, truth
         rows += [(f"boresight_{a}", v * ARCMIN_PER_RAD, s * ARCMIN_PER_RAD, "arcmin")
                  for a, v, s in zip(RIG_AXES, boresight.rotvec, boresight.sigma)]
     table = pd.DataFrame(rows, columns=["parameter", "value", "sigma", "unit"])
+    table["note"] = ""
+    for axis in lever.fixed_axes:  # a lever-arm component mostly along an axis that never turned
+        for k in np.flatnonzero(np.abs(axis) > 0.5):
+            table.loc[k, "note"] = ("not separable from a constant POS offset: this rig axis keeps one world "
+                                    "direction in every frame")
     if truth:
         table["truth"] = table["parameter"].map(truth).astype(float)
     return table

@@ -223,6 +223,11 @@ def test_headings_about_the_vertical_leave_the_rig_axis_along_it_unseparated(cap
         fit = fit_lever_arm(centers, pos_of(rng, centers, R), R, np.radians(5.0))
     assert fit.frame == "rig" and "keeps world direction" in caplog.text
     assert np.all(np.abs(fit.value - LEVER) < 3 * fit.sigma)
+    # a constant POS height bias goes wholly into lever_z, whose sigma cannot show it: the table says so
+    biased = fit_lever_arm(centers, pos_of(rng, centers, R) + [0.0, 0.0, 0.1], R, np.radians(5.0))
+    assert abs(biased.value[2] - fit.value[2]) > 0.05 and abs(biased.value[2] - LEVER[2]) > 3 * biased.sigma[2]
+    notes = calibration_table(biased)["note"].tolist()
+    assert notes[2].startswith("not separable from a constant POS offset") and notes[:2] == ["", ""]
 
 
 def test_boresight_recovers_a_small_rotation():
