@@ -178,7 +178,7 @@ def _parser() -> argparse.ArgumentParser:
     simulate = commands.add_parser("simulate", help="write a synthetic DMAIS dataset with ground truth")
     simulate.add_argument("config", type=Path, help="simulator YAML, e.g. config/simulate/demo.yaml")
     simulate.add_argument("--out", type=Path, required=True, help="dataset directory to create")
-    simulate.add_argument("--jobs", type=int, default=1, help="processes rendering images in parallel")
+    simulate.add_argument("--jobs", type=int, default=1, help="processes rendering images in parallel (default: %(default)s)")
     simulate.set_defaults(run=_cmd_simulate)
 
     validate = commands.add_parser("validate", help="check a dataset directory and print a summary")
@@ -268,20 +268,23 @@ def _parser() -> argparse.ArgumentParser:
     bench_markers.add_argument("dataset", type=Path, nargs="?", default=Path("results/demo/dataset"),
                                help="a rendered dataset with truth (default: the demo, as `make run` simulates it)")
     bench_markers.add_argument("--rig", type=Path, help="rig.json used to identify flight markers (e.g. truth/rig.json)")
-    bench_markers.add_argument("--csv", type=Path, default=Path("reports/bench/markers.csv"))
+    bench_markers.add_argument("--csv", type=Path, default=Path("reports/bench/markers.csv"),
+                               help="output table (default: %(default)s)")
     bench_markers.add_argument("--suite", choices=["dataset", "regimes", "effects", "photos", "all"], default="dataset",
                                help="dataset: the rendered dataset; regimes / effects / photos: the refinement grid, "
                                     "the aerial-effects grid, the real chessboard photographs (CSV beside --csv)")
-    bench_markers.add_argument("--seed", type=int, default=0, help="seed of the synthetic suites")
+    bench_markers.add_argument("--seed", type=int, default=0, help="seed of the synthetic suites (default: %(default)s)")
     bench_markers.add_argument("--images", type=int, help="images per cell (regimes: 4) or per effect (effects: 10)")
     bench_markers.set_defaults(run=_cmd_bench_markers)
     bench_pose = benches.add_parser(
         "pose", help="pose solver time vs points (tab:time_points), batch and pose-stage throughput")
-    bench_pose.add_argument("--csv", type=Path, default=Path("reports/bench/pose_time_points.csv"))
-    bench_pose.add_argument("--repeats", type=int, default=200, help="solves per point count and method")
-    bench_pose.add_argument("--batch-frames", type=int, default=200, help="frames in the batch-throughput run")
+    bench_pose.add_argument("--csv", type=Path, default=Path("reports/bench/pose_time_points.csv"),
+                            help="output table (default: %(default)s)")
+    bench_pose.add_argument("--repeats", type=int, default=200, help="solves per point count and method (default: %(default)s)")
+    bench_pose.add_argument("--batch-frames", type=int, default=200, help="frames in the batch-throughput run (default: %(default)s)")
     bench_pose.add_argument("--stage-frames", type=int, default=10_000,
-                            help="frames of the generated flight in the pose-stage throughput run (0: skip it)")
+                            help="frames of the generated flight in the pose-stage throughput run (0: skip it; "
+                                 "default: %(default)s)")
     bench_pose.set_defaults(run=_cmd_bench_pose)
     return parser
 
