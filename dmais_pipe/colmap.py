@@ -26,8 +26,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from .calib.rig_ba import add_colmap_frame, colmap_rigid, colmap_pixels, opencv_params
-from .camera import Camera
+from .calib.rig_ba import add_colmap_frame, add_colmap_rig, colmap_pixels
 from .errors import DmaisError
 from .geometry import Rigid3
 from .rig import Rig
@@ -36,15 +35,7 @@ FORMATS = ("text", "binary")
 #: The files of a COLMAP sparse model (COLMAP >= 3.12: with rigs and frames), by format.
 MODEL_FILES = {fmt: tuple(f"{name}.{'txt' if fmt == 'text' else 'bin'}"
                           for name in ("cameras", "images", "points3D", "rigs", "frames")) for fmt in FORMATS}
-RIG_ID = 1
-
-
-def colmap_camera(camera: Camera, camera_id: int):
-    """pycolmap OPENCV camera equal to `camera` (k1 = d, k2 = p1 = p2 = 0; principal point + 0.5 px)."""
-    import pycolmap
-
-    return pycolmap.Camera(camera_id=camera_id, model="OPENCV", width=camera.width, height=camera.height,
-                           params=opencv_params(camera))
+RIG_ID = 1  # the rig add_colmap_rig adds
 
 
 def camera_order(rig: Rig) -> list[str]:
@@ -70,7 +61,8 @@ def flight_reconstruction(rig: Rig, poses: pd.DataFrame, images: pd.DataFrame, n
     import pycolmap
 
     rec = pycolmap.Reconstruction()
-    camera_ids = _add_rig(rec, rig)
+    order = camera_order(rig)
+    camera_ids = add_colmap_rig(rec, rig.cameras, order, {c: rig.cam_from_rig[c].inverse() for c in order})
     used = observations[observations["used"]]
     missing = sorted(set(used["point_id"]) - set(points.index))
     if missing:
@@ -96,23 +88,6 @@ def flight_reconstruction(rig: Rig, poses: pd.DataFrame, images: pd.DataFrame, n
         rec.add_point3D(points.loc[point_id, ["x", "y", "z"]].to_numpy(dtype=float), track)
     rec.update_point_3d_errors()
     return rec
-
-
-def _add_rig(rec, rig: Rig) -> dict[str, int]:
-    """The rig's cameras (ids 1, 2, ... in `camera_order`) and rig RIG_ID; returns camera name -> id."""
-    import pycolmap
-
-    camera_ids = {name: k + 1 for k, name in enumerate(camera_order(rig))}
-    colmap_rig = pycolmap.Rig(rig_id=RIG_ID)
-    for name, camera_id in camera_ids.items():
-        rec.add_camera(colmap_camera(rig.cameras[name], camera_id))
-        sensor = rec.cameras[camera_id].sensor_id
-        if name == rig.reference_camera:
-            colmap_rig.add_ref_sensor(sensor)
-        else:
-            colmap_rig.add_sensor(sensor, colmap_rigid(rig.cam_from_rig[name]))
-    rec.add_rig(colmap_rig)
-    return camera_ids
 
 
 def write_model(reconstruction, folder: str | Path, fmt: str) -> list[Path]:

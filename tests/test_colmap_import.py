@@ -11,7 +11,7 @@ from dmais_pipe import cli
 from dmais_pipe.calib.import_intrinsics import (GRID_STEPS, ForeignCamera, one_coefficient_camera, read_opencv_file,
                                                 write_opencv_file)
 from dmais_pipe.camera import Camera
-from dmais_pipe.colmap import colmap_camera
+from dmais_pipe.calib.rig_ba import colmap_camera
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.stages import intrinsics
 from dmais_pipe.workspace import Workspace

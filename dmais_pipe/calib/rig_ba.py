@@ -300,8 +300,9 @@ def opencv_params(camera: Camera, sigma: float = 1.0) -> list[float]:
     return [camera.fx / sigma, camera.fy / sigma, cx / sigma, cy / sigma, camera.d, 0.0, 0.0, 0.0]
 
 
-def _colmap_camera(camera: Camera, camera_id: int, sigma: float):
-    """OPENCV camera (k1 = d, k2 = p1 = p2 = 0) with pixels scaled by 1 / sigma, so residuals are whitened."""
+def colmap_camera(camera: Camera, camera_id: int, sigma: float = 1.0):
+    """OPENCV camera equal to `camera` (k1 = d, k2 = p1 = p2 = 0; principal point + 0.5 px) with pixels
+    scaled by 1 / sigma, so that residuals are whitened (sigma 1: the camera itself)."""
     import pycolmap
 
     params = opencv_params(camera, sigma)
@@ -309,14 +310,15 @@ def _colmap_camera(camera: Camera, camera_id: int, sigma: float):
                            height=max(1, round(camera.height / sigma)), params=params)
 
 
-def _add_rig(rec, cameras: dict[str, Camera], names: list[str], rig_from_cam: dict[str, Rigid3],
-             sig: dict[str, float]) -> dict[str, int]:
-    """Cameras and rig 1 (reference sensor names[0]); returns camera name -> camera id."""
+def add_colmap_rig(rec, cameras: dict[str, Camera], names: list[str], rig_from_cam: dict[str, Rigid3],
+                   sig: dict[str, float] | None = None) -> dict[str, int]:
+    """Cameras (ids 1, 2, ... in the order of `names`, pixels scaled by 1 / sig[c], default 1) and
+    rig 1 (reference sensor names[0]); returns camera name -> camera id."""
     import pycolmap
 
     camera_ids = {c: k + 1 for k, c in enumerate(names)}
     for c, cid in camera_ids.items():
-        rec.add_camera(_colmap_camera(cameras[c], cid, sig[c]))
+        rec.add_camera(colmap_camera(cameras[c], cid, sig[c] if sig else 1.0))
     rig = pycolmap.Rig(rig_id=1)
     rig.add_ref_sensor(rec.cameras[camera_ids[names[0]]].sensor_id)
     for c in names[1:]:
@@ -360,7 +362,7 @@ def _build_scene(cameras: dict[str, Camera], reference: str, blocks: list[ImageB
 
     rec = pycolmap.Reconstruction()
     names = [reference] + sorted({b.camera for b in blocks} - {reference})
-    camera_ids = _add_rig(rec, cameras, names, rig_from_cam, sig)
+    camera_ids = add_colmap_rig(rec, cameras, names, rig_from_cam, sig)
     frame_ids = {j: k + 1 for k, j in enumerate(sorted({b.placement for b in blocks}))}
     image_ids = list(range(1, len(blocks) + 1))
     for j, fid in frame_ids.items():
