@@ -28,6 +28,7 @@ from ..pos_calibration import Boresight, LeverArm, calibration_table, fit_boresi
 from ..rig import Rig
 from ..workspace import CENTER, QUAT, ResultsError, Workspace
 from . import setting
+from .pose import subset_label
 
 log = logging.getLogger(__name__)
 
@@ -83,7 +84,7 @@ def _poses(workspace: Workspace, rig: Rig, whole_rig: pd.DataFrame | None, conf:
         subset = evaluate_poses(workspace.load_poses(path, allowed), dataset, rig, truth, offsets, used, lever_arm)
         subsets[label] = _with_every_camera(subset, dataset, rig, used)
         written.append(workspace.save_evaluation(subsets[label], label))
-    full_rig = "".join(str(k) for k in range(len(rig.camera_names)))  # tab:conf's #01234
+    full_rig = subset_label(rig, rig.camera_names)  # tab:conf's #01234
     if subsets and full_rig not in subsets:
         subsets[full_rig] = _with_every_camera(evaluation, dataset, rig, used_by_rig)
     written += _replace_table(workspace, "conf", conf_table(subsets, rig) if subsets else None)
