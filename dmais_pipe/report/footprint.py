@@ -13,19 +13,25 @@ import numpy as np
 from matplotlib.figure import Figure
 from matplotlib.patches import Polygon
 
+from ..camera import Camera
 from ..geometry import Rigid3
 from ..rig import Rig
 
 
-def corner_rays(rig: Rig, camera: str) -> np.ndarray:
-    """(4, 3) unit rays through the outer corners of `camera`'s image, in the rig frame (clockwise from top-left)."""
-    cam = rig.cameras[camera]
+def image_corner_rays(cam: Camera) -> np.ndarray:
+    """(4, 3) rays (z > 0, not of one length) through the outer corners of the image of `cam`, in its own frame
+    (clockwise from top-left); the pinhole corners where the distortion cannot be inverted there."""
     corners = np.array([[-0.5, -0.5], [cam.width - 0.5, -0.5], [cam.width - 0.5, cam.height - 0.5],
                         [-0.5, cam.height - 0.5]])
     rays = cam.unproject(corners)
-    if not np.all(np.isfinite(rays)):  # corners beyond an invertible distortion: the pinhole corners
+    if not np.all(np.isfinite(rays)):
         rays = np.column_stack([(corners - [cam.cx, cam.cy]) / [cam.fx, cam.fy], np.ones(4)])
-    rays = rays @ rig.cam_from_rig[camera].R  # rig_from_cam rotation = cam_from_rig.R^T
+    return rays
+
+
+def corner_rays(rig: Rig, camera: str) -> np.ndarray:
+    """(4, 3) unit rays through the outer corners of `camera`'s image, in the rig frame (clockwise from top-left)."""
+    rays = image_corner_rays(rig.cameras[camera]) @ rig.cam_from_rig[camera].R  # rig_from_cam = cam_from_rig.R^T
     return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
 
