@@ -1,18 +1,18 @@
 # Two entry points: `make run` (the workflow on the embedded demo) and `make test`.
-# Each creates .venv and installs the pinned dependencies on first use.
+# Each creates .venv and installs the dependencies, locked by constraints.txt, on first use.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(abspath $(VENV))/bin
-STAMP := $(VENV)/.installed-$(shell cksum < pyproject.toml | cut -d' ' -f1)
+STAMP := $(VENV)/.installed-$(shell cat pyproject.toml constraints.txt | cksum | cut -d' ' -f1)
 CORES ?= 2
 
 .PHONY: install run paper test lint clean
 
 # The pose solver's compiled cores are rebuilt when their sources change.
-$(STAMP): pyproject.toml setup.py dmais_pipe/pose/_kernels.pyx dmais_pipe/pose/_refine.pyx dmais_pipe/pose/_small.pxd
+$(STAMP): pyproject.toml constraints.txt setup.py dmais_pipe/pose/_kernels.pyx dmais_pipe/pose/_refine.pyx dmais_pipe/pose/_small.pxd
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
+	PIP_CONSTRAINT=$(abspath constraints.txt) $(BIN)/python -m pip install --quiet -e '.[test]'
 	rm -f $(VENV)/.installed-* && touch $@
 
 install: $(STAMP)

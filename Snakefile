@@ -7,10 +7,12 @@ include: "workflow/rules/markers.smk"
 include: "workflow/rules/calibration.smk"
 include: "workflow/rules/pose.smk"
 include: "workflow/rules/report.smk"
+include: "workflow/rules/export.smk"
 
 
 rule all:
     input:
         rules.dataset_report.output.html,
         rules.report.output.html,
+        rules.export_colmap.output.rig_config,
     default_target: True

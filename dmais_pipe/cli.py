@@ -74,6 +74,12 @@ def _cmd_intrinsics(args) -> None:
     conf = _conf(args, intrinsics, ("max_eps_calib_px", args.max_eps_px),
                  ("max_focal_deviation", args.max_focal_deviation))
     workspace = _workspace(args)
+    if args.import_file:
+        if not args.camera:
+            raise DmaisError(f"intrinsics: --import {args.import_file} needs --camera NAME "
+                             "(one per camera of the file)")
+        _print(intrinsics.import_cameras(workspace, args.camera, args.import_file, conf))
+        return
     if args.table:
         _print(intrinsics.write_table(workspace))
         return
@@ -141,6 +147,13 @@ def _cmd_evaluate(args) -> None:
     _print(evaluate.run(_workspace(args), conf))
 
 
+def _cmd_export_colmap(args) -> None:
+    from .stages import export
+
+    conf = _conf(args, export, ("formats", args.format))
+    _print(export.run(_workspace(args), conf))
+
+
 def _cmd_report(args) -> None:
     from .stages import report
 
@@ -151,7 +164,7 @@ def _cmd_report(args) -> None:
 def _cmd_bench_pose(args) -> None:
     from .pose.bench import bench_pose
 
-    bench_pose(args.csv, repeats=args.repeats, batch_frames=args.batch_frames)
+    bench_pose(args.csv, repeats=args.repeats, batch_frames=args.batch_frames, stage_frames=args.stage_frames)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -159,12 +172,13 @@ def _parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
     commands = parser.add_subparsers(dest="command", required=True)
 
     simulate = commands.add_parser("simulate", help="write a synthetic DMAIS dataset with ground truth")
     simulate.add_argument("config", type=Path, help="simulator YAML, e.g. config/simulate/demo.yaml")
     simulate.add_argument("--out", type=Path, required=True, help="dataset directory to create")
-    simulate.add_argument("--jobs", type=int, default=1, help="processes rendering images in parallel")
+    simulate.add_argument("--jobs", type=int, default=1, help="processes rendering images in parallel (default: %(default)s)")
     simulate.set_defaults(run=_cmd_simulate)
 
     validate = commands.add_parser("validate", help="check a dataset directory and print a summary")
@@ -193,6 +207,9 @@ def _parser() -> argparse.ArgumentParser:
     only.add_argument("--table", action="store_true",
                       help="only write tables/intrinsics.csv from the cameras' intrinsics/<camera>.methods.csv")
     defaults = IntrinsicsConf()
+    intrinsics.add_argument("--import", dest="import_file", type=Path, metavar="FILE",
+                            help="take the --camera's intrinsics from an OpenCV calibration file (YAML/XML/JSON) or "
+                                 "a COLMAP cameras.txt / cameras.bin instead of calibrating")
     intrinsics.add_argument("--max-eps-px", type=float,
                             help=f"refuse a calibration whose eps_calib exceeds this (px; default {defaults.max_eps_calib_px})")
     intrinsics.add_argument("--max-focal-deviation", type=float,
@@ -225,17 +242,21 @@ def _parser() -> argparse.ArgumentParser:
     evaluate.add_argument("--out", type=Path, required=True, help="results folder (with poses.csv)")
     evaluate.set_defaults(run=_cmd_evaluate)
 
+    export = commands.add_parser("export-colmap", help="the rig and the solved flight frames as a COLMAP model")
+    export.add_argument("dataset", type=Path)
+    export.add_argument("--out", type=Path, required=True, help="results folder (with rig.json and poses.csv)")
+    export.add_argument("--format", choices=("text", "binary"), help="only this format (default: both)")
+    export.set_defaults(run=_cmd_export_colmap)
+
     report = commands.add_parser("report", help="write the self-contained HTML report")
     report.add_argument("dataset", type=Path)
     report.add_argument("--out", type=Path, required=True, help="results folder")
     report.add_argument("--html", type=Path, required=True, help="report file, e.g. reports/demo/report.html")
     report.add_argument("--benchmarks", type=Path, help="folder of snakemake benchmark files (stage times)")
     report.set_defaults(run=_cmd_report)
-    for stage in (markers, intrinsics, extrinsics, pose, evaluate, report):
-        stage.add_argument("--conf", help="named settings of the stage (docs/design.md, 'Stage settings'; "
-                                          "default: its first)")
-        stage.add_argument("--set", action="append", metavar="KEY=VALUE",
-                           help="change one setting of the conf (repeatable), e.g. --set robust=true")
+    for stage, module in ((markers, "markers"), (intrinsics, "intrinsics"), (extrinsics, "extrinsics"), (pose, "pose"),
+                          (evaluate, "evaluate"), (export, "export"), (report, "report")):
+        _add_settings(stage, module)
 
     summarize = commands.add_parser("summarize", help="write a dataset summary (CSV + HTML) to a report folder")
     summarize.add_argument("dataset", type=Path)
@@ -247,19 +268,49 @@ def _parser() -> argparse.ArgumentParser:
     bench_markers.add_argument("dataset", type=Path, nargs="?", default=Path("results/demo/dataset"),
                                help="a rendered dataset with truth (default: the demo, as `make run` simulates it)")
     bench_markers.add_argument("--rig", type=Path, help="rig.json used to identify flight markers (e.g. truth/rig.json)")
-    bench_markers.add_argument("--csv", type=Path, default=Path("reports/bench/markers.csv"))
+    bench_markers.add_argument("--csv", type=Path, default=Path("reports/bench/markers.csv"),
+                               help="output table (default: %(default)s)")
     bench_markers.add_argument("--suite", choices=["dataset", "regimes", "effects", "photos", "all"], default="dataset",
                                help="dataset: the rendered dataset; regimes / effects / photos: the refinement grid, "
                                     "the aerial-effects grid, the real chessboard photographs (CSV beside --csv)")
-    bench_markers.add_argument("--seed", type=int, default=0, help="seed of the synthetic suites")
+    bench_markers.add_argument("--seed", type=int, default=0, help="seed of the synthetic suites (default: %(default)s)")
     bench_markers.add_argument("--images", type=int, help="images per cell (regimes: 4) or per effect (effects: 10)")
     bench_markers.set_defaults(run=_cmd_bench_markers)
-    bench_pose = benches.add_parser("pose", help="pose solver time vs points (tab:time_points) and batch throughput")
-    bench_pose.add_argument("--csv", type=Path, default=Path("reports/bench/pose_time_points.csv"))
-    bench_pose.add_argument("--repeats", type=int, default=200, help="solves per point count and method")
-    bench_pose.add_argument("--batch-frames", type=int, default=200, help="frames in the batch-throughput run")
+    bench_pose = benches.add_parser(
+        "pose", help="pose solver time vs points (tab:time_points), batch and pose-stage throughput")
+    bench_pose.add_argument("--csv", type=Path, default=Path("reports/bench/pose_time_points.csv"),
+                            help="output table (default: %(default)s)")
+    bench_pose.add_argument("--repeats", type=int, default=200, help="solves per point count and method (default: %(default)s)")
+    bench_pose.add_argument("--batch-frames", type=int, default=200, help="frames in the batch-throughput run (default: %(default)s)")
+    bench_pose.add_argument("--stage-frames", type=int, default=10_000,
+                            help="frames of the generated flight in the pose-stage throughput run (0: skip it; "
+                                 "default: %(default)s)")
     bench_pose.set_defaults(run=_cmd_bench_pose)
     return parser
+
+
+def _add_settings(parser: argparse.ArgumentParser, stage: str) -> None:
+    """--conf and --set, with every setting, its default and the named confs listed under --help."""
+    from importlib import import_module
+
+    from .stages import settings_help
+
+    confs = import_module(f"dmais_pipe.stages.{stage}").CONFS
+    parser.add_argument("--conf", metavar="NAME",
+                        help=f"named settings of the stage: {', '.join(confs)} (default: {next(iter(confs))})")
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="change one setting of the conf (repeatable); the settings are listed below")
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = settings_help(confs) + "\n\nSee docs/design.md, 'Stage settings'."
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("dmais_pipe")
+    except PackageNotFoundError:  # run from a source tree that was never installed
+        return "unknown (not installed)"
 
 
 def main(argv: list[str] | None = None) -> int:

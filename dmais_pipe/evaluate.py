@@ -2,15 +2,17 @@
 
 Per frame of RESULTS/poses.csv (and of every camera-subset file RESULTS/poses_<label>.csv):
 
-- eps_pos_m: distance between the estimated rig centre and the POS reference position after the
-  POS lever-arm calibration. The paper calibrates the lever arm "by calculating the average offset
-  between the estimated position provided by the DMAIS and the position reported by the POS"; we
-  take that mean offset (estimate minus POS, a world-frame 3-vector) per frame group, because the
-  lever arm rotates with the rig and every group hovers with its own heading, and subtract it
-  before taking distances. The offsets are computed once from poses.csv (the full rig, the
-  hardware calibration) and applied unchanged to the camera subsets, so that a subset's bias
-  counts as error; a group absent from poses.csv uses the subset's own mean. A group with a single
-  frame has eps_pos = 0 by construction (logged as a warning).
+- eps_pos_m: distance between the estimated rig centre moved by the POS lever arm and the POS
+  reference position. The paper calibrates the POS "by calculating the average offset between the
+  estimated position provided by the DMAIS and the position reported by the POS"; a POS user's
+  calibration is a lever arm, the POS reference point in the rig frame (pos_calibration.py: POS =
+  centre + world_from_rig.R @ l), fitted once by least squares over every frame of poses.csv (the
+  full rig, the hardware calibration) and applied unchanged to the camera subsets with each pose's
+  own attitude, so that a group's or a subset's bias counts as error.
+- eps_pos_group_m: the literal reading of "average offset": the mean offset estimate - POS (a
+  world-frame 3-vector) per frame group, taken from poses.csv and subtracted before the distance
+  (a group absent from poses.csv uses the subset's own mean). It absorbs every group's bias, so
+  it is the scatter within a group; a group with a single frame has 0 by construction (warning).
 - eps_ang_arcmin = eps_proj_px x angular resolution, the angular size of one pixel, 1 / f rad with
   f the mean focal length ((fx + fy) / 2, RESULTS/rig.json) of the cameras the frame used.
 - with simulator truth (DATASET/truth/frames.csv): true_pos_err_m, the distance between the
@@ -19,9 +21,11 @@ Per frame of RESULTS/poses.csv (and of every camera-subset file RESULTS/poses_<l
   pixel noise of the frame's eps_proj (`cramer_rao_errors`).
 
 The evaluate stage (`stages.evaluate`) writes evaluation.csv and evaluation_<label>.csv (the
-poses columns + the errors), tables/pose_methods.csv (tab:pose_methods: per group mean and sample std (ddof = 1) of
-eps_pos, eps_ang, eps_proj and the mean time) and, when subset files exist, tables/conf.csv
-(tab:conf: per group and subset label the means of eps_pos, eps_ang, eps_proj). A subset label is
+poses columns + the errors), tables/lever_arm.csv (the lever arm and the INS boresight with their
+1-sigma), tables/pose_methods.csv (tab:pose_methods: per group mean and sample std (ddof = 1) of
+eps_pos, eps_pos_group, eps_ang, eps_proj and the mean time) and, when subset files exist,
+tables/conf.csv (tab:conf: per group and subset label the means of eps_pos, eps_pos_group, eps_ang,
+eps_proj, with the full rig of poses.csv as the label of all its cameras, 01234). A subset label is
 the digits of the camera indexes in rig order (C0..C4): 0, 01, 012, 1234, 01234. A subset's
 evaluation also has eps_proj_all_px / eps_ang_all_arcmin: the subset's pose reprojected into every
 camera. tab:conf's #0 (57 px, 4.5') can only be read that way, since one camera's own few points
@@ -40,6 +44,7 @@ import pandas as pd
 from .dataset import Dataset
 from .frames import frame_observations
 from .geometry import Rigid3, rotation_error, rotation_from_quat
+from .pos_calibration import ARCMIN_PER_RAD, LeverArm, fit_lever_arm
 from .pose.refine import cramer_rao_bound
 from .rig import Rig
 from .workspace import CENTER, QUAT, ResultsError
@@ -47,9 +52,8 @@ from .workspace import CENTER, QUAT, ResultsError
 log = logging.getLogger(__name__)
 
 POS = ("pos_x", "pos_y", "pos_z")
-ERROR_COLUMNS = ("eps_pos_m", "eps_ang_arcmin")
+ERROR_COLUMNS = ("eps_pos_m", "eps_pos_group_m", "eps_ang_arcmin")
 TRUE_ERROR_COLUMNS = ("true_pos_err_m", "true_ang_err_arcmin")
-ARCMIN_PER_RAD = 180.0 * 60.0 / np.pi
 ALL_GROUPS = "all"
 
 
@@ -57,7 +61,7 @@ ALL_GROUPS = "all"
 
 
 def group_offsets(estimated, reference, groups) -> dict[str, np.ndarray]:
-    """Mean offset (3,) estimated - reference per group: the lever-arm calibration.
+    """Mean offset (3,) estimated - reference per group: eps_pos_group's calibration.
 
     estimated, reference: (n, 3) positions; groups: (n,) group labels.
     """
@@ -79,6 +83,23 @@ def position_errors(estimated, reference, groups, offsets: dict[str, np.ndarray]
     offsets = {**own, **(offsets or {})}
     offset = np.array([offsets[g] for g in groups]).reshape(-1, 3)
     return np.linalg.norm(estimated - reference - offset, axis=1)
+
+
+def world_from_rig_rotations(poses: pd.DataFrame) -> np.ndarray:
+    """(n, 3, 3) world_from_rig rotations R^T of poses' rig_from_world quaternions (qw..qz)."""
+    return np.swapaxes(rotation_from_quat(poses[list(QUAT)].to_numpy(dtype=float).reshape(-1, 4)), -1, -2)
+
+
+def fit_pos_lever_arm(poses: pd.DataFrame, dataset: Dataset, min_spread_deg: float = 5.0) -> LeverArm:
+    """The lever arm (pos_calibration.fit_lever_arm) of `poses` (Workspace.load_poses) against the
+    POS positions of dataset.frames; the frames of a flight group share an error."""
+    return fit_lever_arm(poses[list(CENTER)].to_numpy(dtype=float), pos_positions(poses, dataset),
+                         world_from_rig_rotations(poses), np.radians(min_spread_deg), poses["group"])
+
+
+def pos_positions(poses: pd.DataFrame, dataset: Dataset) -> np.ndarray:
+    """(n, 3) POS positions (frames.csv pos_x..pos_z) of poses' frames."""
+    return dataset.frames.set_index("frame").loc[poses["frame"], list(POS)].to_numpy(dtype=float)
 
 
 def angular_resolution_arcmin(focal_px) -> np.ndarray:
@@ -124,7 +145,7 @@ def pose_methods_table(evaluation: pd.DataFrame) -> pd.DataFrame:
     """tab:pose_methods: one row per group and one for all frames (group 'all').
 
     evaluation: the columns of evaluation.csv. Columns: group, n_frames, eps_pos_mean_m,
-    eps_pos_std_m, eps_ang_mean_arcmin, eps_ang_std_arcmin, eps_proj_mean_px, eps_proj_std_px,
+    eps_pos_std_m [, eps_pos_group_mean_m, eps_pos_group_std_m], eps_ang_mean_arcmin, eps_ang_std_arcmin, eps_proj_mean_px, eps_proj_std_px,
     time_mean_ms [, true_pos_err_mean_m, true_pos_err_median_m, true_ang_err_mean_arcmin,
     true_ang_err_median_arcmin [, crb_pos_median_m, crb_ang_median_arcmin]]. Standard deviations
     are sample ones (ddof = 1).
@@ -135,8 +156,10 @@ def pose_methods_table(evaluation: pd.DataFrame) -> pd.DataFrame:
 
 def _pose_methods_row(group: str, rows: pd.DataFrame) -> dict:
     row = {"group": group, "n_frames": len(rows)}
-    for name, column, unit in (("eps_pos", "eps_pos_m", "m"), ("eps_ang", "eps_ang_arcmin", "arcmin"),
-                               ("eps_proj", "eps_proj_px", "px")):
+    for name, column, unit in (("eps_pos", "eps_pos_m", "m"), ("eps_pos_group", "eps_pos_group_m", "m"),
+                               ("eps_ang", "eps_ang_arcmin", "arcmin"), ("eps_proj", "eps_proj_px", "px")):
+        if column not in rows:
+            continue
         row[f"{name}_mean_{unit}"] = rows[column].mean()
         row[f"{name}_std_{unit}"] = rows[column].std(ddof=1)
     row["time_mean_ms"] = rows["time_ms"].mean()
@@ -154,7 +177,7 @@ def conf_table(evaluations: dict[str, pd.DataFrame], rig: Rig) -> pd.DataFrame:
     """tab:conf in long form: one row per group (and 'all') and subset label.
 
     evaluations: label -> evaluation table of poses_<label>.csv. Columns: group, subset, cameras
-    (names joined by '+'), n_frames, eps_pos_mean_m, eps_ang_mean_arcmin, eps_proj_mean_px,
+    (names joined by '+'), n_frames, eps_pos_mean_m [, eps_pos_group_mean_m], eps_ang_mean_arcmin, eps_proj_mean_px,
     eps_proj_used_mean_px [, true_pos_err_mean_m, true_ang_err_mean_arcmin]. eps_proj and eps_ang
     are over every camera's observations where the table has eps_proj_all_px (run_evaluate adds
     it, see every_camera_eps_proj), eps_proj_used over the subset's own cameras.
@@ -166,6 +189,7 @@ def conf_table(evaluations: dict[str, pd.DataFrame], rig: Rig) -> pd.DataFrame:
             every = "eps_proj_all_px" in part  # over every camera's observations, as tab:conf
             row = {"group": group, "subset": label, "cameras": "+".join(subset_cameras(label, rig)),
                    "n_frames": len(part), "eps_pos_mean_m": part["eps_pos_m"].mean(),
+                   **({"eps_pos_group_mean_m": part["eps_pos_group_m"].mean()} if "eps_pos_group_m" in part else {}),
                    "eps_ang_mean_arcmin": part["eps_ang_all_arcmin" if every else "eps_ang_arcmin"].mean(),
                    "eps_proj_mean_px": part["eps_proj_all_px" if every else "eps_proj_px"].mean(),
                    "eps_proj_used_mean_px": part["eps_proj_px"].mean()}
@@ -198,20 +222,23 @@ def _ordered(groups) -> list[str]:
 
 
 def evaluate_poses(poses: pd.DataFrame, dataset: Dataset, rig: Rig, truth: pd.DataFrame | None = None,
-                   offsets: dict[str, np.ndarray] | None = None, observations: pd.DataFrame | None = None
-                   ) -> pd.DataFrame:
-    """poses (Workspace.load_poses) + eps_pos_m, eps_ang_arcmin [+ true_pos_err_m, true_ang_err_arcmin
-    [+ crb_pos_m, crb_ang_arcmin]].
+                   offsets: dict[str, np.ndarray] | None = None, observations: pd.DataFrame | None = None,
+                   lever_arm: LeverArm | None = None) -> pd.DataFrame:
+    """poses (Workspace.load_poses) + eps_pos_m, eps_pos_group_m, eps_ang_arcmin [+ true_pos_err_m,
+    true_ang_err_arcmin [+ crb_pos_m, crb_ang_arcmin]].
 
-    offsets: lever-arm offsets per group (group_offsets); default the mean offsets of `poses`.
+    lever_arm: the POS lever arm (fit_pos_lever_arm) for eps_pos_m; default the one of `poses`.
+    offsets: mean offsets per group (group_offsets) for eps_pos_group_m; default those of `poses`.
     truth: Workspace.load_truth_frames(); frames it lacks raise ResultsError.
     observations: those the poses used (`used_observations`); with truth, adds the Cramer-Rao bound.
     """
-    pos = dataset.frames.set_index("frame").loc[poses["frame"], list(POS)].to_numpy(dtype=float)
+    pos = pos_positions(poses, dataset)
     centers = poses[list(CENTER)].to_numpy(dtype=float)
     focal = np.array([mean_focal_px(rig, c.split("+")) for c in poses["cameras"]])
+    lever_arm = lever_arm if lever_arm is not None else fit_pos_lever_arm(poses, dataset)
     out = poses.copy()
-    out["eps_pos_m"] = position_errors(centers, pos, poses["group"], offsets)
+    out["eps_pos_m"] = lever_arm.position_errors(centers, pos, world_from_rig_rotations(poses))
+    out["eps_pos_group_m"] = position_errors(centers, pos, poses["group"], offsets)
     out["eps_ang_arcmin"] = angular_errors(poses["eps_proj_px"], focal)
     if truth is not None:
         missing = sorted(set(poses["frame"]) - set(truth.index))
@@ -256,7 +283,7 @@ def _warn_single_frame_groups(poses: pd.DataFrame) -> None:
     counts = poses["group"].value_counts()
     single = sorted(counts[counts < 2].index)
     if single:
-        log.warning("group(s) %s have one frame: their lever-arm offset is that frame's, so eps_pos = 0",
+        log.warning("group(s) %s have one frame: their mean offset is that frame's, so eps_pos_group = 0",
                     ", ".join(single))
 
 

@@ -95,6 +95,41 @@ def write_csv_atomic(path: str | Path, frame: pd.DataFrame, float_format: str | 
     return write_text_atomic(path, frame.to_csv(index=False, float_format=float_format, lineterminator="\n"))
 
 
+#: Column types `csv_text` writes itself, besides text (others go through pandas).
+_PLAIN_DTYPES = (np.dtype(float), np.dtype(np.int64), np.dtype(bool), np.dtype(object))
+
+
+def csv_text(frame: pd.DataFrame) -> str:
+    """`frame.to_csv(index=False, lineterminator="\\n")`'s text, built column by column: the same bytes
+    (floats as their shortest repr, NaN and None empty, bools True/False, fields quoted only where
+    they hold a comma, a quote or a "\\n") several times faster for large tables."""
+    if frame.shape[1] < 2 or not all(d in _PLAIN_DTYPES or isinstance(d, pd.StringDtype) for d in frame.dtypes):
+        return frame.to_csv(index=False, lineterminator="\n")
+    columns = [_csv_cells(frame[name]) for name in frame.columns]
+    header = ",".join(_csv_quoted([str(name) for name in frame.columns]))
+    return "\n".join([header, *map(",".join, zip(*columns))]) + "\n"
+
+
+def _csv_cells(column: pd.Series) -> list[str]:
+    """A column's cells as CSV fields (see `csv_text`)."""
+    if column.dtype.kind == "f":
+        if not column.isna().any():
+            return list(map(float.__repr__, column.tolist()))
+        return ["" if value != value else repr(value) for value in column.tolist()]
+    if column.dtype.kind in "iub":
+        return list(map(str, column.tolist()))
+    return _csv_quoted([value if isinstance(value, str) else "" if pd.isna(value) else str(value)
+                        for value in column.tolist()])
+
+
+def _csv_quoted(cells: list[str]) -> list[str]:
+    special = ('"', ",", "\n")  # as the csv module with lineterminator "\\n"
+    joined = "\0".join(cells)
+    if not any(c in joined for c in special):
+        return cells
+    return [f'"{cell.replace(chr(34), chr(34) * 2)}"' if any(c in cell for c in special) else cell for cell in cells]
+
+
 def write_png_atomic(path: str | Path, image: np.ndarray, compression: int = 1) -> Path:
     """Write an 8- or 16-bit grayscale image as PNG (compression 0-9, low is fast)."""
     ok, encoded = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])

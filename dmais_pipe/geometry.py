@@ -127,6 +127,23 @@ def rotation_from_euler_zyx(angles) -> np.ndarray:
     return Rotation.from_euler("ZYX", np.asarray(angles, dtype=float)).as_matrix()
 
 
+def euler_zyx_rates(angles) -> np.ndarray:
+    """E (3, 3) or (n, 3, 3) of ZYX Euler angles (z, y, x) (3,) or (n, 3) in radians: the rotation
+    vector of a small right (body-frame) perturbation, R(angles + d) ~ R(angles) exp(E @ d).
+
+    From R^T dR = Rx^T Ry^T [e_z]x Ry Rx dz + Rx^T [e_y]x Rx dy + [e_x]x dx: the columns of E are
+    Rx^T Ry^T e_z = (-sin y, sin x cos y, cos x cos y), Rx^T e_y = (0, cos x, -sin x) and e_x.
+    Singular at y = +-90 degrees (gimbal lock).
+    """
+    angles = np.asarray(angles, dtype=float)
+    y, x = angles[..., 1], angles[..., 2]
+    E = np.zeros(angles.shape[:-1] + (3, 3))
+    E[..., 0, 0], E[..., 1, 0], E[..., 2, 0] = -np.sin(y), np.sin(x) * np.cos(y), np.cos(x) * np.cos(y)
+    E[..., 1, 1], E[..., 2, 1] = np.cos(x), -np.sin(x)
+    E[..., 0, 2] = 1.0
+    return E
+
+
 def rotation_angle(R) -> np.ndarray:
     """Rotation angle in radians, in [0, pi], of rotations (3, 3) or (n, 3, 3)."""
     cos = (np.trace(np.asarray(R, dtype=float), axis1=-2, axis2=-1) - 1.0) / 2.0

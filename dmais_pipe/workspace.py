@@ -22,7 +22,7 @@ import pandas as pd
 from .camera import Camera
 from .dataset import STAGES, Dataset, Table, read_observation_table, read_table
 from .errors import DatasetError, DmaisError
-from .files import write_csv_atomic, write_json_atomic, write_text_atomic
+from .files import csv_text, write_csv_atomic, write_json_atomic, write_text_atomic
 from .rig import Rig
 
 log = logging.getLogger(__name__)
@@ -32,6 +32,11 @@ TRANSLATION = ("tx", "ty", "tz")
 CENTER = ("x", "y", "z")
 #: The columns of poses.csv (docs/design.md); rig_from_world quaternion (w, x, y, z) and translation.
 POSE_COLUMNS = ("frame", "group", "cameras", "n_points", *QUAT, *TRANSLATION, *CENTER, "eps_proj_px", "time_ms")
+#: poses.csv's attitude and 1-sigma uncertainty columns after `certified` (docs/design.md): heading,
+#: pitch, roll (deg) of world_from_rig = Rz Ry Rx, the rig centre's sigma along the world axes (m),
+#: the angles' sigma (arc-min), and the per-axis pixel noise behind them. Files before them lack them.
+POSE_UNCERTAINTY_COLUMNS = ("heading_deg", "pitch_deg", "roll_deg", "sigma_x_m", "sigma_y_m", "sigma_z_m",
+                            "sigma_heading_arcmin", "sigma_pitch_arcmin", "sigma_roll_arcmin", "noise_px")
 #: One row per observation of a solved frame: whether the pose used it, and its residual (px).
 POSE_OBSERVATION_COLUMNS = ("frame", "image", "camera", "point_id", "u", "v", "used", "du", "dv")
 TRUTH_COLUMNS = ("frame", "group", *QUAT, *TRANSLATION, *CENTER)
@@ -39,6 +44,8 @@ TRUTH_COLUMNS = ("frame", "group", *QUAT, *TRANSLATION, *CENTER)
 #: residual (fraction of the marker's contrast), and its point id ('' when unidentified).
 MARKER_COLUMNS = ("u", "v", "score", "sigma_px", "fit_residual", "point_id")
 MARKER_REQUIRED = ("u", "v", "score", "point_id")
+#: intrinsics/<camera>.residuals.csv: per observation of our calibration, observed minus projected (px).
+CALIBRATION_RESIDUAL_COLUMNS = ("image", "split", "point_id", "u", "v", "du", "dv")
 SUBSET_FILE = re.compile(r"^poses_(\d+)\.csv$")
 
 
@@ -77,6 +84,10 @@ class Workspace:
         """One camera's rows of tables/intrinsics.csv, every method."""
         return self.root / "intrinsics" / f"{camera}.methods.csv"
 
+    def calibration_residuals_path(self, camera: str) -> Path:
+        """Per observation of our intrinsic calibration of `camera`: its residual (calib and eval images)."""
+        return self.root / "intrinsics" / f"{camera}.residuals.csv"
+
     @property
     def rig_path(self) -> Path:
         return self.root / "rig.json"
@@ -85,6 +96,15 @@ class Workspace:
     def rig_config_path(self) -> Path:
         """The rig in COLMAP's rig config layout, beside rig.json."""
         return self.root / "rig_config.json"
+
+    @property
+    def colmap_dir(self) -> Path:
+        """RESULTS/colmap: the COLMAP export (`dmais export-colmap`)."""
+        return self.root / "colmap"
+
+    def colmap_model_dir(self, fmt: str) -> Path:
+        """RESULTS/colmap/<fmt>: the sparse model as COLMAP text (fmt "text") or binary ("binary") files."""
+        return self.colmap_dir / fmt
 
     def case_rig_path(self, case: str) -> Path:
         """extrinsics/rig_<case>.json: the rig calibrated with (known) or without (unknown) RTK priors."""
@@ -186,6 +206,19 @@ class Workspace:
             raise DmaisError(f"intrinsics table: missing {path}; run `dmais intrinsics --camera {camera}`")
         return pd.read_csv(path, dtype={"method": str, "camera": str})
 
+    def save_calibration_residuals(self, camera: str, residuals: pd.DataFrame) -> Path:
+        return write_csv_atomic(self.calibration_residuals_path(camera), residuals[list(CALIBRATION_RESIDUAL_COLUMNS)])
+
+    def load_calibration_residuals(self, camera: str) -> pd.DataFrame | None:
+        """image, split, point_id (str), u, v, du, dv (float) of `camera`'s calibration; None when absent."""
+        path = self.calibration_residuals_path(camera)
+        if not path.is_file():
+            return None
+        with results_errors():
+            table = read_table(path, CALIBRATION_RESIDUAL_COLUMNS)
+            return pd.DataFrame({**{c: table.text(c) for c in CALIBRATION_RESIDUAL_COLUMNS[:3]},
+                                 **{c: table.floats(c) for c in CALIBRATION_RESIDUAL_COLUMNS[3:]}})
+
     def save_rig(self, rig: Rig, case: str | None = None, **extra) -> Path:
         """rig.json (case None) or extrinsics/rig_<case>.json; `extra` keys are stored beside the rig."""
         return rig.save(self.rig_path if case is None else self.case_rig_path(case), **extra)
@@ -213,8 +246,8 @@ class Workspace:
     def save_poses(self, poses: pd.DataFrame, observations: pd.DataFrame, path: Path) -> list[Path]:
         """A poses file (POSE_COLUMNS, then any extra columns) and, beside it, its per-observation file."""
         extras = [c for c in poses.columns if c not in POSE_COLUMNS]
-        return [write_csv_atomic(path, poses[[*POSE_COLUMNS, *extras]]),
-                write_csv_atomic(pose_observations_path(path), observations[list(POSE_OBSERVATION_COLUMNS)])]
+        return [write_text_atomic(path, csv_text(poses[[*POSE_COLUMNS, *extras]])),
+                write_text_atomic(pose_observations_path(path), csv_text(observations[list(POSE_OBSERVATION_COLUMNS)]))]
 
     def load_poses(self, path: Path | None = None, allowed_cameras: Sequence[str] | None = None,
                    empty_ok: bool = False) -> pd.DataFrame:
@@ -223,7 +256,8 @@ class Workspace:
         Numbers must be finite; frames must be frames of the dataset with the same group; cameras
         (names joined by '+') must be cameras of the rig (and of `allowed_cameras` when given); a
         file without rows is an error unless empty_ok (a per-group part of the workflow).
-        Raises ResultsError naming the file and line. Returns typed columns, extras as strings.
+        Raises ResultsError naming the file and line. Returns typed columns: POSE_UNCERTAINTY_COLUMNS
+        as floats (NaN where empty) when the file has them, other extras as strings.
         """
         path = self.poses_path() if path is None else Path(path)
         if not path.is_file():
@@ -239,11 +273,10 @@ class Workspace:
             n_points = numbers["n_points"]
             table.check((n_points != np.round(n_points)) | (n_points < 0),
                         lambda row: f"column n_points: {n_points[row]:g} is not a count")
-        out = pd.DataFrame({"frame": frame, "group": table.text("group"), "cameras": cameras,
-                            **numbers, "n_points": n_points.astype(int)})
-        for extra in table.extra_columns(POSE_COLUMNS):
-            out[extra] = table.text(extra)
-        return out
+            extras = {c: table.floats(c, optional=True) if c in POSE_UNCERTAINTY_COLUMNS else table.text(c)
+                      for c in table.extra_columns(POSE_COLUMNS)}
+        return pd.DataFrame({"frame": frame, "group": table.text("group"), "cameras": cameras,
+                             **numbers, "n_points": n_points.astype(int), **extras})
 
     def load_pose_observations(self, path: Path | None = None) -> pd.DataFrame | None:
         """The per-observation file beside a poses file (default poses.csv): frame, image, camera,

@@ -6,10 +6,12 @@ import errno
 import os
 import tempfile
 
+import numpy as np
 import pandas as pd
 import pytest
 
 from dmais_pipe import files
+from dmais_pipe.files import csv_text
 from dmais_pipe.cli import main
 from dmais_pipe.errors import FileAccessError
 from test_dataset import _inputs, _write
@@ -117,3 +119,22 @@ def test_cli_never_writes_into_the_dataset_it_reads(dataset, tmp_path, capsys):
     _one_line_error(capsys, "dmais summarize: error: ", "lies in the dataset folder")
     assert {p: p.read_bytes() for p in dataset.rglob("*") if p.is_file()} == before
     assert main(["summarize", str(dataset), "--out", str(tmp_path / "reports")]) == 0
+
+
+def test_csv_text_writes_the_bytes_pandas_writes(monkeypatch):
+    rng = np.random.default_rng(0)
+    n = 400
+    floats = rng.normal(size=n) * 10.0 ** rng.integers(-12, 14, n)
+    floats[::7] = np.nan
+    floats[3], floats[5], floats[8] = np.inf, 0.1, -0.0
+    texts = np.array(["plain", "a,b", 'say "hi"', "two\nlines", "", "007", "cr\rhere"], dtype=object)[np.arange(n) % 7]
+    frame = pd.DataFrame({"frame": texts, "x": floats, "n": rng.integers(-5, 10**12, n), "used": rng.random(n) < 0.5,
+                          "mixed": np.array([1.5, None, "t", np.nan, True], dtype=object)[np.arange(n) % 5],
+                          "a,b": texts[::-1]})
+    frame["objects"] = pd.Series(texts, dtype=object)
+    expected = [f.to_csv(index=False, lineterminator="\n") for f in (frame, frame.iloc[:0])]
+    with monkeypatch.context() as patch:  # csv_text must build these itself
+        patch.setattr(pd.DataFrame, "to_csv", None)
+        assert [csv_text(frame), csv_text(frame.iloc[:0])] == expected
+    small = frame[["x"]].astype(np.float32).assign(y=1)  # float32: left to pandas
+    assert csv_text(small) == small.to_csv(index=False, lineterminator="\n")

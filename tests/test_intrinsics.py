@@ -41,6 +41,30 @@ def simulated(simulated_dataset, tmp_path_factory):
     return dataset, results, written
 
 
+def test_residual_file_is_observed_minus_projected_and_gives_the_per_image_rms(simulated):
+    """intrinsics/<camera>.residuals.csv against an independent projection with the JSON's camera and poses."""
+    dataset, results, _ = simulated
+    workspace = Workspace.open(dataset, results)
+    points = workspace.dataset.points
+    for name in ("C0", "C3"):
+        camera, record = workspace.load_intrinsics(name)
+        residuals = workspace.load_calibration_residuals(name)
+        assert set(residuals["split"]) == {"calib", "eval"}
+        poses = {**record["poses"], **record["eval_poses"]}
+        assert set(residuals["image"]) == set(poses)
+        for image, rows in residuals.groupby("image"):
+            pose = Rigid3.from_dict(poses[image])
+            projected = camera.project(pose.apply(points.loc[rows["point_id"], ["x", "y", "z"]].to_numpy(float)))
+            observed = rows[["u", "v"]].to_numpy(float)
+            np.testing.assert_allclose(observed - rows[["du", "dv"]].to_numpy(float), projected, atol=1e-5)
+            rms = np.sqrt(np.mean(rows["du"] ** 2 + rows["dv"] ** 2))
+            split = rows["split"].iloc[0]
+            assert rms == pytest.approx(record[f"image_eps_{split}_px"][image], rel=1e-9)
+        calib = residuals[residuals["split"] == "calib"]
+        assert len(calib) == record["n_observations"]
+        assert np.sqrt(np.mean(calib["du"] ** 2 + calib["dv"] ** 2)) == pytest.approx(record["eps_calib_px"])
+
+
 def test_per_camera_runs_and_table_equal_one_run(simulated, tmp_path):
     dataset, results, _ = simulated
     for camera in ("C3", "C0", "C1", "C2", "C4"):
@@ -66,6 +90,7 @@ def test_intrinsics_stage_writes_json_and_table(simulated):
     names = ["C0", "C1", "C2", "C3", "C4"]
     assert set(written) == ({results / "intrinsics" / f"{c}.json" for c in names}
                             | {results / "intrinsics" / f"{c}.methods.csv" for c in names}
+                            | {results / "intrinsics" / f"{c}.residuals.csv" for c in names}
                             | {results / "tables" / "intrinsics.csv"})
     for name in names:
         data = json.loads((results / "intrinsics" / f"{name}.json").read_text())

@@ -94,9 +94,9 @@ def test_minimal_sets_contain_the_truth():
         assert pose.cost < 1e-12
 
 
-def reference_root_rotations(H, g, P):
-    """Slow reference of the compiled root finder: the real roots of eq. EF6 in the frame P from the
-    dense template, numpy's solve and numpy's eig, as rotations (k, 3, 3)."""
+def reference_action_matrix(H, g, P):
+    """The action matrix (40, 40) of eq. EF6 in the frame P from the dense template and numpy's
+    solve, and the basis as {monomial: index}."""
     template = Template.from_json(TEMPLATE_PATH.read_text())
     K = np.kron(np.eye(3), P.T)  # r = K r' for R = R' P
     H, g = K.T @ H @ K, K.T @ g
@@ -116,6 +116,13 @@ def reference_root_rotations(H, g, P):
             action[i, basis[product]] = 1.0
         else:
             action[i] = reducible[reducible_row[product]]
+    return action, basis
+
+
+def reference_root_rotations(H, g, P):
+    """Slow reference of the compiled root finder: the real roots of eq. EF6 in the frame P from the
+    dense template, numpy's solve and numpy's eig, as rotations (k, 3, 3)."""
+    action, basis = reference_action_matrix(H, g, P)
     _, vectors = np.linalg.eig(action)
     units = vectors[[basis[(0, 0, 0)], basis[(1, 0, 0)], basis[(0, 1, 0)], basis[(0, 0, 1)]]]
     q = (units[1:] / units[:1]).T

@@ -17,8 +17,8 @@ from dmais_pipe.dataset import flight_observations
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.evaluate import conf_table, pose_methods_table
 from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
-from dmais_pipe.report.html import SECTIONS, benchmark_table
-from dmais_pipe.report.paper import PAPER_DIR, PAPER_TABLES, compare_with_paper, paper_comparisons, paper_notes
+from dmais_pipe.report.html import FIGURE_FILES, SECTIONS, benchmark_table
+from dmais_pipe.report.paper import BY_CONSTRUCTION, PAPER_DIR, PAPER_TABLES, compare_with_paper, paper_comparisons, paper_notes
 from dmais_pipe.pose.flight import pixel_residuals
 from dmais_pipe.rig import Rig
 from dmais_pipe.stages import evaluate, report
@@ -108,9 +108,13 @@ def write_results(dataset, results) -> None:
     rows = []
     for name, camera in truth.cameras.items():
         record = {"camera": name, **camera.to_dict(), "std": {"fx": 2.5, "fy": 2.4, "cx": 1.1, "cy": 0.9, "d": 0.01},
-                  "eps_calib_px": 0.12, "eps_eval_px": 0.15, "n_images": 3, "n_observations": 90}
+                  "eps_calib_px": 0.12, "eps_eval_px": 0.15, "n_images": 3, "n_observations": 90,
+                  "image_eps_calib_px": {f"{name}_a": 0.11, f"{name}_b": 0.13}, "image_eps_eval_px": {f"{name}_c": 0.15}}
         (results / "intrinsics").mkdir(exist_ok=True)
         (results / "intrinsics" / f"{name}.json").write_text(json.dumps(record))
+        pd.DataFrame({"image": [f"{name}_a", f"{name}_c"], "split": ["calib", "eval"], "point_id": ["P1", "P2"],
+                      "u": [100.0, 2000.0], "v": [200.0, 1500.0], "du": [0.1, -0.2], "dv": [0.05, 0.1]}).to_csv(
+            results / "intrinsics" / f"{name}.residuals.csv", index=False)
         rows.append({"method": "ours", **{k: record[k] for k in TABLE_COLUMNS[1:]}})
         rows.append({"method": "dlt_lm", **{k: record[k] for k in TABLE_COLUMNS[1:]}})
     pd.DataFrame(rows, columns=list(TABLE_COLUMNS)).to_csv(results / "tables" / "intrinsics.csv", index=False)
@@ -161,13 +165,18 @@ def test_report_has_every_section_and_is_self_contained(dataset, results, tmp_pa
     out = render(dataset, results, tmp_path / "report" / "report.html", benchmarks=tmp_path / "benchmarks")
     page = parse(out)
     assert page.ids == SECTION_IDS
-    assert list(page.missing) == ["markers"] and "observations given" in page.missing["markers"]  # no images
-    assert set(page.figures) == {"rig", "residuals", "frames", "subsets", "runtime", "stages"}
+    assert list(page.missing) == ["markers", "extraction"] and "observations given" in page.missing["markers"]
+    assert "No image with a file" in page.missing["extraction"]  # observation-only: no image files
+    assert set(page.figures) == {"intrinsics", "rig", "fov", "residuals", "frames", "attitude", "subsets", "runtime",
+                                 "stages"}
+    assert page.figures["intrinsics"] == 2  # residual vectors and eps per image
+    assert {p.name for p in (out.parent / "figures").iterdir()} == set(FIGURE_FILES) - {
+        "markers_calibration.jpg", "markers_flight.jpg"}
     assert all(src.startswith("data:") for src in page.srcs)
     assert "script" not in page.tags and "link" not in page.tags
     text = out.read_text()
     for expected in ("C4", "eps_pos_mean_m", "true_ang_err_arcmin", "#012", "extrinsics_R",
-                     "markers", "± 2.5"):
+                     "markers", "± 2.5", "Total angular extent of the 5 cameras", "eps_ang is not a measured"):
         assert expected in text, expected
 
 
@@ -293,7 +302,8 @@ def test_paper_notes_cover_every_table_and_reach_the_report(dataset, results, tm
     assert set(notes) == set(PAPER_TABLES) and all(len(text) > 80 for text in notes.values())
     (results / "tables" / "extrinsics_note.txt").write_text("Without the priors the centres move by 1 cm.")
     html = render(dataset, results, tmp_path / "report.html").read_text()
-    assert html.count('<p class="note">') == len(notes) + 1
+    assert html.count('<p class="note">') == len(notes) + 1 + len(BY_CONSTRUCTION)  # simulated: by construction
+    assert html.count("By construction: ") == len(BY_CONSTRUCTION)
     assert "This run: Without the priors the centres move by 1 cm." in html
     (tmp_path / "paper").mkdir()
     (tmp_path / "paper" / "notes.yaml").write_text("intrinsic: typo\n")

@@ -10,10 +10,10 @@ import yaml
 
 from dmais_pipe import cli
 from dmais_pipe.errors import DmaisError
-from dmais_pipe.stages import configure, evaluate, extrinsics, intrinsics, markers, pose, report
+from dmais_pipe.stages import configure, evaluate, export, extrinsics, intrinsics, markers, pose, report
 
 STAGES = {"markers": markers, "intrinsics": intrinsics, "extrinsics": extrinsics, "pose": pose,
-          "evaluate": evaluate, "report": report}
+          "evaluate": evaluate, "export": export, "report": report}
 SCHEMA = Path(__file__).resolve().parents[1] / "workflow" / "schemas" / "config.schema.yaml"
 
 
@@ -55,3 +55,37 @@ def test_the_workflow_schema_knows_every_setting_and_named_conf():
         assert set(section) == {"conf"} | {f.name for f in dataclasses.fields(module.Conf)}, stage
         assert section["conf"]["enum"] == list(module.CONFS), stage
         assert next(iter(module.CONFS.values())) == module.Conf(), stage  # the first named conf is the default
+        assert section["conf"]["default"] == next(iter(module.CONFS)), stage
+
+
+def test_the_schema_states_each_settings_default_description_and_range_as_the_code():
+    properties = yaml.safe_load(SCHEMA.read_text())["properties"]
+    for stage, module in STAGES.items():
+        for field in dataclasses.fields(module.Conf):
+            entry, where = properties[stage]["properties"][field.name], f"{stage}.{field.name}"
+            default = field.default
+            assert entry["default"] == (list(default) if isinstance(default, tuple) else default), where
+            assert " ".join(entry["description"].split()) == field.metadata["help"], where
+            assert entry.get("minimum") == field.metadata["minimum"], where
+            assert entry.get("exclusiveMinimum") == field.metadata["above"], where
+
+
+def test_help_lists_every_setting_with_its_default_and_the_named_confs(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["pose", "--help"])
+    text = capsys.readouterr().out
+    assert "robust_threshold_px" in text and "[20.0]" in text
+    assert "robust               robust=true, refine=true" in text
+    with pytest.raises(SystemExit):
+        cli.main(["--version"])
+    assert capsys.readouterr().out.startswith("dmais 0.")
+
+
+@pytest.mark.parametrize("stage, item, message", [
+    (markers, "identify_min_inliers=2", "markers: setting identify_min_inliers: 2 is below its minimum 3"),
+    (extrinsics, "center_sigma_m=0", "extrinsics: setting center_sigma_m: 0.0 must be above 0"),
+    (pose, "robust_threshold_px=-1", "pose: setting robust_threshold_px: -1.0 must be above 0"),
+])
+def test_a_setting_out_of_its_range_is_refused(stage, item, message):
+    with pytest.raises(DmaisError, match=message):
+        configure(stage.CONFS, next(iter(stage.CONFS)), [item], stage.__name__.rsplit(".", 1)[1])

@@ -7,6 +7,7 @@ import os
 import shutil
 import subprocess
 import sys
+import zipfile
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -44,7 +45,7 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
     }))
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(
         {"dataset": "tiny", "simulate": "sim.yaml", "subsets": ["0", "012"],
-         "bench_pose": {"repeats": 2, "batch_frames": 5}}))
+         "bench_pose": {"repeats": 2, "batch_frames": 5, "stage_frames": 0}}))
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     command = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path),
                "--configfile", str(tmp_path / "config.yaml"), "--cores", "2"]
@@ -73,17 +74,28 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
     assert len(poses) == 5 and (results / "poses_0.csv").is_file() and (results / "poses_012.csv").is_file()
     evaluation = pd.read_csv(results / "evaluation.csv")
     assert evaluation["true_pos_err_m"].median() < 0.5 and evaluation["true_ang_err_arcmin"].median() < 5
-    for table in ("intrinsics", "extrinsics_R", "extrinsics_t", "pose_methods", "conf", "time_points"):
+    for table in ("intrinsics", "extrinsics_R", "extrinsics_t", "pose_methods", "conf", "lever_arm", "time_points"):
         assert (results / "tables" / f"{table}.csv").is_file(), table
         assert (tmp_path / "reports/tiny/tables" / f"{table}.csv").is_file(), table
-    assert set(pd.read_csv(results / "tables" / "conf.csv", dtype={"subset": str})["subset"]) == {"0", "012"}
+    # the subsets, and the whole rig of poses.csv as tab:conf's #01234
+    assert set(pd.read_csv(results / "tables" / "conf.csv", dtype={"subset": str})["subset"]) == {"0", "012", "01234"}
 
     parser = Headings()
     parser.feed((tmp_path / "reports/tiny/report.html").read_text())
-    assert parser.headings == ["Dataset", "Marker quality per camera", "Intrinsics per camera", "Rig layout", "Reprojection residuals per camera",
-                               "Per-frame pose errors", "Camera subsets", "Runtime versus number of points",
-                               "Processing time per stage", "Comparison with the paper"]
+    assert parser.headings == ["Dataset", "Marker quality per camera", "Detected markers on the images",
+                               "Intrinsics per camera", "Rig layout", "Fields of view on the ground",
+                               "Reprojection residuals per camera", "Per-frame pose errors",
+                               "Attitude error: the paper's proxy and the truth", "Camera subsets",
+                               "Runtime versus number of points", "Processing time per stage", "Comparison with the paper"]
     assert "Not available" not in (tmp_path / "reports/tiny/report.html").read_text()
+
+    # `snakemake --report` carries the tables and the report's figures (report() in the rules)
+    zipped = snakemake(tmp_path, "--configfile", str(tmp_path / "config.yaml"), "--report", "report.zip", timeout=300)
+    assert zipped.returncode == 0, zipped.stderr[-3000:]
+    with zipfile.ZipFile(tmp_path / "report.zip") as archive:
+        names = {Path(name).name for name in archive.namelist()}
+    assert {"fov_ground.svg", "markers_flight.jpg", "calibration_residuals.svg", "intrinsics.csv", "conf.csv",
+            "pose_methods_vs_paper.csv", "evaluation.csv", "report.html"} <= names
 
 
 def snakemake(workdir: Path, *options: str, timeout: int = 120) -> subprocess.CompletedProcess:
@@ -145,7 +157,8 @@ def test_a_users_dataset_is_only_read(tmp_path):
     work.mkdir()
     (work / "mysite.yaml").write_text(yaml.safe_dump(
         {"dataset": "mysite", "dataset_dir": str(site), "subsets": ["0"], "bench_pose": {"repeats": 1,
-                                                                                        "batch_frames": 2},
+                                                                                        "batch_frames": 2,
+                                                                                        "stage_frames": 0},
          "intrinsics": {"methods": ["ours"]}, "pose": {"conf": "robust", "robust_threshold_px": 15}}))
 
     dry = snakemake(work, "--configfile", "mysite.yaml", "--cores", "2", "-n", "-p")

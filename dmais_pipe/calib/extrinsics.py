@@ -18,7 +18,6 @@ writes rig.json and its COLMAP rig config (`colmap_rig_config`) from the request
 from __future__ import annotations
 
 import logging
-import posixpath
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -305,19 +304,10 @@ def colmap_rig_config(rig: Rig, prefixes: dict[str, str] | None = None) -> list[
 
 
 def image_prefixes(images: pd.DataFrame, names) -> dict[str, str]:
-    """Per camera, the folder holding all its image files ("images/C0/"), when every camera has its own.
+    """Per camera, its image-name prefix in rig_config.json: the folder holding all its image files
+    ("images/C0/") when every camera has its own, else "<camera>/". They match the image names of
+    the COLMAP export (`colmap.camera_prefixes` documents the rule, `colmap.colmap_image_names` the names). images: rows with
+    image, camera and path ('' when the image has no file)."""
+    from ..colmap import camera_prefixes
 
-    images: rows with camera and path ('' when the dataset has no file). Falls back to "<camera>/"
-    for every camera when some camera has no file or two cameras share a folder (COLMAP matches
-    images to rig cameras by these name prefixes).
-    """
-    prefixes = {}
-    for name in names:
-        paths = [p for p in images.loc[images["camera"] == name, "path"] if isinstance(p, str) and p]
-        folder = posixpath.commonpath([posixpath.dirname(p) for p in paths]) if paths else ""
-        prefixes[name] = folder + "/" if folder else ""
-    values = list(prefixes.values())
-    clash = any(a.startswith(b) for i, a in enumerate(values) for j, b in enumerate(values) if i != j)
-    if "" in values or clash:
-        return {name: f"{name}/" for name in names}
-    return prefixes
+    return camera_prefixes(images, names)

@@ -66,6 +66,10 @@ class IntrinsicsResult:
     skipped_images: list[str] = field(default_factory=list)
     method: str = "ours"
     image_eps_px: dict[str, float] = field(default_factory=dict)  # RMS per calibration image
+    eval_image_eps_px: dict[str, float] = field(default_factory=dict)  # RMS per held-out image
+    #: image -> (n, 2) residuals projected minus observed (px) of its usable observations, in input
+    #: order: the calibration images' from the final LM, the held-out images' from their pose-only fit.
+    image_residuals_px: dict[str, np.ndarray] = field(default_factory=dict)
 
     def worst_images(self, count: int = 3) -> list[tuple[str, float]]:
         """The `count` calibration images of largest RMS reprojection distance, worst first."""
@@ -86,6 +90,7 @@ class IntrinsicsResult:
             "skipped_images": list(self.skipped_images),
             "pnpf_focal_px": {k: float(v) for k, v in self.pnpf_focal_px.items()},
             "image_eps_calib_px": {k: float(v) for k, v in self.image_eps_px.items()},
+            "image_eps_eval_px": {k: float(v) for k, v in self.eval_image_eps_px.items()},
             "poses": {k: p.to_dict() for k, p in self.poses.items()},
             "eval_poses": {k: p.to_dict() for k, p in self.eval_poses.items()},
         }
@@ -246,18 +251,20 @@ def bundle_adjust(camera: Camera, poses: dict[str, Rigid3], data: dict[str, tupl
 # ------------------------------------------------------------------------------ the procedure
 
 
-def _evaluate(camera: Camera, eval_data: dict, name: str) -> tuple[float | None, dict[str, Rigid3]]:
-    """eps_eval: pose-only estimation per eval image with `camera` fixed; RMS over all their points."""
+def _evaluate(camera: Camera, eval_data: dict, name: str
+              ) -> tuple[float | None, dict[str, Rigid3], dict[str, np.ndarray]]:
+    """eps_eval: pose-only estimation per eval image with `camera` fixed; RMS over all their points.
+
+    Returns (eps_eval, cam_from_world per eval image, residuals (n, 2) per eval image)."""
     if not eval_data:
-        return None, {}
-    residuals, poses = [], {}
+        return None, {}, {}
+    residuals, poses = {}, {}
     for image, (X, uv) in eval_data.items():
         try:
-            poses[image], r = estimate_pose(camera, X, uv)
+            poses[image], residuals[image] = estimate_pose(camera, X, uv)
         except DmaisError:
             raise DmaisError(f"camera {name}, eval image {image}: pose estimation failed") from None
-        residuals.append(r)
-    return _rms(np.vstack(residuals)), poses
+    return _rms(np.vstack(list(residuals.values()))), poses, residuals
 
 
 def _centre(data_sets) -> np.ndarray:
@@ -290,15 +297,18 @@ def _load_inputs(points_world_per_image, uv_per_image, eval_points_world_per_ima
 
 
 def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, skipped, pnpf_focal=None):
-    eps_eval, eval_poses = _evaluate(camera, evals, name)
+    eps_eval, eval_poses, eval_residuals = _evaluate(camera, evals, name)
     std = dict(zip(INTRINSIC_NAMES, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()))
     ends = np.cumsum([len(X) for X, _ in calib.values()])[:-1]  # residuals are stacked in calib's order
-    per_image = dict(zip(calib, map(_rms, np.split(np.asarray(residuals).reshape(-1, 2), ends))))
+    calib_residuals = dict(zip(calib, np.split(np.asarray(residuals).reshape(-1, 2), ends)))
     return IntrinsicsResult(
         name=name, camera=camera, std=std, eps_calib_px=_rms(residuals), eps_eval_px=eps_eval,
         n_images=len(calib), n_observations=sum(len(X) for X, _ in calib.values()),
         poses=_world_poses(poses, centre), eval_poses=_world_poses(eval_poses, centre),
-        pnpf_focal_px=pnpf_focal or {}, skipped_images=skipped, method=method, image_eps_px=per_image)
+        pnpf_focal_px=pnpf_focal or {}, skipped_images=skipped, method=method,
+        image_eps_px={k: _rms(r) for k, r in calib_residuals.items()},
+        eval_image_eps_px={k: _rms(r) for k, r in eval_residuals.items()},
+        image_residuals_px={**calib_residuals, **eval_residuals})
 
 
 def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: int, *,

@@ -257,7 +257,7 @@ def _solved_by_scipy(problem: _RigProblem, max_nfev: int) -> RigBAResult:
 # ------------------------------------------------------------------------------ pycolmap backend
 
 
-def _colmap_rigid(T: Rigid3):
+def colmap_rigid(T: Rigid3):
     import pycolmap
 
     return pycolmap.Rigid3d(pycolmap.Rotation3d(T.R), T.t)
@@ -300,8 +300,9 @@ def opencv_params(camera: Camera, sigma: float = 1.0) -> list[float]:
     return [camera.fx / sigma, camera.fy / sigma, cx / sigma, cy / sigma, camera.d, 0.0, 0.0, 0.0]
 
 
-def _colmap_camera(camera: Camera, camera_id: int, sigma: float):
-    """OPENCV camera (k1 = d, k2 = p1 = p2 = 0) with pixels scaled by 1 / sigma, so residuals are whitened."""
+def colmap_camera(camera: Camera, camera_id: int, sigma: float = 1.0):
+    """OPENCV camera equal to `camera` (k1 = d, k2 = p1 = p2 = 0; principal point + 0.5 px) with pixels
+    scaled by 1 / sigma, so that residuals are whitened (sigma 1: the camera itself)."""
     import pycolmap
 
     params = opencv_params(camera, sigma)
@@ -309,27 +310,28 @@ def _colmap_camera(camera: Camera, camera_id: int, sigma: float):
                            height=max(1, round(camera.height / sigma)), params=params)
 
 
-def _add_rig(rec, cameras: dict[str, Camera], names: list[str], rig_from_cam: dict[str, Rigid3],
-             sig: dict[str, float]) -> dict[str, int]:
-    """Cameras and rig 1 (reference sensor names[0]); returns camera name -> camera id."""
+def add_colmap_rig(rec, cameras: dict[str, Camera], names: list[str], rig_from_cam: dict[str, Rigid3],
+                   sig: dict[str, float] | None = None) -> dict[str, int]:
+    """Cameras (ids 1, 2, ... in the order of `names`, pixels scaled by 1 / sig[c], default 1) and
+    rig 1 (reference sensor names[0]); returns camera name -> camera id."""
     import pycolmap
 
     camera_ids = {c: k + 1 for k, c in enumerate(names)}
     for c, cid in camera_ids.items():
-        rec.add_camera(_colmap_camera(cameras[c], cid, sig[c]))
+        rec.add_camera(colmap_camera(cameras[c], cid, sig[c] if sig else 1.0))
     rig = pycolmap.Rig(rig_id=1)
     rig.add_ref_sensor(rec.cameras[camera_ids[names[0]]].sensor_id)
     for c in names[1:]:
-        rig.add_sensor(rec.cameras[camera_ids[c]].sensor_id, _colmap_rigid(rig_from_cam[c].inverse()))
+        rig.add_sensor(rec.cameras[camera_ids[c]].sensor_id, colmap_rigid(rig_from_cam[c].inverse()))
     rec.add_rig(rig)
     return camera_ids
 
 
-def _add_frame(rec, frame_id: int, rig_id: int, rig_from_world: Rigid3, images: list) -> None:
+def add_colmap_frame(rec, frame_id: int, rig_id: int, rig_from_world: Rigid3, images: list) -> None:
     import pycolmap
 
     frame = pycolmap.Frame(frame_id=frame_id, rig_id=rig_id)
-    frame.rig_from_world = _colmap_rigid(rig_from_world)
+    frame.rig_from_world = colmap_rigid(rig_from_world)
     for image in images:
         image.frame_id = frame_id
         frame.add_data_id(image.data_id)
@@ -360,14 +362,14 @@ def _build_scene(cameras: dict[str, Camera], reference: str, blocks: list[ImageB
 
     rec = pycolmap.Reconstruction()
     names = [reference] + sorted({b.camera for b in blocks} - {reference})
-    camera_ids = _add_rig(rec, cameras, names, rig_from_cam, sig)
+    camera_ids = add_colmap_rig(rec, cameras, names, rig_from_cam, sig)
     frame_ids = {j: k + 1 for k, j in enumerate(sorted({b.placement for b in blocks}))}
     image_ids = list(range(1, len(blocks) + 1))
     for j, fid in frame_ids.items():
         images = [pycolmap.Image(name=b.image, keypoints=colmap_pixels(b.uv) / sig[b.camera],
                                  camera_id=camera_ids[b.camera], image_id=image_id)
                   for b, image_id in zip(blocks, image_ids) if b.placement == j]
-        _add_frame(rec, fid, 1, rig_from_world[j], images)
+        add_colmap_frame(rec, fid, 1, rig_from_world[j], images)
 
     points, block_points = _unique_points(blocks)
     tracks = [pycolmap.Track() for _ in points]
@@ -400,7 +402,7 @@ def _add_shadows(rec, blocks, block_points, points, tracks, rig_from_cam, rig_fr
         X_cam = cam_from_world.apply(points[idx])
         image = pycolmap.Image(name=f"shadow of {b.image}", keypoints=X_cam[:, :2] / X_cam[:, 2:],
                                camera_id=camera_id, image_id=image_id)
-        _add_frame(rec, frame_id, 2, cam_from_world, [image])
+        add_colmap_frame(rec, frame_id, 2, cam_from_world, [image])
         for q, i in enumerate(idx):
             tracks[i].add_element(image_id, q)
         centres.append(cam_from_world.center)

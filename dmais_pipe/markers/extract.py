@@ -34,7 +34,7 @@ from ..geometry import Rigid3
 from ..rig import Rig
 from ..calib.pnpf import solve_pnpf
 from .detect import detect
-from .identify import identify
+from .identify import GATE_PX, MIN_INLIERS, identify
 
 log = logging.getLogger(__name__)
 
@@ -119,11 +119,13 @@ def predicted_projections(dataset: Dataset, image: str, rig: Rig | None = None, 
 
 
 def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None,
-                  margin_px: float = PREDICTION_MARGIN_PX, gate_px: float = VERIFY_GATE_PX) -> pd.DataFrame:
+                  margin_px: float = PREDICTION_MARGIN_PX, gate_px: float = VERIFY_GATE_PX,
+                  identify_gate_px: float = GATE_PX, identify_min_inliers: int = MIN_INLIERS) -> pd.DataFrame:
     """Detections of one image with ids: DataFrame of `detect`'s columns and point_id ('' when unidentified).
 
     rig, calibrated: as `predicted_projections`; margin_px: how far outside the image predictions
-    are kept; gate_px: the pose verification's residual gate for calibration images.
+    are kept; gate_px: the pose verification's residual gate for calibration images;
+    identify_gate_px, identify_min_inliers: `identify`'s final gate and fewest matches.
     """
     pixels = dataset.read_image(image)
     found = detect(pixels)
@@ -135,7 +137,8 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
     if prediction is not None and len(found):
         uv, ids = prediction
         height, width = pixels.shape
-        found["point_id"] = identify(found[["u", "v"]].to_numpy(), uv, ids, (width, height))
+        found["point_id"] = identify(found[["u", "v"]].to_numpy(), uv, ids, (width, height),
+                                     gate_px=identify_gate_px, min_inliers=identify_min_inliers)
         if dataset.images.loc[dataset.images["image"] == image, "stage"].iloc[0] != "flight":
             found["point_id"] = verify_with_pose(found[["u", "v"]].to_numpy(), found["point_id"].to_numpy(),
                                                  dataset.points, image_centre(width, height), gate_px)

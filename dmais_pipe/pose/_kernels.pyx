@@ -9,10 +9,11 @@ takes column-major matrices. Every buffer is allocated per call and the solve ru
 GIL, so one `Kernel` serves several threads at once.
 """
 
+from libc.float cimport DBL_EPSILON, DBL_MIN
 from libc.math cimport NAN, acos, fabs, isfinite, sqrt
 from libc.stdlib cimport free, malloc
 from libc.string cimport memcpy, memset
-from scipy.linalg.cython_lapack cimport dgebal, dgehrd, dgetrf, dhseqr, dormhr, dsyev, dtrtrs
+from scipy.linalg.cython_lapack cimport dsyev
 
 from dmais_pipe.pose._small cimport det3, matmul3, nearest_rotation, solve_linear
 
@@ -90,8 +91,9 @@ cdef struct Candidates:
 
 cdef struct Scratch:
     double *coefficients  # (6 * n_monomials,) of the equations
-    double *template  # (m * n_columns,) column-major
-    int *pivots  # (m,)
+    double *template  # (m * n_columns,) row-major
+    int *pivots  # (m,) template rows in pivot order
+    double *reductions  # (n_reducible * 40,) row-major: the reducible monomials in the basis
     double *action  # (40 * 40,) column-major
     Eigen *eigen
 
@@ -491,7 +493,7 @@ cdef void solving_frame(const Problem *p, const double *octahedral, const double
 
 
 cdef struct Eigen:
-    double H[N_SOLUTIONS * N_SOLUTIONS]  # the balanced Hessenberg form, column-major
+    double H[N_SOLUTIONS * N_SOLUTIONS]  # the balanced Hessenberg form, row-major
     double units[4 * N_SOLUTIONS]  # rows of the back-transformation at the unit monomials, (4, 40)
     double wr[N_SOLUTIONS]
     double wi[N_SOLUTIONS]
@@ -501,76 +503,403 @@ cdef struct Eigen:
 cdef int action_eigenvalues(double *A, const long *unit_index, Eigen *e) noexcept nogil:
     """Eigenvalues e.wr + i e.wi of the column-major action matrix A (40, 40), which is overwritten,
     and what `eigenvector_units` needs: e.H, the Hessenberg form of the balanced A (A = D Q H Q^T
-    D^-1, dgebal scaling D, dgehrd), and e.units, the rows of D Q at the monomials 1, qx, qy, qz.
-    The QR iteration (dhseqr) seeks eigenvalues alone. Returns LAPACK's info (0: success)."""
-    cdef int n = N_SOLUTIONS, one = 1, four = 4, ilo = 0, ihi = 0, info = 0, i, j
-    cdef int lwork = 64 * N_SOLUTIONS
-    cdef double work[64 * N_SOLUTIONS]
+    D^-1, `balance`, `hessenberg`), and e.units, the rows of D Q at the monomials 1, qx, qy, qz.
+    The QR iteration (`hessenberg_eigenvalues`) seeks eigenvalues alone. Returns 0 on success.
+
+    Written out rather than LAPACK's dgebal, dgehrd and dhseqr: at n = 40 those spend about as
+    much on their calls per element (dlarfg, dlapy2, dlamch, lsame) as on arithmetic."""
+    cdef int n = N_SOLUTIONS, i, j, k
     cdef double scale[N_SOLUTIONS]
     cdef double tau[N_SOLUTIONS]
-    cdef double E[4 * N_SOLUTIONS]
-    dgebal(b"S", &n, A, &n, &ilo, &ihi, scale, &info)
-    dgehrd(&n, &ilo, &ihi, A, &n, tau, work, &lwork, &info)
+    cdef double reflectors[N_SOLUTIONS * N_SOLUTIONS]
+    cdef double x[N_SOLUTIONS]
+    cdef double dot
+    balance(A, n, scale)
+    hessenberg(A, n, reflectors, tau)
     e.size = 0.0
-    for j in range(n):  # the Hessenberg matrix alone (A also holds the reflectors below it)
-        for i in range(n):
-            e.H[j * n + i] = A[j * n + i] if i <= j + 1 else 0.0
-            e.size = max(e.size, fabs(e.H[j * n + i]))
-    memset(E, 0, 4 * n * sizeof(double))
-    for i in range(4):
-        E[i * n + unit_index[i]] = 1.0
-    dormhr(b"L", b"T", &n, &four, &ilo, &ihi, A, &n, tau, E, &n, work, &lwork, &info)  # column i: Q^T e_u
-    for i in range(4):
+    for i in range(n):  # row-major, for the row operations of `eigenvector_units`
         for j in range(n):
-            e.units[i * n + j] = scale[unit_index[i]] * E[i * n + j]
-    memcpy(A, e.H, n * n * sizeof(double))
-    dhseqr(b"E", b"N", &n, &ilo, &ihi, A, &n, e.wr, e.wi, NULL, &one, work, &lwork, &info)
-    return info
+            e.H[i * n + j] = A[j * n + i]
+            e.size = max(e.size, fabs(A[j * n + i]))
+    for i in range(4):  # row u of D Q is scale_u (Q^T e_u)^T, Q^T = H_{n-3} ... H_0
+        memset(x, 0, n * sizeof(double))
+        x[unit_index[i]] = 1.0
+        for k in range(n - 2):
+            dot = 0.0
+            for j in range(k + 1, n):
+                dot += reflectors[k * n + j] * x[j]
+            dot *= tau[k]
+            for j in range(k + 1, n):
+                x[j] -= dot * reflectors[k * n + j]
+        for j in range(n):
+            e.units[i * n + j] = scale[unit_index[i]] * x[j]
+    return hessenberg_eigenvalues(A, n, e.wr, e.wi)
+
+
+cdef void balance(double *A, int n, double *scale) noexcept nogil:
+    """Balance the column-major A (n, n) in place, A <- D^-1 A D with D = diag(scale) in powers of
+    2, so that each row and column have similar off-diagonal 2-norms (Parlett and Reinsch 1969; the
+    2-norms as in LAPACK's dgebal since 3.5.0, with which the roots here are ~5x more accurate than
+    with 1-norms): eigenvalues are then computed to an accuracy relative to the balanced norm."""
+    cdef int i, j
+    cdef double column, row, target, factor, total
+    cdef bint converged = False
+    cdef int sweeps = 0
+    for i in range(n):
+        scale[i] = 1.0
+    while not converged and sweeps < 100:
+        converged = True
+        sweeps += 1
+        for i in range(n):
+            column = row = 0.0
+            for j in range(n):
+                if j != i:
+                    column += A[i * n + j] * A[i * n + j]
+                    row += A[j * n + i] * A[j * n + i]
+            column = sqrt(column)
+            row = sqrt(row)
+            if column == 0.0 or row == 0.0:
+                continue
+            total = column + row
+            factor = 1.0
+            target = row / 2.0
+            while column < target and factor < 1e100:
+                factor *= 2.0
+                column *= 4.0
+            target = row * 2.0
+            while column >= target and factor > 1e-100:
+                factor /= 2.0
+                column /= 4.0
+            if (column + row) / factor < 0.95 * total:  # column scaled by f, row by 1/f
+                converged = False
+                scale[i] *= factor
+                for j in range(n):
+                    A[i * n + j] *= factor
+                    A[j * n + i] /= factor
+
+
+cdef void hessenberg(double *A, int n, double *reflectors, double *tau) noexcept nogil:
+    """Reduce the column-major A (n, n) in place to upper Hessenberg form Q^T A Q by Householder
+    reflections H_k = I - tau_k v_k v_k^T (k < n - 2), Q = H_0 ... H_{n-3}; column k of the
+    column-major reflectors (n, n) holds v_k (zero above k + 1, 1 at k + 1). Below the
+    subdiagonal, A ends exactly zero."""
+    cdef int i, j, k
+    cdef double alpha, tail, norm, beta, inverse, dot
+    cdef double w[N_SOLUTIONS]
+    cdef double *v
+    cdef double *column
+    for k in range(n - 2):
+        v = reflectors + k * n
+        memset(v, 0, n * sizeof(double))
+        alpha = A[k * n + k + 1]
+        tail = 0.0
+        for i in range(k + 2, n):
+            tail += A[k * n + i] * A[k * n + i]
+        tau[k] = 0.0
+        v[k + 1] = 1.0
+        if tail == 0.0:
+            continue
+        norm = sqrt(alpha * alpha + tail)
+        beta = -norm if alpha >= 0.0 else norm
+        tau[k] = (beta - alpha) / beta
+        inverse = 1.0 / (alpha - beta)
+        for i in range(k + 2, n):
+            v[i] = A[k * n + i] * inverse
+            A[k * n + i] = 0.0
+        A[k * n + k + 1] = beta
+        for j in range(k + 1, n):  # A <- H_k A, columns k + 1 on (pointers: see hessenberg_eigenvalues)
+            column = A + j * n
+            dot = 0.0
+            for i in range(k + 1, n):
+                dot += v[i] * column[i]
+            dot *= tau[k]
+            for i in range(k + 1, n):
+                column[i] -= dot * v[i]
+        memset(w, 0, n * sizeof(double))  # A <- A H_k: w = A v, A -= tau w v^T
+        for j in range(k + 1, n):
+            column = A + j * n
+            for i in range(n):
+                w[i] += column[i] * v[j]
+        for j in range(k + 1, n):
+            column = A + j * n
+            dot = tau[k] * v[j]
+            for i in range(n):
+                column[i] -= dot * w[i]
+
+
+cdef int hessenberg_eigenvalues(double *A, int n, double *wr, double *wi) noexcept nogil:
+    """Eigenvalues wr + i wi (n,) of the column-major upper Hessenberg A (n, n), destroyed: the
+    Francis double-shift QR iteration on the unreduced trailing block, without accumulating the
+    Schur form (Golub and Van Loan, Matrix Computations, 7.5), with exceptional shifts every 10th
+    iteration. Complex pairs come with the positive imaginary part first. Returns 0, or -1 when
+    an eigenvalue takes more than 30 iterations."""
+    cdef int hi = n - 1, low, k, j, i, rows, its = 0
+    cdef double norm = 0.0, s, trace, det, x, y, z, beta, tau, v1, v2, inverse, p, h11
+    cdef double *column
+    cdef double *next_column
+    cdef double *third
+    cdef double *entry
+    for i in range(n * n):
+        norm = max(norm, fabs(A[i]))
+    while hi >= 0:
+        low = hi
+        while low > 0 and not negligible_subdiagonal(A, n, low, norm):  # the unreduced trailing block is low..hi
+            low -= 1
+        if low > 0:
+            A[(low - 1) * n + low] = 0.0
+        if low == hi:
+            wr[hi], wi[hi] = A[hi * n + hi], 0.0
+            hi -= 1
+            its = 0
+            continue
+        if low == hi - 1:
+            two_by_two_eigenvalues(A[(hi - 1) * n + hi - 1], A[hi * n + hi - 1], A[(hi - 1) * n + hi], A[hi * n + hi],
+                                   wr + hi - 1, wi + hi - 1)
+            hi -= 2
+            its = 0
+            continue
+        if its == 30:
+            return -1
+        its += 1
+        if its % 10 == 0:  # exceptional shift, as in EISPACK's hqr
+            s = fabs(A[(hi - 1) * n + hi]) + fabs(A[(hi - 2) * n + hi - 1])
+            h11 = 0.75 * s + A[hi * n + hi]
+            trace = 2.0 * h11
+            det = h11 * h11 + 0.4375 * s * s
+        else:  # the eigenvalues of the trailing 2 x 2 block
+            trace = A[(hi - 1) * n + hi - 1] + A[hi * n + hi]
+            det = A[(hi - 1) * n + hi - 1] * A[hi * n + hi] - A[hi * n + hi - 1] * A[(hi - 1) * n + hi]
+        # first column of (A - s1 I)(A - s2 I), then the bulge chased down to hi
+        x = A[low * n + low] * A[low * n + low] + A[(low + 1) * n + low] * A[low * n + low + 1] - trace * A[low * n + low] + det
+        y = A[low * n + low + 1] * (A[low * n + low] + A[(low + 1) * n + low + 1] - trace)
+        z = A[low * n + low + 1] * A[(low + 1) * n + low + 2]
+        for k in range(low, hi):
+            rows = 3 if k + 2 <= hi else 2
+            if k > low:
+                x = A[(k - 1) * n + k]
+                y = A[(k - 1) * n + k + 1]
+                z = A[(k - 1) * n + k + 2] if rows == 3 else 0.0
+            s = fabs(x) + fabs(y) + fabs(z)
+            if s == 0.0:
+                continue
+            x, y, z = x / s, y / s, z / s
+            beta = sqrt(x * x + y * y + z * z)
+            if x >= 0.0:
+                beta = -beta
+            tau = (beta - x) / beta
+            inverse = 1.0 / (x - beta)
+            v1, v2 = y * inverse, z * inverse
+            if k > low:
+                A[(k - 1) * n + k] = beta * s
+                A[(k - 1) * n + k + 1] = 0.0
+                if rows == 3:
+                    A[(k - 1) * n + k + 2] = 0.0
+            # through pointers: indices computed in C int under -fwrapv keep GCC from vectorizing
+            column = A + k * n
+            if rows == 3:
+                entry = column + k  # A[k, k]
+                for j in range(k, hi + 1):  # rows k..k+2 <- (I - tau u u^T) rows, u = (1, v1, v2)
+                    p = tau * (entry[0] + v1 * entry[1] + v2 * entry[2])
+                    entry[0] -= p
+                    entry[1] -= p * v1
+                    entry[2] -= p * v2
+                    entry += n
+                next_column, third = column + n, column + 2 * n
+                for i in range(low, min(k + 3, hi) + 1):  # columns k..k+2 <- columns (I - tau u u^T)
+                    p = tau * (column[i] + v1 * next_column[i] + v2 * third[i])
+                    column[i] -= p
+                    next_column[i] -= p * v1
+                    third[i] -= p * v2
+            else:
+                entry = column + k  # A[k, k]
+                for j in range(k, hi + 1):
+                    p = tau * (entry[0] + v1 * entry[1])
+                    entry[0] -= p
+                    entry[1] -= p * v1
+                    entry += n
+                next_column = column + n
+                for i in range(low, hi + 1):
+                    p = tau * (column[i] + v1 * next_column[i])
+                    column[i] -= p
+                    next_column[i] -= p * v1
+    return 0
+
+
+cdef inline bint negligible_subdiagonal(const double *A, int n, int k, double norm) noexcept nogil:
+    """Whether the subdiagonal entry A[k, k - 1] of the column-major Hessenberg A (n, n) can be set to
+    zero: below the rounding of its diagonal neighbours, and by the conservative test of Ahues and
+    Tisseur (LAPACK Working Note 122, 1997), which keeps small eigenvalues of graded matrices (the
+    action variable is small near the solving frame) to a relative accuracy."""
+    cdef double sub = fabs(A[(k - 1) * n + k]), sup = fabs(A[k * n + k - 1])
+    cdef double diagonal = fabs(A[(k - 1) * n + k - 1]) + fabs(A[k * n + k])
+    cdef double ab, ba, aa, bb, difference
+    if sub <= DBL_MIN:
+        return True
+    if diagonal == 0.0:
+        diagonal = norm
+    if sub > DBL_EPSILON * diagonal:
+        return False
+    difference = fabs(A[(k - 1) * n + k - 1] - A[k * n + k])
+    ab, ba = max(sub, sup), min(sub, sup)
+    aa, bb = max(fabs(A[k * n + k]), difference), min(fabs(A[k * n + k]), difference)
+    return ba * (ab / (aa + ab)) <= max(DBL_MIN, DBL_EPSILON * (bb * (aa / (aa + ab))))
+
+
+cdef void two_by_two_eigenvalues(double a, double b, double c, double d, double *wr, double *wi) noexcept nogil:
+    """Eigenvalues wr + i wi (2,) of [[a, b], [c, d]]; a complex pair with the positive imaginary
+    part first. The second of two real ones is formed from the product, without cancellation."""
+    cdef double p = 0.5 * (a - d), q, z
+    q = p * p + b * c
+    if q >= 0.0:
+        z = p + (sqrt(q) if p >= 0.0 else -sqrt(q))
+        wr[0] = d + z
+        wr[1] = d - b * c / z if z != 0.0 else d
+        wi[0] = wi[1] = 0.0
+    else:
+        wr[0] = wr[1] = d + p
+        wi[0] = sqrt(-q)
+        wi[1] = -wi[0]
 
 
 cdef void eigenvector_units(const Eigen *e, double shift, double *v) noexcept nogil:
     """v (4,): the entries at 1, qx, qy, qz of the eigenvector of the action matrix for the
     eigenvalue nearest the real shift, by one step of inverse iteration on the Hessenberg form,
-    y = (H - shift I)^-1 1 (LU with partial pivoting of a Hessenberg matrix: one row
-    interchange per column, O(40^2)), mapped back by e.units. A zero pivot is raised to 1e-30 of
-    the largest entry of H: the least pivot is ~0 at an eigenvalue, and raising it to the
-    rounding level (1e-15) would cost digits of the vector.
+    y = (H - shift I)^-1 1, mapped back by e.units.
+
+    LU with partial pivoting of a Hessenberg matrix takes rows in order: at step k the pivot is
+    either the row carried from step k - 1 or row k + 1 of H - shift I, and the other, minus a
+    multiple of the pivot, is carried on; the pivot rows form U (row-major, O(40^2), contiguous
+    row operations). A zero pivot is raised to 1e-30 of the largest entry of H: the least pivot is
+    ~0 at an eigenvalue, and raising it to the rounding level (1e-15) would cost digits of the vector.
     """
     cdef int n = N_SOLUTIONS, i, j, k
-    cdef double W[N_SOLUTIONS * N_SOLUTIONS]
-    cdef double factor[N_SOLUTIONS]
-    cdef bint swapped[N_SOLUTIONS]
+    cdef double U[N_SOLUTIONS * N_SOLUTIONS]
+    cdef double carry[N_SOLUTIONS]
     cdef double y[N_SOLUTIONS]
-    cdef double tiny, tmp
-    for j in range(n):  # W = H - shift I, column-major, upper Hessenberg
-        memcpy(W + j * n, e.H + j * n, min(j + 2, n) * sizeof(double))
-        W[j * n + j] -= shift
-    tiny = max(e.size + fabs(shift), 1e-300) * 1e-30
-    for k in range(n):
-        swapped[k] = k + 1 < n and fabs(W[k * n + k + 1]) > fabs(W[k * n + k])
-        if swapped[k]:
-            for j in range(k, n):
-                tmp = W[j * n + k]; W[j * n + k] = W[j * n + k + 1]; W[j * n + k + 1] = tmp
-        if fabs(W[k * n + k]) < tiny:
-            W[k * n + k] = tiny
-        if k + 1 < n:
-            factor[k] = W[k * n + k + 1] / W[k * n + k]
-            for j in range(k + 1, n):
-                W[j * n + k + 1] -= factor[k] * W[j * n + k]
+    cdef const double *below
+    cdef double *pivot
+    cdef double tiny = max(e.size + fabs(shift), 1e-300) * 1e-30, factor, tmp
+    memcpy(carry, e.H, n * sizeof(double))
+    carry[0] -= shift
     for i in range(n):
         y[i] = 1.0
-    for k in range(n - 1):  # L^-1 P y: one interchange and one elimination per column
-        if swapped[k]:
-            tmp = y[k]; y[k] = y[k + 1]; y[k + 1] = tmp
-        y[k + 1] -= factor[k] * y[k]
-    for k in range(n - 1, -1, -1):  # U^-1 y, by columns
-        y[k] /= W[k * n + k]
-        for i in range(k):
-            y[i] -= W[k * n + i] * y[k]
+    for k in range(n):
+        pivot = U + k * n
+        if k + 1 < n:
+            below = e.H + (k + 1) * n  # row k + 1 of H - shift I: zero before column k
+            if fabs(below[k]) > fabs(carry[k]):
+                for j in range(k, n):
+                    pivot[j] = below[j]
+                pivot[k + 1] -= shift
+                if fabs(pivot[k]) < tiny:
+                    pivot[k] = tiny
+                factor = carry[k] / pivot[k]
+                for j in range(k + 1, n):
+                    carry[j] -= factor * pivot[j]
+                tmp = y[k]; y[k] = y[k + 1]; y[k + 1] = tmp - factor * y[k]
+                continue
+            memcpy(pivot + k, carry + k, (n - k) * sizeof(double))
+            if fabs(pivot[k]) < tiny:
+                pivot[k] = tiny
+            factor = below[k] / pivot[k]
+            for j in range(k + 1, n):
+                carry[j] = below[j] - factor * pivot[j]
+            carry[k + 1] -= shift
+            y[k + 1] -= factor * y[k]
+        else:
+            pivot[k] = carry[k] if fabs(carry[k]) >= tiny else tiny
+    for k in range(n - 1, -1, -1):  # U^-1 y
+        tmp = y[k]
+        for j in range(k + 1, n):
+            tmp -= U[k * n + j] * y[j]
+        y[k] = tmp / U[k * n + k]
     for i in range(4):
         v[i] = 0.0
         for j in range(n):
             v[i] += e.units[i * n + j] * y[j]
+
+
+cdef bint eliminate(double *T, int m, int n_columns, int *order) noexcept nogil:
+    """Gaussian elimination with partial pivoting of the first m columns of the row-major template
+    T (m, n_columns), in place; order (m,) receives the rows in pivot order (row order[k] has its
+    pivot in column k and zeros before it). False if a column has no nonzero pivot.
+
+    The template is sparse (a fifth of its entries are nonzero, and rows end where their
+    monomials do), so rows with a zero in the pivot column are skipped and fill-in stays small:
+    about 1e5 multiply-adds instead of the 8e5 of a dense LU (dgetrf), for the same pivots.
+    """
+    cdef int i, j, k, best, swap
+    cdef double largest, size, factor
+    cdef double *pivot_row
+    cdef double *row
+    for i in range(m):
+        order[i] = i
+    for k in range(m):
+        best, largest = -1, 0.0
+        for i in range(k, m):
+            size = fabs(T[order[i] * n_columns + k])
+            if size > largest:
+                best, largest = i, size
+        if best < 0 or not isfinite(largest):
+            return False
+        swap = order[k]; order[k] = order[best]; order[best] = swap
+        pivot_row = T + order[k] * n_columns
+        for i in range(k + 1, m):
+            row = T + order[i] * n_columns
+            if row[k] != 0.0:
+                factor = row[k] / pivot_row[k]
+                row[k] = 0.0
+                for j in range(k + 1, n_columns):
+                    row[j] -= factor * pivot_row[j]
+    return True
+
+
+cdef void reduce_to_basis(const double *T, int m, int n_columns, int n_reducible, const int *order,
+                          double *X) noexcept nogil:
+    """X (n_reducible, n_columns - m), row-major: the reducible monomials R in the basis B, from the
+    last n_reducible pivot rows of the eliminated template T (`eliminate`), U_RR R + U_RB B = 0
+    read as R = U_RR^-1 U_RB B (the sign is the caller's), by back substitution."""
+    cdef int a, b, j, first = m - n_reducible, n_basis = n_columns - m
+    cdef const double *row
+    cdef double factor
+    for a in range(n_reducible - 1, -1, -1):
+        row = T + order[first + a] * n_columns
+        memcpy(X + a * n_basis, row + m, n_basis * sizeof(double))
+        for b in range(a + 1, n_reducible):
+            factor = row[first + b]
+            if factor != 0.0:
+                for j in range(n_basis):
+                    X[a * n_basis + j] -= factor * X[b * n_basis + j]
+        factor = 1.0 / row[first + a]
+        for j in range(n_basis):
+            X[a * n_basis + j] *= factor
+
+
+def action_matrix_eigen(const double[:, ::1] A, units=(0, 1, 2, 3)):
+    """Eigenvalues (40,) complex of A (40, 40) by `action_eigenvalues`, and for each real shift in
+    them the `eigenvector_units` at the rows `units` (4,), as (40, 4) (NaN where complex); None
+    if the QR iteration fails. For tests: the solver calls these without Python."""
+    cdef double M[N_SOLUTIONS * N_SOLUTIONS]
+    cdef long rows[4]
+    cdef Eigen e
+    cdef double v[4]
+    cdef int i, j
+    if A.shape[0] != N_SOLUTIONS or A.shape[1] != N_SOLUTIONS:
+        raise ValueError(f"A must be ({N_SOLUTIONS}, {N_SOLUTIONS})")
+    for i in range(4):
+        rows[i] = units[i]
+    for i in range(N_SOLUTIONS):
+        for j in range(N_SOLUTIONS):
+            M[j * N_SOLUTIONS + i] = A[i, j]
+    if action_eigenvalues(M, rows, &e) != 0:
+        return None
+    values = np.array([complex(e.wr[i], e.wi[i]) for i in range(N_SOLUTIONS)])
+    vectors = np.full((N_SOLUTIONS, 4), np.nan)
+    for i in range(N_SOLUTIONS):
+        if e.wi[i] == 0.0:
+            eigenvector_units(&e, e.wr[i], v)
+            vectors[i] = [v[0], v[1], v[2], v[3]]
+    return values, vectors
 
 
 cdef bint unit_directions(const double *v, const double *d, const double *M, int n, double zero, double *f) noexcept nogil:
@@ -623,8 +952,8 @@ cdef class Kernel:
         frame P, written to rotations; returns k.
 
         Row i of the action matrix expresses x * b_i in the basis: x * B(q) = M B(q) at every
-        solution q. One LU factorisation of the whole template [C_E C_R | C_B] = P L [U_11 | U_12]
-        leaves the rows of the reducible monomials R alone at the bottom: U_RR R + U_RB B = 0.
+        solution q. Gaussian elimination of the whole template [C_E C_R | C_B] (`eliminate`) leaves
+        the rows of the reducible monomials R alone at the bottom: U_RR R + U_RB B = 0.
         The eigenvalues come from `action_eigenvalues`, and of the eigenvectors B(q) only the
         entries at 1, qx, qy, qz, which give q (`eigenvector_units`).
         """
@@ -634,7 +963,6 @@ cdef class Kernel:
         cdef double q[3]
         cdef int i, j, k, info = 0, count = 0
         cdef int m = self.m, n_columns = self.n_columns, n_red = self.n_reducible, n = N_SOLUTIONS
-        cdef int first = m - n_red
         cdef double trace
         cdef double *coefficients = scratch.coefficients
         cdef double *template = scratch.template
@@ -657,19 +985,15 @@ cdef class Kernel:
         memset(template, 0, m * n_columns * sizeof(double))
         for k in range(self.target.shape[0]):
             template[self.target[k]] = coefficients[self.source[k]]
-        # LU of [C_E C_R | C_B] (column-major, m x n_columns); U_RR R + U_RB B = 0 gives R.
-        dgetrf(&m, &n_columns, template, &m, scratch.pivots, &info)
-        if info != 0:
+        if not eliminate(template, m, n_columns, scratch.pivots):
             return 0
-        dtrtrs(b"U", b"N", b"N", &n_red, &n, &template[first * m + first], &m, &template[m * m + first], &m, &info)
-        if info != 0:
-            return 0
+        reduce_to_basis(template, m, n_columns, n_red, scratch.pivots, scratch.reductions)
         memset(action, 0, n * n * sizeof(double))
         for k in range(self.shift_rows.shape[0]):  # action matrix, column-major
             action[self.shift_columns[k] * n + self.shift_rows[k]] = 1.0
         for k in range(self.reduced_rows.shape[0]):
             for j in range(n):
-                action[j * n + self.reduced_rows[k]] = -template[(m + j) * m + first + self.reduced_index[k]]
+                action[j * n + self.reduced_rows[k]] = -scratch.reductions[self.reduced_index[k] * n + j]
         if action_eigenvalues(action, &self.unit_index[0], eigen) != 0:
             return 0
         for j in range(n):
@@ -689,10 +1013,11 @@ cdef class Kernel:
         scratch.coefficients = <double *> malloc(6 * self.n_monomials * sizeof(double))
         scratch.template = <double *> malloc(self.m * self.n_columns * sizeof(double))
         scratch.pivots = <int *> malloc(self.m * sizeof(int))
+        scratch.reductions = <double *> malloc(self.n_reducible * N_SOLUTIONS * sizeof(double))
         scratch.action = <double *> malloc(N_SOLUTIONS * N_SOLUTIONS * sizeof(double))
         scratch.eigen = <Eigen *> malloc(sizeof(Eigen))
         return (scratch.coefficients != NULL and scratch.template != NULL and scratch.pivots != NULL
-                and scratch.action != NULL and scratch.eigen != NULL)
+                and scratch.reductions != NULL and scratch.action != NULL and scratch.eigen != NULL)
 
     def rotations_of_roots(self, const double[:, ::1] H, const double[::1] g, const double[:, ::1] P):
         """Rotations (k, 3, 3) of the real and nearly real roots of eq. EF6 for statistics H (9, 9),
@@ -878,9 +1203,10 @@ cdef void release(Scratch *scratch) noexcept nogil:
     free(scratch.coefficients)
     free(scratch.template)
     free(scratch.pivots)
+    free(scratch.reductions)
     free(scratch.action)
     free(scratch.eigen)
-    scratch.coefficients = scratch.template = scratch.action = NULL
+    scratch.coefficients = scratch.template = scratch.reductions = scratch.action = NULL
     scratch.eigen = NULL
     scratch.pivots = NULL
 

@@ -25,12 +25,22 @@ Refinement (`--refine`) and robust mode (`--robust`) on the same frames, each be
   on the frames with 40% wrong ids (each of a random 40% of the observations given the world
   point of another one of them), both with a 12 px threshold; rotation errors against the truth
   and the count of frames where a method found no pose.
+
+Stage throughput (`bench_stage`): a generated observation-only flight (`stage_flight`: the
+simulator's paper rig hovering at 350 m over flat sites, 8 ground markers per camera footprint,
+every marker seen in every frame of its group, 3 px pixel noise; `--stage-frames`, 10,000 by
+default) through the pose stage's `estimate_poses` (indexing, rays, solves, residuals,
+covariances, the tables), timed alone (frames per wall second, and per CPU second of the process,
+which a busy machine disturbs less), then once more under tracemalloc for its peak memory; with the
+process's peak resident size.
 """
 
 from __future__ import annotations
 
 import os
+import resource
 import time
+import tracemalloc
 from pathlib import Path
 
 import numpy as np
@@ -38,8 +48,9 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from ..blas import single_threaded_blas
+from ..dataset import CameraSpec, Dataset
 from ..files import write_csv_atomic
-from ..geometry import rotation_error
+from ..geometry import Rigid3, rotation_error
 from ..errors import PoseError
 from .refine import refine_pose
 from .robust import solve_robust
@@ -186,8 +197,110 @@ def _median_ms(solve, frames) -> tuple[float, float, int]:
     return float(np.median(times) * 1e3), float(np.rad2deg(np.median(errors)) * 60), failed
 
 
-def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int = 0) -> pd.DataFrame:
-    """Run the benchmark, print the table and write it (and the batch throughput) as CSV."""
+#: Stage throughput flight: frames per group (one hover site each), pixel noise per axis.
+STAGE_FRAMES_PER_GROUP, STAGE_NOISE_PX, STAGE_MARKERS_PER_CAMERA = 500, 3.0, 8
+
+
+def stage_flight(rng, n_frames: int):
+    """An observation-only flight of n_frames frames for the pose stage, built in memory.
+
+    Returns (Dataset, truth Rig, observations (image, camera, point_id, u, v)). Each group of
+    STAGE_FRAMES_PER_GROUP frames hovers (1 m, 0.2 deg) at 350 m above a flat site with
+    STAGE_MARKERS_PER_CAMERA ground markers inside each camera's footprint; every marker inside an
+    image is observed with STAGE_NOISE_PX pixel noise.
+    """
+    from ..sim.config import DEFAULTS
+    from ..sim.scene import build_rig, look_rotation
+
+    rig = build_rig(DEFAULTS["rig"])
+    frames, points, observations = [], [], []
+    for g, start in enumerate(range(0, n_frames, STAGE_FRAMES_PER_GROUP)):
+        count = min(STAGE_FRAMES_PER_GROUP, n_frames - start)
+        site = np.array([5e5 + 3e3 * g, 4e6, 100.0])
+        nominal = look_rotation([0.0, 0.0, -1.0], down_hint=[np.cos(g), np.sin(g), 0.0])  # world_from_rig
+        centre = site + [0.0, 0.0, 350.0]
+        markers = _footprint_markers(rng, rig, nominal, centre, site[2], f"G{g:03d}_")
+        world_from_rig = Rotation.from_rotvec(rng.normal(0, np.radians(0.2), (count, 3))).as_matrix() @ nominal
+        centres = centre + rng.normal(0, 1.0, (count, 3))
+        names = np.array([f"f{start + k:05d}" for k in range(count)])
+        frames.append(pd.DataFrame({"frame": names, "group": f"g{g}", "pos_x": centres[:, 0], "pos_y": centres[:, 1],
+                                    "pos_z": centres[:, 2]}))
+        points.append(markers)
+        x_rig = np.einsum("fji,fmj->fmi", world_from_rig, markers[["x", "y", "z"]].to_numpy()[None] - centres[:, None])
+        for name, camera in rig.cameras.items():
+            uv = camera.project(rig.cam_from_rig[name].apply(x_rig.reshape(-1, 3)))
+            seen = np.isfinite(uv).all(axis=1) & camera.in_image(np.nan_to_num(uv, nan=-1e9), margin=5.0)
+            frame_of, marker_of = np.divmod(np.flatnonzero(seen), len(markers))
+            observations.append(pd.DataFrame({
+                "image": np.char.add(names[frame_of], f"_{name}"), "camera": name,
+                "point_id": markers.index.to_numpy()[marker_of],
+                "u": uv[seen, 0] + rng.normal(0, STAGE_NOISE_PX, seen.sum()),
+                "v": uv[seen, 1] + rng.normal(0, STAGE_NOISE_PX, seen.sum())}))
+    observations = pd.concat(observations, ignore_index=True)
+    return flight_dataset(rig, pd.concat(frames, ignore_index=True), pd.concat(points), observations), rig, observations
+
+
+def flight_dataset(rig, frames: pd.DataFrame, points: pd.DataFrame, observations: pd.DataFrame) -> Dataset:
+    """An in-memory observation-only flight Dataset (not validated; for benchmarks and tests).
+
+    frames: frame, group, pos_x, pos_y, pos_z (+ extra columns, as text); points: x, y, z indexed by
+    point_id; observations: image, camera, point_id, u, v with images named <frame>_<camera>.
+    """
+    frames = frames.copy()
+    for quaternion in ("prior_qw", "prior_qx", "prior_qy", "prior_qz"):
+        frames.insert(frames.columns.get_loc("pos_z") + 1 + "wxyz".index(quaternion[-1]), quaternion, np.nan)
+    images = observations.drop_duplicates("image")[["image", "camera"]].reset_index(drop=True)
+    images = images.assign(stage="flight", split="", placement=images["image"].str.rsplit("_", n=1).str[0], path="")
+    spec = {name: CameraSpec(c.width, c.height, c.fx) for name, c in rig.cameras.items()}
+    return Dataset(root=Path("in-memory-flight"), name="in-memory-flight", reference_camera=rig.reference_camera,
+                   cameras=spec, marker_size_m=2.0, description="generated flight", control_points=_points_table([]),
+                   ground_points=points, images=images, frames=frames, observations=observations.drop(columns="camera"))
+
+
+def _footprint_markers(rng, rig, world_from_rig: np.ndarray, centre: np.ndarray, ground_z: float,
+                       prefix: str) -> pd.DataFrame:
+    """STAGE_MARKERS_PER_CAMERA ground points (x, y, z indexed by point_id) on the plane z = ground_z
+    inside each camera's footprint (15% image margin) for a rig at centre with world_from_rig."""
+    rows = []
+    for name, camera in rig.cameras.items():
+        uv = rng.uniform([0.15 * camera.width, 0.15 * camera.height], [0.85 * camera.width, 0.85 * camera.height],
+                         (STAGE_MARKERS_PER_CAMERA, 2))
+        world_from_cam = (rig.cam_from_rig[name] * Rigid3(world_from_rig.T, -world_from_rig.T @ centre)).inverse()
+        rays = camera.unproject(uv) @ world_from_cam.R.T
+        rows.append(world_from_cam.t + rays * ((ground_z - world_from_cam.t[2]) / rays[:, 2])[:, None])
+    xyz = np.vstack(rows)
+    return _points_table(xyz, [f"{prefix}{k:03d}" for k in range(len(xyz))])
+
+
+def _points_table(xyz, ids=()) -> pd.DataFrame:
+    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
+    return pd.DataFrame(xyz, columns=["x", "y", "z"], index=pd.Index(list(ids), dtype=str, name="point_id"))
+
+
+def bench_stage(n_frames: int, seed: int = 0) -> dict:
+    """The pose stage on a generated flight of n_frames frames (`stage_flight`): frames/s of
+    `estimate_poses` (paper conf) and its peak traced memory (MB)."""
+    from .flight import estimate_poses
+
+    dataset, rig, observations = stage_flight(np.random.default_rng(seed), n_frames)
+    with single_threaded_blas():
+        start, cpu_start = time.perf_counter(), time.process_time()
+        table, _ = estimate_poses(dataset, rig, observations, rig.camera_names)
+        seconds, cpu_seconds = time.perf_counter() - start, time.process_time() - cpu_start
+        tracemalloc.start()
+        estimate_poses(dataset, rig, observations, rig.camera_names)
+        peak = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+    return {"frames": n_frames, "observations": len(observations), "solved": len(table), "seconds": seconds,
+            "frames_per_s": n_frames / seconds, "cpu_seconds": cpu_seconds, "frames_per_cpu_s": n_frames / cpu_seconds,
+            "load_average": os.getloadavg()[0], "peak_traced_mb": peak / 2**20,
+            "max_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "median_solve_ms": float(table["time_ms"].median()) if len(table) else np.nan}
+
+
+def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int = 0,
+               stage_frames: int = 10_000) -> pd.DataFrame:
+    """Run the benchmark, print the table and write it (and the batch and stage throughput) as CSV."""
     rng = np.random.default_rng(seed)
     paper = pd.read_csv(PAPER_TABLE).set_index("n_points")["paper_ms"] if PAPER_TABLE.is_file() else {}
 
@@ -263,4 +376,12 @@ def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int
               f"(50 points per frame, rays precomputed, {batch_frames} frames)")
     write_csv_atomic(csv, table)
     write_csv_atomic(Path(csv).with_name(Path(csv).stem + "_batch.csv"), pd.DataFrame(batch))
+    if stage_frames > 0:
+        stage = bench_stage(stage_frames, seed)
+        print(f"stage: {stage['frames_per_s']:.0f} frames/s through estimate_poses ({stage['frames']} frames, "
+              f"{stage['observations']} observations, {stage['seconds']:.2f} s wall, {stage['cpu_seconds']:.2f} s CPU = "
+              f"{stage['frames_per_cpu_s']:.0f} frames per CPU second, load average {stage['load_average']:.1f}, "
+              f"median solve {stage['median_solve_ms']:.3f} ms); peak memory {stage['peak_traced_mb']:.0f} MB traced, "
+              f"process max RSS {stage['max_rss_mb']:.0f} MB")
+        write_csv_atomic(Path(csv).with_name(Path(csv).stem + "_stage.csv"), pd.DataFrame([stage]))
     return table

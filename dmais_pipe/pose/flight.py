@@ -1,15 +1,22 @@
 """Every flight frame through the generalized solver: the pose stage's algorithm (`stages.pose` writes).
 
-`estimate_poses` walks the frames (`frames.frame_observations`) and returns the poses table, with
-the columns of docs/design.md
+`estimate_poses` solves the frames (`frames.flight_observations_by_frame`) and returns the poses
+table, with the columns of docs/design.md
 
-    frame, group, cameras, n_points, qw, qx, qy, qz, tx, ty, tz, x, y, z, eps_proj_px, time_ms, certified
+    frame, group, cameras, n_points, qw, qx, qy, qz, tx, ty, tz, x, y, z, eps_proj_px, time_ms, certified,
+    heading_deg, pitch_deg, roll_deg, sigma_x_m, sigma_y_m, sigma_z_m,
+    sigma_heading_arcmin, sigma_pitch_arcmin, sigma_roll_arcmin, noise_px, <frames.csv extras>
 
 (rig_from_world, rig centre x, y, z in the world, eps_proj_px the RMS reprojection distance over the
 observations used, time_ms the wall time of the solve alone, certified the solver's certificate of
-global optimality), and one row per observation of the solved frames with whether the pose used it
-and its residual. Frames with fewer than 3 usable observations, that the solver rejects, or whose
-pose puts an observed point behind its camera, are left out with a warning naming them.
+global optimality, the attitude and 1-sigma uncertainties of `uncertainty.py`, then the extra
+columns of frames.csv as they are), and one row per observation of the solved frames with whether
+the pose used it and its residual. Frames with fewer than 3 usable observations, that the solver
+rejects, or whose pose puts an observed point behind its camera, are left out with a warning
+naming them.
+
+Only the solves run frame by frame; rays, residuals, statistics and covariances are computed for
+all frames at once, so that the stage runs at nearly the solver's speed.
 """
 
 from __future__ import annotations
@@ -20,94 +27,185 @@ import time
 import numpy as np
 import pandas as pd
 
-from ..dataset import Dataset
-from ..frames import FrameObservations, frame_observations
+from ..blas import single_threaded_blas
+from ..dataset import FRAME_COLUMNS, PRIOR_QUAT, Dataset
+from ..errors import PoseError
+from ..frames import FlightObservations, flight_observations_by_frame
 from ..geometry import Rigid3, quat_from_rotation
 from ..rig import Rig
-from ..errors import PoseError
-from ..workspace import POSE_COLUMNS, POSE_OBSERVATION_COLUMNS
+from ..workspace import POSE_COLUMNS, POSE_OBSERVATION_COLUMNS, POSE_UNCERTAINTY_COLUMNS
 from .robust import solve_robust
 from .solver import solve_generalized_pose
+from .uncertainty import frame_noise_px, pose_uncertainty
 
 log = logging.getLogger(__name__)
 
 #: poses.csv: the columns of every poses file, then `certified` (the solver's Lagrangian dual
-#: certificate of global optimality, `GeneralizedPose.certified`; with --robust, the final solve's).
-COLUMNS = [*POSE_COLUMNS, "certified"]
+#: certificate of global optimality, `GeneralizedPose.certified`; with --robust, the final solve's),
+#: then the attitude and uncertainty columns; a dataset's extra frames.csv columns follow them.
+COLUMNS = [*POSE_COLUMNS, "certified", *POSE_UNCERTAINTY_COLUMNS]
 #: RANSAC threshold of --robust, in pixels (an angle per observation: this over its camera's fx).
 ROBUST_THRESHOLD_PX = 20.0
 
 
 def pixel_residuals(rig: Rig, pose: Rigid3, cameras: np.ndarray, uv: np.ndarray,
-                           points: np.ndarray) -> np.ndarray:
+                    points: np.ndarray) -> np.ndarray:
     """(n, 2) observed pixels uv (n, 2) minus the projections of points (n, 3) in `cameras` (n,)."""
+    return rows_pixel_residuals(rig, pose.R, pose.t, cameras, uv, points)
+
+
+def rows_pixel_residuals(rig: Rig, R: np.ndarray, t: np.ndarray, cameras: np.ndarray, uv: np.ndarray,
+                         points: np.ndarray) -> np.ndarray:
+    """(n, 2) observed pixels uv (n, 2) minus the projections of points (n, 3) in `cameras` (n,), for
+    one rig_from_world (R (3, 3), t (3,)) or one per row (R (n, 3, 3), t (n, 3)); NaN where a point is
+    not imaged."""
+    x_rig = np.einsum("...ij,...j->...i", R, points) + t
     residuals = np.empty_like(uv, dtype=float)
-    for name in np.unique(cameras):
+    for name in pd.unique(cameras):
         mask = cameras == name
-        residuals[mask] = uv[mask] - rig.project(str(name), pose, points[mask])
+        residuals[mask] = uv[mask] - rig.cameras[name].project(rig.cam_from_rig[name].apply(x_rig[mask]))
     return residuals
 
 
-def solve_frame(rig: Rig, frame: FrameObservations, robust: bool, refine: bool,
-                threshold_px: float = ROBUST_THRESHOLD_PX):
-    """Pose of one frame from its observations' generalized rays.
+def solve_frame(rig: Rig, origins: np.ndarray, directions: np.ndarray, points: np.ndarray, focal_px: np.ndarray,
+                robust: bool, refine: bool, threshold_px: float = ROBUST_THRESHOLD_PX):
+    """Pose of one frame from its observations' generalized rays (n, 3) and points (n, 3);
+    focal_px (n,) the cameras' fx (for robust's per-observation threshold).
 
-    Returns (Rigid3 rig_from_world, solve time in ms, mask (n,) of the observations used, certified).
+    Returns (R (3, 3), t (3,)) rig_from_world, solve time in ms, mask (n,) of the observations used,
+    certified.
     """
-    origins, directions, points = frame.origins, frame.directions, frame.points
     start = time.perf_counter()
     if robust:
-        focal = np.array([rig.cameras[str(c)].fx for c in frame.cameras])
-        result = solve_robust(origins, directions, points, threshold_px / focal, refine=refine)
+        result = solve_robust(origins, directions, points, threshold_px / focal_px, refine=refine)
         R, t, used = result.R, result.t, result.inliers
         certified = bool(getattr(result.final, "certified", False))
     else:
         result = solve_generalized_pose(origins, directions, points, refine=refine)
-        R, t, used = result.R, result.t, np.ones(len(points), dtype=bool)
+        R, t, used = result.R, result.t, True
         certified = result.certified
     elapsed = (time.perf_counter() - start) * 1e3
-    return Rigid3(R, t), elapsed, used, certified
-
-
-def _frame_row(frame: str, group: str, cameras_used: list[str], pose: Rigid3, n: int, eps: float, ms: float,
-               certified: bool) -> dict:
-    q = quat_from_rotation(pose.R)
-    centre = pose.center
-    return {"frame": frame, "group": group, "cameras": "+".join(cameras_used), "n_points": n,
-            "qw": q[0], "qx": q[1], "qy": q[2], "qz": q[3], "tx": pose.t[0], "ty": pose.t[1], "tz": pose.t[2],
-            "x": centre[0], "y": centre[1], "z": centre[2], "eps_proj_px": eps, "time_ms": ms,
-            "certified": certified}
+    return R, t, elapsed, used, certified
 
 
 def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
                    robust: bool = False, refine: bool = False, groups: list[str] | None = None,
-                   threshold_px: float = ROBUST_THRESHOLD_PX) -> tuple[pd.DataFrame, pd.DataFrame]:
-    """poses.csv rows (COLUMNS) for every flight frame (of `groups`, if given), and one row per
-    observation of the solved frames (POSE_OBSERVATION_COLUMNS: whether the pose used it, with
-    robust RANSAC's inliers at threshold_px, and its residual du, dv in px)."""
-    rows, per_observation, skipped = [], [], []
+                   threshold_px: float = ROBUST_THRESHOLD_PX, calibrated_noise_px: float = np.nan
+                   ) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """poses.csv rows (COLUMNS, then frames.csv's extra columns) for every flight frame (of `groups`,
+    if given), and one row per observation of the solved frames (POSE_OBSERVATION_COLUMNS: whether
+    the pose used it, with robust RANSAC's inliers at threshold_px, and its residual du, dv in px).
+
+    calibrated_noise_px: per-axis pixel noise for the uncertainty of frames too small for their
+    own estimate when no frame of the call has one (`uncertainty.frame_noise_px`).
+    """
+    flight = flight_observations_by_frame(dataset, rig, observations, cameras, groups)
+    focal = _per_observation(flight.cameras, {name: rig.cameras[name].fx for name in cameras})
+    R, t, ms, used, certified, failures = _solve_frames(rig, flight, focal, robust, refine, threshold_px)
+    index = flight.frame_index
+    residuals = rows_pixel_residuals(rig, R[index], t[index], flight.cameras, flight.uv, flight.points)
+    hidden = np.bincount(index, used & ~np.isfinite(residuals).all(axis=1), minlength=len(flight)) > 0
+    for k in np.flatnonzero(hidden & ~failures.astype(bool)):
+        failures[k] = "the pose puts observed points behind their camera"
+    solved = failures == ""
+    if (~solved).any():
+        log.warning("pose: %d frame(s) skipped: %s", int((~solved).sum()),
+                    "; ".join(f"{flight.frames[k]} ({failures[k]})" for k in np.flatnonzero(~solved)))
+    rows = solved[index]
+    table = _poses_table(dataset, rig, cameras, flight, solved, R, t, ms, certified, used, residuals, focal,
+                         not refine, calibrated_noise_px)
+    per_observation = pd.DataFrame({
+        "frame": flight.frames[index[rows]], "image": flight.images[rows], "camera": flight.cameras[rows],
+        "point_id": flight.point_ids[rows], "u": flight.uv[rows, 0], "v": flight.uv[rows, 1], "used": used[rows],
+        "du": residuals[rows, 0], "dv": residuals[rows, 1]}, columns=list(POSE_OBSERVATION_COLUMNS))
+    return table, per_observation
+
+
+def _solve_frames(rig: Rig, flight: FlightObservations, focal: np.ndarray, robust: bool, refine: bool,
+                  threshold_px: float):
+    """Every frame's solve: R (F, 3, 3), t (F, 3) (NaN where not solved), time_ms (F,), used (N,),
+    certified (F,), failures (F,) str ('' where solved)."""
+    n_frames, bounds = len(flight), flight.bounds
+    R, t = np.full((n_frames, 3, 3), np.nan), np.full((n_frames, 3), np.nan)
+    ms, certified = np.zeros(n_frames), np.zeros(n_frames, bool)
+    used = np.zeros(len(flight.uv), bool)
+    failures = np.zeros(n_frames, dtype=object)
+    failures[:] = ""
+    origins, directions, points = flight.origins, flight.directions, flight.points
     warm = False
-    for frame in frame_observations(dataset, rig, observations, cameras, groups):
-        try:
-            if not warm:  # one untimed solve loads the template: time_ms is the solve alone
-                solve_frame(rig, frame, robust, refine, threshold_px)
-                warm = True
-            pose, ms, used, certified = solve_frame(rig, frame, robust, refine, threshold_px)
-        except PoseError as error:
-            skipped.append(f"{frame.frame} ({error})")
-            continue
-        residuals = pixel_residuals(rig, pose, frame.cameras, frame.uv, frame.points)
-        if not np.isfinite(residuals[used]).all():
-            skipped.append(f"{frame.frame} (the pose puts observed points behind their camera)")
-            continue
-        eps = float(np.sqrt(np.mean(np.sum(residuals[used] ** 2, axis=1))))
-        used_cameras = [c for c in cameras if c in set(frame.cameras[used])]
-        rows.append(_frame_row(frame.frame, frame.group, used_cameras, pose, int(used.sum()), eps, ms, certified))
-        per_observation.append(pd.DataFrame({
-            "frame": frame.frame, "image": frame.images, "camera": frame.cameras, "point_id": frame.point_ids,
-            "u": frame.uv[:, 0], "v": frame.uv[:, 1], "used": used, "du": residuals[:, 0], "dv": residuals[:, 1]}))
-    if skipped:
-        log.warning("pose: %d frame(s) skipped: %s", len(skipped), "; ".join(skipped))
-    observation_rows = (pd.concat(per_observation, ignore_index=True) if per_observation
-                        else pd.DataFrame(columns=list(POSE_OBSERVATION_COLUMNS)))
-    return pd.DataFrame(rows, columns=COLUMNS), observation_rows[list(POSE_OBSERVATION_COLUMNS)]
+    with single_threaded_blas():  # small matrices: threads only add hand-offs (20x under load)
+        for k in range(n_frames):
+            part = slice(bounds[k], bounds[k + 1])
+            problem = (origins[part], directions[part], points[part], focal[part], robust, refine, threshold_px)
+            try:
+                if not warm:  # one untimed solve loads the template: time_ms is the solve alone
+                    solve_frame(rig, *problem)
+                    warm = True
+                R[k], t[k], ms[k], used[part], certified[k] = solve_frame(rig, *problem)
+            except PoseError as error:
+                failures[k] = str(error)
+    return R, t, ms, used, certified, failures
+
+
+def _poses_table(dataset: Dataset, rig: Rig, cameras: list[str], flight: FlightObservations, solved: np.ndarray,
+                 R, t, ms, certified, used, residuals, focal, object_space: bool, calibrated_noise_px: float
+                 ) -> pd.DataFrame:
+    """The COLUMNS of the solved frames (then frames.csv's extras), from the per-frame arrays."""
+    index = flight.frame_index
+    compact = np.cumsum(solved) - 1  # frame -> row of the solved frames
+    rows = used & solved[index]
+    frame_of_row = compact[index[rows]]
+    R, t = R[solved], t[solved]
+    n_frames = len(R)
+    n_points = np.bincount(frame_of_row, minlength=n_frames)
+    squares = np.bincount(frame_of_row, np.sum(residuals[rows] ** 2, axis=1), minlength=n_frames)
+    noise, own = frame_noise_px(residuals[rows], frame_of_row, n_frames, calibrated_noise_px)
+    uncertainty = pose_uncertainty(flight.origins[rows], flight.directions[rows], flight.points[rows], focal[rows],
+                                   frame_of_row, R, t, noise, own, object_space=object_space)
+    q = quat_from_rotation(R) if n_frames else np.zeros((0, 4))
+    centre = -np.einsum("fji,fj->fi", R, t)
+    columns = {"frame": flight.frames[solved], "group": flight.groups[solved],
+               "cameras": _cameras_used(cameras, flight.cameras[rows], frame_of_row, n_frames), "n_points": n_points,
+               "qw": q[:, 0], "qx": q[:, 1], "qy": q[:, 2], "qz": q[:, 3],
+               "tx": t[:, 0], "ty": t[:, 1], "tz": t[:, 2], "x": centre[:, 0], "y": centre[:, 1], "z": centre[:, 2],
+               "eps_proj_px": np.sqrt(squares / np.maximum(n_points, 1)), "time_ms": ms[solved],
+               "certified": certified[solved]}
+    values = np.column_stack([uncertainty.attitude, uncertainty.sigma_position, uncertainty.sigma_attitude, noise])
+    columns.update(zip(POSE_UNCERTAINTY_COLUMNS, values.T))
+    table = pd.DataFrame(columns, columns=COLUMNS)
+    return _with_frame_extras(table, dataset)
+
+
+def _with_frame_extras(table: pd.DataFrame, dataset: Dataset) -> pd.DataFrame:
+    """`table` with the extra columns of frames.csv (as read, text) of its frames appended; an extra
+    column named like one of COLUMNS is left out with a warning."""
+    frames = dataset.frames
+    extras = [c for c in frames.columns if c not in (*FRAME_COLUMNS, *PRIOR_QUAT)]
+    clashing = [c for c in extras if c in COLUMNS]
+    if clashing:
+        log.warning("pose: frames.csv column(s) %s not copied to the poses file: the pose stage writes "
+                    "columns of that name", clashing)
+    extras = [c for c in extras if c not in COLUMNS]
+    if not extras:
+        return table
+    values = frames.set_index("frame").loc[table["frame"], extras].reset_index(drop=True)
+    return pd.concat([table, values], axis=1)
+
+
+def _per_observation(cameras: np.ndarray, value_of: dict[str, float]) -> np.ndarray:
+    """(n,) value_of[camera] of each observation's camera (n,)."""
+    out = np.empty(len(cameras))
+    for name, value in value_of.items():
+        out[cameras == name] = value
+    return out
+
+
+def _cameras_used(cameras: list[str], observed: np.ndarray, frame_of_row: np.ndarray, n_frames: int) -> np.ndarray:
+    """(F,) the cameras (in `cameras` order) of each frame's used observations (observed (N,),
+    frame_of_row (N,)), joined by '+'."""
+    present = np.zeros((n_frames, len(cameras)), bool)
+    for c, name in enumerate(cameras):
+        present[frame_of_row[observed == name], c] = True
+    bits = present @ (1 << np.arange(len(cameras)))
+    labels = {b: "+".join(name for c, name in enumerate(cameras) if b >> c & 1) for b in np.unique(bits)}
+    return np.array([labels[b] for b in bits], dtype=object)

@@ -99,8 +99,11 @@ def ray_errors(origins, directions, points, R, t) -> np.ndarray:
 
 
 def _jacobian(origins, bases, points, R, t) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals (2n,) and Jacobian (2n, 6) with respect to (omega, delta_t)."""
-    q = points @ R.T
+    """Residuals (2n,) and Jacobian (2n, 6) with respect to (omega, delta_t).
+
+    R (3, 3) and t (3,) one pose, or R (n, 3, 3) and t (n, 3) a pose per row (many frames at once).
+    """
+    q = np.einsum("...ij,...j->...i", R, points)
     p = q + t - origins
     norm = np.linalg.norm(p, axis=1)
     u = p / norm[:, None]
@@ -181,12 +184,21 @@ def _checked_pose(R, t) -> tuple[np.ndarray, np.ndarray]:
 
 def _inverse_normal_matrix(J) -> np.ndarray:
     """(J^T J)^-1 (6, 6), or NaN if the pose is not observable (rank-deficient Jacobian)."""
-    JtJ = J.T @ J
-    scale = np.sqrt(np.diag(JtJ))
-    if not (scale > 0).all():
-        return np.full((6, 6), np.nan)
-    normalized = JtJ / np.outer(scale, scale)  # unit diagonal: the test ignores the units of x
-    if np.linalg.cond(normalized) > 1e12:
-        return np.full((6, 6), np.nan)
-    inverse = np.linalg.inv(normalized) / np.outer(scale, scale)
-    return 0.5 * (inverse + inverse.T)
+    return inverse_normal_matrices(J.T @ J)
+
+
+def inverse_normal_matrices(normal) -> np.ndarray:
+    """Inverses (..., k, k) of symmetric normal matrices (..., k, k); NaN where one is singular
+    (a zero diagonal entry, or condition number above 1e12 after scaling to a unit diagonal)."""
+    normal = np.asarray(normal, dtype=float)
+    scale = np.sqrt(np.clip(np.diagonal(normal, axis1=-2, axis2=-1), 0.0, None))
+    observable = (scale > 0).all(axis=-1)
+    scale = np.where(observable[..., None], scale, 1.0)
+    outer = scale[..., :, None] * scale[..., None, :]
+    normalized = np.where(observable[..., None, None], normal / outer, np.eye(normal.shape[-1]))
+    observable &= np.linalg.cond(normalized) <= 1e12  # unit diagonal: the test ignores the units of x
+    normalized[~observable] = np.eye(normal.shape[-1])
+    inverse = np.linalg.inv(normalized) / outer
+    inverse = 0.5 * (inverse + np.swapaxes(inverse, -1, -2))
+    inverse[~observable] = np.nan
+    return inverse

@@ -7,8 +7,10 @@ For generalized rays (origins v_i, unit directions f_i, rig frame) and world poi
 2. the six optimality conditions E12 ... F23 of eq. EF6 in Cayley parameters q, degree 4 after
    multiplying by (1 + q.q)^2 (`equations.py`, generated with sympy);
 3. the elimination template (`_template.json`, built over a prime field by `template.py`):
-   one LU factorisation gives the 40 x 40 action matrix of the action variable on the
-   standard-monomial basis, whose eigenvectors hold the 40 (complex) solutions;
+   one Gaussian elimination (sparse: rows with a zero in the pivot column are skipped) gives the
+   40 x 40 action matrix of the action variable on the standard-monomial basis, whose
+   eigenvectors hold the 40 (complex) solutions; its eigenvalues come from a Francis QR
+   iteration written out for this size (LAPACK's per-call overheads dominated at n = 40);
 4. real (and nearly real) roots are mapped to rotations and polished by Newton's method on the
    cost over SO(3) (which also tells true stationary points from complex pairs taken as real),
    their translations follow from eq. t, and the least cost with most points in front wins.
@@ -102,7 +104,7 @@ class _Runtime:
     m: int
     n_columns: int
     n_reducible: int
-    target: np.ndarray  # flat indices into the column-major (m, n_columns) template
+    target: np.ndarray  # flat indices into the row-major (m, n_columns) template
     source: np.ndarray  # flat indices into the (6, n_monomials) coefficients
     shift_rows: np.ndarray  # basis rows whose x * b is a basis monomial ...
     shift_columns: np.ndarray  # ... namely this one: a 1 in the action matrix
@@ -134,7 +136,7 @@ def runtime() -> _Runtime:
         m=m,
         n_columns=n_columns,
         n_reducible=template.n_reducible,
-        target=(target % n_columns) * m + target // n_columns,
+        target=target,
         source=source,
         shift_rows=np.array(shift_rows),
         shift_columns=np.array(shift_columns),

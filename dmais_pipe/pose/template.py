@@ -14,7 +14,7 @@ comes from `_equations.py`):
 3. Drop expansion rows one at a time (highest multiplier degree first) while step 2 still holds,
    then keep only the E columns that are independent (the rest are linear combinations of those
    kept on generic data, so their constraints are implied). The result is a square block
-   [C_E C_R] next to C_B, so the runtime does one LU solve.
+   [C_E C_R] next to C_B, so the runtime does one Gaussian elimination.
 
 The template is checked on further random instances. `main` of `dmais_pipe.pose.generate`
 writes it to `_template.json`; the runtime (`dmais_pipe.pose.solver`) loads it.

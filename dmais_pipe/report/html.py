@@ -1,8 +1,11 @@
 """`report.html`: one self-contained page for a reader who did not run the pipeline.
 
-Every figure is inline SVG drawn with matplotlib (no external file); every section is an <h2>
-with a stable id (SECTIONS). A section whose inputs are missing says what is missing instead of
-failing the report. All text taken from files is HTML-escaped.
+Every figure is drawn with matplotlib and embedded (inline SVG, or a JPEG data URI for the image
+montages), so the page needs no other file; the figures of the paper that the other results lack
+(marker overlays, fields of view on the ground, calibration residuals) are also written beside the
+page, figures/<name>.svg|jpg, for the workflow's report. Every section is an <h2> with a stable id
+(SECTIONS). A section whose inputs are missing says what is missing instead of failing the report.
+All text taken from files is HTML-escaped.
 """
 
 from __future__ import annotations
@@ -21,21 +24,28 @@ from matplotlib.figure import Figure
 
 from ..errors import DmaisError
 from ..evaluate import ALL_GROUPS, TRUE_ERROR_COLUMNS
-from ..files import write_text_atomic
+from ..files import write_bytes_atomic, write_text_atomic
+from ..geometry import Rigid3
 from ..rig import Rig
 from ..workspace import Workspace, pose_observations_path
+from .calibration import image_eps_figure, image_eps_table, residual_quiver_figure
 from .dataset import rig_table, summary_table
-from .paper import PAPER_TABLES, paper_notes
+from .footprint import angular_extent_deg, footprint_figure, ground_footprints
+from .overlays import marker_montage
+from .paper import BY_CONSTRUCTION, PAPER_TABLES, paper_notes
 
 log = logging.getLogger(__name__)
 
 SECTIONS = (
     ("dataset", "Dataset"),
     ("markers", "Marker quality per camera"),
+    ("extraction", "Detected markers on the images"),
     ("intrinsics", "Intrinsics per camera"),
     ("rig", "Rig layout"),
+    ("fov", "Fields of view on the ground"),
     ("residuals", "Reprojection residuals per camera"),
     ("frames", "Per-frame pose errors"),
+    ("attitude", "Attitude error: the paper's proxy and the truth"),
     ("subsets", "Camera subsets"),
     ("runtime", "Runtime versus number of points"),
     ("stages", "Processing time per stage"),
@@ -44,6 +54,10 @@ SECTIONS = (
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "d")
 RATIO_LIMITS = (0.5, 2.0)
 _MAX_TABLE_ROWS = 400
+#: The figure files written beside the page (figures/<name>), removed first so none is left stale.
+FIGURE_FILES = ("markers_calibration.jpg", "markers_flight.jpg", "fov_ground.svg", "calibration_residuals.svg",
+                "calibration_image_eps.svg", "attitude_proxy_vs_truth.svg")
+MONTAGE_DPI = 110
 
 
 class MissingInput(Exception):
@@ -61,10 +75,12 @@ def write_report(workspace: Workspace, out_html: str | Path, benchmarks_dir: str
     comparisons with the paper). benchmarks_dir: folder of snakemake benchmark files (*.tsv,
     searched recursively), optional. paper_dir: the published tables (default: the package's).
     """
-    context = _Context(workspace, benchmarks_dir, paper_dir)
-    builders = {"dataset": _dataset_section, "markers": _markers_section, "intrinsics": _intrinsics_section, "rig": _rig_section,
-                "residuals": _residuals_section, "frames": _frames_section, "subsets": _subsets_section,
-                "runtime": _runtime_section, "stages": _stages_section, "paper": _paper_section}
+    context = _Context(workspace, benchmarks_dir, paper_dir, Path(out_html).parent / "figures")
+    builders = {"dataset": _dataset_section, "markers": _markers_section, "extraction": _extraction_section,
+                "intrinsics": _intrinsics_section, "rig": _rig_section, "fov": _fov_section,
+                "residuals": _residuals_section, "frames": _frames_section, "attitude": _attitude_section,
+                "subsets": _subsets_section, "runtime": _runtime_section, "stages": _stages_section,
+                "paper": _paper_section}
     sections = [(key, title, _build(builders[key], context, key)) for key, title in SECTIONS]
     title = f"DMAIS report: {context.name}"
     return write_text_atomic(out_html, _page(title, context.intro(), sections))
@@ -73,10 +89,24 @@ def write_report(workspace: Workspace, out_html: str | Path, benchmarks_dir: str
 class _Context:
     """Paths and lazily loaded inputs shared by the sections; loading raises MissingInput."""
 
-    def __init__(self, workspace: Workspace, benchmarks_dir, paper_dir):
+    def __init__(self, workspace: Workspace, benchmarks_dir, paper_dir, figures_dir: Path):
         self.workspace, self.dataset, self.results = workspace, workspace.dataset, workspace.root
         self.benchmarks_dir = None if benchmarks_dir is None else Path(benchmarks_dir)
         self.paper_dir = paper_dir
+        self.figures_dir = figures_dir
+        for name in FIGURE_FILES:
+            (figures_dir / name).unlink(missing_ok=True)
+
+    def figure(self, name: str, fig, caption: str) -> str:
+        """Write `fig` to figures/<name> (SVG, or JPEG for .jpg) and return it embedded with its caption."""
+        if name.endswith(".jpg"):
+            data = _jpeg(fig)
+            write_bytes_atomic(self.figures_dir / name, data)
+            content = f'<img alt="{_esc(name)}" src="data:image/jpeg;base64,{base64.b64encode(data).decode("ascii")}">'
+        else:
+            content = _svg(fig)
+            write_text_atomic(self.figures_dir / name, content)
+        return _figure(content, caption)
 
     @property
     def name(self) -> str:
@@ -182,6 +212,60 @@ def marker_sigma_figure(markers: dict[str, pd.DataFrame], camera_of: dict[str, s
     return fig
 
 
+def _extraction_section(ctx: _Context) -> str:
+    """fig:calib and fig:A: one calibration image and one flight frame per camera, detections drawn."""
+    parts = []
+    calibration = _calibration_showcase(ctx)
+    if calibration:
+        parts.append(ctx.figure("markers_calibration.jpg", _montage(ctx, calibration),
+                                "Calibration images (per camera the intrinsics image with the most identified "
+                                "markers), then crops at full resolution around single markers. Green: detected "
+                                "and identified (point id); red: detected but not identified (markers/<image>.csv)."))
+    frame, flight = _flight_showcase(ctx)
+    if flight:
+        parts.append(ctx.figure("markers_flight.jpg", _montage(ctx, flight),
+                                f"Flight frame {frame}, one image per camera, with its detected markers "
+                                "(green: identified, red: unidentified) and crops around single markers."))
+    if not parts:
+        raise MissingInput(f"No image with a file has a markers file under {ctx.results / 'markers'} "
+                           "(run `dmais markers`).")
+    return "\n".join(parts)
+
+
+def _calibration_showcase(ctx: _Context) -> list[str]:
+    """Per camera, its intrinsics image with a file and markers file that has the most identified markers."""
+    chosen = []
+    for camera in ctx.dataset.cameras:
+        images = ctx.dataset.images_of("intrinsics", camera)
+        counts = {image: int((ctx.workspace.load_markers(image)["point_id"] != "").sum())
+                  for image, path in zip(images["image"], images["path"])
+                  if path and ctx.workspace.markers_path(image).is_file()}
+        if counts:
+            chosen.append(max(counts, key=counts.get))
+    return chosen
+
+
+def _flight_showcase(ctx: _Context) -> tuple[str, list[str]]:
+    """The first solved frame (poses.csv, else frames.csv) that has images with markers files, and those images."""
+    poses = ctx.workspace.poses_path()
+    frames = (pd.read_csv(poses, dtype={"frame": str})["frame"].tolist() if poses.is_file()
+              else ctx.dataset.frames["frame"].tolist())
+    flight = ctx.dataset.images_of("flight")
+    for frame in frames:
+        rows = flight[(flight["placement"] == frame) & (flight["path"] != "")]
+        images = [i for i in rows["image"] if ctx.workspace.markers_path(i).is_file()]
+        if images:
+            return frame, images
+    return "", []
+
+
+def _montage(ctx: _Context, images: list[str]):
+    camera_of = dict(zip(ctx.dataset.images["image"], ctx.dataset.images["camera"]))
+    rows = [(f"{camera_of[image]} {image}", ctx.dataset.read_image(image), ctx.workspace.load_markers(image))
+            for image in images]
+    return marker_montage(rows)
+
+
 def _intrinsics_section(ctx: _Context) -> str:
     workspace = ctx.workspace
     records = [workspace.load_intrinsics(c)[1] for c in ctx.dataset.cameras if workspace.intrinsics_path(c).is_file()]
@@ -193,10 +277,36 @@ def _intrinsics_section(ctx: _Context) -> str:
     truth = ctx.truth_rig
     if truth is not None:
         parts += ["<p>Calibrated minus true values (simulator):</p>", _table(_intrinsics_vs_truth(records, truth))]
+    parts += _calibration_residual_parts(ctx, records)
     baselines = workspace.load_table("intrinsics")
     if baselines is not None:
-        parts += ["<p>All methods (tab:intrinsics layout):</p>", _table(baselines)]
+        parts += ["<p>All methods (tab:intrinsics layout): ours; opencv = cv2.calibrateCamera with the same "
+                  "one-coefficient model; dlt_lm = our DLT + Levenberg-Marquardt baseline (in the paper's place "
+                  "of Bouguet's toolbox, which is not run here); BabelCalib is not run.</p>", _table(baselines)]
     return "\n".join(parts)
+
+
+def _calibration_residual_parts(ctx: _Context, records: list[dict]) -> list[str]:
+    """The residual vectors over each sensor and the RMS per image, from what the intrinsics stage wrote."""
+    parts = []
+    residuals = {r["camera"]: table for r in records
+                 if (table := ctx.workspace.load_calibration_residuals(r["camera"])) is not None}
+    if residuals:
+        sizes = {r["camera"]: (r["width"], r["height"]) for r in records}
+        parts.append(ctx.figure("calibration_residuals.svg", residual_quiver_figure(residuals, sizes),
+                                "Residual (observed minus projected) of every observation of our calibration, "
+                                "drawn from the observed position over each sensor, magnified; blue: calibration "
+                                "images after the final Levenberg-Marquardt, orange: held-out images after their "
+                                "pose-only fit (intrinsics/<camera>.residuals.csv)."))
+    else:
+        parts.append(_missing("No intrinsics/<camera>.residuals.csv (written by `dmais intrinsics` since the "
+                              "residual files were added): rerun the intrinsics stage for the residual vectors."))
+    per_image = image_eps_table(records)
+    if not per_image.empty:
+        parts.append(ctx.figure("calibration_image_eps.svg", image_eps_figure(per_image),
+                                "RMS reprojection distance per image: eps_calib of each calibration image, eps_eval "
+                                "of each held-out image (intrinsics/<camera>.json)."))
+    return parts
 
 
 def intrinsics_table(records: list[dict]) -> pd.DataFrame:
@@ -266,6 +376,45 @@ def _rig_variants(ctx: _Context) -> dict[str, Rig]:
     return rigs
 
 
+def _fov_section(ctx: _Context) -> str:
+    """fig:5cam: every camera's footprint on the ground for one solved frame, and the rig's angular extent."""
+    rig = ctx.rig
+    width, height = angular_extent_deg(rig)
+    text = (f"<p>Total angular extent of the {len(rig.camera_names)} cameras (spread of all image-corner rays "
+            f"seen along {_esc(rig.camera_names[0])}'s axis, from rig.json): {width:.1f}&deg; &times; "
+            f"{height:.1f}&deg; (the paper: about 90&deg; &times; 90&deg;). Each camera alone covers "
+            + ", ".join(f"{_esc(c)} {w:.2f}&deg; &times; {h:.2f}&deg;"
+                        for c, (w, h) in ((c, _camera_fov_deg(rig, c)) for c in rig.camera_names)) + ".</p>")
+    poses = ctx.workspace.poses_path()
+    if not poses.is_file():
+        return text + _missing(f"{poses} is missing (run `dmais pose`) for the footprints on the ground.")
+    table = pd.read_csv(poses, dtype={"frame": str, "cameras": str})
+    if table.empty:
+        return text + _missing(f"{poses} has no frame.")
+    full = table[table["cameras"].str.count(r"\+") == table["cameras"].str.count(r"\+").max()].iloc[0]
+    rig_from_world = Rigid3.from_quat(full[["qw", "qx", "qy", "qz"]].to_numpy(float),
+                                      full[["tx", "ty", "tz"]].to_numpy(float))
+    ground = ctx.dataset.ground_points
+    points = ground if len(ground) else ctx.dataset.control_points
+    ground_z = float(points["z"].mean())
+    footprints = ground_footprints(rig, rig_from_world, ground_z)
+    centre = rig_from_world.center
+    missing = [c for c, corners in footprints.items() if corners is None]
+    fig = footprint_figure(footprints, centre[:2], points[["x", "y"]].to_numpy(float),
+                           title=f"frame {full['frame']}, {centre[2] - ground_z:.0f} m above z = {ground_z:.1f} m")
+    caption = (f"The image corners of every camera cut with the plane z = {ground_z:.1f} m (the mean height of the "
+               f"{'ground' if len(ground) else 'control'} points) for frame {full['frame']}'s pose (poses.csv) "
+               "and rig.json; grey dots: the markers." + (f" Not drawn (looking above the horizon): "
+                                                         f"{', '.join(missing)}." if missing else ""))
+    return text + ctx.figure("fov_ground.svg", fig, caption)
+
+
+def _camera_fov_deg(rig: Rig, camera: str) -> tuple[float, float]:
+    cam = rig.cameras[camera]
+    return (float(np.degrees(2 * np.arctan(cam.width / 2 / cam.fx))),
+            float(np.degrees(2 * np.arctan(cam.height / 2 / cam.fy))))
+
+
 def _residuals_section(ctx: _Context) -> str:
     workspace = ctx.workspace
     if not workspace.poses_path().is_file():
@@ -289,27 +438,91 @@ def _frames_section(ctx: _Context) -> str:
     if evaluation is None:
         raise MissingInput(f"{ctx.workspace.evaluation_path()} is missing (run `dmais evaluate`).")
     parts = [_figure(_svg(frame_errors_figure(evaluation)),
-                     "Errors of every frame in file order, coloured by flight group. eps_pos after removing each "
-                     "group's mean offset to the POS (the lever arm)."
+                     "Errors of every frame in file order, coloured by flight group. eps_pos: distance to the POS "
+                     "position after the one lever arm fitted over all frames (table below); eps_pos_group: after "
+                     "removing each group's mean offset to the POS instead (a literal reading of the paper's "
+                     "\"average offset\", which absorbs each group's bias)."
                      + (" True errors against the simulator's truth in the last panels." if
                         TRUE_ERROR_COLUMNS[0] in evaluation else ""))]
+    parts.append(_pos_calibration_part(ctx))
     table = ctx.table("pose_methods", "run `dmais evaluate`")
-    parts += ["<p>Per group mean and standard deviation (tab:pose_methods):</p>", _table(table)]
+    parts += ["<p>Per group mean and standard deviation (tab:pose_methods); eps_pos_* with the lever arm "
+              "(compared with the paper), eps_pos_group_* with the per-group mean offsets:</p>", _table(table)]
     if len(evaluation) <= _MAX_TABLE_ROWS:
         parts += ["<details><summary>Every frame</summary>", _table(evaluation), "</details>"]
     return "\n".join(parts)
 
 
+def _attitude_section(ctx: _Context) -> str:
+    """eps_ang is the paper's proxy for the attitude error; beside it the true error where the simulator gives it."""
+    evaluation = ctx.workspace.load_evaluation()
+    if evaluation is None:
+        raise MissingInput(f"{ctx.workspace.evaluation_path()} is missing (run `dmais evaluate`).")
+    text = ("<p>eps_ang is not a measured attitude error: like the paper, it is eps_proj (the RMS reprojection "
+            "distance, px) times the cameras' angular resolution (arc-minutes per pixel), a proxy that needs no "
+            "attitude reference.")
+    truth = TRUE_ERROR_COLUMNS[1]
+    if truth not in evaluation:
+        return text + " This dataset has no true attitude (no simulator truth), so only the proxy is shown.</p>"
+    text += (" On this simulated dataset the true attitude error (the rotation angle between the estimated and "
+             "the simulator's rig_from_world) is known and shown beside it.</p>")
+    columns = {"eps_ang_arcmin": "eps_ang (proxy)", truth: "true attitude error"}
+    if "crb_ang_arcmin" in evaluation:
+        columns["crb_ang_arcmin"] = "Cramer-Rao bound"
+    grouped = evaluation.groupby(evaluation["group"].astype(str), sort=False)[list(columns)].mean()
+    table = grouped.rename(columns={c: f"{label} mean (′)" for c, label in columns.items()}).reset_index()
+    caption = ("Per frame: the proxy eps_ang against the true attitude error (arc-minutes); the line is equality.")
+    return "\n".join([text, ctx.figure("attitude_proxy_vs_truth.svg", attitude_figure(evaluation, truth), caption),
+                      _table(table)])
+
+
+def attitude_figure(evaluation: pd.DataFrame, truth_column: str):
+    """Scatter of eps_ang (x) against the true attitude error (y) per frame, coloured by group."""
+    fig = Figure(figsize=(4.6, 4.2))
+    ax = fig.subplots()
+    for group, rows in evaluation.groupby(evaluation["group"].astype(str), sort=False):
+        ax.scatter(rows["eps_ang_arcmin"], rows[truth_column], s=12, label=f"group {group}")
+    top = float(np.nanmax(evaluation[["eps_ang_arcmin", truth_column]].to_numpy(float))) * 1.05
+    ax.plot([0, top], [0, top], color="0.5", lw=0.8)
+    ax.set(xlim=(0, top), ylim=(0, top))
+    ax.set_xlabel("eps_ang = eps_proj × resolution (′)")
+    ax.set_ylabel("true attitude error (′)")
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+def _pos_calibration_part(ctx: _Context) -> str:
+    """tables/lever_arm.csv with what its rows mean (or a line saying it is missing)."""
+    table = ctx.workspace.load_table("lever_arm")
+    if table is None:
+        return _missing(f"{ctx.workspace.table_path('lever_arm')} is missing (run `dmais evaluate`).")
+    world = table["parameter"].str.startswith("world_offset").any()
+    text = ("The frames share one attitude, so no lever arm could be told from a world offset: eps_pos removes "
+            "one world-frame offset POS - estimate (m)." if world else
+            "POS lever arm: the POS reference point in the rig frame (POS = rig centre + R_world_from_rig l), "
+            "fitted once over every frame of poses.csv and applied to every camera subset; 1-sigma with an error "
+            "shared by a group's frames.")
+    if table["parameter"].str.startswith("boresight").any():
+        text += (" INS boresight: imu_from_rig as a rotation vector in the rig axes (INS attitude = B "
+                 "rig_from_world), from frames.csv's INS attitudes.")
+    if "truth" in table:
+        text += " truth: the simulator's values."
+    return "\n".join([f"<p>{_esc(text)}</p>", _table(table)])
+
+
 def _subsets_section(ctx: _Context) -> str:
     conf = ctx.table("conf", "run `dmais pose --cameras ...` per subset, then `dmais evaluate`")
-    caption = ("Mean errors per camera subset (label = camera indexes, e.g. 012 = C0, C1, C2) and flight group; "
-               "log scale.")
+    caption = ("Mean errors per camera subset (label = camera indexes, e.g. 012 = C0, C1, C2; the full rig of "
+               "poses.csv is the label of all its cameras) and flight group; log scale. eps_pos with the full rig's "
+               "lever arm, eps_pos_group with the full rig's per-group mean offsets.")
     return "\n".join([_figure(_svg(subset_figure(conf)), caption), _table(conf_wide(conf))])
 
 
 def conf_wide(conf: pd.DataFrame) -> pd.DataFrame:
     """tab:conf's layout: rows (group, metric), one column per subset label."""
-    metrics = [c for c in ("eps_pos_mean_m", "eps_ang_mean_arcmin", "eps_proj_mean_px") if c in conf]
+    metrics = [c for c in ("eps_pos_mean_m", "eps_pos_group_mean_m", "eps_ang_mean_arcmin", "eps_proj_mean_px")
+               if c in conf]
     long = conf.melt(id_vars=["group", "subset"], value_vars=metrics, var_name="metric")
     labels = list(dict.fromkeys(conf["subset"]))
     wide = long.pivot_table(index=["group", "metric"], columns="subset", values="value", sort=False)
@@ -363,14 +576,18 @@ def _paper_section(ctx: _Context) -> str:
         raise MissingInput(f"No table of {ctx.results / 'tables'} has a published counterpart yet.")
     low, high = RATIO_LIMITS
     parts = [f"<p>Our tables beside the paper's published numbers (ratio = ours / paper). Rows flagged "
-             f"differ by more than a factor {high:g}. Our Bouguet-style baseline (dlt_lm) is compared with the "
-             "paper's Bouguet row; angles near &plusmn;180&deg; or 0 make ratios meaningless, see the "
+             f"differ by more than a factor {high:g}. In tab:intrinsics the paper's Bouguet row holds our own "
+             "DLT + LM baseline (dlt_lm; Bouguet's toolbox is not run), its OpenCV row our cv2.calibrateCamera run, "
+             "and its BabelCalib row is the paper's alone (column ours_is). A corrected misprint of the paper is "
+             "named in the note column. Angles near &plusmn;180&deg; or 0 make ratios meaningless, see the "
              "difference column.</p>"]
     notes = paper_notes(ctx.paper_dir)
     for name, table in comparisons.items():
         flagged = table.assign(flag=np.where((table["ratio"] < low) | (table["ratio"] > high), "!", ""))
         parts += [f"<h3>{_esc(name)}</h3>"]
         parts += [f'<p class="note">{_esc(notes[name])}</p>'] if name in notes else []
+        if ctx.truth_rig is not None and name in BY_CONSTRUCTION:
+            parts.append(f'<p class="note">By construction: {_esc(BY_CONSTRUCTION[name])}</p>')
         run_note = ctx.workspace.load_extrinsics_note()  # the extrinsics stage explains its run
         if name == "extrinsics_t" and run_note:
             parts.append(f'<p class="note">This run: {_esc(run_note)}</p>')
@@ -430,7 +647,10 @@ def residual_figure(residuals: pd.DataFrame, rig: Rig, cameras: list[str]):
 
 def frame_errors_figure(evaluation: pd.DataFrame):
     """eps_pos, eps_ang, eps_proj (and the true errors) per frame, coloured by group."""
-    panels = [("eps_pos_m", "eps_pos (m)"), ("eps_ang_arcmin", "eps_ang (′)"), ("eps_proj_px", "eps_proj (px)")]
+    panels = [(c, label) for c, label in (("eps_pos_m", "eps_pos, lever arm (m)"),
+                                          ("eps_pos_group_m", "eps_pos, group offsets (m)"),
+                                          ("eps_ang_arcmin", "eps_ang (′)"), ("eps_proj_px", "eps_proj (px)"))
+              if c in evaluation]
     panels += [(c, label) for c, label in zip(TRUE_ERROR_COLUMNS, ("true position error (m)",
                                                                    "true attitude error (′)")) if c in evaluation]
     fig = Figure(figsize=(9, 1.9 * len(panels) + 0.4))
@@ -448,12 +668,14 @@ def frame_errors_figure(evaluation: pd.DataFrame):
 
 def subset_figure(conf: pd.DataFrame):
     """Grouped bars per subset label (x) and group (bars), one panel per metric, log scale."""
-    metrics = [(c, label) for c, label in (("eps_pos_mean_m", "eps_pos (m)"), ("eps_ang_mean_arcmin", "eps_ang (′)"),
+    metrics = [(c, label) for c, label in (("eps_pos_mean_m", "eps_pos, lever arm (m)"),
+                                           ("eps_pos_group_mean_m", "eps_pos, group offsets (m)"),
+                                           ("eps_ang_mean_arcmin", "eps_ang (′)"),
                                            ("eps_proj_mean_px", "eps_proj (px)")) if c in conf]
     labels = list(dict.fromkeys(conf["subset"]))
     groups = [g for g in dict.fromkeys(conf["group"]) if g != ALL_GROUPS] or [ALL_GROUPS]
     width = 0.8 / len(groups)
-    fig = Figure(figsize=(4 * len(metrics), 3.4))
+    fig = Figure(figsize=(3.4 * len(metrics), 3.4))
     axes = fig.subplots(1, len(metrics), squeeze=False)[0]
     x = np.arange(len(labels))
     for ax, (column, name) in zip(axes, metrics):
@@ -506,6 +728,13 @@ def _svg(fig) -> str:
         fig.savefig(buffer, format="svg", bbox_inches="tight")
     text = buffer.getvalue()
     return text[text.index("<svg"):]
+
+
+def _jpeg(fig) -> bytes:
+    """The figure as JPEG bytes (image montages: photographs compress far better than in SVG or PNG)."""
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="jpeg", dpi=MONTAGE_DPI, pil_kwargs={"quality": 85})
+    return buffer.getvalue()
 
 
 def _svg_file(path: Path) -> str:

@@ -19,6 +19,7 @@ from matplotlib.lines import Line2D
 from ..errors import DmaisError
 from ..files import write_bytes_atomic
 from ..rig import Rig
+from .footprint import image_corner_rays
 
 COLOURS = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
 MARKERS = ("o", "^", "s", "D", "v", "P")
@@ -35,12 +36,7 @@ def frustum_segments(rig: Rig, camera: str, depth: float) -> np.ndarray:
     Four edges from the centre to the image corners at depth `depth` along the optical axis, and
     the four sides of the far rectangle.
     """
-    cam = rig.cameras[camera]
-    corners_px = np.array([[-0.5, -0.5], [cam.width - 0.5, -0.5], [cam.width - 0.5, cam.height - 0.5],
-                           [-0.5, cam.height - 0.5]])
-    rays = cam.unproject(corners_px)
-    if not np.all(np.isfinite(rays)):  # corners beyond an invertible distortion: use the pinhole corners
-        rays = np.column_stack([(corners_px - [cam.cx, cam.cy]) / [cam.fx, cam.fy], np.ones(4)])
+    rays = image_corner_rays(rig.cameras[camera])
     rig_from_cam = rig.cam_from_rig[camera].inverse()
     far = (rays / rays[:, 2:] * depth) @ rig_from_cam.R.T + rig_from_cam.t
     centre = rig_from_cam.t

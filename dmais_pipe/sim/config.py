@@ -117,6 +117,7 @@ DEFAULTS = {
         "lever_arm_m": [0.15, -0.08, 0.32],
         "pos_sigma_m": [0.02, 0.02, 0.03],
         "ins_attitude_sigma_deg": 0.5,
+        "ins_boresight_deg": [0.25, -0.15, 0.4],  # imu_from_rig as a rotation vector in the rig axes
         "border_margin_px": 20.0,
     },
 }

@@ -404,7 +404,7 @@ def _forced_mask(camera: Camera, cam_from_world: Rigid3, board: MarkerBoard, bbo
     if len(edges) and edges.min() < _MIN_CELL_PX:
         return True
     mask = np.zeros((y1 - y0, x1 - x0), dtype=bool)
-    uv = uv[np.isfinite(uv).all(axis=1)]
+    uv = uv[(np.abs(uv) < 1e9).all(axis=1)]  # finite and castable: a vertex near the camera plane projects to ~1e20
     centre = np.floor(uv + 0.5).astype(np.int64) - np.array([x0, y0])
     r = _VERTEX_RADIUS_PX
     for cx, cy in centre:

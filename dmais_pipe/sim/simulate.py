@@ -21,7 +21,7 @@ import pandas as pd
 from ..dataset import write_dataset
 from ..errors import ConfigError, DmaisError
 from ..files import write_csv_atomic, write_png_atomic, write_yaml_atomic
-from ..geometry import Rigid3
+from ..geometry import Rigid3, exp_so3
 from ..rig import Rig
 from .config import load_config
 from .render import RenderSettings, render_image
@@ -220,14 +220,16 @@ def _images_frame(config, shots: list[Shot], rendered: set[str], rng) -> pd.Data
 
 
 def _frames_frame(config, frames: list[Frame], rng) -> pd.DataFrame:
-    """frames.csv: POS position (rig origin + lever arm + noise) and INS attitude prior."""
+    """frames.csv: POS position (rig origin + lever arm + noise) and INS attitude prior (the rig's
+    attitude turned by the boresight imu_from_rig, + noise)."""
     fl = config["flight"]
     lever = np.asarray(fl["lever_arm_m"], dtype=float)
+    imu_from_rig = exp_so3(np.radians(fl["ins_boresight_deg"]))
     rows = []
     for frame in frames:
         world_from_rig = frame.rig_from_world.inverse()
         pos = world_from_rig.apply(lever) + rng.normal(0.0, 1.0, 3) * np.asarray(fl["pos_sigma_m"])
-        ins = small_rotation(rng, np.radians(fl["ins_attitude_sigma_deg"])) @ frame.rig_from_world.R
+        ins = small_rotation(rng, np.radians(fl["ins_attitude_sigma_deg"])) @ imu_from_rig @ frame.rig_from_world.R
         rows.append({"frame": frame.frame, "group": frame.group,
                      **dict(zip(("pos_x", "pos_y", "pos_z"), pos)),
                      **dict(zip(("prior_qw", "prior_qx", "prior_qy", "prior_qz"), Rigid3(ins, np.zeros(3)).quat))})

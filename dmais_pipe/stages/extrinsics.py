@@ -24,6 +24,7 @@ from ..camera import Camera
 from ..errors import DmaisError
 from ..report.layout import write_layout_svg
 from ..workspace import Workspace
+from . import setting
 
 log = logging.getLogger(__name__)
 
@@ -32,13 +33,16 @@ LAYOUT_LABELS = ("with camera-centre priors (known)", "without priors (unknown)"
 
 @dataclass(frozen=True)
 class Conf:
-    """use_priors: rig.json from the calibration with the camera-centre priors (when the images have
-    them); center_sigma_m: the priors' standard deviation; backend: the rig bundle adjuster,
-    "pycolmap" or "scipy" (calib.rig_ba; both reach the same optimum)."""
+    """How the rig is calibrated (calib.extrinsics)."""
 
-    use_priors: bool = True
-    center_sigma_m: float = DEFAULT_CENTER_SIGMA_M
-    backend: str = DEFAULT_BACKEND
+    use_priors: bool = setting(True, "rig.json from the calibration with the images' RTK camera-centre priors "
+                                     "(when they have them)")
+    center_sigma_m: float = setting(DEFAULT_CENTER_SIGMA_M, "standard deviation of an RTK camera-centre prior (m)",
+                                    above=0)
+    pixel_sigma_px: float = setting(0.0, "standard deviation of a marker's pixel, per axis (px); 0: each camera's "
+                                         f"eps_calib / sqrt(2), or {DEFAULT_PIXEL_SIGMA_PX} without one", minimum=0)
+    backend: str = setting(DEFAULT_BACKEND, "the rig bundle adjuster, pycolmap or scipy (both reach the same "
+                                            "optimum)")
 
 
 #: "paper": with the RTK priors, as the paper's rig; "no_priors": the reprojections alone.
@@ -56,7 +60,7 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     has_priors = bool(images[list(PRIOR_CENTER)].notna().all(axis=1).any())
     if conf.use_priors and not has_priors:
         log.warning("extrinsics: no camera-centre priors in %s; calibrating without", dataset.root / "images.csv")
-    inputs = _inputs(workspace)
+    inputs = _inputs(workspace, conf.pixel_sigma_px)
     results = {case: _calibrate(workspace, conf, case, *inputs) for case in ([True, False] if has_priors else [False])}
     chosen = results[conf.use_priors and has_priors]
     written = [workspace.save_rig(chosen.rig, **chosen.extra()),
@@ -69,8 +73,9 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     return written
 
 
-def _inputs(workspace: Workspace) -> tuple[pd.DataFrame, dict[str, Camera], dict[str, float]]:
-    """The extrinsics images' observations, the calibrated cameras and each camera's pixel sigma."""
+def _inputs(workspace: Workspace, pixel_sigma_px: float) -> tuple[pd.DataFrame, dict[str, Camera], dict[str, float]]:
+    """The extrinsics images' observations, the calibrated cameras and each camera's pixel sigma
+    (pixel_sigma_px when positive, else from the camera's calibration)."""
     dataset = workspace.dataset
     images = dataset.images_of("extrinsics")
     observations = workspace.load_observations()
@@ -81,7 +86,12 @@ def _inputs(workspace: Workspace) -> tuple[pd.DataFrame, dict[str, Camera], dict
         cameras[name], record = workspace.load_intrinsics(name)
         # per-axis pixel sigma from the intrinsic calibration's RMS point distance (eps / sqrt 2)
         eps = record.get("eps_calib_px")
-        pixel_sigma[name] = float(eps) / np.sqrt(2.0) if eps and np.isfinite(eps) and eps > 0 else DEFAULT_PIXEL_SIGMA_PX
+        if pixel_sigma_px > 0:
+            pixel_sigma[name] = pixel_sigma_px
+        elif eps and np.isfinite(eps) and eps > 0:
+            pixel_sigma[name] = float(eps) / np.sqrt(2.0)
+        else:
+            pixel_sigma[name] = DEFAULT_PIXEL_SIGMA_PX
     return observations, cameras, pixel_sigma
 
 

@@ -1,10 +1,14 @@
 """`dmais intrinsics`: calibrate every camera that has intrinsics images (calib.intrinsics).
 
-- `run_cameras` (the workflow's job: one camera): RESULTS/intrinsics/<camera>.json (ours) and
-  <camera>.methods.csv (that camera's row of every method). A calibration beyond the conf's
+- `run_cameras` (the workflow's job: one camera): RESULTS/intrinsics/<camera>.json (ours),
+  <camera>.methods.csv (that camera's row of every method) and <camera>.residuals.csv (our
+  calibration's residual per observation, calibration and held-out images). A calibration beyond the conf's
   plausibility bounds stops the job before anything of that camera is written;
 - `write_table`: RESULTS/tables/intrinsics.csv (tab:intrinsics) from every camera's methods file;
-- `run`: every camera, then the table.
+- `run`: every camera, then the table;
+- `import_cameras`: intrinsics calibrated elsewhere (an OpenCV calibration file or a COLMAP cameras
+  file, calib.import_intrinsics) written as the calibration's files, so the stages after this one
+  run without intrinsics images.
 """
 
 from __future__ import annotations
@@ -18,20 +22,28 @@ import pandas as pd
 
 from ..calib.intrinsics import (METHODS, TABLE_COLUMNS, IntrinsicsResult, Plausibility, calibrate_camera,
                                 calibrate_camera_dlt_lm, calibrate_camera_opencv, check_plausible)
+from ..calib.import_intrinsics import (DEFAULT_MAX_RESIDUAL_PX, ForeignCamera, imported_record, one_coefficient_camera,
+                                       read_colmap_cameras, read_opencv_file)
 from ..errors import DmaisError
-from ..workspace import Workspace
+from ..workspace import CALIBRATION_RESIDUAL_COLUMNS, Workspace
+from . import setting
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class Conf:
-    """methods: "ours" and the baselines to run beside it (tab:intrinsics); max_eps_calib_px,
-    max_focal_deviation: the plausibility bounds (calib.intrinsics.Plausibility)."""
+    """The methods to run and the plausibility bounds of a result (calib.intrinsics.Plausibility)."""
 
-    methods: tuple = METHODS
-    max_eps_calib_px: float = Plausibility.max_eps_calib_px
-    max_focal_deviation: float = Plausibility.max_focal_deviation
+    methods: tuple = setting(METHODS, "'ours' and the baselines to run beside it (tab:intrinsics)")
+    max_eps_calib_px: float = setting(Plausibility.max_eps_calib_px,
+                                      "refuse a calibration whose eps_calib exceeds this (px)", above=0)
+    max_focal_deviation: float = setting(Plausibility.max_focal_deviation,
+                                         "refuse fx, fy further than this fraction from focal_px or from each other",
+                                         above=0)
+    max_import_residual_px: float = setting(
+        DEFAULT_MAX_RESIDUAL_PX, "refuse an imported camera whose distortion the one-coefficient model misses by "
+                                 "more than this anywhere in the image (px)", above=0)
 
 
 #: "paper": ours and both baselines of tab:intrinsics; "ours": the paper's procedure alone (faster).
@@ -59,6 +71,8 @@ def run_cameras(workspace: Workspace, names: list[str], conf: Conf = Conf()) -> 
     for name in names:
         ours, rows = _calibrate(workspace, name, conf, observations)
         written += workspace.save_intrinsics(name, ours.to_dict(), rows)
+        written.append(workspace.save_calibration_residuals(name, residual_table(workspace.dataset, ours,
+                                                                                observations)))
     return written
 
 
@@ -112,6 +126,73 @@ def _calibrate(workspace: Workspace, name: str, conf: Conf, observations: pd.Dat
             log.warning("%s", error)
             rows.append({"method": method, "camera": name})
     return ours, pd.DataFrame(rows, columns=list(TABLE_COLUMNS))
+
+
+def import_cameras(workspace: Workspace, names: list[str], source: Path, conf: Conf = Conf()) -> list[Path]:
+    """intrinsics/<camera>.json and <camera>.methods.csv (method "imported") of each named camera from
+    `source`: an OpenCV calibration file (one camera) or a COLMAP cameras.txt / cameras.bin (its
+    cameras in camera-id order, one per name). Every camera is checked and converted before anything
+    is written; the record's "method" says where it came from."""
+    dataset, source = workspace.dataset, Path(source)
+    unknown = [n for n in names if n not in dataset.cameras]
+    if unknown:
+        raise DmaisError(f"intrinsics: camera(s) {', '.join(unknown)} are not cameras of "
+                         f"{dataset.root / 'dataset.yaml'} ({', '.join(dataset.cameras)})")
+    foreign = _foreign_cameras(source, names)
+    conversions = {}
+    for name in names:
+        spec = dataset.cameras[name]
+        if (foreign[name].width, foreign[name].height) != (spec.width, spec.height):
+            raise DmaisError(f"camera {name}: {source} is for {foreign[name].width}x{foreign[name].height} images, "
+                             f"dataset.yaml says {spec.width}x{spec.height}")
+        _check_nominal_focal(name, foreign[name], spec.focal_px, conf.max_focal_deviation, source)
+        conversions[name] = one_coefficient_camera(foreign[name], name, conf.max_import_residual_px)
+    written = []
+    for name, conversion in conversions.items():
+        log.info("camera %s: imported from %s (%s): d = %.6g, fit residual %.3g px max, %.3g px RMS over the image",
+                 name, source, foreign[name].model, conversion.camera.d, conversion.residual_max_px,
+                 conversion.residual_rms_px)
+        record = imported_record(name, conversion, foreign[name], source)
+        row = {"method": "imported", **{k: record[k] for k in ("camera", "fx", "fy", "cx", "cy", "d")}}
+        written += workspace.save_intrinsics(name, record, pd.DataFrame([row], columns=list(TABLE_COLUMNS)))
+    return written
+
+
+def _check_nominal_focal(name: str, foreign: ForeignCamera, focal_px: float | None, max_deviation: float,
+                         source: Path) -> None:
+    """Refuse a file whose focal lengths are far from the manifest's focal_px (another camera's file?)."""
+    deviation = max(abs(f / focal_px - 1.0) for f in (foreign.fx, foreign.fy)) if focal_px else 0.0
+    if not deviation <= max_deviation:
+        raise DmaisError(f"camera {name}: {source} has fx {foreign.fx:.1f}, fy {foreign.fy:.1f} px, {deviation:.0%} "
+                         f"from dataset.yaml's focal_px {focal_px:g} (limit {max_deviation:.0%}, "
+                         "--max-focal-deviation); is it another camera's file?")
+
+
+def _foreign_cameras(source: Path, names: list[str]) -> dict[str, ForeignCamera]:
+    """Each named camera as `source` describes it: COLMAP for .txt / .bin, OpenCV's FileStorage otherwise."""
+    if source.suffix in (".txt", ".bin"):
+        cameras = read_colmap_cameras(source)
+        if len(cameras) != len(names):
+            raise DmaisError(f"{source}: holds {len(cameras)} camera(s) (ids {', '.join(map(str, sorted(cameras)))}) "
+                             f"for {len(names)} --camera name(s); give one name per camera, in camera-id order")
+        return dict(zip(names, (cameras[k] for k in sorted(cameras))))
+    if len(names) != 1:
+        raise DmaisError(f"{source}: an OpenCV calibration file holds one camera; give exactly one --camera")
+    return {names[0]: read_opencv_file(source)}
+
+
+def residual_table(dataset, result: IntrinsicsResult, observations: pd.DataFrame) -> pd.DataFrame:
+    """One row per observation of every image `result` used: image, split, point_id, u, v and the
+    residual du, dv observed minus projected (px). Observations are matched to the residuals by
+    their order within the image, the order `_per_image` gave them to the calibration."""
+    split_of = dict(zip(dataset.images["image"], dataset.images["split"]))
+    parts = []
+    for image, residuals in result.image_residuals_px.items():
+        obs = observations[observations["image"] == image]
+        parts.append(pd.DataFrame({"image": image, "split": split_of[image], "point_id": obs["point_id"].to_numpy(),
+                                   "u": obs["u"].to_numpy(float), "v": obs["v"].to_numpy(float),
+                                   "du": -residuals[:, 0], "dv": -residuals[:, 1]}))
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=list(CALIBRATION_RESIDUAL_COLUMNS))
 
 
 def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tuple[dict, dict]:

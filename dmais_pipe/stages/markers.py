@@ -20,6 +20,8 @@ from pathlib import Path
 from ..camera import Camera
 from ..errors import DmaisError
 from ..markers.extract import PREDICTION_MARGIN_PX, VERIFY_GATE_PX, observation_table, process_image
+from ..markers.identify import GATE_PX, MIN_INLIERS
+from . import setting
 from ..rig import Rig
 from ..workspace import Workspace
 
@@ -28,11 +30,17 @@ log = logging.getLogger(__name__)
 
 @dataclass(frozen=True)
 class Conf:
-    """prediction_margin_px: predicted points kept this far outside an image (attitude prior errors);
-    verify_gate_px: a calibration image's id is dropped when the PnPf fit misses it by more."""
+    """How the detections of an image are identified (markers.identify, markers.extract)."""
 
-    prediction_margin_px: float = PREDICTION_MARGIN_PX
-    verify_gate_px: float = VERIFY_GATE_PX
+    prediction_margin_px: float = setting(
+        PREDICTION_MARGIN_PX, "known points predicted this far outside an image are still matched (px; "
+                              "room for the attitude prior's error)", minimum=0)
+    verify_gate_px: float = setting(
+        VERIFY_GATE_PX, "a calibration image's id is dropped when the PnPf pose misses it by more (px)", above=0)
+    identify_gate_px: float = setting(
+        GATE_PX, "final gate between a detection and the aligned prediction of its point (px)", above=0)
+    identify_min_inliers: int = setting(
+        MIN_INLIERS, "fewest one-to-one matches for an image's ids to be accepted", minimum=3)
 
 
 CONFS = {"default": Conf()}
@@ -79,7 +87,8 @@ def collect(workspace: Workspace, stage: str) -> list[Path]:
 def _extract(workspace: Workspace, image: str, conf: Conf, rig: Rig | None, progress: str = ""):
     started = time.perf_counter()
     found = process_image(workspace.dataset, image, rig, _calibrated(workspace, image),
-                          conf.prediction_margin_px, conf.verify_gate_px)
+                          conf.prediction_margin_px, conf.verify_gate_px, conf.identify_gate_px,
+                          conf.identify_min_inliers)
     log.info("markers %s%s: %d detected, %d identified (%.2f s)", progress, image, len(found),
              int((found["point_id"] != "").sum()), time.perf_counter() - started)
     return found

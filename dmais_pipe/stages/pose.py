@@ -13,30 +13,33 @@ e.g. 012), each with its per-observation file beside it (Workspace.save_poses).
 
 from __future__ import annotations
 
+import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 
 from ..blas import single_threaded_blas
 from ..errors import DmaisError
-from ..pose.flight import COLUMNS, ROBUST_THRESHOLD_PX, estimate_poses
+from ..pose.flight import ROBUST_THRESHOLD_PX, estimate_poses
 from ..rig import Rig
 from ..workspace import ResultsError, Workspace
+from . import setting
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class Conf:
-    """robust: LO-RANSAC against wrong correspondences first; refine: polish every pose on the
-    reprojection error; robust_threshold_px: RANSAC's inlier threshold (an angle per observation:
-    this over its camera's fx)."""
+    """How every frame is solved (pose.flight)."""
 
-    robust: bool = False
-    refine: bool = False
-    robust_threshold_px: float = ROBUST_THRESHOLD_PX
+    robust: bool = setting(False, "LO-RANSAC against wrong correspondences before the paper's solver")
+    refine: bool = setting(False, "polish every pose on the reprojection error")
+    robust_threshold_px: float = setting(
+        ROBUST_THRESHOLD_PX, "RANSAC's inlier threshold (px; an angle per observation: this over its camera's fx)",
+        above=0)
 
 
 #: "paper": the paper's solver alone; "robust": RANSAC first and a polished pose, for wrong ids.
@@ -51,7 +54,8 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
     chosen = _cameras(rig, cameras)
     with single_threaded_blas():  # small matrices: threads only add hand-offs to time_ms
         table, per_observation = estimate_poses(workspace.dataset, rig, workspace.load_observations(), chosen,
-                                                conf.robust, conf.refine, groups, conf.robust_threshold_px)
+                                                conf.robust, conf.refine, groups, conf.robust_threshold_px,
+                                                calibrated_noise_px(workspace, chosen))
     if table.empty and not groups:
         raise DmaisError(f"pose: no flight frame of {workspace.dataset.root} could be solved with cameras {chosen}")
     if table.empty:
@@ -84,8 +88,21 @@ def merge(workspace: Workspace, parts: list[Path], cameras: list[str] | None = N
     if len(repeated):
         raise DmaisError(f"pose: frame {repeated.iloc[0]!r} appears in more than one of {[str(p) for p in parts]}")
     path = out or poses_path(workspace, rig, chosen)
-    return workspace.save_poses(merged.sort_values("frame", kind="stable")[COLUMNS],
+    return workspace.save_poses(merged.sort_values("frame", kind="stable"),
                                 pd.concat(observations, ignore_index=True).sort_values("frame", kind="stable"), path)
+
+
+def calibrated_noise_px(workspace: Workspace, cameras: list[str]) -> float:
+    """Per-axis pixel noise of the calibration (rig.json's largest per-camera RMS reprojection
+    distance `rms_px` of `cameras`, over sqrt 2), NaN when rig.json has none: the uncertainty's
+    noise when no frame has enough observations for its own estimate."""
+    try:
+        rms = json.loads(workspace.rig_path.read_text()).get("rms_px") or {}
+        values = [float(rms[c]) for c in cameras if c in rms]
+    except (OSError, ValueError, TypeError, AttributeError):
+        return np.nan
+    values = [v for v in values if np.isfinite(v) and v > 0]
+    return max(values) / np.sqrt(2.0) if values else np.nan
 
 
 def subset_label(rig: Rig, cameras: list[str]) -> str:

@@ -13,13 +13,15 @@ from ..files import copy_atomic
 from ..report.html import write_report
 from ..report.paper import PAPER_TABLES, paper_comparisons
 from ..workspace import Workspace
+from . import setting
 
 
 @dataclass(frozen=True)
 class Conf:
-    """paper_dir: the published tables to compare with ('' = the package's transcription of the paper)."""
+    """Where the published tables come from."""
 
-    paper_dir: str = ""
+    paper_dir: str = setting("", "folder of the published tables to compare with ('': the package's "
+                                 "transcription of the paper)")
 
 
 CONFS = {"default": Conf()}

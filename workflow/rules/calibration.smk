@@ -5,6 +5,7 @@ rule intrinsics:
     output:
         json=f"{RESULTS}/intrinsics/{{camera}}.json",
         methods=f"{RESULTS}/intrinsics/{{camera}}.methods.csv",
+        residuals=f"{RESULTS}/intrinsics/{{camera}}.residuals.csv",
     params:
         dataset_dir=folder_of("manifest"),
         results=folder_of("json", up=1),
@@ -25,7 +26,8 @@ rule intrinsics_table:
         manifest=lambda wildcards: dataset_ready(),
         methods=lambda wildcards: expand(f"{RESULTS}/intrinsics/{{camera}}.methods.csv", camera=calibrated_cameras()),
     output:
-        csv=f"{RESULTS}/tables/intrinsics.csv",
+        csv=report(f"{RESULTS}/tables/intrinsics.csv", caption="../report/intrinsics_table.rst", category="Tables",
+                   subcategory="Calibration"),
     params:
         dataset_dir=folder_of("manifest"),
         results=folder_of("csv", up=1),
@@ -46,8 +48,10 @@ rule extrinsics:
     output:
         rig=f"{RESULTS}/rig.json",
         rig_config=f"{RESULTS}/rig_config.json",
-        rotations=f"{RESULTS}/tables/extrinsics_R.csv",
-        translations=f"{RESULTS}/tables/extrinsics_t.csv",
+        rotations=report(f"{RESULTS}/tables/extrinsics_R.csv", caption="../report/extrinsics_tables.rst",
+                         category="Tables", subcategory="Calibration"),
+        translations=report(f"{RESULTS}/tables/extrinsics_t.csv", caption="../report/extrinsics_tables.rst",
+                            category="Tables", subcategory="Calibration"),
     params:
         dataset_dir=folder_of("manifest"),
         results=folder_of("rig"),

@@ -14,7 +14,7 @@ LOGS = f"logs/{DATASET}"
 BENCHMARKS = f"benchmarks/{DATASET}"
 #: Camera subsets of tab:conf, as camera indexes in the manifest's order ("01" = first two cameras).
 SUBSETS = config.get("subsets", ["0", "01", "012", "1234"])
-BENCH_POSE = {"repeats": 50, "batch_frames": 100, **config.get("bench_pose", {})}
+BENCH_POSE = {"repeats": 50, "batch_frames": 100, "stage_frames": 10_000, **config.get("bench_pose", {})}
 
 
 def dataset_manifest():
@@ -90,7 +90,7 @@ def subset_labels():
 def stage_settings(stage):
     """The workflow config's section of `stage` as `dmais <stage>` options: `--conf NAME` and one
     `--set KEY=VALUE` per setting (the defaults are the code's; docs/design.md, "Stage settings")."""
-    section = dict(config.get(stage) or {})
+    section = dict(GIVEN_SETTINGS[stage])
     options = ["--conf", section.pop("conf")] if "conf" in section else []
     for key, value in section.items():
         if isinstance(value, bool):

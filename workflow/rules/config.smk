@@ -5,6 +5,8 @@ import yaml
 from snakemake.utils import validate
 
 CONFIG_SCHEMA = "../schemas/config.schema.yaml"  # relative to this file
+#: The stages whose config section holds `dmais <stage>` settings (docs/design.md, "Stage settings").
+STAGES = ("markers", "intrinsics", "extrinsics", "pose", "evaluate", "export", "report")
 
 
 def check_config(config):
@@ -25,4 +27,7 @@ def check_config(config):
     validate(config, CONFIG_SCHEMA)
 
 
+#: Each stage's settings as the user wrote them, before `validate` fills in the schema's defaults:
+#: only these are passed on, so that a named conf's own values are not overwritten by defaults.
+GIVEN_SETTINGS = {stage: dict(config.get(stage) or {}) for stage in STAGES}
 check_config(config)

@@ -5,10 +5,16 @@ rule evaluate:
         poses=f"{RESULTS}/poses.csv",
         subsets=lambda wildcards: expand(f"{RESULTS}/poses_{{subset}}.csv", subset=subset_labels()),
     output:
-        evaluation=f"{RESULTS}/evaluation.csv",
-        pose_methods=f"{RESULTS}/tables/pose_methods.csv",
-        residuals=f"{RESULTS}/tables/residuals.csv",
-        **({"conf": f"{RESULTS}/tables/conf.csv"} if SUBSETS else {}),
+        evaluation=report(f"{RESULTS}/evaluation.csv", caption="../report/evaluation.rst", category="Tables",
+                          subcategory="Pose"),
+        pose_methods=report(f"{RESULTS}/tables/pose_methods.csv", caption="../report/pose_methods.rst",
+                            category="Tables", subcategory="Pose"),
+        lever_arm=report(f"{RESULTS}/tables/lever_arm.csv", caption="../report/lever_arm.rst", category="Tables",
+                         subcategory="Pose"),
+        residuals=report(f"{RESULTS}/tables/residuals.csv", caption="../report/flight_residuals.rst",
+                         category="Tables", subcategory="Pose"),
+        **({"conf": report(f"{RESULTS}/tables/conf.csv", caption="../report/conf.rst", category="Tables",
+                           subcategory="Pose")} if SUBSETS else {}),
     params:
         dataset_dir=folder_of("manifest"),
         results=folder_of("evaluation"),
@@ -25,11 +31,16 @@ rule evaluate:
 
 rule bench_pose:
     output:
-        csv=f"{RESULTS}/tables/time_points.csv",
-        batch=f"{RESULTS}/tables/time_points_batch.csv",
+        csv=report(f"{RESULTS}/tables/time_points.csv", caption="../report/time_points.rst", category="Tables",
+                   subcategory="Runtime"),
+        batch=report(f"{RESULTS}/tables/time_points_batch.csv", caption="../report/time_points.rst",
+                     category="Tables", subcategory="Runtime"),
+        **({"stage": report(f"{RESULTS}/tables/time_points_stage.csv", caption="../report/time_points.rst",
+                            category="Tables", subcategory="Runtime")} if BENCH_POSE["stage_frames"] else {}),
     params:
         repeats=BENCH_POSE["repeats"],
         batch_frames=BENCH_POSE["batch_frames"],
+        stage_frames=BENCH_POSE["stage_frames"],
     log:
         f"{LOGS}/bench_pose.log",
     benchmark:
@@ -38,7 +49,7 @@ rule bench_pose:
         DMAIS_ENV
     shell:
         "dmais bench pose --csv {output.csv} --repeats {params.repeats} --batch-frames {params.batch_frames} "
-        "> {log} 2>&1"
+        "--stage-frames {params.stage_frames} > {log} 2>&1"
 
 
 rule report:
@@ -49,8 +60,14 @@ rule report:
         evaluation=f"{RESULTS}/evaluation.csv",
         time_points=f"{RESULTS}/tables/time_points.csv",
         flight_observations=f"{RESULTS}/observations/flight.csv",
+        calibration_residuals=lambda wildcards: expand(f"{RESULTS}/intrinsics/{{camera}}.residuals.csv",
+                                                       camera=calibrated_cameras()),
     output:
         html=report(f"{REPORTS}/report.html", caption="../report/report.rst", category="Report"),
+        figures=report(directory(f"{REPORTS}/figures"), patterns=["{name}.svg", "{name}.jpg"],
+                       caption="../report/figures.rst", category="Figures"),
+        tables=report(directory(f"{REPORTS}/tables"), patterns=["{name}_vs_paper.csv"],
+                      caption="../report/paper_tables.rst", category="Tables", subcategory="Versus the paper"),
     params:
         dataset_dir=folder_of("manifest"),
         results=folder_of("evaluation"),
@@ -58,6 +75,8 @@ rule report:
         settings=stage_settings("report"),
     log:
         f"{LOGS}/report.log",
+    benchmark:
+        f"{BENCHMARKS}/report.tsv"
     conda:
         DMAIS_ENV
     shell:

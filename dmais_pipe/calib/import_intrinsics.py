@@ -1,0 +1,240 @@
+"""Intrinsics calibrated elsewhere: OpenCV's calibration files and COLMAP cameras files.
+
+Both describe a pinhole camera (fx, fy, cx, cy) with OpenCV's distortion coefficients (k1, k2, p1,
+p2, k3, k4, k5, k6, s1..s4, tau_x, tau_y; COLMAP's PINHOLE/RADIAL/OPENCV/FULL_OPENCV families are
+the same model with some coefficients held at zero). Our model (eq. 2-3) is that with k1 = d and
+every other coefficient zero. `one_coefficient_camera` fits d to the richer model's distortion:
+over a grid of pixels covering the image, the undistorted normalized points x of the richer model
+are taken and d minimizes sum |ours(x; d) - theirs(x)|^2, linear in d:
+
+    ours(x; d) - (fx x + cx) = d fx x |x|^2,  the same in v with fy, cy.
+
+The residual (max / RMS px over the grid) is the conversion's cost; above `max_residual_px` the
+camera is refused, naming the largest coefficient that our model cannot represent. A model that is
+ours (other coefficients zero) converts exactly (d = k1; residual ~1e-12 px, rounding).
+
+Pixel conventions: OpenCV's files use ours (centre of the top-left pixel at (0, 0)); COLMAP's put
+it at (0.5, 0.5), so its principal point is shifted by -0.5 px.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import struct
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import DmaisError
+from .rig_ba import COLMAP_PIXEL_OFFSET
+
+#: OpenCV's distortion coefficients, in its order.
+OPENCV_COEFFICIENTS = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
+DEFAULT_MAX_RESIDUAL_PX = 0.1
+GRID_STEPS = 33  # grid points per image side for the fit
+
+#: COLMAP models that are OpenCV's pinhole model with some coefficients: parameter names in
+#: COLMAP's order; "f" is fx = fy.
+COLMAP_MODELS = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k1"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+}
+
+
+@dataclass
+class ForeignCamera:
+    """A camera as another tool calibrated it: pinhole in our pixel convention plus OpenCV's
+    distortion coefficients by name (absent ones are zero)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    model: str
+    distortion: dict[str, float] = field(default_factory=dict)
+
+    def coefficients(self) -> np.ndarray:
+        """(14,) OpenCV's distortion vector."""
+        return np.array([self.distortion.get(name, 0.0) for name in OPENCV_COEFFICIENTS])
+
+
+@dataclass
+class Conversion:
+    camera: Camera
+    residual_max_px: float
+    residual_rms_px: float
+
+
+# ------------------------------------------------------------------------------ reading
+
+
+def read_opencv_file(path: Path) -> ForeignCamera:
+    """A camera of an OpenCV calibration file (cv2.FileStorage YAML/XML/JSON as OpenCV's calibration
+    sample writes it): camera_matrix, distortion_coefficients, image_width, image_height."""
+    import cv2
+
+    if not Path(path).is_file():
+        raise DmaisError(f"{path}: no such file")
+    try:
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+        opened = storage.isOpened()
+    except (cv2.error, SystemError) as error:  # OpenCV's parser errors surface as either
+        raise DmaisError(f"{path}: not an OpenCV FileStorage file ({_first_line(error)})") from None
+    if not opened:
+        raise DmaisError(f"{path}: not an OpenCV FileStorage file")
+    K = _matrix(storage, "camera_matrix", path)
+    coefficients = _matrix(storage, "distortion_coefficients", path).ravel()
+    if K.shape != (3, 3) or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
+        raise DmaisError(f"{path}: camera_matrix {K.tolist()} is not a 3x3 intrinsic matrix")
+    if K[0, 1] != 0:
+        raise DmaisError(f"{path}: camera_matrix has skew {K[0, 1]:g}; our model has none")
+    if len(coefficients) not in (4, 5, 8, 12, 14):
+        raise DmaisError(f"{path}: distortion_coefficients has {len(coefficients)} values; "
+                         "OpenCV's have 4, 5, 8, 12 or 14")
+    size = [_integer(storage, key, path) for key in ("image_width", "image_height")]
+    return ForeignCamera(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), *size, model="OpenCV",
+                         distortion=dict(zip(OPENCV_COEFFICIENTS, map(float, coefficients))))
+
+
+def read_colmap_cameras(path: Path) -> dict[int, ForeignCamera]:
+    """The cameras of a COLMAP cameras.txt or cameras.bin, by camera id (read by pycolmap)."""
+    import pycolmap
+
+    path = Path(path)
+    if not path.is_file():
+        raise DmaisError(f"{path}: no such file")
+    text = path.suffix == ".txt"
+    if path.suffix not in (".txt", ".bin"):
+        raise DmaisError(f"{path}: a COLMAP cameras file is cameras.txt or cameras.bin")
+    reconstruction = pycolmap.Reconstruction()
+    with tempfile.TemporaryDirectory() as scratch:  # pycolmap reads models: add an empty one around the file
+        shutil.copyfile(path, Path(scratch) / f"cameras{path.suffix}")
+        for name in ("images", "points3D"):
+            (Path(scratch) / f"{name}{path.suffix}").write_bytes(b"" if text else struct.pack("<Q", 0))
+        try:
+            (reconstruction.read_text if text else reconstruction.read_binary)(scratch)
+        except Exception as error:  # pycolmap raises ValueError/RuntimeError on malformed files
+            raise DmaisError(f"{path}: not a COLMAP cameras file ({_first_line(error)})") from None
+    if not reconstruction.cameras:
+        raise DmaisError(f"{path}: holds no camera")
+    return {int(camera_id): _from_colmap(camera, path) for camera_id, camera in reconstruction.cameras.items()}
+
+
+def _from_colmap(camera, path: Path) -> ForeignCamera:
+    model = camera.model.name
+    if model not in COLMAP_MODELS:
+        raise DmaisError(f"{path}: camera {camera.camera_id}: COLMAP model {model} is not a pinhole model with "
+                         f"OpenCV distortion (supported: {', '.join(COLMAP_MODELS)})")
+    values = dict(zip(COLMAP_MODELS[model], map(float, camera.params)))
+    fx = values.get("fx", values.get("f"))
+    fy = values.get("fy", values.get("f"))
+    distortion = {k: v for k, v in values.items() if k in OPENCV_COEFFICIENTS}
+    return ForeignCamera(fx, fy, values["cx"] - COLMAP_PIXEL_OFFSET, values["cy"] - COLMAP_PIXEL_OFFSET,
+                         int(camera.width), int(camera.height), model=f"COLMAP {model}", distortion=distortion)
+
+
+def _matrix(storage, key: str, path: Path) -> np.ndarray:
+    node = storage.getNode(key)
+    matrix = None if node.empty() else node.mat()
+    if matrix is None:
+        raise DmaisError(f"{path}: missing matrix {key}")
+    matrix = np.asarray(matrix, dtype=float)
+    if not np.all(np.isfinite(matrix)):
+        raise DmaisError(f"{path}: {key} holds a value that is not a finite number")
+    return matrix
+
+
+def _integer(storage, key: str, path: Path) -> int:
+    node = storage.getNode(key)
+    value = None if node.empty() else node.real()
+    if value is None or value != int(value) or value <= 0:
+        raise DmaisError(f"{path}: missing or invalid {key} (a positive integer)")
+    return int(value)
+
+
+def _first_line(error: Exception) -> str:
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    return lines[-1] if lines else type(error).__name__
+
+
+# ------------------------------------------------------------------------------ conversion
+
+
+def one_coefficient_camera(foreign: ForeignCamera, name: str,
+                           max_residual_px: float = DEFAULT_MAX_RESIDUAL_PX) -> Conversion:
+    """Our Camera closest to `foreign` (fx, fy, cx, cy kept, d fitted; see the module docstring).
+
+    Raises DmaisError naming the camera and its largest non-representable coefficient when the fit
+    leaves more than `max_residual_px` anywhere on the grid.
+    """
+    import cv2
+
+    K = np.array([[foreign.fx, 0.0, foreign.cx], [0.0, foreign.fy, foreign.cy], [0.0, 0.0, 1.0]])
+    coefficients = foreign.coefficients()
+    u, v = np.meshgrid(np.linspace(-0.5, foreign.width - 0.5, GRID_STEPS),
+                       np.linspace(-0.5, foreign.height - 0.5, GRID_STEPS))
+    grid = np.column_stack([u.ravel(), v.ravel()])
+    # the richer model's undistorted points of the grid (OpenCV's iterative inverse, approximate: the fit
+    # compares both models at these points, so they need only cover the image)
+    xy = cv2.undistortPoints(grid.reshape(-1, 1, 2), K, coefficients).reshape(-1, 2)
+    rays = np.column_stack([xy, np.ones(len(xy))])
+    theirs = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, coefficients)[0].reshape(-1, 2)
+    linear = xy * [foreign.fx, foreign.fy] + [foreign.cx, foreign.cy]  # the pinhole part, ours at d = 0
+    slope = xy * [foreign.fx, foreign.fy] * np.sum(xy**2, axis=1, keepdims=True)  # d(ours) / dd
+    if not any(v for k, v in foreign.distortion.items() if k != "k1"):
+        d = foreign.distortion.get("k1", 0.0)  # our model already: exact
+    else:
+        d = float(np.sum(slope * (theirs - linear)) / np.sum(slope**2))
+    residual = np.linalg.norm(linear + d * slope - theirs, axis=1)
+    conversion = Conversion(Camera(foreign.fx, foreign.fy, foreign.cx, foreign.cy, d, foreign.width, foreign.height),
+                            float(residual.max()), float(np.sqrt(np.mean(residual**2))))
+    if conversion.residual_max_px > max_residual_px:
+        extra = {k: v for k, v in foreign.distortion.items() if k != "k1" and v != 0}
+        worst = max(extra, key=lambda k: abs(extra[k])) if extra else "k1"
+        extra.setdefault(worst, foreign.distortion.get(worst, 0.0))
+        raise DmaisError(f"camera {name}: {worst} = {extra[worst]:.6g} is not representable by the one-coefficient "
+                         f"model: the best d = {d:.6g} leaves {conversion.residual_max_px:.3g} px max, "
+                         f"{conversion.residual_rms_px:.3g} px RMS over the image (limit {max_residual_px:g} px)")
+    return conversion
+
+
+def imported_record(name: str, conversion: Conversion, foreign: ForeignCamera, source: Path) -> dict:
+    """The intrinsics/<camera>.json record of an imported camera (the calibration's own fields empty)."""
+    return {"camera": name, **conversion.camera.to_dict(), "std": {}, "eps_calib_px": None, "eps_eval_px": None,
+            "n_images": 0, "n_observations": 0, "method": f"imported from {source}",
+            "imported": {"file": str(source), "model": foreign.model, "fx": foreign.fx, "fy": foreign.fy,
+                         "cx": foreign.cx, "cy": foreign.cy, "distortion": foreign.distortion,
+                         "residual_max_px": conversion.residual_max_px,
+                         "residual_rms_px": conversion.residual_rms_px}}
+
+
+# ------------------------------------------------------------------------------ writing
+
+
+def write_opencv_file(camera: Camera, path: Path) -> Path:
+    """`camera` as an OpenCV calibration file (camera_matrix, distortion_coefficients (k1 = d, k2 =
+    p1 = p2 = k3 = 0), image_width, image_height), in the format of its suffix (.yaml, .xml, .json)."""
+    import cv2
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=path.parent, prefix=".opencv-") as scratch:
+        partial = Path(scratch) / path.name  # written whole, then renamed into place
+        storage = cv2.FileStorage(str(partial), cv2.FILE_STORAGE_WRITE)
+        storage.write("image_width", camera.width)
+        storage.write("image_height", camera.height)
+        storage.write("camera_matrix", camera.K)
+        storage.write("distortion_coefficients", np.array([[camera.d, 0.0, 0.0, 0.0, 0.0]]).T)
+        storage.release()
+        os.replace(partial, path)
+    return path
