@@ -196,7 +196,7 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
              shade_fit[fitted])
     unfitted = failed[why == None]  # noqa: E711 (an object array)
     shadowed = unfitted[shadowed_x(img, unfitted, lit_contrast, min_quality)] if len(unfitted) else unfitted
-    shadowed = np.vstack([failed[why == SHADOW_REASON], shadowed])
+    shadowed = np.vstack([shade_uv[why == SHADOW_REASON], shadowed])
     cand, radius = cand[good], radius[good]
     if len(cand) == 0:
         return none, shadowed, shade

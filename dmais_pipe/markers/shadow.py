@@ -35,6 +35,8 @@ MAX_WINDOW_PX = 15.0  # radius of the second fit's window at most (the clean X w
 MIN_WINDOW_PX = 6.0
 MIN_STEP_LOG = 0.2  # least darkening of a start line, as a step of log(intensity)
 MIN_START_QUALITY = 0.5  # ring quality of the X with the start step taken away
+SAME_RATIO = 0.6  # the X's log contrast on either side of the start step: at least this share of the other's
+MIN_SIDE_SAMPLES = 2  # samples of each level of the X on either side of the start step, at least
 MIN_SHADE, MAX_SHADE = 0.2, 0.95  # the share of light the fitted shade takes
 MIN_CROSSING = np.radians(10.0)  # the shadow edge and either edge of the X, at least this apart
 MAX_MOVE_PX = 8.0
@@ -49,10 +51,11 @@ _STEPS = [(phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (
 def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: float, min_radius: float):
     """Fit X-corners crossed by a shadow edge near candidates uv (n, 2) of float image img (h, w).
 
-    Returns (uv (n, 2) the corners, NaN where none; clean radius (n,) px of the X with the shade
-    divided out; sigma_px (n,); fit_residual (n,); reason (n,): '' for a corner, SHADOW_REASON where
-    the first fit found an X crossed by a shadow edge but the corner failed the later checks, None
-    where the candidate shows no shadowed X). contrast: least contrast (image units) of the lit X; min_quality,
+    Returns (uv (n, 2) the corners (where rejected, the first fit's corner or the candidate), NaN
+    where the candidate shows no shadowed X; clean radius (n,) px of the X with the shade divided
+    out; sigma_px (n,); fit_residual (n,); reason (n,): '' for a corner, SHADOW_REASON where the
+    start found an X crossed by a shadow edge (`_start_params`) but the fits did not confirm a
+    corner, None where the candidate shows no shadowed X). contrast: least contrast (image units) of the lit X; min_quality,
     min_radius: the ring tests' (`detect`)."""
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     n = len(uv)
@@ -66,7 +69,7 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     if len(tried) == 0:
         return out_uv, radius, sigma, residual, reason
     params, cov, rms, converged = _fit_about(img, uv[tried], start[tried], FIRST_WINDOW_PX)
-    centre = uv[tried] + params[:, :2]
+    centre = first = uv[tried] + params[:, :2]
     moved = np.all(np.isfinite(centre), axis=1) & (np.hypot(*(centre - uv[tried]).T) <= MAX_MOVE_PX)
     moved &= _plausible(_line_about(params, uv[tried], centre), cov, rms, converged, FIRST_WINDOW_PX, contrast)
     # The second fit about the first's corner, over the clean X with the shade divided out.
@@ -97,8 +100,10 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     # The fit of the shaded model and that of the X alone beside the shadow edge err differently
     # (where the edge crosses the X's edges, and in the shade's level): they must agree.
     good &= np.hypot(*(corner - joint).T) <= AGREE_PX
-    # A shadowed X the first fit found whose corner the checks do not confirm: rejected, with the reason.
-    reason[tried[moved & ~good]] = SHADOW_REASON
+    # A shadowed X the start found whose corner the fits do not confirm: rejected, with the reason,
+    # at the first fit's corner where that moved plausibly (the candidate can be a few px off).
+    reason[tried[~good]] = SHADOW_REASON
+    out_uv[tried] = np.where(moved[:, None], first, uv[tried])
     rows = tried[good]
     out_uv[rows], radius[rows], reason[rows] = corner[good], clean[good], ""
     sigma[rows] = np.sqrt(0.5 * np.trace(cov[good], axis1=1, axis2=2))
@@ -214,8 +219,12 @@ def _best_step(logs: np.ndarray):
     anti = logs - np.roll(logs, k // 2, axis=1)
     g = anti @ asym.T / np.maximum((asym * asym).sum(axis=1), 1e-9)  # (n, l)
     lit = logs[:, None, :] - g[:, :, None] * shade[None]
-    quality = _ring_stats(np.exp(lit).reshape(-1, k))[0].reshape(n, len(_STEPS))
-    quality = np.where(-g >= MIN_STEP_LOG, quality, -1.0)
+    quality, _, _, bright = _ring_stats(np.exp(lit).reshape(-1, k))
+    quality, bright = quality.reshape(n, len(_STEPS)), bright.reshape(n, len(_STEPS), k)
+    # The line must cross the X's sectors, not run along an edge of the X (an outline T-junction).
+    ends = bright[:, np.arange(len(_STEPS))[:, None, None], _line_ends(k)]  # (n, l, 2, w)
+    crosses = np.all(ends == ends[..., :1], axis=(2, 3))
+    quality = np.where((-g >= MIN_STEP_LOG) & crosses & _both_sides(lit, bright, shade), quality, -1.0)
     best = np.argmax(quality, axis=1)
     rows = np.arange(n)
     ok = quality[rows, best] >= MIN_START_QUALITY
@@ -223,6 +232,33 @@ def _best_step(logs: np.ndarray):
     nan = np.full(n, np.nan)
     return (np.where(ok, lines[:, 0], nan), np.where(ok, lines[:, 1] * START_RING_PX, nan),
             np.where(ok, g[rows, best], nan), lit[rows, best])
+
+
+def _both_sides(lit: np.ndarray, bright: np.ndarray, shade: np.ndarray) -> np.ndarray:
+    """(n, l) True where log rings lit (n, l, k) with a step taken away (bright mask (n, l, k), the
+    step's shaded samples shade (l, k)) have both levels of the X on both sides of the step's line,
+    in the same ratio: a shadow takes the same share of the light from both. A marker's outline
+    (an L- or T-junction, the background beyond it one level) or texture fails."""
+    both, contrast = np.ones(lit.shape[:2], dtype=bool), []
+    for side in (shade, 1.0 - shade):
+        on_bright, on_dark = bright * side[None], ~bright * side[None]
+        n_bright, n_dark = on_bright.sum(axis=2), on_dark.sum(axis=2)
+        both &= (n_bright >= MIN_SIDE_SAMPLES) & (n_dark >= MIN_SIDE_SAMPLES)
+        contrast.append((lit * on_bright).sum(axis=2) / np.maximum(n_bright, 1)
+                        - (lit * on_dark).sum(axis=2) / np.maximum(n_dark, 1))
+    return both & (np.minimum(*contrast) >= SAME_RATIO * np.maximum(*contrast))
+
+
+@lru_cache(maxsize=4)
+def _line_ends(k: int, half_width: int = 1) -> np.ndarray:
+    """(l, 2, 2 half_width + 1) indexes of the ring samples about the two points where each line of
+    _STEPS crosses a ring of k samples."""
+    ends = []
+    for phi, t in _STEPS:
+        crossing = np.mod([phi + np.arccos(t), phi - np.arccos(t)], 2.0 * np.pi)
+        centre = np.rint(crossing / (2.0 * np.pi) * k - 0.5).astype(int)
+        ends.append(np.mod(centre[:, None] + np.arange(-half_width, half_width + 1)[None], k))
+    return np.array(ends)
 
 
 @lru_cache(maxsize=4)
