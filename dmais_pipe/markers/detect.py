@@ -100,7 +100,7 @@ def candidates(img: np.ndarray, min_contrast: float, level: np.ndarray | None = 
     del dxx, dyy
     response = dxy
     threshold = np.float32((RESPONSE_FACTOR * min_contrast) ** 2 * 1e4)
-    peaks = cv2.dilate(response, np.ones((5, 5), np.uint8))
+    peaks = cv2.dilate(response, np.ones((3, 3), np.uint8))
     ys, xs = np.nonzero((response >= peaks) & (response > threshold))
     strength = response[ys, xs]
     order = np.argsort(-strength)[:MAX_CANDIDATES]
@@ -182,12 +182,15 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
     spread = values.max(axis=1) - values.min(axis=1) >= lit_contrast
     failed, cand = cand[~passed & spread], cand[passed]
     seeded = seed(img, cand, 3.0)
-    cand = seeded[np.all(np.isfinite(seeded), axis=1)]
-    cand = cand[(cand[:, 0] >= 0) & (cand[:, 0] <= width - 1) & (cand[:, 1] >= 0) & (cand[:, 1] <= height - 1)]
-    cand = cand[_dedupe(cand, np.ones(len(cand)))]
+    inside = np.all(np.isfinite(seeded), axis=1)
+    inside[inside] = (seeded[inside] >= 0).all(axis=1) & (seeded[inside] <= [width - 1, height - 1]).all(axis=1)
+    unseeded, cand = cand[inside], seeded[inside]
+    kept = _dedupe(cand, np.ones(len(cand)))
+    unseeded, cand = unseeded[kept], cand[kept]
     radius = clean_radius(img, cand, min_quality=min_quality)
     good = radius >= MIN_CLEAN_RADIUS
-    failed = np.vstack([failed, cand[~good]])
+    # The centring of a shadowed X is drawn towards the shadow edge: its candidate is the better start.
+    failed = np.vstack([failed, unseeded[~good]])
     failed = failed[_dedupe(failed, np.ones(len(failed)))]
     shade_uv, shade_radius, shade_sigma, shade_fit, why = shadowed_corners(img, failed, contrast, min_quality,
                                                                            MIN_CLEAN_RADIUS)

@@ -24,7 +24,7 @@ from scipy.special import ndtr
 
 from . import xfit
 from .refine import (_RADII, MAX_SIGMA_PX, MIN_EDGE_ANGLE, REJECT_RESIDUAL, _ring_offsets, _ring_stats,
-                     clean_radius, ring_params, sample)
+                     clean_radius, ring_params, sample, seed)
 
 SHADOW_REASON = "shadow edge at the corner"
 START_RING_PX = 5.0  # radius of the log ring the shadow line and the X are started from
@@ -40,6 +40,7 @@ MIN_SIDE_SAMPLES = 2  # samples of each level of the X on either side of the sta
 MIN_SHADE, MAX_SHADE = 0.2, 0.95  # the share of light the fitted shade takes
 MIN_CROSSING = np.radians(10.0)  # the shadow edge and either edge of the X, at least this apart
 MAX_MOVE_PX = 8.0
+SEED_SHIFT_PX = 4.0  # a candidate's coarse centring, at most this far, where no start is found at it
 CLEAR_BLURS = 1.75  # a shadow edge along an edge of the X: at least this many blurs from the corner
 AGREE_PX = 0.08  # the two fits' corners, at most this apart
 UNSHADED_ROUNDS = 3
@@ -64,7 +65,7 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     reason = np.full(n, None, dtype=object)
     if n == 0:
         return out_uv, radius, sigma, residual, reason
-    start = _start_params(img, uv)
+    uv, start = _start(img, uv)
     tried = np.nonzero(np.all(np.isfinite(start), axis=1) & (2.0 * np.abs(start[:, 6]) >= contrast))[0]
     if len(tried) == 0:
         return out_uv, radius, sigma, residual, reason
@@ -183,6 +184,24 @@ def _fit_about(img: np.ndarray, centre: np.ndarray, params: np.ndarray, radius: 
     return xfit.fit(params, x, y, values, weights, model=xfit.shaded_model)
 
 
+def _start(img: np.ndarray, uv: np.ndarray):
+    """(start points (n, 2), `_start_params` (n, 11) about them): the candidates uv (n, 2), or
+    where no start is found there, their coarse centring (`refine.seed`; the candidates of a
+    shadowed X can be a few px off its corner)."""
+    start = _start_params(img, uv)
+    retry = np.nonzero(~np.all(np.isfinite(start), axis=1))[0]
+    if len(retry) == 0:
+        return uv, start
+    uv = uv.copy()
+    moved = seed(img, uv[retry], SEED_SHIFT_PX)
+    ok = np.all(np.isfinite(moved), axis=1)
+    again = _start_params(img, moved[ok])
+    found = np.all(np.isfinite(again), axis=1)
+    rows = retry[ok][found]
+    uv[rows], start[rows] = moved[ok][found], again[found]
+    return uv, start
+
+
 def _start_params(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Shaded-model parameters (n, 11) about uv (n, 2) from a log ring of START_RING_PX: the
     straight step (`_best_step`) and the X of the ring with it taken away (`refine.ring_params`);
@@ -193,12 +212,15 @@ def _start_params(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     # little more than a constant, must already be an X (not a straight edge: flat there).
     k = logs.shape[1]
     quality, high, low, _ = _ring_stats(0.5 * (logs + np.roll(logs, k // 2, axis=1)))
-    symmetric = (quality >= MIN_START_QUALITY) & (high - low >= MIN_STEP_LOG)
-    phi, offset, step, lit = _best_step(logs)
+    symmetric = np.nonzero((quality >= MIN_START_QUALITY) & (high - low >= MIN_STEP_LOG))[0]
+    phi, offset, step = (np.full(len(uv), np.nan) for _ in range(3))
+    lit = np.full(logs.shape, np.nan)
+    phi[symmetric], offset[symmetric], step[symmetric], lit[symmetric] = _best_step(logs[symmetric])
     # The same straight step on a wider ring: a shadow edge is a long line, texture is not.
-    wide = np.log(np.maximum(sample(img, uv[:, None, :] + CHECK_RING_PX / START_RING_PX * offsets[None]), 1.0))
+    near = np.nonzero(np.isfinite(phi))[0]
+    wide = np.log(np.maximum(sample(img, uv[near, None, :] + CHECK_RING_PX / START_RING_PX * offsets[None]), 1.0))
     phi_wide = _best_step(wide.astype(np.float64))[0]
-    phi[~symmetric | ~(np.abs(np.angle(np.exp(1j * (phi - phi_wide)))) <= MAX_TURN)] = np.nan
+    phi[near[~(np.abs(np.angle(np.exp(1j * (phi[near] - phi_wide)))) <= MAX_TURN)]] = np.nan
     params = np.full((len(uv), xfit.N_SHADED), np.nan)
     ok = np.isfinite(phi)
     if not ok.any():
