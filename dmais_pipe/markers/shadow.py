@@ -34,6 +34,8 @@ FIRST_WINDOW_PX = 8.0  # radius of the first fit's window
 MAX_WINDOW_PX = 15.0  # radius of the second fit's window at most (the clean X with the shade divided out)
 MIN_WINDOW_PX = 6.0
 MIN_STEP_LOG = 0.2  # least darkening of a start line, as a step of log(intensity)
+TOP_STEPS = 24  # steps of a start ring (of _STEPS) that explain the most of its point asymmetry, tried
+MIN_X_LOG = 0.5  # least log contrast of the X on the start ring (a marker's cells: ~log(200 / 30) = 1.9)
 MIN_START_QUALITY = 0.5  # ring quality of the X with the start step taken away
 SAME_RATIO = 0.6  # the X's log contrast on either side of the start step: at least this share of the other's
 MIN_SIDE_SAMPLES = 2  # samples of each level of the X on either side of the start step, at least
@@ -188,31 +190,33 @@ def _start(img: np.ndarray, uv: np.ndarray):
     """(start points (n, 2), `_start_params` (n, 11) about them): the candidates uv (n, 2), or
     where no start is found there, their coarse centring (`refine.seed`; the candidates of a
     shadowed X can be a few px off its corner)."""
-    start = _start_params(img, uv)
-    retry = np.nonzero(~np.all(np.isfinite(start), axis=1))[0]
+    start, symmetric = _start_params(img, uv)
+    retry = np.nonzero(symmetric & ~np.all(np.isfinite(start), axis=1))[0]
     if len(retry) == 0:
         return uv, start
     uv = uv.copy()
     moved = seed(img, uv[retry], SEED_SHIFT_PX)
     ok = np.all(np.isfinite(moved), axis=1)
-    again = _start_params(img, moved[ok])
+    again = _start_params(img, moved[ok])[0]
     found = np.all(np.isfinite(again), axis=1)
     rows = retry[ok][found]
     uv[rows], start[rows] = moved[ok][found], again[found]
     return uv, start
 
 
-def _start_params(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+def _start_params(img: np.ndarray, uv: np.ndarray):
     """Shaded-model parameters (n, 11) about uv (n, 2) from a log ring of START_RING_PX: the
     straight step (`_best_step`) and the X of the ring with it taken away (`refine.ring_params`);
-    NaN rows where no step leaves an X."""
+    NaN rows where no step leaves an X. And (n,) where the ring's point-symmetric part is an X."""
     offsets = _ring_offsets(START_RING_PX)
     logs = np.log(np.maximum(sample(img, uv[:, None, :] + offsets[None]), 1.0)).astype(np.float64)
     # Cheap first: the point-symmetric part of the ring, where a shadow line near the centre adds
-    # little more than a constant, must already be an X (not a straight edge: flat there).
+    # little more than a constant, must already be an X (not a straight edge: flat there) of a
+    # marker's log contrast, which the shade does not change (texture's is mostly less).
     k = logs.shape[1]
     quality, high, low, _ = _ring_stats(0.5 * (logs + np.roll(logs, k // 2, axis=1)))
-    symmetric = np.nonzero((quality >= MIN_START_QUALITY) & (high - low >= MIN_STEP_LOG))[0]
+    is_x = (quality >= MIN_START_QUALITY) & (high - low >= MIN_X_LOG)
+    symmetric = np.nonzero(is_x)[0]
     phi, offset, step = (np.full(len(uv), np.nan) for _ in range(3))
     lit = np.full(logs.shape, np.nan)
     phi[symmetric], offset[symmetric], step[symmetric], lit[symmetric] = _best_step(logs[symmetric])
@@ -224,33 +228,42 @@ def _start_params(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     params = np.full((len(uv), xfit.N_SHADED), np.nan)
     ok = np.isfinite(phi)
     if not ok.any():
-        return params
+        return params, is_x
     x_part = ring_params(np.zeros((ok.sum(), 2)), np.exp(lit[ok]))
     params[ok, :7] = x_part
     params[ok, 7], params[ok, 8], params[ok, 9], params[ok, 10] = phi[ok], offset[ok], 1.0, 1.0 - np.exp(step[ok])
-    return params
+    return params, is_x
 
 
 def _best_step(logs: np.ndarray):
     """For log rings (n, k) of START_RING_PX: direction (n,) towards the shade, offset (n,) px of
     the line from the centre, log step (n,) (< 0) and the ring with the step taken away (n, k) of
-    the straight step (of _STEPS, least squares on the point asymmetry) that leaves the best X
-    (quality >= MIN_START_QUALITY, darkening >= MIN_STEP_LOG); NaN where none does."""
+    the straight step (of _STEPS, least squares on the point asymmetry; of the TOP_STEPS that
+    explain the most of it) that leaves the best X (quality >= MIN_START_QUALITY, darkening >=
+    MIN_STEP_LOG); NaN where none does."""
     n, k = logs.shape
+    if n == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros((0, k))
     shade, asym = _step_masks(k)
     anti = logs - np.roll(logs, k // 2, axis=1)
-    g = anti @ asym.T / np.maximum((asym * asym).sum(axis=1), 1e-9)  # (n, l)
-    lit = logs[:, None, :] - g[:, :, None] * shade[None]
+    norm = np.maximum((asym * asym).sum(axis=1), 1e-9)
+    g = anti @ asym.T / norm  # (n, l)
+    explained = np.where(-g >= MIN_STEP_LOG, g * g * norm, -1.0)
+    top = np.argsort(-explained, axis=1)[:, :TOP_STEPS]  # (n, t)
+    g = np.take_along_axis(g, top, axis=1)
+    shade = shade[top]  # (n, t, k)
+    lit = logs[:, None, :] - g[:, :, None] * shade
     quality, _, _, bright = _ring_stats(np.exp(lit).reshape(-1, k))
-    quality, bright = quality.reshape(n, len(_STEPS)), bright.reshape(n, len(_STEPS), k)
+    quality, bright = quality.reshape(top.shape), bright.reshape(top.shape + (k,))
     # The line must cross the X's sectors, not run along an edge of the X (an outline T-junction).
-    ends = bright[:, np.arange(len(_STEPS))[:, None, None], _line_ends(k)]  # (n, l, 2, w)
-    crosses = np.all(ends == ends[..., :1], axis=(2, 3))
+    ends = _line_ends(k)[top]  # (n, t, 2, w)
+    ends = np.take_along_axis(bright, ends.reshape(n, top.shape[1], -1), axis=2)
+    crosses = np.all(ends == ends[..., :1], axis=2)
     quality = np.where((-g >= MIN_STEP_LOG) & crosses & _both_sides(lit, bright, shade), quality, -1.0)
     best = np.argmax(quality, axis=1)
     rows = np.arange(n)
     ok = quality[rows, best] >= MIN_START_QUALITY
-    lines = np.array(_STEPS)[best]
+    lines = np.array(_STEPS)[top[rows, best]]
     nan = np.full(n, np.nan)
     return (np.where(ok, lines[:, 0], nan), np.where(ok, lines[:, 1] * START_RING_PX, nan),
             np.where(ok, g[rows, best], nan), lit[rows, best])
@@ -258,12 +271,12 @@ def _best_step(logs: np.ndarray):
 
 def _both_sides(lit: np.ndarray, bright: np.ndarray, shade: np.ndarray) -> np.ndarray:
     """(n, l) True where log rings lit (n, l, k) with a step taken away (bright mask (n, l, k), the
-    step's shaded samples shade (l, k)) have both levels of the X on both sides of the step's line,
+    step's shaded samples shade (n, l, k)) have both levels of the X on both sides of the step's line,
     in the same ratio: a shadow takes the same share of the light from both. A marker's outline
     (an L- or T-junction, the background beyond it one level) or texture fails."""
     both, contrast = np.ones(lit.shape[:2], dtype=bool), []
     for side in (shade, 1.0 - shade):
-        on_bright, on_dark = bright * side[None], ~bright * side[None]
+        on_bright, on_dark = bright * side, ~bright * side
         n_bright, n_dark = on_bright.sum(axis=2), on_dark.sum(axis=2)
         both &= (n_bright >= MIN_SIDE_SAMPLES) & (n_dark >= MIN_SIDE_SAMPLES)
         contrast.append((lit * on_bright).sum(axis=2) / np.maximum(n_bright, 1)
