@@ -213,6 +213,36 @@ def test_shadow_edge_at_the_corner_is_fitted_or_rejected_not_shifted(quiet_scene
     assert found_near >= 9 and found_near + rejected_near >= 12  # of 18
 
 
+def test_every_shadowed_marker_is_found_or_rejected_with_a_reason():
+    """The effects benchmark's shadow row on a fresh seed (6 images of 6 markers, a hard shadow
+    edge through each, `sim.effects`): every true corner detected within 0.1 px or rejected with a
+    reason near it, none missed without a trace (before: 11 of 36 missed, recall 0.64; now 0 missed,
+    recall 0.83), no wrong identification, no false detection."""
+    from dmais_pipe.markers.bench_effects import EFFECTS, measure_effect
+
+    row = measure_effect("shadow", EFFECTS["shadow"], 6, 5)
+    assert row["missed"] == 0 and row["accounted"] == 1.0
+    assert row["recall"] >= 0.75 and row["max_px"] < 0.1
+    assert row["wrong_ids"] == 0 and row["false_per_image"] == 0.0
+
+
+def test_marker_outlines_are_not_taken_for_shadowed_corners():
+    """Unshadowed markers on textured ground: the outline's L- and T-junctions fail the ring tests,
+    and the start of the fit with a shadow edge (`shadow._best_step`: a step whose line crosses the
+    X's sectors and leaves both levels on both sides in the same ratio) takes none of them: no
+    rejection says a shadow edge is at a corner, and every marker is returned within 0.1 px."""
+    from dmais_pipe.markers.shadow import SHADOW_REASON
+
+    rng = np.random.default_rng(8)
+    for size, tilt in ((30, 10), (60, 40), (120, 55)):
+        settings = replace(regime_settings(1.1, 3.0), ground_texture_dn=20.0, ground_grain_px=1.5)
+        image, truth, _ = marker_scene(rng, size, tilt, settings)
+        frame, rejected = detect(image, with_rejected=True)
+        assert not (rejected["reason"] == SHADOW_REASON).any()
+        distance, _ = cKDTree(frame[["u", "v"]].to_numpy()).query(truth)
+        assert len(frame) == len(truth) and distance.max() < 0.1
+
+
 def _supersampled_x(t1_deg, t2_deg, shade_deg=None, offset=0.0, corner=(30.3, 30.15), n=61, blur=1.2, s=8):
     """(n, n) float32 render of an X-corner (levels 50 and 190, edge normals t1, t2) at `corner`,
     its light cut by 60% beyond a straight edge (normal `shade_deg`, `offset` px from the corner)
@@ -245,8 +275,10 @@ def test_shaded_model_jacobian_matches_differences():
 def test_shadowed_corner_fit_on_an_independent_render():
     """`shadow.shadowed_corners` on supersampled renders of an X whose light a straight edge cuts
     0-3 px from the corner (5 directions x 3 offsets, 2 DN noise), started 1 px off: every corner
-    it returns within 0.1 px, at least 6 of the 15 returned (7 measured; the ring tests of
-    `detect` take none of them) and most of the rest rejected with the reason; no corner from the
+    it returns within 0.1 px, at least 6 of the 15 returned (6 measured; the ring tests of
+    `detect` take none of them) and at least 3 more rejected with the reason (the start, which
+    must see both levels of the X on both sides of the step and its line cross the X's sectors,
+    takes no marker outline but misses 6 of these, the edge 1.5-3 px off); no corner from the
     same X unshadowed (the ring tests' job) nor from a straight shadow edge alone."""
     import importlib
 
@@ -262,7 +294,7 @@ def test_shadowed_corner_fit_on_an_independent_render():
                 assert np.hypot(*(uv[0] - [30.3, 30.15])) < 0.1 and radius[0] >= 7.0 and sigma[0] < 0.1
             found += reason[0] == ""
             rejected += reason[0] == shadow.SHADOW_REASON
-    assert found >= 6 and found + rejected >= 10
+    assert found >= 6 and found + rejected >= 9
     plain = _supersampled_x(20.0, 110.0) + noise
     assert shadow.shadowed_corners(plain, start, 25.0, 0.7, 4.0)[4][0] != ""
     ys, xs = np.mgrid[0:61, 0:61]

@@ -6,8 +6,15 @@ line, while the X-corner itself stays point symmetric about its centre. The ring
 model fit of `refine` would move the corner towards the shadow edge. Here the corner is fitted
 with the shadow edge in the model (`xfit.shaded_model`): the line, its blur and the share of light
 it takes are fitted with the X. Started from the best straight step on a log ring about the
-candidate (`_best_step`, the same on a wider ring), fitted in a small window, then in the window of
-the clean X with the shade divided out. The product of the blurred factors is not the blurred
+candidate (`_best_step`, the same on a wider ring), or where none is found there about its coarse
+centring (`_start`), fitted in a small window, then in the window of the clean X with the shade
+divided out. The start is cheap and strict, so that marker outlines and texture never reach the
+fits: the ring's point-symmetric part must be an X of a marker's log contrast (MIN_X_LOG: the
+shade does not change it), and the step must darken, leave an X, run across the X's sectors
+rather than along an edge of the X (an outline's T-junction), and leave both levels of the X on
+both sides of its line in the same ratio (a shadow takes the same share of light from both; the
+background beyond an outline is one level). Every candidate that starts is either returned or
+rejected with SHADOW_REASON: an X crossed by a shadow edge is never dropped without a trace. The product of the blurred factors is not the blurred
 product where the shadow edge crosses an edge of the X, which moves that fit's corner by up to
 ~0.2 px: the corner returned is that of a final fit of the X alone to the pixels beside the shadow
 edge with the shade divided out (`_unshaded_fit`), and it must agree with the first within
