@@ -14,9 +14,9 @@ shade does not change it), and the step must darken, leave an X, run across the 
 rather than along an edge of the X (an outline's T-junction), and leave both levels of the X on
 both sides of its line in the same ratio (a shadow takes the same share of light from both; the
 background beyond an outline is one level). Every candidate that starts is either returned or
-rejected with SHADOW_REASON: an X crossed by a shadow edge is never dropped without a trace. The product of the blurred factors is not the blurred
-product where the shadow edge crosses an edge of the X, which moves that fit's corner by up to
-~0.2 px: the corner returned is that of a final fit of the X alone to the pixels beside the shadow
+rejected with SHADOW_REASON, never dropped without a trace. The product of the blurred factors
+is not the blurred product where the shadow edge crosses an edge of the X, which moves that
+fit's corner by up to ~0.2 px: the corner returned is that of a final fit of the X alone to the pixels beside the shadow
 edge with the shade divided out (`_unshaded_fit`), and it must agree with the first within
 AGREE_PX. Verified with the shade divided out: the rings about the corner must be a clean X
 (`refine.clean_radius`) beyond MIN_CLEAN_PX.
@@ -65,8 +65,8 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     where the candidate shows no shadowed X; clean radius (n,) px of the X with the shade divided
     out; sigma_px (n,); fit_residual (n,); reason (n,): '' for a corner, SHADOW_REASON where the
     start found an X crossed by a shadow edge (`_start_params`) but the fits did not confirm a
-    corner, None where the candidate shows no shadowed X). contrast: least contrast (image units) of the lit X; min_quality,
-    min_radius: the ring tests' (`detect`)."""
+    corner, None where the candidate shows no shadowed X). contrast: least contrast (image units)
+    of the lit X; min_quality, min_radius: the ring tests' (`detect`)."""
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     n = len(uv)
     out_uv, radius = np.full((n, 2), np.nan), np.zeros(n)
