@@ -16,9 +16,9 @@ both sides of its line in the same ratio (a shadow takes the same share of light
 background beyond an outline is one level). Every candidate that starts is either returned or
 rejected with SHADOW_REASON, never dropped without a trace. The product of the blurred factors
 is not the blurred product where the shadow edge crosses an edge of the X, which moves that
-fit's corner by up to ~0.2 px: the corner returned is that of a final fit of the X alone to the pixels beside the shadow
-edge with the shade divided out (`_unshaded_fit`), and it must agree with the first within
-AGREE_PX. Verified with the shade divided out: the rings about the corner must be a clean X
+fit's corner by up to ~0.2 px: the corner returned is that of a final fit of the X alone to the
+pixels beside the shadow edge with the shade divided out (`_unshaded_fit`), and it must agree
+with the first within AGREE_PX. Verified with the shade divided out: the rings about the corner must be a clean X
 (`refine.clean_radius`) beyond MIN_CLEAN_PX.
 """
 
