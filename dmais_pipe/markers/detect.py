@@ -174,9 +174,11 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
 def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.ndarray | None = None,
               lit_contrast: float = 0.0):
     """(candidates (k, 2), clean radius (k,), ring quality (k,)) of the X-corners that pass the
-    ring tests, unrefined (centred by `seed`), and the positions (j, 2) of candidates that fail
-    them as X-corners crossed by a shadow edge near the centre (`shadowed_x`) whose lit side has
-    at least `lit_contrast`."""
+    ring tests, unrefined (centred by `seed`); the positions (j, 2) of candidates that fail them
+    as X-corners crossed by a shadow edge near the centre whose fit with the edge did not confirm
+    a corner (`shadow.shadowed_corners`), or that did not start it but pass `shadowed_x` (lit
+    side of at least `lit_contrast`); and the corners fitted with a shadow edge (uv (m, 2), clean
+    radius, ring quality MIN_QUALITY, sigma_px, fit_residual (m,) each)."""
     height, width = img.shape
     none = (np.zeros((0, 2)), np.zeros(0), np.zeros(0))
     # The saddle response threshold stays at the full contrast's: it is loose enough for markers in
