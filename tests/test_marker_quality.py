@@ -189,27 +189,131 @@ def test_contrast_threshold_follows_the_clutter():
 
 
 @pytest.mark.parametrize("offset", [0.0, 2.0, 4.0])
-def test_shadow_edge_at_the_corner_is_rejected_not_shifted(quiet_scene, offset):
-    """A shadow edge within 4 px of the corner: `detect` returns no corner more than 0.1 px off,
-    and some of them are rejected with a reason; `refine_corners` from starts near the truth
-    returns each within 0.1 px or rejects it with a reason, most of them (0.2-1.5 px off before)."""
+def test_shadow_edge_at_the_corner_is_fitted_or_rejected_not_shifted(quiet_scene, offset):
+    """A shadow edge within 4 px of the corner: `detect` fits the corner with the edge
+    (`markers.shadow`) and returns half of them or more within 0.1 px (none before: the ring tests
+    failed them all), none shifted, the rest mostly rejected with a reason; `refine_corners` from
+    starts near the truth returns each within 0.1 px or rejects it with a reason."""
     image, truth = quiet_scene
-    rejected_near = 0
+    found_near = rejected_near = 0
     for angle in (10.0, 70.0, 150.0):
         shaded = in_the_shade(image, truth, offset, angle)
         frame, rejected = detect(shaded, with_rejected=True)
         found = frame[["u", "v"]].to_numpy()
         if len(found):
             distance = cKDTree(truth).query(found)[0]
-            assert distance.max() < 0.1 or distance[distance < 2.0].max(initial=0.0) < 0.1
             assert np.all((distance < 0.1) | (distance > 5.0))  # nothing shifted, nothing new nearby
+            found_near += int(np.count_nonzero(distance < 0.1))
         if len(rejected):
             rejected_near += int(np.count_nonzero(cKDTree(rejected[["u", "v"]].to_numpy()).query(truth)[0] < 3.0))
         corners = refine_corners(shaded, starts(truth, np.random.default_rng(int(angle))))
         error = np.linalg.norm(corners.uv - truth, axis=1)
         assert np.all(np.where(np.isnan(error), corners.reason != "", error < 0.1))
         assert np.count_nonzero(np.isnan(error)) >= 4
-    assert rejected_near >= 3
+    assert found_near >= 9 and found_near + rejected_near >= 12  # of 18
+
+
+def test_every_shadowed_marker_is_found_or_rejected_with_a_reason():
+    """The effects benchmark's shadow row on a fresh seed (6 images of 6 markers, a hard shadow
+    edge through each, `sim.effects`): every true corner detected within 0.1 px or rejected with a
+    reason near it, none missed without a trace (before: 11 of 36 missed, recall 0.64; now 0 missed,
+    recall 0.83), no wrong identification, no false detection."""
+    from dmais_pipe.markers.bench_effects import EFFECTS, measure_effect
+
+    row = measure_effect("shadow", EFFECTS["shadow"], 6, 5)
+    assert row["missed"] == 0 and row["accounted"] == 1.0
+    assert row["recall"] >= 0.75 and row["max_px"] < 0.1
+    assert row["wrong_ids"] == 0 and row["false_per_image"] == 0.0
+
+
+def test_virtual_corner_of_an_outline_and_a_shadow_edge_is_not_returned():
+    """`dmais bench markers --suite effects --seed 2`, shadow row: a marker's T-junction with a
+    shadow edge along its stem looks like an X (ground x 0.4 ~ the dark cell) and passed the ring
+    tests; identified as the undetected marker beside it once the shadowed markers of that image
+    were found. Its fit is uncertain (sigma 0.16 px; true detections <= 0.08): rejected, with the
+    reason. No false detection, no wrong id in the row (2 false detections, 1 wrong id before)."""
+    from dmais_pipe.markers.bench_effects import EFFECTS, measure_effect
+    from dmais_pipe.markers.detect import UNCERTAIN
+
+    row = measure_effect("shadow", EFFECTS["shadow"], 10, 2 * 7919 + 1)
+    assert row["false_per_image"] == 0.0 and row["wrong_ids"] == 0 and row["recall"] >= 0.75
+    assert UNCERTAIN not in row["reasons_true"]  # no true corner rejected for its uncertainty
+
+
+def test_marker_outlines_are_not_taken_for_shadowed_corners():
+    """Unshadowed markers on textured ground: the outline's L- and T-junctions fail the ring tests,
+    and the start of the fit with a shadow edge (`shadow._best_step`: a step whose line crosses the
+    X's sectors and leaves both levels on both sides in the same ratio) takes none of them: no
+    rejection says a shadow edge is at a corner, and every marker is returned within 0.1 px."""
+    from dmais_pipe.markers.shadow import SHADOW_REASON
+
+    rng = np.random.default_rng(8)
+    for size, tilt in ((30, 10), (60, 40), (120, 55)):
+        settings = replace(regime_settings(1.1, 3.0), ground_texture_dn=20.0, ground_grain_px=1.5)
+        image, truth, _ = marker_scene(rng, size, tilt, settings)
+        frame, rejected = detect(image, with_rejected=True)
+        assert not (rejected["reason"] == SHADOW_REASON).any()
+        distance, _ = cKDTree(frame[["u", "v"]].to_numpy()).query(truth)
+        assert len(frame) == len(truth) and distance.max() < 0.1
+
+
+def _supersampled_x(t1_deg, t2_deg, shade_deg=None, offset=0.0, corner=(30.3, 30.15), n=61, blur=1.2, s=8):
+    """(n, n) float32 render of an X-corner (levels 50 and 190, edge normals t1, t2) at `corner`,
+    its light cut by 60% beyond a straight edge (normal `shade_deg`, `offset` px from the corner)
+    if given: sharp X x sharp shade supersampled s x s, Gaussian blur, pixel areas (the simulator's
+    order: the shadow before the optics)."""
+    fine = (np.arange(n * s) + 0.5) / s - 0.5
+    yy, xx = np.meshgrid(fine - corner[1], fine - corner[0], indexing="ij")
+    t1, t2 = np.radians([t1_deg, t2_deg])
+    sharp = 120.0 + 70.0 * np.sign(np.cos(t1) * xx + np.sin(t1) * yy) * np.sign(np.cos(t2) * xx + np.sin(t2) * yy)
+    if shade_deg is not None:
+        t3 = np.radians(shade_deg)
+        sharp *= 1.0 - 0.6 * (np.cos(t3) * xx + np.sin(t3) * yy > offset)
+    return cv2.GaussianBlur(sharp, (0, 0), blur * s).reshape(n, s, n, s).mean(axis=(1, 3)).astype(np.float32)
+
+
+def test_shaded_model_jacobian_matches_differences():
+    from dmais_pipe.markers import xfit
+
+    rng = np.random.default_rng(0)
+    params = np.array([[0.3, -0.2, 0.4, 2.0, 1.1, 100.0, 60.0, 0.7, 1.5, 0.9, 0.55]])
+    x, y = rng.uniform(-6, 6, (1, 60)), rng.uniform(-6, 6, (1, 60))
+    _, jac = xfit.shaded_model(params, x, y)
+    for i in range(xfit.N_SHADED):
+        step = np.zeros_like(params)
+        step[0, i] = 1e-6
+        numeric = (xfit.shaded_model(params + step, x, y, False)[0] - xfit.shaded_model(params - step, x, y, False)[0])
+        assert np.allclose(jac[..., i], numeric / 2e-6, atol=1e-5 * 160.0)
+
+
+def test_shadowed_corner_fit_on_an_independent_render():
+    """`shadow.shadowed_corners` on supersampled renders of an X whose light a straight edge cuts
+    0-3 px from the corner (5 directions x 3 offsets, 2 DN noise), started 1 px off: every corner
+    it returns within 0.1 px, at least 6 of the 15 returned (6 measured; the ring tests of
+    `detect` take none of them) and at least 3 more rejected with the reason (the start, which
+    must see both levels of the X on both sides of the step and its line cross the X's sectors,
+    takes no marker outline but misses 6 of these, the edge 1.5-3 px off); no corner from the
+    same X unshadowed (the ring tests' job) nor from a straight shadow edge alone."""
+    import importlib
+
+    shadow = importlib.import_module("dmais_pipe.markers.shadow")
+    noise = np.random.default_rng(7).normal(0.0, 2.0, (61, 61)).astype(np.float32)
+    start = np.array([[31.0, 29.5]])
+    found = rejected = 0
+    for shade_deg in (40.0, 70.0, 160.0, 250.0, 340.0):
+        for offset in (0.0, 1.5, 3.0):
+            image = _supersampled_x(20.0, 110.0, shade_deg, offset) + noise
+            uv, radius, sigma, _, reason = shadow.shadowed_corners(image, start, 25.0, 0.7, 4.0)
+            if reason[0] == "":
+                assert np.hypot(*(uv[0] - [30.3, 30.15])) < 0.1 and radius[0] >= 7.0 and sigma[0] < 0.1
+            found += reason[0] == ""
+            rejected += reason[0] == shadow.SHADOW_REASON
+    assert found >= 6 and found + rejected >= 9
+    plain = _supersampled_x(20.0, 110.0) + noise
+    assert shadow.shadowed_corners(plain, start, 25.0, 0.7, 4.0)[4][0] != ""
+    ys, xs = np.mgrid[0:61, 0:61]
+    edge = 150.0 * (1.0 - 0.6 * ndtr((np.cos(1.0) * (xs - 30.3) + np.sin(1.0) * (ys - 30.15)) / 1.2)) + noise
+    assert shadow.shadowed_corners(edge.astype(np.float32), start, 25.0, 0.7, 4.0)[4][0] != ""
 
 
 def test_shadow_edge_off_the_corner_does_not_shift_it(quiet_scene):

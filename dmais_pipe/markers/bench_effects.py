@@ -73,6 +73,8 @@ def measure_effect(name: str, options: dict, images: int, seed: int) -> dict:
         uv = frame[["u", "v"]].to_numpy()
         n_true += len(truth)
         hit = cKDTree(uv).query(truth)[0] < MATCH_PX if len(uv) else np.zeros(len(truth), dtype=bool)
+        # Drawn for every image, so the scenes that follow do not depend on what was detected.
+        predicted = truth + rng.uniform(-40, 40, 2) + rng.normal(0, 2.0, truth.shape)
         why = _rejected_reasons(truth[~hit], rejected)
         rejected_true += int(np.count_nonzero(why != ""))
         reasons_true.update(r for r in why if r)
@@ -84,7 +86,6 @@ def measure_effect(name: str, options: dict, images: int, seed: int) -> dict:
         d_det, _ = cKDTree(truth).query(uv)
         false += int(np.count_nonzero(d_det >= MATCH_PX))
         ids = np.array([f"M{i}" for i in range(len(truth))], dtype=object)
-        predicted = truth + rng.uniform(-40, 40, 2) + rng.normal(0, 2.0, truth.shape)
         given = identify(uv, predicted, ids, (CAMERA.width, CAMERA.height))
         truth_of = np.full(len(uv), "", dtype=object)
         truth_of[nearest[hit]] = ids[hit]

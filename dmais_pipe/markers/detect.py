@@ -8,14 +8,17 @@
    ground texture at the scale of the smallest markers), between MIN_CONTRAST_FLOOR and
    MIN_CONTRAST: a marker in the shade keeps ~40% of its contrast, which quiet ground leaves far
    above anything the ground itself forms, while gravel or a cluttered photograph keeps the full
-   threshold. An X-corner that a shadow edge crosses near its centre fails the ring tests; it is
-   reported as rejected with that reason (`shadowed_x`), not returned.
+   threshold. An X-corner that a shadow edge crosses near its centre fails the ring tests: it is
+   fitted with the shadow edge in the model (`shadow.shadowed_corners`) and returned where that
+   fit passes its checks, else reported as rejected with that reason (SHADOW_REASON; also where
+   the stricter ring test `shadowed_x` finds a shadowed X the fit did not start on).
 2. Verification at full resolution by rings around the candidate (`refine.ring_quality`): an
    X-corner ring is two-valued, point symmetric and changes level exactly four times (two dark
    opposite sectors, two bright opposite sectors), whatever the rotation, foreshortening or
    polarity. Board outline corners (L), T-junctions and texture fail it.
 3. Sub-pixel refinement (`refine.refine_corners`: a blurred X-corner model fit, which rejects a
-   corner whose fit is poor and gives each its uncertainty) and de-duplication.
+   corner whose fit is poor and gives each its uncertainty), the rejection of detections less
+   certain than MAX_SIGMA_PX (UNCERTAIN), and de-duplication.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ from scipy.spatial import cKDTree
 
 from .refine import (_ring_offsets, _ring_stats, as_float_image, clean_radius, refine_corners, ring_quality, sample,
                      seed)
+from .shadow import SHADOW_REASON, shadowed_corners
 
 COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
 REJECTED_COLUMNS = ["u", "v", "reason"]
@@ -41,7 +45,8 @@ MIN_CLEAN_RADIUS = 4.0  # px: the ring must stay an X up to at least this radius
 RESPONSE_FACTOR = 0.004  # response threshold = (factor * min contrast)^2 at the half-resolution level
 MAX_CANDIDATES = 20000
 DUPLICATE_PX = 2.0
-SHADOW_REASON = "shadow edge at the corner"
+MAX_SIGMA_PX = 0.1  # px: detections less certain than this are rejected (UNCERTAIN)
+UNCERTAIN = "uncertain for a detection (sigma > 0.1 px)"
 
 
 def _empty() -> pd.DataFrame:
@@ -98,7 +103,7 @@ def candidates(img: np.ndarray, min_contrast: float, level: np.ndarray | None = 
     del dxx, dyy
     response = dxy
     threshold = np.float32((RESPONSE_FACTOR * min_contrast) ** 2 * 1e4)
-    peaks = cv2.dilate(response, np.ones((5, 5), np.uint8))
+    peaks = cv2.dilate(response, np.ones((3, 3), np.uint8))
     ys, xs = np.nonzero((response >= peaks) & (response > threshold))
     strength = response[ys, xs]
     order = np.argsort(-strength)[:MAX_CANDIDATES]
@@ -116,8 +121,10 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
     to the bright end of 16-bit images); None: set from the image's clutter (`contrast_threshold`).
     Markers whose X-corner is nearer than ~5 px to the image border are not found. With
     `with_rejected`, also a DataFrame u, v, reason of the X-corners found but not returned: those
-    the ring tests failed because a shadow edge crosses them near the centre (SHADOW_REASON, at the
-    unrefined position, ~1 px) and the verified ones the refinement rejected (e.g. a poor fit).
+    the ring tests failed because a shadow edge crosses them near the centre and whose fit with the
+    shadow edge failed its checks (SHADOW_REASON, at the unrefined position, ~1 px) and the
+    verified ones the refinement rejected (e.g. a poor fit). The corners fitted with a shadow edge
+    have the ring quality MIN_QUALITY in their score (their rings pass only with the shade divided out).
     """
     raw = np.asarray(image)
     img = as_float_image(raw)
@@ -127,10 +134,10 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
     else:
         contrast = contrast_threshold(level, _dn_scale(raw))
     lit_contrast = MIN_CONTRAST * _dn_scale(raw) if min_contrast is None else contrast
-    (cand, radius, quality), shadowed = _verified(img, contrast, min_quality, level, lit_contrast)
+    (cand, radius, quality), shadowed, shade = _verified(img, contrast, min_quality, level, lit_contrast)
     rejected = pd.DataFrame({"u": shadowed[:, 0], "v": shadowed[:, 1], "reason": SHADOW_REASON})
     rejected = rejected.astype({"reason": object})
-    if len(cand) == 0:
+    if len(cand) == 0 and len(shade[0]) == 0:
         return (_empty(), rejected) if with_rejected else _empty()
     sigma = fit = np.full(len(cand), np.nan)
     if refine_points:
@@ -146,6 +153,17 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
         lost = pd.DataFrame({"u": cand[~ok, 0], "v": cand[~ok, 1], "reason": "no clean X at the fit"})
         rejected = pd.concat([rejected, lost], ignore_index=True) if len(lost) else rejected
         cand, radius, quality, sigma, fit = cand[ok], radius[ok], quality[ok], sigma[ok], fit[ok]
+    # X-corners a shadow edge crosses come fitted with it (`shadow.shadowed_corners`).
+    cand, radius, quality, sigma, fit = (np.concatenate([a, b]) for a, b in zip((cand, radius, quality, sigma, fit),
+                                                                                 shade))
+    # Unlike a refinement from a known start, a detection must also be a marker: one this uncertain
+    # is mostly none (a "virtual" X of an outline and a shadow edge along its stem; true corners of
+    # the benchmarks' hardest regimes stay below ~0.09 px).
+    sure = ~(sigma > MAX_SIGMA_PX)
+    if not sure.all():
+        vague = pd.DataFrame({"u": cand[~sure, 0], "v": cand[~sure, 1], "reason": UNCERTAIN})
+        rejected = pd.concat([rejected, vague], ignore_index=True)
+        cand, radius, quality, sigma, fit = cand[sure], radius[sure], quality[sure], sigma[sure], fit[sure]
     score = np.clip(quality * np.minimum(radius, 10.0) / 10.0, 0.0, 1.0)
     keep = _dedupe(cand, score)
     frame = pd.DataFrame({"u": cand[keep, 0], "v": cand[keep, 1], "score": score[keep], "sigma_px": sigma[keep],
@@ -156,9 +174,11 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
 def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.ndarray | None = None,
               lit_contrast: float = 0.0):
     """(candidates (k, 2), clean radius (k,), ring quality (k,)) of the X-corners that pass the
-    ring tests, unrefined (centred by `seed`), and the positions (j, 2) of candidates that fail
-    them as X-corners crossed by a shadow edge near the centre (`shadowed_x`) whose lit side has
-    at least `lit_contrast`."""
+    ring tests, unrefined (centred by `seed`); the positions (j, 2) of candidates that fail them
+    as X-corners crossed by a shadow edge near the centre whose fit with the edge did not confirm
+    a corner (`shadow.shadowed_corners`), or that did not start it but pass `shadowed_x` (lit
+    side of at least `lit_contrast`); and the corners fitted with a shadow edge (uv (m, 2), clean
+    radius, ring quality MIN_QUALITY, sigma_px, fit_residual (m,) each)."""
     height, width = img.shape
     none = (np.zeros((0, 2)), np.zeros(0), np.zeros(0))
     # The saddle response threshold stays at the full contrast's: it is loose enough for markers in
@@ -166,7 +186,7 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
     lit_contrast = max(contrast, lit_contrast)
     cand = candidates(img, lit_contrast, level)
     if len(cand) == 0:
-        return none, np.zeros((0, 2))
+        return none, np.zeros((0, 2)), tuple(np.zeros((0, 2)) if i == 0 else np.zeros(0) for i in range(5))
     # Prefilter at the unrefined position: a ring of radius 4 px must already look like an X.
     values = sample(img, cand[:, None, :] + _ring_offsets(4.0)[None])
     quality, ring_contrast = ring_quality(values)
@@ -175,22 +195,32 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
     spread = values.max(axis=1) - values.min(axis=1) >= lit_contrast
     failed, cand = cand[~passed & spread], cand[passed]
     seeded = seed(img, cand, 3.0)
-    cand = seeded[np.all(np.isfinite(seeded), axis=1)]
-    cand = cand[(cand[:, 0] >= 0) & (cand[:, 0] <= width - 1) & (cand[:, 1] >= 0) & (cand[:, 1] <= height - 1)]
-    cand = cand[_dedupe(cand, np.ones(len(cand)))]
+    inside = np.all(np.isfinite(seeded), axis=1)
+    inside[inside] = (seeded[inside] >= 0).all(axis=1) & (seeded[inside] <= [width - 1, height - 1]).all(axis=1)
+    unseeded, cand = cand[inside], seeded[inside]
+    kept = _dedupe(cand, np.ones(len(cand)))
+    unseeded, cand = unseeded[kept], cand[kept]
     radius = clean_radius(img, cand, min_quality=min_quality)
     good = radius >= MIN_CLEAN_RADIUS
-    failed = np.vstack([failed, cand[~good]])
-    shadowed = failed[shadowed_x(img, failed, lit_contrast, min_quality)] if len(failed) else failed
-    shadowed = shadowed[_dedupe(shadowed, np.ones(len(shadowed)))]
+    # The centring of a shadowed X is drawn towards the shadow edge: its candidate is the better start.
+    failed = np.vstack([failed, unseeded[~good]])
+    failed = failed[_dedupe(failed, np.ones(len(failed)))]
+    shade_uv, shade_radius, shade_sigma, shade_fit, why = shadowed_corners(img, failed, contrast, min_quality,
+                                                                           MIN_CLEAN_RADIUS)
+    fitted = why == ""
+    shade = (shade_uv[fitted], shade_radius[fitted], np.full(fitted.sum(), min_quality), shade_sigma[fitted],
+             shade_fit[fitted])
+    unfitted = failed[why == None]  # noqa: E711 (an object array)
+    shadowed = unfitted[shadowed_x(img, unfitted, lit_contrast, min_quality)] if len(unfitted) else unfitted
+    shadowed = np.vstack([shade_uv[why == SHADOW_REASON], shadowed])
     cand, radius = cand[good], radius[good]
     if len(cand) == 0:
-        return none, shadowed
+        return none, shadowed, shade
     # Contrast and quality on a ring well inside the clean area, away from the blurred centre.
     probe = np.clip(0.5 * radius, 3.0, 12.0)[:, None, None]
     quality, ring_contrast = ring_quality(sample(img, cand[:, None, :] + probe * _ring_offsets(1.0)[None]))
     good = np.abs(ring_contrast) >= contrast
-    return (cand[good], radius[good], quality[good]), shadowed
+    return (cand[good], radius[good], quality[good]), shadowed, shade
 
 
 SHADOW_RADII = (4.0, 6.0, 8.0)  # px, rings of the shadowed-X test
@@ -209,9 +239,8 @@ def shadowed_x(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: fl
     and the line's direction the same within 30 deg on every ring; the line must cross the X's
     edges, not run along one. A T-junction or an L-corner (a marker's outline) splits a ring too,
     but no step turns their rings into an X: the shade keeps a shadowed X's two levels in the same
-    ratio, the background beyond an outline has one. Misses many shadowed X-corners (the edge
-    farther than half a ring radius from the candidate, or along an edge of the X): those are
-    simply not found."""
+    ratio, the background beyond an outline has one. Used for the rejections' reason where the
+    fit with the shadow edge (`shadow.shadowed_corners`) did not start."""
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     # Cheap first: the point-symmetric part of the smallest ring, where a shadow line through the
     # centre adds only a constant, must already look like an X of some contrast (not noise along a

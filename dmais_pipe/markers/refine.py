@@ -319,17 +319,27 @@ def _reasons(params, cov, rms, converged, uv, limit, window) -> np.ndarray:
 
 
 def _initial_params(img: np.ndarray, start: np.ndarray, radius: np.ndarray) -> np.ndarray:
-    """Model parameters (n, 7) from a ring about start (n, 2): edge normals from its four level
-    changes, blur 1 px, levels from the ring; NaN rows where the ring is not an X."""
-    n = len(start)
+    """Model parameters (n, 7) from a ring about start (n, 2) (`ring_params`), or where the ring is
+    not an X from the local saddle (`_saddle_params`); NaN rows where neither is."""
     rho = np.clip(0.6 * np.nan_to_num(radius, nan=MIN_RADIUS), 2.5, 12.0)
     values = sample(img, start[:, None, :] + rho[:, None, None] * _ring_offsets(1.0)[None]).astype(float)
+    params = _saddle_params(img, start, radius)
+    ring = ring_params(start, values)
+    ok = np.isfinite(ring[:, 0])
+    params[ok] = ring[ok]
+    return params
+
+
+def ring_params(start: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Model parameters (n, 7) from rings of samples values (n, k) (`_ring_offsets` order) about
+    start (n, 2): edge normals from its four level changes, blur 1 px, levels from the ring; NaN
+    rows where the ring does not change level exactly four times."""
+    params = np.full((len(start), 7), np.nan)
     k = values.shape[1]
     mean = values.mean(axis=1, keepdims=True)
     high = values > mean
     nxt = np.roll(values, -1, axis=1)
     change = high != np.roll(high, -1, axis=1)
-    params = _saddle_params(img, start, radius)
     ok = change.sum(axis=1) == 4
     if not ok.any():
         return params
@@ -342,13 +352,8 @@ def _initial_params(img: np.ndarray, start: np.ndarray, radius: np.ndarray) -> n
     # An edge line runs through changes 0 and 2, the other through 1 and 3; normals = direction + 90 deg.
     d1 = _mean_direction(angle[:, 0], angle[:, 2] - np.pi)
     d2 = _mean_direction(angle[:, 1], angle[:, 3] - np.pi)
-    sub = params[ok]
-    sub[:, 0:2] = start[ok]
-    sub[:, 2], sub[:, 3] = d1 + 0.5 * np.pi, d2 + 0.5 * np.pi
-    sub[:, 4] = 1.0
-    sub[:, 5] = mean[ok, 0]
-    sub[:, 6] = 0.5 * (values[ok].max(axis=1) - values[ok].min(axis=1))
-    params[ok] = sub
+    params[ok] = np.column_stack([start[ok], d1 + 0.5 * np.pi, d2 + 0.5 * np.pi, np.ones(ok.sum()), mean[ok, 0],
+                                  0.5 * (values[ok].max(axis=1) - values[ok].min(axis=1))])
     return params
 
 

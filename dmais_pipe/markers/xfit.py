@@ -24,6 +24,7 @@ import numpy as np
 from scipy.special import erf
 
 N_PARAMS = 7  # px, py, t1, t2, s, m, c
+N_SHADED = 11  # and t3, e3, s3, q of a straight shadow edge (`shaded_model`)
 MIN_BLUR = 0.3  # px
 _SQRT2 = np.sqrt(2.0)
 _DERF = np.sqrt(2.0 / np.pi)
@@ -71,6 +72,35 @@ def model(params: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: bool = Tru
     return value, jac
 
 
+def shaded_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: bool = True):
+    """The X-corner `model` crossed by a straight shadow edge: values (n, k) at pixels x, y (n, k)
+    for params (n, 11), and the Jacobian (n, k, 11).
+
+    A cast shadow multiplies the light: M(x) = X(x) (1 - q Phi(l_3 / s_3)), l_3 = n_3 . x - e_3
+    (n_3 = (cos t_3, sin t_3) towards the shade, e_3 its offset from the coordinates' origin, s_3
+    the edge's blur with the penumbra, q the share of the light the shade takes). The product of
+    the blurred factors stands for the blurred product, as erf(l_1) erf(l_2) does for an oblique X:
+    exact away from where the shadow edge crosses an edge of the X.
+    """
+    corner, jac_x = model(params[:, :N_PARAMS], x, y, jacobian)
+    t3, e3, s3, q = (params[:, i:i + 1] for i in range(N_PARAMS, N_SHADED))
+    c3, n3 = np.cos(t3), np.sin(t3)
+    l3 = c3 * x + n3 * y - e3
+    shade = 0.5 * (1.0 + erf(l3 / (_SQRT2 * s3)))
+    light = 1.0 - q * shade
+    value = corner * light
+    if not jacobian:
+        return value, None
+    dshade = _DERF / (2.0 * s3) * np.exp(-0.5 * (l3 / s3) ** 2)  # d Phi / d l3
+    jac = np.empty(x.shape + (N_SHADED,))
+    jac[..., :N_PARAMS] = jac_x * light[..., None]
+    jac[..., 7] = -corner * q * dshade * (-n3 * x + c3 * y)
+    jac[..., 8] = corner * q * dshade
+    jac[..., 9] = corner * q * dshade * l3 / s3
+    jac[..., 10] = -corner * shade
+    return value, jac
+
+
 def linear_levels(params: np.ndarray, x, y, values, weights) -> np.ndarray:
     """params (n, 7) with m, c set by weighted linear least squares for the other parameters."""
     params = params.copy()
@@ -85,22 +115,24 @@ def linear_levels(params: np.ndarray, x, y, values, weights) -> np.ndarray:
 
 
 def _normal_equations(residual: np.ndarray, jac: np.ndarray, weights: np.ndarray):
-    """Weighted cost (n,), J^T W J (n, 7, 7) and J^T W r (n, 7) of residuals (n, k) and Jacobians (n, k, 7)."""
+    """Weighted cost (n,), J^T W J (n, p, p) and J^T W r (n, p) of residuals (n, k) and Jacobians (n, k, p)."""
     wj = (jac * weights[..., None]).transpose(0, 2, 1)  # (n, 7, k): batched BLAS products
     return (weights * residual**2).sum(1), np.matmul(wj, jac), np.matmul(wj, residual[..., None])[..., 0]
 
 
-def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40):
-    """Levenberg-Marquardt from params (n, 7) on pixels x, y, values, weights (n, k).
+def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=model):
+    """Levenberg-Marquardt from params (n, p) on pixels x, y, values, weights (n, k), of `model`
+    (`model`, p = 7, or `shaded_model`, p = 11).
 
-    Returns (params (n, 7), covariance of p (n, 2, 2), weighted RMS residual (n,), converged (n,)).
+    Returns (params (n, p), covariance of the corner (n, 2, 2), weighted RMS residual (n,), converged (n,)).
     """
     params = params.copy()
     n = len(params)
     lam = np.full(n, 1e-3)
     value, jac = model(params, x, y)
     cost, hess, grad = _normal_equations(value - values, jac, weights)
-    eye = np.eye(N_PARAMS)
+    n_params = params.shape[1]
+    eye = np.eye(n_params)
     converged = np.zeros(n, dtype=bool)
     active = np.arange(n)
     for _ in range(iterations):
@@ -114,6 +146,8 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40):
             step = -np.stack([np.linalg.lstsq(d, g, rcond=None)[0] for d, g in zip(damped, grad[active])])
         trial = params[active] + step
         trial[:, 4] = np.maximum(trial[:, 4], MIN_BLUR)
+        if n_params == N_SHADED:
+            trial[:, 9] = np.maximum(trial[:, 9], MIN_BLUR)
         # The trial's Jacobian with its values: the next step's normal equations where it is taken.
         value, jac = model(trial, x[active], y[active])
         new_cost, new_hess, new_grad = _normal_equations(value - values[active], jac, weights[active])
@@ -131,12 +165,13 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40):
     hess = np.matmul(wj, jac)
     meat = np.matmul(wj * weights[:, None, :], jac)
     sw = weights.sum(1)
-    dof = np.maximum(np.count_nonzero(weights > 0, axis=1) - N_PARAMS, 1)
+    dof = np.maximum(np.count_nonzero(weights > 0, axis=1) - n_params, 1)
     sigma2 = (weights * r**2).sum(1) / np.maximum(sw, 1e-12) * np.count_nonzero(weights > 0, axis=1) / dof
     cov = np.full((n, 2, 2), np.nan)
-    ok = np.isfinite(hess).all(axis=(1, 2)) & (np.abs(np.linalg.det(hess)) > 0)
-    if ok.any():
-        inv = np.linalg.inv(hess[ok])
-        cov[ok] = (sigma2[ok, None, None] * (inv @ meat[ok] @ inv))[:, :2, :2]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # a degenerate fit (a shade of no area): NaN
+        ok = np.isfinite(hess).all(axis=(1, 2)) & (np.abs(np.linalg.det(hess)) > 0)
+        if ok.any():
+            inv = np.linalg.inv(hess[ok])
+            cov[ok] = (sigma2[ok, None, None] * (inv @ meat[ok] @ inv))[:, :2, :2]
     rms = np.sqrt((weights * r**2).sum(1) / np.maximum(sw, 1e-12))
     return params, cov, rms, converged

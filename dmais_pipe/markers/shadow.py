@@ -1,0 +1,336 @@
+"""X-corners crossed by a cast shadow's edge near their centre.
+
+A shadow multiplies the light: on the log of the image it adds a step on one side of a straight
+line, while the X-corner itself stays point symmetric about its centre. The ring tests of
+`detect` fail such a corner (its rings are no longer two-valued or point symmetric), and the plain
+model fit of `refine` would move the corner towards the shadow edge. Here the corner is fitted
+with the shadow edge in the model (`xfit.shaded_model`): the line, its blur and the share of light
+it takes are fitted with the X. Started from the best straight step on a log ring about the
+candidate (`_best_step`, the same on a wider ring), or where none is found there about its coarse
+centring (`_start`), fitted in a small window, then in the window of the clean X with the shade
+divided out. The start is cheap and strict, so that marker outlines and texture never reach the
+fits: the ring's point-symmetric part must be an X of a marker's log contrast (MIN_X_LOG: the
+shade does not change it), and the step must darken, leave an X, run across the X's sectors
+rather than along an edge of the X (an outline's T-junction), and leave both levels of the X on
+both sides of its line in the same ratio (a shadow takes the same share of light from both; the
+background beyond an outline is one level). Every candidate that starts is either returned or
+rejected with SHADOW_REASON, never dropped without a trace. The product of the blurred factors
+is not the blurred product where the shadow edge crosses an edge of the X, which moves that
+fit's corner by up to ~0.2 px: the corner returned is that of a final fit of the X alone to the
+pixels beside the shadow edge with the shade divided out (`_unshaded_fit`), and it must agree
+with the first within AGREE_PX. Verified with the shade divided out: the rings about the corner must be a clean X
+(`refine.clean_radius`) beyond MIN_CLEAN_PX.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import numpy as np
+from scipy.special import ndtr
+
+from . import xfit
+from .refine import (_RADII, MAX_SIGMA_PX, MIN_EDGE_ANGLE, REJECT_RESIDUAL, _ring_offsets, _ring_stats,
+                     clean_radius, ring_params, sample, seed)
+
+SHADOW_REASON = "shadow edge at the corner"
+START_RING_PX = 5.0  # radius of the log ring the shadow line and the X are started from
+CHECK_RING_PX = 7.5  # radius of the log ring that must show the same step
+MAX_TURN = np.radians(30.0)  # the step's direction on the two rings, at most this apart
+FIRST_WINDOW_PX = 8.0  # radius of the first fit's window
+MAX_WINDOW_PX = 15.0  # radius of the second fit's window at most (the clean X with the shade divided out)
+MIN_WINDOW_PX = 6.0
+MIN_STEP_LOG = 0.2  # least darkening of a start line, as a step of log(intensity)
+TOP_STEPS = 24  # steps of a start ring (of _STEPS) that explain the most of its point asymmetry, tried
+MIN_X_LOG = 0.5  # least log contrast of the X on the start ring (a marker's cells: ~log(200 / 30) = 1.9)
+MIN_START_QUALITY = 0.5  # ring quality of the X with the start step taken away
+SAME_RATIO = 0.6  # the X's log contrast on either side of the start step: at least this share of the other's
+MIN_SIDE_SAMPLES = 2  # samples of each level of the X on either side of the start step, at least
+MIN_SHADE, MAX_SHADE = 0.2, 0.95  # the share of light the fitted shade takes
+MIN_CROSSING = np.radians(10.0)  # the shadow edge and either edge of the X, at least this apart
+MAX_MOVE_PX = 8.0
+SEED_SHIFT_PX = 4.0  # a candidate's coarse centring, at most this far, where no start is found at it
+CLEAR_BLURS = 1.75  # a shadow edge along an edge of the X: at least this many blurs from the corner
+AGREE_PX = 0.08  # the two fits' corners, at most this apart
+UNSHADED_ROUNDS = 3
+BAND_BLURS = 2.5  # half-width of the band about the shadow edge the final fit leaves out, in its blurs
+MIN_CLEAN_PX = 7.0  # px: the X with the shade divided out must stay clean beyond this radius
+_STEPS = [(phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.6, -0.3, 0.0, 0.3, 0.6)]
+
+
+def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: float, min_radius: float):
+    """Fit X-corners crossed by a shadow edge near candidates uv (n, 2) of float image img (h, w).
+
+    Returns (uv (n, 2) the corners (where rejected, the first fit's corner or the candidate), NaN
+    where the candidate shows no shadowed X; clean radius (n,) px of the X with the shade divided
+    out; sigma_px (n,); fit_residual (n,); reason (n,): '' for a corner, SHADOW_REASON where the
+    start found an X crossed by a shadow edge (`_start_params`) but the fits did not confirm a
+    corner, None where the candidate shows no shadowed X). contrast: least contrast (image units)
+    of the lit X; min_quality, min_radius: the ring tests' (`detect`)."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    n = len(uv)
+    out_uv, radius = np.full((n, 2), np.nan), np.zeros(n)
+    sigma, residual = np.full(n, np.nan), np.full(n, np.nan)
+    reason = np.full(n, None, dtype=object)
+    if n == 0:
+        return out_uv, radius, sigma, residual, reason
+    uv, start = _start(img, uv)
+    tried = np.nonzero(np.all(np.isfinite(start), axis=1) & (2.0 * np.abs(start[:, 6]) >= contrast))[0]
+    if len(tried) == 0:
+        return out_uv, radius, sigma, residual, reason
+    params, cov, rms, converged = _fit_about(img, uv[tried], start[tried], FIRST_WINDOW_PX)
+    centre = first = uv[tried] + params[:, :2]
+    moved = np.all(np.isfinite(centre), axis=1) & (np.hypot(*(centre - uv[tried]).T) <= MAX_MOVE_PX)
+    moved &= _plausible(_line_about(params, uv[tried], centre), cov, rms, converged, FIRST_WINDOW_PX, contrast)
+    # The second fit about the first's corner, over the clean X with the shade divided out.
+    window = np.full(len(tried), np.nan)
+    if moved.any():
+        line = _line_about(params[moved], uv[tried][moved], centre[moved])
+        window[moved] = np.clip(_deshaded_clean_radius(img, centre[moved], line, min_quality), MIN_WINDOW_PX,
+                                MAX_WINDOW_PX)
+    params = np.where(moved[:, None], _line_about(params, uv[tried], centre), np.nan)
+    params[:, :2] = 0.0
+    fitted = (np.full_like(params, np.nan), np.full_like(cov, np.nan), np.full_like(rms, np.nan),
+              np.zeros_like(converged))
+    for value in np.unique(window[moved]):
+        idx = np.nonzero(moved & (window == value))[0]
+        for array, result in zip(fitted, _fit_about(img, centre[idx], params[idx], float(value))):
+            array[idx] = result
+    params, cov, rms, converged = fitted
+    corner = centre + params[:, :2]
+    line = _line_about(params, centre, corner)
+    joint = corner
+    corner, line, cov, rms, converged = _unshaded_fit(img, corner, line, window, cov, rms, converged)
+    clean = np.zeros(len(tried))
+    good = _plausible(line, cov, rms, converged, window, contrast) & (np.hypot(*(corner - uv[tried]).T)
+                                                                        <= MAX_MOVE_PX)
+    if good.any():
+        clean[good] = _deshaded_clean_radius(img, corner[good], line[good], min_quality)
+    good &= clean >= max(min_radius, MIN_CLEAN_PX)
+    # The fit of the shaded model and that of the X alone beside the shadow edge err differently
+    # (where the edge crosses the X's edges, and in the shade's level): they must agree.
+    good &= np.hypot(*(corner - joint).T) <= AGREE_PX
+    # A shadowed X the start found whose corner the fits do not confirm: rejected, with the reason,
+    # at the first fit's corner where that moved plausibly (the candidate can be a few px off).
+    reason[tried[~good]] = SHADOW_REASON
+    out_uv[tried] = np.where(moved[:, None], first, uv[tried])
+    rows = tried[good]
+    out_uv[rows], radius[rows], reason[rows] = corner[good], clean[good], ""
+    sigma[rows] = np.sqrt(0.5 * np.trace(cov[good], axis1=1, axis2=2))
+    residual[rows] = rms[good] / (2.0 * np.abs(params[good, 6]))
+    return out_uv, radius, sigma, residual, reason
+
+
+def _plausible(params, cov, rms, converged, window, contrast) -> np.ndarray:
+    """(n,) fits (params (n, 11) about their corner) that are an X crossed by a real shadow edge:
+    converged, the X of enough contrast, not degenerate, a good fit, certain; the shade taking
+    MIN_SHADE..MAX_SHADE of the light and crossing the window, not along an edge of the X unless
+    clear of the corner."""
+    with np.errstate(invalid="ignore"):
+        sigma = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
+        span = 2.0 * np.abs(params[:, 6])
+        ok = converged & np.all(np.isfinite(params), axis=1) & (span >= contrast)
+        ok &= rms <= REJECT_RESIDUAL * span
+        ok &= sigma <= MAX_SIGMA_PX
+        ok &= (params[:, 10] >= MIN_SHADE) & (params[:, 10] <= MAX_SHADE)
+        ok &= np.abs(params[:, 8]) < window  # the line about the corner, through the window
+        ok &= params[:, 4] < window
+        ok &= np.abs(np.sin(params[:, 2] - params[:, 3])) >= np.sin(MIN_EDGE_ANGLE)
+        # A shadow edge along an edge of the X must pass beside the corner, clear of it: through
+        # it, the X's edge and the shadow's are one (a marker's edge crossed by a shadow edge).
+        clear = np.abs(params[:, 8]) >= CLEAR_BLURS * np.maximum(params[:, 4], params[:, 9])
+        for edge in (2, 3):
+            ok &= (np.abs(np.sin(params[:, 7] - params[:, edge])) >= np.sin(MIN_CROSSING)) | clear
+    return ok
+
+
+def _unshaded_fit(img, corner, params, window, cov, rms, converged):
+    """The final fit of the X alone (`xfit.model`) to the pixels of windows (n,) about corner (n, 2)
+    with the fitted shade of params (n, 11, about the corner) divided out and the band of
+    BAND_BLURS x its blur about the shadow edge left out: there the product of the blurred
+    factors is not the blurred product, and the corner would move. Returns (corner, params
+    about it, cov, rms, converged), the inputs where the fit is not made (NaN window)."""
+    corner, params = corner.copy(), params.copy()
+    cov, rms, converged = cov.copy(), rms.copy(), converged.copy()
+    ok = np.isfinite(window) & np.all(np.isfinite(params), axis=1)
+    for value in np.unique(window[ok]):
+        idx = np.nonzero(ok & (window == value))[0]
+        x, y, values, weights = xfit.window(img, corner[idx], float(value))
+        x, y = x - corner[idx, :1], y - corner[idx, 1:]
+        edge = (np.cos(params[idx, 7:8]) * x + np.sin(params[idx, 7:8]) * y - params[idx, 8:9]) / params[idx, 9:10]
+        weights = weights * (np.abs(edge) > BAND_BLURS)
+        shaded = edge > 0
+        kept = 1.0 - params[idx, 10:11]  # the share of light in the shade
+        fitted = (params[idx, :7].copy(),)
+        fitted[0][:, :2] = 0.0
+        for _ in range(UNSHADED_ROUNDS):
+            # Outside the band the shade is a constant factor: fit the X to the pixels with it
+            # divided out, then the factor to the shaded pixels given the X, and again.
+            fitted = xfit.fit(fitted[0], x, y, np.where(shaded, values / np.maximum(kept, 1e-3), values), weights)
+            corner_model = xfit.model(fitted[0], x, y, jacobian=False)[0]
+            w = weights * shaded
+            kept = ((w * values * corner_model).sum(1) / np.maximum((w * corner_model**2).sum(1), 1e-12))[:, None]
+        new = corner[idx] + fitted[0][:, :2]
+        moved = _line_about(np.column_stack([fitted[0], params[idx, 7:]]), corner[idx], new)
+        corner[idx], params[idx], cov[idx], rms[idx], converged[idx] = new, moved, fitted[1], fitted[2], fitted[3]
+    return corner, params, cov, rms, converged
+
+
+def _line_about(params: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndarray:
+    """params (n, 11) of a shaded model in coordinates about old (n, 2), the line moved to
+    coordinates about new (n, 2) (corner and X unchanged)."""
+    params = params.copy()
+    params[:, 8] -= np.cos(params[:, 7]) * (new[:, 0] - old[:, 0]) + np.sin(params[:, 7]) * (new[:, 1] - old[:, 1])
+    params[:, :2] -= new - old
+    return params
+
+
+def _fit_about(img: np.ndarray, centre: np.ndarray, params: np.ndarray, radius: float):
+    """xfit.fit of the shaded model in windows of `radius` about centre (n, 2), in coordinates
+    about the centre; params (n, 11) in those coordinates."""
+    x, y, values, weights = xfit.window(img, centre, radius)
+    x, y = x - centre[:, :1], y - centre[:, 1:]
+    return xfit.fit(params, x, y, values, weights, model=xfit.shaded_model)
+
+
+def _start(img: np.ndarray, uv: np.ndarray):
+    """(start points (n, 2), `_start_params` (n, 11) about them): the candidates uv (n, 2), or
+    where no start is found there, their coarse centring (`refine.seed`; the candidates of a
+    shadowed X can be a few px off its corner)."""
+    start, symmetric = _start_params(img, uv)
+    retry = np.nonzero(symmetric & ~np.all(np.isfinite(start), axis=1))[0]
+    if len(retry) == 0:
+        return uv, start
+    uv = uv.copy()
+    moved = seed(img, uv[retry], SEED_SHIFT_PX)
+    ok = np.all(np.isfinite(moved), axis=1)
+    again = _start_params(img, moved[ok])[0]
+    found = np.all(np.isfinite(again), axis=1)
+    rows = retry[ok][found]
+    uv[rows], start[rows] = moved[ok][found], again[found]
+    return uv, start
+
+
+def _start_params(img: np.ndarray, uv: np.ndarray):
+    """Shaded-model parameters (n, 11) about uv (n, 2) from a log ring of START_RING_PX: the
+    straight step (`_best_step`) and the X of the ring with it taken away (`refine.ring_params`);
+    NaN rows where no step leaves an X. And (n,) where the ring's point-symmetric part is an X."""
+    offsets = _ring_offsets(START_RING_PX)
+    logs = np.log(np.maximum(sample(img, uv[:, None, :] + offsets[None]), 1.0)).astype(np.float64)
+    # Cheap first: the point-symmetric part of the ring, where a shadow line near the centre adds
+    # little more than a constant, must already be an X (not a straight edge: flat there) of a
+    # marker's log contrast, which the shade does not change (texture's is mostly less).
+    k = logs.shape[1]
+    quality, high, low, _ = _ring_stats(0.5 * (logs + np.roll(logs, k // 2, axis=1)))
+    is_x = (quality >= MIN_START_QUALITY) & (high - low >= MIN_X_LOG)
+    symmetric = np.nonzero(is_x)[0]
+    phi, offset, step = (np.full(len(uv), np.nan) for _ in range(3))
+    lit = np.full(logs.shape, np.nan)
+    phi[symmetric], offset[symmetric], step[symmetric], lit[symmetric] = _best_step(logs[symmetric])
+    # The same straight step on a wider ring: a shadow edge is a long line, texture is not.
+    near = np.nonzero(np.isfinite(phi))[0]
+    wide = np.log(np.maximum(sample(img, uv[near, None, :] + CHECK_RING_PX / START_RING_PX * offsets[None]), 1.0))
+    phi_wide = _best_step(wide.astype(np.float64))[0]
+    phi[near[~(np.abs(np.angle(np.exp(1j * (phi[near] - phi_wide)))) <= MAX_TURN)]] = np.nan
+    params = np.full((len(uv), xfit.N_SHADED), np.nan)
+    ok = np.isfinite(phi)
+    if not ok.any():
+        return params, is_x
+    x_part = ring_params(np.zeros((ok.sum(), 2)), np.exp(lit[ok]))
+    params[ok, :7] = x_part
+    params[ok, 7], params[ok, 8], params[ok, 9], params[ok, 10] = phi[ok], offset[ok], 1.0, 1.0 - np.exp(step[ok])
+    return params, is_x
+
+
+def _best_step(logs: np.ndarray):
+    """For log rings (n, k) of START_RING_PX: direction (n,) towards the shade, offset (n,) px of
+    the line from the centre, log step (n,) (< 0) and the ring with the step taken away (n, k) of
+    the straight step (of _STEPS, least squares on the point asymmetry; of the TOP_STEPS that
+    explain the most of it) that leaves the best X (quality >= MIN_START_QUALITY, darkening >=
+    MIN_STEP_LOG); NaN where none does."""
+    n, k = logs.shape
+    if n == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros((0, k))
+    shade, asym = _step_masks(k)
+    anti = logs - np.roll(logs, k // 2, axis=1)
+    norm = np.maximum((asym * asym).sum(axis=1), 1e-9)
+    g = anti @ asym.T / norm  # (n, l)
+    explained = np.where(-g >= MIN_STEP_LOG, g * g * norm, -1.0)
+    top = np.argsort(-explained, axis=1)[:, :TOP_STEPS]  # (n, t)
+    g = np.take_along_axis(g, top, axis=1)
+    shade = shade[top]  # (n, t, k)
+    lit = logs[:, None, :] - g[:, :, None] * shade
+    quality, _, _, bright = _ring_stats(np.exp(lit).reshape(-1, k))
+    quality, bright = quality.reshape(top.shape), bright.reshape(top.shape + (k,))
+    # The line must cross the X's sectors, not run along an edge of the X (an outline T-junction).
+    ends = _line_ends(k)[top]  # (n, t, 2, w)
+    ends = np.take_along_axis(bright, ends.reshape(n, top.shape[1], -1), axis=2)
+    crosses = np.all(ends == ends[..., :1], axis=2)
+    quality = np.where((-g >= MIN_STEP_LOG) & crosses & _both_sides(lit, bright, shade), quality, -1.0)
+    best = np.argmax(quality, axis=1)
+    rows = np.arange(n)
+    ok = quality[rows, best] >= MIN_START_QUALITY
+    lines = np.array(_STEPS)[top[rows, best]]
+    nan = np.full(n, np.nan)
+    return (np.where(ok, lines[:, 0], nan), np.where(ok, lines[:, 1] * START_RING_PX, nan),
+            np.where(ok, g[rows, best], nan), lit[rows, best])
+
+
+def _both_sides(lit: np.ndarray, bright: np.ndarray, shade: np.ndarray) -> np.ndarray:
+    """(n, l) True where log rings lit (n, l, k) with a step taken away (bright mask (n, l, k), the
+    step's shaded samples shade (n, l, k)) have both levels of the X on both sides of the step's line,
+    in the same ratio: a shadow takes the same share of the light from both. A marker's outline
+    (an L- or T-junction, the background beyond it one level) or texture fails."""
+    both, contrast = np.ones(lit.shape[:2], dtype=bool), []
+    for side in (shade, 1.0 - shade):
+        on_bright, on_dark = bright * side, ~bright * side
+        n_bright, n_dark = on_bright.sum(axis=2), on_dark.sum(axis=2)
+        both &= (n_bright >= MIN_SIDE_SAMPLES) & (n_dark >= MIN_SIDE_SAMPLES)
+        contrast.append((lit * on_bright).sum(axis=2) / np.maximum(n_bright, 1)
+                        - (lit * on_dark).sum(axis=2) / np.maximum(n_dark, 1))
+    return both & (np.minimum(*contrast) >= SAME_RATIO * np.maximum(*contrast))
+
+
+@lru_cache(maxsize=4)
+def _line_ends(k: int, half_width: int = 1) -> np.ndarray:
+    """(l, 2, 2 half_width + 1) indexes of the ring samples about the two points where each line of
+    _STEPS crosses a ring of k samples."""
+    ends = []
+    for phi, t in _STEPS:
+        crossing = np.mod([phi + np.arccos(t), phi - np.arccos(t)], 2.0 * np.pi)
+        centre = np.rint(crossing / (2.0 * np.pi) * k - 0.5).astype(int)
+        ends.append(np.mod(centre[:, None] + np.arange(-half_width, half_width + 1)[None], k))
+    return np.array(ends)
+
+
+@lru_cache(maxsize=4)
+def _step_masks(k: int):
+    """(shade (l, k) 0/1 of each ring sample beyond each line of _STEPS, its point asymmetry (l, k))."""
+    angle = 2.0 * np.pi * (np.arange(k) + 0.5) / k
+    shade = np.array([(np.cos(angle - phi) > t) for phi, t in _STEPS], dtype=float)
+    return shade, shade - np.roll(shade, k // 2, axis=1)
+
+
+def _deshaded_clean_radius(img: np.ndarray, corner: np.ndarray, params: np.ndarray, min_quality: float):
+    """(n,) `refine.clean_radius` about corner (n, 2) of the image with the fitted shade of params
+    (n, 11, about the corner) divided out, within MAX_WINDOW_PX + 1 px."""
+    half = int(np.ceil(MAX_WINDOW_PX)) + 3
+    out = np.zeros(len(corner))
+    for i, (c, p) in enumerate(zip(corner, params)):
+        x0, y0 = np.floor(c).astype(int) - half
+        ys, xs = np.mgrid[0:2 * half + 1, 0:2 * half + 1]
+        xs, ys = xs + x0, ys + y0
+        crop = img[np.clip(ys, 0, img.shape[0] - 1), np.clip(xs, 0, img.shape[1] - 1)].astype(np.float64)
+        _, light = _light(p, xs - c[0], ys - c[1])
+        local = (crop / np.maximum(light, 1e-3)).astype(np.float32)
+        out[i] = clean_radius(local, (c - [x0, y0])[None], min_quality=min_quality,
+                              radii=_RADII[_RADII <= MAX_WINDOW_PX + 1.0])[0]
+    return out
+
+
+def _light(params: np.ndarray, x: np.ndarray, y: np.ndarray):
+    """(shade, light = 1 - q shade) of the shadow edge of params (11,) at x, y (any shape), or of
+    params (n, 11) at x, y (n, k)."""
+    t3, e3, s3, q = (params[..., i:i + 1] if params.ndim == 2 else params[i] for i in range(7, 11))
+    shade = ndtr((np.cos(t3) * x + np.sin(t3) * y - e3) / s3)
+    return shade, 1.0 - q * shade
