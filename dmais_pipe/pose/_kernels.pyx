@@ -1059,38 +1059,39 @@ cdef class Kernel:
         if (n < 3 or origins.shape[0] != n or directions.shape[0] != n or points.shape[1] != 3
                 or origins.shape[1] != 3 or directions.shape[1] != 3):
             return None
-        cdef double[:, ::1] f = np.empty((n, 3))
-        cdef double[:, ::1] R = np.empty((CAPACITY, 9))
-        cdef double[:, ::1] t = np.empty((CAPACITY, 3))
-        cdef double[::1] cost = np.empty(CAPACITY)
-        cdef double[::1] front = np.empty(CAPACITY)
         cdef Candidates found
-        found.R, found.t, found.cost, found.front = &R[0, 0], &t[0, 0], &cost[0], &front[0]
         cdef Statistics st
         cdef Problem p
         cdef Scratch scratch
-        cdef bint valid, allocated = False
+        cdef bint valid = True, allocated = False
+        # one block for the unit directions (n, 3) and the candidates' R, t, cost, front
+        cdef double *buffer = <double *> malloc((3 * n + 14 * CAPACITY) * sizeof(double))
+        cdef double *f = buffer
         memset(&scratch, 0, sizeof(Scratch))
         try:
             with nogil:
-                valid = unit_directions(&origins[0, 0], &directions[0, 0], &points[0, 0], n, zero_direction, &f[0, 0])
-                if valid:
-                    accumulate(&origins[0, 0], &f[0, 0], &points[0, 0], n, &st)
+                if buffer != NULL:
+                    found.R, found.t = buffer + 3 * n, buffer + 3 * n + 9 * CAPACITY
+                    found.cost, found.front = found.t + 3 * CAPACITY, found.t + 4 * CAPACITY
+                    valid = unit_directions(&origins[0, 0], &directions[0, 0], &points[0, 0], n, zero_direction, f)
+                if buffer != NULL and valid:
+                    accumulate(&origins[0, 0], f, &points[0, 0], n, &st)
                     valid = (st.spread[1] > collinear_tolerance * collinear_tolerance * st.spread[2]
                              and st.least_BtB > 1e-12 * n)
-                if valid:
+                if buffer != NULL and valid:
                     p.H, p.g, p.c, p.t_matrix, p.t_offset, p.centroid = st.H, st.g, st.c, st.t_matrix, st.t_offset, st.centroid
-                    p.v, p.f, p.M, p.n = &origins[0, 0], &f[0, 0], &points[0, 0], n
+                    p.v, p.f, p.M, p.n = &origins[0, 0], f, &points[0, 0], n
                     allocated = self.allocate(&scratch)
                     if allocated:
                         k = self.candidates(&p, &found, &scratch, st.axes, st.spread)
+            if not valid:
+                return None
+            if not allocated:
+                raise MemoryError("pose: no memory for the elimination template")
+            return distinct_candidates(&p, &found, k)
         finally:
             release(&scratch)
-        if not valid:
-            return None
-        if not allocated:
-            raise MemoryError("pose: no memory for the elimination template")
-        return distinct_candidates(&p, &found, k)
+            free(buffer)
 
     cdef int candidates(self, const Problem *p, Candidates *c, Scratch *scratch, const double *point_axes,
                         const double *point_spread) noexcept nogil:

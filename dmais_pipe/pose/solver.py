@@ -41,6 +41,7 @@ arithmetic.
 from __future__ import annotations
 
 import itertools
+from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from functools import lru_cache
@@ -71,13 +72,35 @@ class Candidate(NamedTuple):
     in_front: float
 
 
+class Candidates(Sequence):
+    """The candidates of a solve, least cost first: a read-only sequence of `Candidate` built on
+    access from the compiled core's arrays R (k, 3, 3), t (k, 3), cost (k,), in_front (k,) (most
+    callers read only the solution, and 20-odd namedtuples cost ~5% of a solve)."""
+
+    __slots__ = ("R", "t", "cost", "in_front")
+
+    def __init__(self, R: np.ndarray, t: np.ndarray, cost: np.ndarray, in_front: np.ndarray):
+        self.R, self.t, self.cost, self.in_front = R, t, cost, in_front
+
+    def __len__(self) -> int:
+        return len(self.cost)
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self[i] for i in range(*index.indices(len(self)))]
+        return Candidate(self.R[index], self.t[index], float(self.cost[index]), float(self.in_front[index]))
+
+    def __repr__(self) -> str:
+        return repr(list(self))
+
+
 @dataclass(frozen=True)
 class GeneralizedPose:
     """Solution of the generalized absolute pose problem: x_rig = R @ M + t.
 
     R (3, 3), t (3,), cost: value of eq. objfun at (R, t); candidates: every real stationary
-    point found, least cost first (the solution is the cheapest with most points in front of
-    their rays, usually candidates[0]); n_points: correspondences.
+    point found, least cost first (`Candidates`; the solution is the cheapest with most points in
+    front of their rays, usually candidates[0]); n_points: correspondences.
     covariance: (6, 6) of (rotation increment, t) when refined, else None. certified: the
     Lagrangian dual certifies the solver's solution as the global minimum of eq. objfun (beyond
     the paper; `_kernels.certified`); False says only that the check could not prove it (for
@@ -88,7 +111,7 @@ class GeneralizedPose:
     R: np.ndarray
     t: np.ndarray
     cost: float
-    candidates: list[Candidate]
+    candidates: Candidates
     n_points: int
     covariance: np.ndarray | None = None
     certified: bool = False
@@ -189,10 +212,8 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
         statistics_of(origins, directions, points)
         found = kernel().solve_rays(origins, directions, points, COLLINEAR_TOLERANCE, ZERO_DIRECTION)
     R, t, cost, front, best, certified = found
-    candidates = list(map(Candidate, R, t, cost.tolist(), front.tolist()))
-    solution = candidates[best]
-    pose = GeneralizedPose(R=solution.R, t=solution.t, cost=solution.cost, candidates=candidates, n_points=len(points),
-                           certified=certified)
+    pose = GeneralizedPose(R=R[best], t=t[best], cost=float(cost[best]), candidates=Candidates(R, t, cost, front),
+                           n_points=len(points), certified=certified)
     if not refine:
         return pose
     from .refine import refine_pose
