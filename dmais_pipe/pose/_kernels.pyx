@@ -93,6 +93,7 @@ cdef struct Scratch:
     double *coefficients  # (6 * n_monomials,) of the equations
     double *template  # (m * n_columns,) row-major
     int *pivots  # (m,) template rows in pivot order
+    int *lead  # (m,) per template row, a column before which the row is zero
     double *reductions  # (n_reducible * 40,) row-major: the reducible monomials in the basis
     double *action  # (40 * 40,) column-major
     Eigen *eigen
@@ -819,14 +820,17 @@ cdef void eigenvector_units(const Eigen *e, double shift, double *v) noexcept no
             v[i] += e.units[i * n + j] * y[j]
 
 
-cdef bint eliminate(double *T, int m, int n_columns, int *order) noexcept nogil:
+cdef bint eliminate(double *T, int m, int n_columns, int *order, const int *lead) noexcept nogil:
     """Gaussian elimination with partial pivoting of the first m columns of the row-major template
     T (m, n_columns), in place; order (m,) receives the rows in pivot order (row order[k] has its
-    pivot in column k and zeros before it). False if a column has no nonzero pivot.
+    pivot in column k and zeros before it). False if a column has no nonzero pivot. lead (m,):
+    for each row, a column before which it is zero in T (the template's structure).
 
     The template is sparse (a fifth of its entries are nonzero, and rows end where their
     monomials do), so rows with a zero in the pivot column are skipped and fill-in stays small:
     about 1e5 multiply-adds instead of the 8e5 of a dense LU (dgetrf), for the same pivots.
+    A row is not even read before column lead[row]: until then no row operation reaches it (those
+    touch rows that are nonzero in the pivot column), so it stays zero there.
     """
     cdef int i, j, k, best, swap
     cdef double largest, size, factor
@@ -837,6 +841,8 @@ cdef bint eliminate(double *T, int m, int n_columns, int *order) noexcept nogil:
     for k in range(m):
         best, largest = -1, 0.0
         for i in range(k, m):
+            if lead[order[i]] > k:
+                continue
             size = fabs(T[order[i] * n_columns + k])
             if size > largest:
                 best, largest = i, size
@@ -845,6 +851,8 @@ cdef bint eliminate(double *T, int m, int n_columns, int *order) noexcept nogil:
         swap = order[k]; order[k] = order[best]; order[best] = swap
         pivot_row = T + order[k] * n_columns
         for i in range(k + 1, m):
+            if lead[order[i]] > k:
+                continue
             row = T + order[i] * n_columns
             if row[k] != 0.0:
                 factor = row[k] / pivot_row[k]
@@ -924,7 +932,7 @@ cdef class Kernel:
     `solver.py`. Holds only constants; every buffer is allocated per call."""
 
     cdef int m, n_columns, n_reducible, n_entries, n_monomials
-    cdef long[::1] target, source, shift_rows, shift_columns, reduced_rows, reduced_index, unit_index
+    cdef long[::1] target, source, shift_rows, shift_columns, reduced_rows, reduced_index, unit_index, row_lead
     cdef long[:, ::1] entries
     cdef double[::1] octahedral
 
@@ -943,6 +951,10 @@ cdef class Kernel:
         self.entries = np.ascontiguousarray(entries, dtype=np.int64)
         self.n_entries = len(entries)
         self.n_monomials = n_monomials
+        targets = np.asarray(self.target)
+        lead = np.full(m, n_columns, dtype=np.int64)  # each row's first structurally nonzero column
+        np.minimum.at(lead, targets // n_columns, targets % n_columns)
+        self.row_lead = lead
         self.octahedral = np.ascontiguousarray(octahedral, dtype=float).reshape(-1)
         if self.octahedral.shape[0] != 9 * 24:
             raise ValueError("octahedral must be (24, 3, 3)")
@@ -985,7 +997,9 @@ cdef class Kernel:
         memset(template, 0, m * n_columns * sizeof(double))
         for k in range(self.target.shape[0]):
             template[self.target[k]] = coefficients[self.source[k]]
-        if not eliminate(template, m, n_columns, scratch.pivots):
+        for i in range(m):
+            scratch.lead[i] = self.row_lead[i]
+        if not eliminate(template, m, n_columns, scratch.pivots, scratch.lead):
             return 0
         reduce_to_basis(template, m, n_columns, n_red, scratch.pivots, scratch.reductions)
         memset(action, 0, n * n * sizeof(double))
@@ -1013,10 +1027,11 @@ cdef class Kernel:
         scratch.coefficients = <double *> malloc(6 * self.n_monomials * sizeof(double))
         scratch.template = <double *> malloc(self.m * self.n_columns * sizeof(double))
         scratch.pivots = <int *> malloc(self.m * sizeof(int))
+        scratch.lead = <int *> malloc(self.m * sizeof(int))
         scratch.reductions = <double *> malloc(self.n_reducible * N_SOLUTIONS * sizeof(double))
         scratch.action = <double *> malloc(N_SOLUTIONS * N_SOLUTIONS * sizeof(double))
         scratch.eigen = <Eigen *> malloc(sizeof(Eigen))
-        return (scratch.coefficients != NULL and scratch.template != NULL and scratch.pivots != NULL
+        return (scratch.coefficients != NULL and scratch.template != NULL and scratch.pivots != NULL and scratch.lead != NULL
                 and scratch.reductions != NULL and scratch.action != NULL and scratch.eigen != NULL)
 
     def rotations_of_roots(self, const double[:, ::1] H, const double[::1] g, const double[:, ::1] P):
@@ -1204,12 +1219,14 @@ cdef void release(Scratch *scratch) noexcept nogil:
     free(scratch.coefficients)
     free(scratch.template)
     free(scratch.pivots)
+    free(scratch.lead)
     free(scratch.reductions)
     free(scratch.action)
     free(scratch.eigen)
     scratch.coefficients = scratch.template = scratch.reductions = scratch.action = NULL
     scratch.eigen = NULL
     scratch.pivots = NULL
+    scratch.lead = NULL
 
 
 cdef distinct_candidates(const Problem *p, const Candidates *c, int k):
