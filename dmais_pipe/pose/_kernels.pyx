@@ -608,7 +608,11 @@ cdef void hessenberg(double *A, int n, double *reflectors, double *tau) noexcept
             v[i] = A[k * n + i] * inverse
             A[k * n + i] = 0.0
         A[k * n + k + 1] = beta
-        for j in range(k + 1, n):  # A <- H_k A, columns k + 1 on (pointers: see hessenberg_eigenvalues)
+        j = k + 1
+        while j + 4 <= n:  # A <- H_k A, four columns at a time: four independent sums, each in order
+            update_four_columns(A + j * n, n, k + 1, v, tau[k])
+            j += 4
+        while j < n:  # the remaining columns
             column = A + j * n
             dot = 0.0
             for i in range(k + 1, n):
@@ -616,6 +620,7 @@ cdef void hessenberg(double *A, int n, double *reflectors, double *tau) noexcept
             dot *= tau[k]
             for i in range(k + 1, n):
                 column[i] -= dot * v[i]
+            j += 1
         memset(w, 0, n * sizeof(double))  # A <- A H_k: w = A v, A -= tau w v^T
         for j in range(k + 1, n):
             column = A + j * n
@@ -626,6 +631,32 @@ cdef void hessenberg(double *A, int n, double *reflectors, double *tau) noexcept
             dot = tau[k] * v[j]
             for i in range(n):
                 column[i] -= dot * w[i]
+
+
+cdef inline void update_four_columns(double *A, int n, int start, const double *v, double tau) noexcept nogil:
+    """Columns c = 0..3 of the column-major A (n, 4) <- (I - tau v v^T) column, on rows start..n.
+    The four dot products run side by side (each summed in order, so the roundings are those of
+    one at a time): a single sum waits on its additions' latency."""
+    cdef double *c0 = A
+    cdef double *c1 = A + n
+    cdef double *c2 = A + 2 * n
+    cdef double *c3 = A + 3 * n
+    cdef double d0 = 0.0, d1 = 0.0, d2 = 0.0, d3 = 0.0
+    cdef int i
+    for i in range(start, n):
+        d0 += v[i] * c0[i]
+        d1 += v[i] * c1[i]
+        d2 += v[i] * c2[i]
+        d3 += v[i] * c3[i]
+    d0 *= tau
+    d1 *= tau
+    d2 *= tau
+    d3 *= tau
+    for i in range(start, n):
+        c0[i] -= d0 * v[i]
+        c1[i] -= d1 * v[i]
+        c2[i] -= d2 * v[i]
+        c3[i] -= d3 * v[i]
 
 
 cdef int hessenberg_eigenvalues(double *A, int n, double *wr, double *wi) noexcept nogil:
@@ -762,10 +793,58 @@ cdef void two_by_two_eigenvalues(double a, double b, double c, double d, double 
         wi[1] = -wi[0]
 
 
-cdef void eigenvector_units(const Eigen *e, double shift, double *v) noexcept nogil:
-    """v (4,): the entries at 1, qx, qy, qz of the eigenvector of the action matrix for the
-    eigenvalue nearest the real shift, by one step of inverse iteration on the Hessenberg form,
-    y = (H - shift I)^-1 1, mapped back by e.units.
+cdef void eigenvector_units(const Eigen *e, const double *shifts, int count, double *v) noexcept nogil:
+    """v (count, 4): for each real shift (count,), the entries at 1, qx, qy, qz of the eigenvector
+    of the action matrix for the eigenvalue nearest it, by one step of inverse iteration on the
+    Hessenberg form, y = (H - shift I)^-1 1 (`shifted_lu`), mapped back by e.units.
+
+    Four shifts go through the back substitution U^-1 y side by side: each is summed in order
+    (the roundings of one at a time), but a single sum waits on its additions' latency. A last
+    group of fewer than four repeats its first shift's factors (the same values, written twice).
+    """
+    cdef int n = N_SOLUTIONS, g, s, i, j, k, slot
+    cdef double *factors[4]
+    cdef double *vectors[4]
+    cdef double U[4 * N_SOLUTIONS * N_SOLUTIONS]
+    cdef double y[4 * N_SOLUTIONS]
+    cdef double *u0
+    cdef double *u1
+    cdef double *u2
+    cdef double *u3
+    cdef double *y0
+    cdef double *y1
+    cdef double *y2
+    cdef double *y3
+    cdef double t0, t1, t2, t3
+    for g in range(0, count, 4):
+        for s in range(min(4, count - g)):
+            shifted_lu(e, shifts[g + s], U + s * n * n, y + s * n)
+        for s in range(4):
+            slot = s if g + s < count else 0
+            factors[s], vectors[s] = U + slot * n * n, y + slot * n
+        u0, u1, u2, u3 = factors[0], factors[1], factors[2], factors[3]
+        y0, y1, y2, y3 = vectors[0], vectors[1], vectors[2], vectors[3]
+        for k in range(n - 1, -1, -1):  # U^-1 y
+            t0, t1, t2, t3 = y0[k], y1[k], y2[k], y3[k]
+            for j in range(k + 1, n):
+                t0 -= u0[k * n + j] * y0[j]
+                t1 -= u1[k * n + j] * y1[j]
+                t2 -= u2[k * n + j] * y2[j]
+                t3 -= u3[k * n + j] * y3[j]
+            y0[k] = t0 / u0[k * n + k]
+            y1[k] = t1 / u1[k * n + k]
+            y2[k] = t2 / u2[k * n + k]
+            y3[k] = t3 / u3[k * n + k]
+        for s in range(min(4, count - g)):
+            v[4 * (g + s)] = v[4 * (g + s) + 1] = v[4 * (g + s) + 2] = v[4 * (g + s) + 3] = 0.0
+            for j in range(n):  # the four sums side by side, each in order
+                for i in range(4):
+                    v[4 * (g + s) + i] += e.units[i * n + j] * y[s * n + j]
+
+
+cdef void shifted_lu(const Eigen *e, double shift, double *U, double *y) noexcept nogil:
+    """U (40, 40) row-major upper triangular and y (40,) with U^-1 y = (H - shift I)^-1 1 for the
+    Hessenberg form e.H (`eigenvector_units`).
 
     LU with partial pivoting of a Hessenberg matrix takes rows in order: at step k the pivot is
     either the row carried from step k - 1 or row k + 1 of H - shift I, and the other, minus a
@@ -774,9 +853,7 @@ cdef void eigenvector_units(const Eigen *e, double shift, double *v) noexcept no
     ~0 at an eigenvalue, and raising it to the rounding level (1e-15) would cost digits of the vector.
     """
     cdef int n = N_SOLUTIONS, i, j, k
-    cdef double U[N_SOLUTIONS * N_SOLUTIONS]
     cdef double carry[N_SOLUTIONS]
-    cdef double y[N_SOLUTIONS]
     cdef const double *below
     cdef double *pivot
     cdef double tiny = max(e.size + fabs(shift), 1e-300) * 1e-30, factor, tmp
@@ -809,15 +886,6 @@ cdef void eigenvector_units(const Eigen *e, double shift, double *v) noexcept no
             y[k + 1] -= factor * y[k]
         else:
             pivot[k] = carry[k] if fabs(carry[k]) >= tiny else tiny
-    for k in range(n - 1, -1, -1):  # U^-1 y
-        tmp = y[k]
-        for j in range(k + 1, n):
-            tmp -= U[k * n + j] * y[j]
-        y[k] = tmp / U[k * n + k]
-    for i in range(4):
-        v[i] = 0.0
-        for j in range(n):
-            v[i] += e.units[i * n + j] * y[j]
 
 
 cdef bint eliminate(double *T, int m, int n_columns, int *order, const int *lead) noexcept nogil:
@@ -905,7 +973,7 @@ def action_matrix_eigen(const double[:, ::1] A, units=(0, 1, 2, 3)):
     vectors = np.full((N_SOLUTIONS, 4), np.nan)
     for i in range(N_SOLUTIONS):
         if e.wi[i] == 0.0:
-            eigenvector_units(&e, e.wr[i], v)
+            eigenvector_units(&e, &e.wr[i], 1, v)
             vectors[i] = [v[0], v[1], v[2], v[3]]
     return values, vectors
 
@@ -980,7 +1048,9 @@ cdef class Kernel:
         cdef double *template = scratch.template
         cdef double *action = scratch.action
         cdef Eigen *eigen = scratch.eigen
-        cdef double v[4]
+        cdef double shifts[N_SOLUTIONS]
+        cdef double v[4 * N_SOLUTIONS]
+        cdef int n_shifts = 0
         in_frame(p.H, p.g, P, Hf, gf)
         trace = trace9(Hf)
         k = 0
@@ -1012,11 +1082,13 @@ cdef class Kernel:
             return 0
         for j in range(n):
             # nearly real roots, one of each conjugate pair, are polished as real ones
-            if eigen.wi[j] < 0 or not fabs(eigen.wi[j]) < IMAGINARY_TOLERANCE * (1.0 + fabs(eigen.wr[j])):
-                continue
-            eigenvector_units(eigen, eigen.wr[j], v)
+            if eigen.wi[j] >= 0 and fabs(eigen.wi[j]) < IMAGINARY_TOLERANCE * (1.0 + fabs(eigen.wr[j])):
+                shifts[n_shifts] = eigen.wr[j]
+                n_shifts += 1
+        eigenvector_units(eigen, shifts, n_shifts, v)
+        for j in range(n_shifts):
             for i in range(3):
-                q[i] = v[1 + i] / v[0]
+                q[i] = v[4 * j + 1 + i] / v[4 * j]
             if isfinite(q[0]) and isfinite(q[1]) and isfinite(q[2]):
                 cayley_times(q, P, rotations + 9 * count)
                 count += 1
