@@ -37,11 +37,11 @@ which also holds the tunables (`solving_frame`, `polish`, `descend` and the othe
 its functions): as numpy calls, the ~100 operations on small matrices cost several times their
 arithmetic. One call (`Kernel.solve_rays`) takes the rays and returns the candidates as arrays;
 `Candidates` makes `Candidate` tuples only when read. Where the time goes (callgrind, 10 points,
-~2.1 M instructions per solve with the bench's ray building, ~0.25-0.35 ms on the 2-core machine):
-balancing, Hessenberg reduction and Francis QR 0.83 M, template fill and elimination 0.42 M,
-eigenvectors 0.20 M, small LAPACK calls (dsyev, dgesvd) 0.14 M, polishing and descents 0.10 M,
-Python around the call ~0.1 M; at 500 points the O(n) statistics and front-of-camera scoring add
-~0.55 M. The sums that bound a step by latency (Hessenberg's left update, the eigenvectors' back
+2.0 M instructions per solve with the bench's ray building, ~0.28-0.40 ms on the 2-core machine):
+Francis QR 0.47 M, Hessenberg reduction 0.15 M, balancing 0.09 M, template fill and elimination
+0.42 M, eigenvectors 0.20 M, small LAPACK calls (dsyev, dgesvd) 0.14 M, polishing and descents
+0.10 M, Python around the call < 0.1 M; at 500 points the O(n) statistics and front-of-camera
+scoring add ~0.55 M. The sums that bound a step by latency (Hessenberg's left update, the eigenvectors' back
 substitution) run four at a time, each in its old order, so that speed changes no rounding.
 """
 
