@@ -330,3 +330,28 @@ def test_certificate_refuses_costlier_stationary_points():
                 assert not kernel().certify(stats.H, stats.g, stats.c, np.ascontiguousarray(candidate.R))
                 refused += 1
     assert refused > 40
+
+
+def test_candidates_read_as_a_list_of_stationary_points():
+    """`Candidates` builds each Candidate on access from the core's arrays: every one must be a
+    stationary point of the cost with its own optimal translation, in order of cost, with the
+    solution among them, whichever way the sequence is read (index, negative index, slice, loop)."""
+    rng = np.random.default_rng(11)
+    origins, directions, points, R, t = dmais_scene(rng, 4, noise_px=4.0)
+    pose = solve_generalized_pose(origins, directions, points)
+    listed = list(pose.candidates)
+    assert len(listed) == len(pose.candidates) >= 1
+    assert [c.cost for c in listed] == sorted(c.cost for c in listed)
+    assert all(isinstance(c.cost, float) and isinstance(c.in_front, float) for c in listed)
+    assert pose.candidates[-1].cost == listed[-1].cost and len(pose.candidates[1:]) == len(listed) - 1
+    assert any(np.array_equal(c.R, pose.R) and np.array_equal(c.t, pose.t) and c.cost == pose.cost for c in listed)
+    with pytest.raises(IndexError):
+        pose.candidates[len(listed)]
+    unit = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    for c in listed:
+        assert abs(np.linalg.det(c.R) - 1) < 1e-9
+        residual = np.cross(unit, points @ c.R.T + c.t - origins)
+        # the optimal translation zeroes the cost's gradient in t: sum_i [f_i]x^T [f_i]x (R M_i + t - v_i)
+        gradient_t = -np.cross(unit, residual).sum(axis=0)
+        assert np.linalg.norm(gradient_t) < 1e-6 * (1 + np.sqrt(np.sum(residual**2)) * len(points))
+        assert c.cost == pytest.approx(np.sum(residual**2), rel=1e-6, abs=1e-9)

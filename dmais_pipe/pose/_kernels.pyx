@@ -93,6 +93,7 @@ cdef struct Scratch:
     double *coefficients  # (6 * n_monomials,) of the equations
     double *template  # (m * n_columns,) row-major
     int *pivots  # (m,) template rows in pivot order
+    int *lead  # (m,) per template row, a column before which the row is zero
     double *reductions  # (n_reducible * 40,) row-major: the reducible monomials in the basis
     double *action  # (40 * 40,) column-major
     Eigen *eigen
@@ -536,11 +537,30 @@ cdef int action_eigenvalues(double *A, const long *unit_index, Eigen *e) noexcep
     return hessenberg_eigenvalues(A, n, e.wr, e.wi)
 
 
+cdef inline double strided_sum_squares(const double *x, int count, int stride) noexcept nogil:
+    """Sum of x[k * stride]^2 over k < count, in four partial sums (a single sum waits on its
+    additions' latency)."""
+    cdef double s0 = 0.0, s1 = 0.0, s2 = 0.0, s3 = 0.0
+    cdef int k = 0
+    while k + 4 <= count:
+        s0 += x[k * stride] * x[k * stride]
+        s1 += x[(k + 1) * stride] * x[(k + 1) * stride]
+        s2 += x[(k + 2) * stride] * x[(k + 2) * stride]
+        s3 += x[(k + 3) * stride] * x[(k + 3) * stride]
+        k += 4
+    while k < count:
+        s0 += x[k * stride] * x[k * stride]
+        k += 1
+    return (s0 + s1) + (s2 + s3)
+
+
 cdef void balance(double *A, int n, double *scale) noexcept nogil:
     """Balance the column-major A (n, n) in place, A <- D^-1 A D with D = diag(scale) in powers of
     2, so that each row and column have similar off-diagonal 2-norms (Parlett and Reinsch 1969; the
     2-norms as in LAPACK's dgebal since 3.5.0, with which the roots here are ~5x more accurate than
-    with 1-norms): eigenvalues are then computed to an accuracy relative to the balanced norm."""
+    with 1-norms): eigenvalues are then computed to an accuracy relative to the balanced norm. The
+    norms are summed in four parts (`strided_sum_squares`): they only choose powers of 2, which the
+    order of the additions changes only at an exact tie."""
     cdef int i, j
     cdef double column, row, target, factor, total
     cdef bint converged = False
@@ -551,13 +571,8 @@ cdef void balance(double *A, int n, double *scale) noexcept nogil:
         converged = True
         sweeps += 1
         for i in range(n):
-            column = row = 0.0
-            for j in range(n):
-                if j != i:
-                    column += A[i * n + j] * A[i * n + j]
-                    row += A[j * n + i] * A[j * n + i]
-            column = sqrt(column)
-            row = sqrt(row)
+            column = sqrt(strided_sum_squares(A + i * n, i, 1) + strided_sum_squares(A + i * n + i + 1, n - i - 1, 1))
+            row = sqrt(strided_sum_squares(A + i, i, n) + strided_sum_squares(A + (i + 1) * n + i, n - i - 1, n))
             if column == 0.0 or row == 0.0:
                 continue
             total = column + row
@@ -607,7 +622,11 @@ cdef void hessenberg(double *A, int n, double *reflectors, double *tau) noexcept
             v[i] = A[k * n + i] * inverse
             A[k * n + i] = 0.0
         A[k * n + k + 1] = beta
-        for j in range(k + 1, n):  # A <- H_k A, columns k + 1 on (pointers: see hessenberg_eigenvalues)
+        j = k + 1
+        while j + 4 <= n:  # A <- H_k A, four columns at a time: four independent sums, each in order
+            update_four_columns(A + j * n, n, k + 1, v, tau[k])
+            j += 4
+        while j < n:  # the remaining columns
             column = A + j * n
             dot = 0.0
             for i in range(k + 1, n):
@@ -615,6 +634,7 @@ cdef void hessenberg(double *A, int n, double *reflectors, double *tau) noexcept
             dot *= tau[k]
             for i in range(k + 1, n):
                 column[i] -= dot * v[i]
+            j += 1
         memset(w, 0, n * sizeof(double))  # A <- A H_k: w = A v, A -= tau w v^T
         for j in range(k + 1, n):
             column = A + j * n
@@ -625,6 +645,32 @@ cdef void hessenberg(double *A, int n, double *reflectors, double *tau) noexcept
             dot = tau[k] * v[j]
             for i in range(n):
                 column[i] -= dot * w[i]
+
+
+cdef inline void update_four_columns(double *A, int n, int start, const double *v, double tau) noexcept nogil:
+    """Columns c = 0..3 of the column-major A (n, 4) <- (I - tau v v^T) column, on rows start..n.
+    The four dot products run side by side (each summed in order, so the roundings are those of
+    one at a time): a single sum waits on its additions' latency."""
+    cdef double *c0 = A
+    cdef double *c1 = A + n
+    cdef double *c2 = A + 2 * n
+    cdef double *c3 = A + 3 * n
+    cdef double d0 = 0.0, d1 = 0.0, d2 = 0.0, d3 = 0.0
+    cdef int i
+    for i in range(start, n):
+        d0 += v[i] * c0[i]
+        d1 += v[i] * c1[i]
+        d2 += v[i] * c2[i]
+        d3 += v[i] * c3[i]
+    d0 *= tau
+    d1 *= tau
+    d2 *= tau
+    d3 *= tau
+    for i in range(start, n):
+        c0[i] -= d0 * v[i]
+        c1[i] -= d1 * v[i]
+        c2[i] -= d2 * v[i]
+        c3[i] -= d3 * v[i]
 
 
 cdef int hessenberg_eigenvalues(double *A, int n, double *wr, double *wi) noexcept nogil:
@@ -761,10 +807,58 @@ cdef void two_by_two_eigenvalues(double a, double b, double c, double d, double 
         wi[1] = -wi[0]
 
 
-cdef void eigenvector_units(const Eigen *e, double shift, double *v) noexcept nogil:
-    """v (4,): the entries at 1, qx, qy, qz of the eigenvector of the action matrix for the
-    eigenvalue nearest the real shift, by one step of inverse iteration on the Hessenberg form,
-    y = (H - shift I)^-1 1, mapped back by e.units.
+cdef void eigenvector_units(const Eigen *e, const double *shifts, int count, double *v) noexcept nogil:
+    """v (count, 4): for each real shift (count,), the entries at 1, qx, qy, qz of the eigenvector
+    of the action matrix for the eigenvalue nearest it, by one step of inverse iteration on the
+    Hessenberg form, y = (H - shift I)^-1 1 (`shifted_lu`), mapped back by e.units.
+
+    Four shifts go through the back substitution U^-1 y side by side: each is summed in order
+    (the roundings of one at a time), but a single sum waits on its additions' latency. A last
+    group of fewer than four repeats its first shift's factors (the same values, written twice).
+    """
+    cdef int n = N_SOLUTIONS, g, s, i, j, k, slot
+    cdef double *factors[4]
+    cdef double *vectors[4]
+    cdef double U[4 * N_SOLUTIONS * N_SOLUTIONS]
+    cdef double y[4 * N_SOLUTIONS]
+    cdef double *u0
+    cdef double *u1
+    cdef double *u2
+    cdef double *u3
+    cdef double *y0
+    cdef double *y1
+    cdef double *y2
+    cdef double *y3
+    cdef double t0, t1, t2, t3
+    for g in range(0, count, 4):
+        for s in range(min(4, count - g)):
+            shifted_lu(e, shifts[g + s], U + s * n * n, y + s * n)
+        for s in range(4):
+            slot = s if g + s < count else 0
+            factors[s], vectors[s] = U + slot * n * n, y + slot * n
+        u0, u1, u2, u3 = factors[0], factors[1], factors[2], factors[3]
+        y0, y1, y2, y3 = vectors[0], vectors[1], vectors[2], vectors[3]
+        for k in range(n - 1, -1, -1):  # U^-1 y
+            t0, t1, t2, t3 = y0[k], y1[k], y2[k], y3[k]
+            for j in range(k + 1, n):
+                t0 -= u0[k * n + j] * y0[j]
+                t1 -= u1[k * n + j] * y1[j]
+                t2 -= u2[k * n + j] * y2[j]
+                t3 -= u3[k * n + j] * y3[j]
+            y0[k] = t0 / u0[k * n + k]
+            y1[k] = t1 / u1[k * n + k]
+            y2[k] = t2 / u2[k * n + k]
+            y3[k] = t3 / u3[k * n + k]
+        for s in range(min(4, count - g)):
+            v[4 * (g + s)] = v[4 * (g + s) + 1] = v[4 * (g + s) + 2] = v[4 * (g + s) + 3] = 0.0
+            for j in range(n):  # the four sums side by side, each in order
+                for i in range(4):
+                    v[4 * (g + s) + i] += e.units[i * n + j] * y[s * n + j]
+
+
+cdef void shifted_lu(const Eigen *e, double shift, double *U, double *y) noexcept nogil:
+    """U (40, 40) row-major upper triangular and y (40,) with U^-1 y = (H - shift I)^-1 1 for the
+    Hessenberg form e.H (`eigenvector_units`).
 
     LU with partial pivoting of a Hessenberg matrix takes rows in order: at step k the pivot is
     either the row carried from step k - 1 or row k + 1 of H - shift I, and the other, minus a
@@ -773,9 +867,7 @@ cdef void eigenvector_units(const Eigen *e, double shift, double *v) noexcept no
     ~0 at an eigenvalue, and raising it to the rounding level (1e-15) would cost digits of the vector.
     """
     cdef int n = N_SOLUTIONS, i, j, k
-    cdef double U[N_SOLUTIONS * N_SOLUTIONS]
     cdef double carry[N_SOLUTIONS]
-    cdef double y[N_SOLUTIONS]
     cdef const double *below
     cdef double *pivot
     cdef double tiny = max(e.size + fabs(shift), 1e-300) * 1e-30, factor, tmp
@@ -808,25 +900,19 @@ cdef void eigenvector_units(const Eigen *e, double shift, double *v) noexcept no
             y[k + 1] -= factor * y[k]
         else:
             pivot[k] = carry[k] if fabs(carry[k]) >= tiny else tiny
-    for k in range(n - 1, -1, -1):  # U^-1 y
-        tmp = y[k]
-        for j in range(k + 1, n):
-            tmp -= U[k * n + j] * y[j]
-        y[k] = tmp / U[k * n + k]
-    for i in range(4):
-        v[i] = 0.0
-        for j in range(n):
-            v[i] += e.units[i * n + j] * y[j]
 
 
-cdef bint eliminate(double *T, int m, int n_columns, int *order) noexcept nogil:
+cdef bint eliminate(double *T, int m, int n_columns, int *order, const int *lead) noexcept nogil:
     """Gaussian elimination with partial pivoting of the first m columns of the row-major template
     T (m, n_columns), in place; order (m,) receives the rows in pivot order (row order[k] has its
-    pivot in column k and zeros before it). False if a column has no nonzero pivot.
+    pivot in column k and zeros before it). False if a column has no nonzero pivot. lead (m,):
+    for each row, a column before which it is zero in T (the template's structure).
 
     The template is sparse (a fifth of its entries are nonzero, and rows end where their
     monomials do), so rows with a zero in the pivot column are skipped and fill-in stays small:
     about 1e5 multiply-adds instead of the 8e5 of a dense LU (dgetrf), for the same pivots.
+    A row is not even read before column lead[row]: until then no row operation reaches it (those
+    touch rows that are nonzero in the pivot column), so it stays zero there.
     """
     cdef int i, j, k, best, swap
     cdef double largest, size, factor
@@ -837,6 +923,8 @@ cdef bint eliminate(double *T, int m, int n_columns, int *order) noexcept nogil:
     for k in range(m):
         best, largest = -1, 0.0
         for i in range(k, m):
+            if lead[order[i]] > k:
+                continue
             size = fabs(T[order[i] * n_columns + k])
             if size > largest:
                 best, largest = i, size
@@ -845,6 +933,8 @@ cdef bint eliminate(double *T, int m, int n_columns, int *order) noexcept nogil:
         swap = order[k]; order[k] = order[best]; order[best] = swap
         pivot_row = T + order[k] * n_columns
         for i in range(k + 1, m):
+            if lead[order[i]] > k:
+                continue
             row = T + order[i] * n_columns
             if row[k] != 0.0:
                 factor = row[k] / pivot_row[k]
@@ -897,7 +987,7 @@ def action_matrix_eigen(const double[:, ::1] A, units=(0, 1, 2, 3)):
     vectors = np.full((N_SOLUTIONS, 4), np.nan)
     for i in range(N_SOLUTIONS):
         if e.wi[i] == 0.0:
-            eigenvector_units(&e, e.wr[i], v)
+            eigenvector_units(&e, &e.wr[i], 1, v)
             vectors[i] = [v[0], v[1], v[2], v[3]]
     return values, vectors
 
@@ -924,7 +1014,7 @@ cdef class Kernel:
     `solver.py`. Holds only constants; every buffer is allocated per call."""
 
     cdef int m, n_columns, n_reducible, n_entries, n_monomials
-    cdef long[::1] target, source, shift_rows, shift_columns, reduced_rows, reduced_index, unit_index
+    cdef long[::1] target, source, shift_rows, shift_columns, reduced_rows, reduced_index, unit_index, row_lead
     cdef long[:, ::1] entries
     cdef double[::1] octahedral
 
@@ -943,6 +1033,10 @@ cdef class Kernel:
         self.entries = np.ascontiguousarray(entries, dtype=np.int64)
         self.n_entries = len(entries)
         self.n_monomials = n_monomials
+        targets = np.asarray(self.target)
+        lead = np.full(m, n_columns, dtype=np.int64)  # each row's first structurally nonzero column
+        np.minimum.at(lead, targets // n_columns, targets % n_columns)
+        self.row_lead = lead
         self.octahedral = np.ascontiguousarray(octahedral, dtype=float).reshape(-1)
         if self.octahedral.shape[0] != 9 * 24:
             raise ValueError("octahedral must be (24, 3, 3)")
@@ -968,7 +1062,9 @@ cdef class Kernel:
         cdef double *template = scratch.template
         cdef double *action = scratch.action
         cdef Eigen *eigen = scratch.eigen
-        cdef double v[4]
+        cdef double shifts[N_SOLUTIONS]
+        cdef double v[4 * N_SOLUTIONS]
+        cdef int n_shifts = 0
         in_frame(p.H, p.g, P, Hf, gf)
         trace = trace9(Hf)
         k = 0
@@ -985,7 +1081,9 @@ cdef class Kernel:
         memset(template, 0, m * n_columns * sizeof(double))
         for k in range(self.target.shape[0]):
             template[self.target[k]] = coefficients[self.source[k]]
-        if not eliminate(template, m, n_columns, scratch.pivots):
+        for i in range(m):
+            scratch.lead[i] = self.row_lead[i]
+        if not eliminate(template, m, n_columns, scratch.pivots, scratch.lead):
             return 0
         reduce_to_basis(template, m, n_columns, n_red, scratch.pivots, scratch.reductions)
         memset(action, 0, n * n * sizeof(double))
@@ -998,11 +1096,13 @@ cdef class Kernel:
             return 0
         for j in range(n):
             # nearly real roots, one of each conjugate pair, are polished as real ones
-            if eigen.wi[j] < 0 or not fabs(eigen.wi[j]) < IMAGINARY_TOLERANCE * (1.0 + fabs(eigen.wr[j])):
-                continue
-            eigenvector_units(eigen, eigen.wr[j], v)
+            if eigen.wi[j] >= 0 and fabs(eigen.wi[j]) < IMAGINARY_TOLERANCE * (1.0 + fabs(eigen.wr[j])):
+                shifts[n_shifts] = eigen.wr[j]
+                n_shifts += 1
+        eigenvector_units(eigen, shifts, n_shifts, v)
+        for j in range(n_shifts):
             for i in range(3):
-                q[i] = v[1 + i] / v[0]
+                q[i] = v[4 * j + 1 + i] / v[4 * j]
             if isfinite(q[0]) and isfinite(q[1]) and isfinite(q[2]):
                 cayley_times(q, P, rotations + 9 * count)
                 count += 1
@@ -1013,10 +1113,11 @@ cdef class Kernel:
         scratch.coefficients = <double *> malloc(6 * self.n_monomials * sizeof(double))
         scratch.template = <double *> malloc(self.m * self.n_columns * sizeof(double))
         scratch.pivots = <int *> malloc(self.m * sizeof(int))
+        scratch.lead = <int *> malloc(self.m * sizeof(int))
         scratch.reductions = <double *> malloc(self.n_reducible * N_SOLUTIONS * sizeof(double))
         scratch.action = <double *> malloc(N_SOLUTIONS * N_SOLUTIONS * sizeof(double))
         scratch.eigen = <Eigen *> malloc(sizeof(Eigen))
-        return (scratch.coefficients != NULL and scratch.template != NULL and scratch.pivots != NULL
+        return (scratch.coefficients != NULL and scratch.template != NULL and scratch.pivots != NULL and scratch.lead != NULL
                 and scratch.reductions != NULL and scratch.action != NULL and scratch.eigen != NULL)
 
     def rotations_of_roots(self, const double[:, ::1] H, const double[::1] g, const double[:, ::1] P):
@@ -1059,38 +1160,39 @@ cdef class Kernel:
         if (n < 3 or origins.shape[0] != n or directions.shape[0] != n or points.shape[1] != 3
                 or origins.shape[1] != 3 or directions.shape[1] != 3):
             return None
-        cdef double[:, ::1] f = np.empty((n, 3))
-        cdef double[:, ::1] R = np.empty((CAPACITY, 9))
-        cdef double[:, ::1] t = np.empty((CAPACITY, 3))
-        cdef double[::1] cost = np.empty(CAPACITY)
-        cdef double[::1] front = np.empty(CAPACITY)
         cdef Candidates found
-        found.R, found.t, found.cost, found.front = &R[0, 0], &t[0, 0], &cost[0], &front[0]
         cdef Statistics st
         cdef Problem p
         cdef Scratch scratch
-        cdef bint valid, allocated = False
+        cdef bint valid = True, allocated = False
+        # one block for the unit directions (n, 3) and the candidates' R, t, cost, front
+        cdef double *buffer = <double *> malloc((3 * n + 14 * CAPACITY) * sizeof(double))
+        cdef double *f = buffer
         memset(&scratch, 0, sizeof(Scratch))
         try:
             with nogil:
-                valid = unit_directions(&origins[0, 0], &directions[0, 0], &points[0, 0], n, zero_direction, &f[0, 0])
-                if valid:
-                    accumulate(&origins[0, 0], &f[0, 0], &points[0, 0], n, &st)
+                if buffer != NULL:
+                    found.R, found.t = buffer + 3 * n, buffer + 3 * n + 9 * CAPACITY
+                    found.cost, found.front = found.t + 3 * CAPACITY, found.t + 4 * CAPACITY
+                    valid = unit_directions(&origins[0, 0], &directions[0, 0], &points[0, 0], n, zero_direction, f)
+                if buffer != NULL and valid:
+                    accumulate(&origins[0, 0], f, &points[0, 0], n, &st)
                     valid = (st.spread[1] > collinear_tolerance * collinear_tolerance * st.spread[2]
                              and st.least_BtB > 1e-12 * n)
-                if valid:
+                if buffer != NULL and valid:
                     p.H, p.g, p.c, p.t_matrix, p.t_offset, p.centroid = st.H, st.g, st.c, st.t_matrix, st.t_offset, st.centroid
-                    p.v, p.f, p.M, p.n = &origins[0, 0], &f[0, 0], &points[0, 0], n
+                    p.v, p.f, p.M, p.n = &origins[0, 0], f, &points[0, 0], n
                     allocated = self.allocate(&scratch)
                     if allocated:
                         k = self.candidates(&p, &found, &scratch, st.axes, st.spread)
+            if not valid:
+                return None
+            if not allocated:
+                raise MemoryError("pose: no memory for the elimination template")
+            return distinct_candidates(&p, &found, k)
         finally:
             release(&scratch)
-        if not valid:
-            return None
-        if not allocated:
-            raise MemoryError("pose: no memory for the elimination template")
-        return distinct_candidates(&p, &found, k)
+            free(buffer)
 
     cdef int candidates(self, const Problem *p, Candidates *c, Scratch *scratch, const double *point_axes,
                         const double *point_spread) noexcept nogil:
@@ -1203,12 +1305,14 @@ cdef void release(Scratch *scratch) noexcept nogil:
     free(scratch.coefficients)
     free(scratch.template)
     free(scratch.pivots)
+    free(scratch.lead)
     free(scratch.reductions)
     free(scratch.action)
     free(scratch.eigen)
     scratch.coefficients = scratch.template = scratch.reductions = scratch.action = NULL
     scratch.eigen = NULL
     scratch.pivots = NULL
+    scratch.lead = NULL
 
 
 cdef distinct_candidates(const Problem *p, const Candidates *c, int k):

@@ -105,11 +105,16 @@ def dmais_frame(rng, n_points: int):
 #: pycolmap's cameras, outside the timed solves.
 _RIG_FROM_CAM = np.array([dmais_cam_from_rig(k)[0].T for k in range(5)])
 _CENTRES = np.array([dmais_cam_from_rig(k)[1] for k in range(5)])
+#: The same for `_rays`: pixel to rig-frame direction of each camera as an affine map, (5, 3, 3)
+#: on (u, v, 1): rig_from_cam @ [[1/f, 0, -cx/f], [0, 1/f, -cy/f], [0, 0, 1]].
+_RIG_FROM_PIXEL = _RIG_FROM_CAM @ np.array([[1 / FOCAL_PX, 0, -(WIDTH - 1) / 2 / FOCAL_PX],
+                                            [0, 1 / FOCAL_PX, -(HEIGHT - 1) / 2 / FOCAL_PX], [0, 0, 1]])
 
 
 def _rays(cams, uv):
     """Ray origins and directions (n, 3) in the rig frame of pixels uv (n, 2) of cameras cams (n,)."""
-    return _CENTRES[cams], np.einsum("nij,nj->ni", _RIG_FROM_CAM[cams], _bearings(uv))
+    A = _RIG_FROM_PIXEL[cams]
+    return _CENTRES[cams], A[:, :, 0] * uv[:, :1] + A[:, :, 1] * uv[:, 1:] + A[:, :, 2]
 
 
 def _pycolmap_solver():
