@@ -5,7 +5,9 @@ machine): -march=native lets GCC/Clang vectorize the row operations of the elimi
 and the Hessenberg reduction with AVX2 (~12% off a solve on this machine), and -ffp-contract=off
 keeps every rounding as in a portable build (no fused multiply-adds), so the candidates are the
 same bit for bit. DMAIS_PORTABLE_BUILD=1 builds for any CPU of the architecture instead (for a
-wheel or a build shared between machines). -fno-wrapv undoes CPython's -fwrapv (which Cython's
+wheel or a build shared between machines). A tuned build records the build CPU's flags in
+dmais_pipe/pose/_build_cpu.txt, which `pose.build_cpu` checks before loading the cores (a cluster
+node without the build CPU's AVX-512 gets one clear error, not an illegal instruction). -fno-wrapv undoes CPython's -fwrapv (which Cython's
 code does not need): with it, GCC cannot count the iterations of loops indexed by a C int and
 leaves them scalar, e.g. the column updates of the QR iteration.
 """
@@ -13,18 +15,40 @@ leaves them scalar, e.g. the column updates of the QR iteration.
 import os
 import platform
 import sys
+from pathlib import Path
 
 from Cython.Build import cythonize
 from setuptools import Extension, setup
+
+
+BUILD_CPU_RECORD = Path(__file__).parent / "dmais_pipe" / "pose" / "_build_cpu.txt"
+
+
+def tuned() -> bool:
+    """Whether the cores are built for this CPU (x86-64 with GCC / Clang, DMAIS_PORTABLE_BUILD unset)."""
+    return (sys.platform != "win32" and not os.environ.get("DMAIS_PORTABLE_BUILD")
+            and platform.machine() in ("x86_64", "AMD64"))
 
 
 def compile_args() -> list[str]:
     """Compiler flags of the cores (GCC / Clang): tuned to this CPU unless DMAIS_PORTABLE_BUILD is set."""
     if sys.platform == "win32":
         return []
-    if os.environ.get("DMAIS_PORTABLE_BUILD") or platform.machine() not in ("x86_64", "AMD64"):
-        return ["-fno-wrapv"]
-    return ["-fno-wrapv", "-march=native", "-ffp-contract=off"]
+    return ["-fno-wrapv", "-march=native", "-ffp-contract=off"] if tuned() else ["-fno-wrapv"]
+
+
+def record_build_cpu() -> None:
+    """Write this CPU's /proc/cpuinfo flags line for `pose.build_cpu` (a tuned build), else remove the record."""
+    cpuinfo = Path("/proc/cpuinfo")
+    flags = next((line for line in cpuinfo.read_text().splitlines() if line.startswith("flags")), None) \
+        if tuned() and cpuinfo.is_file() else None
+    if flags:
+        BUILD_CPU_RECORD.write_text(flags + "\n")
+    else:
+        BUILD_CPU_RECORD.unlink(missing_ok=True)
+
+
+record_build_cpu()
 
 
 setup(ext_modules=cythonize([

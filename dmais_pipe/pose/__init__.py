@@ -14,12 +14,17 @@ The modules: `statistics` (the O(n) statistics of eq. objfun3), `generate` -> `_
 `_kernels.pyx` (the compiled core), `_refine.pyx` (refinement, MSAC scoring and gP3P compiled;
 `_small.pxd` holds the small matrix helpers both cimport), `solver` (the API), `gp3p` (minimal solver), `refine`
 (Levenberg-Marquardt on angular residuals, Cramer-Rao bound), `robust`, `bench` (`dmais bench
-pose`) and `flight` (every flight frame of a dataset, for the pose stage `stages.pose`).
+pose`), `build_cpu` (the CPU the cores were built for) and `flight` (every flight frame of a
+dataset, for the pose stage `stages.pose`).
 """
 
 from __future__ import annotations
 
 from ..errors import PoseError
+from .build_cpu import check_cpu
+
+check_cpu()  # before the compiled cores load: instructions this CPU lacks would kill the process
+
 from .statistics import PoseStatistics, pose_statistics
 from .robust import solve_robust
 from .solver import solve_batch, solve_generalized_pose
