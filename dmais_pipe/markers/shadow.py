@@ -14,7 +14,8 @@ shade does not change it), and the step must darken, leave an X, run across the 
 rather than along an edge of the X (an outline's T-junction), and leave both levels of the X on
 both sides of its line in the same ratio (a shadow takes the same share of light from both; the
 background beyond an outline is one level). Every candidate that starts is either returned or
-rejected with SHADOW_REASON, never dropped without a trace. The product of the blurred factors
+rejected with SHADOW_REASON (at its `symmetric_centre`: the candidate and the fits can be drawn
+3-4 px towards the shadow edge), never dropped without a trace. The product of the blurred factors
 is not the blurred product where the shadow edge crosses an edge of the X, which moves that
 fit's corner by up to ~0.2 px: the corner returned is that of a final fit of the X alone to the
 pixels beside the shadow edge with the shade divided out (`_unshaded_fit`), and it must agree
@@ -55,13 +56,15 @@ AGREE_PX = 0.08  # the two fits' corners, at most this apart
 UNSHADED_ROUNDS = 3
 BAND_BLURS = 2.5  # half-width of the band about the shadow edge the final fit leaves out, in its blurs
 MIN_CLEAN_PX = 7.0  # px: the X with the shade divided out must stay clean beyond this radius
+CENTRE_RING_PX = 4.0  # `symmetric_centre`: radius of its log ring
+CENTRE_REACH_PX = 4  # and how far from the candidate it looks (px)
 _STEPS = [(phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.6, -0.3, 0.0, 0.3, 0.6)]
 
 
 def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: float, min_radius: float):
     """Fit X-corners crossed by a shadow edge near candidates uv (n, 2) of float image img (h, w).
 
-    Returns (uv (n, 2) the corners (where rejected, the first fit's corner or the candidate), NaN
+    Returns (uv (n, 2) the corners (where rejected, the candidate's `symmetric_centre`), NaN
     where the candidate shows no shadowed X; clean radius (n,) px of the X with the shade divided
     out; sigma_px (n,); fit_residual (n,); reason (n,): '' for a corner, SHADOW_REASON where the
     start found an X crossed by a shadow edge (`_start_params`) but the fits did not confirm a
@@ -74,6 +77,7 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     reason = np.full(n, None, dtype=object)
     if n == 0:
         return out_uv, radius, sigma, residual, reason
+    given = uv
     uv, start = _start(img, uv)
     tried = np.nonzero(np.all(np.isfinite(start), axis=1) & (2.0 * np.abs(start[:, 6]) >= contrast))[0]
     if len(tried) == 0:
@@ -111,14 +115,41 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     # (where the edge crosses the X's edges, and in the shade's level): they must agree.
     good &= np.hypot(*(corner - joint).T) <= AGREE_PX
     # A shadowed X the start found whose corner the fits do not confirm: rejected, with the reason,
-    # at the first fit's corner where that moved plausibly (the candidate can be a few px off).
+    # at its symmetric centre (the candidate and the fits can be 3-4 px off, drawn to the shadow edge).
     reason[tried[~good]] = SHADOW_REASON
-    out_uv[tried] = np.where(moved[:, None], first, uv[tried])
+    out_uv[tried[~good]] = symmetric_centre(img, given[tried[~good]])
     rows = tried[good]
     out_uv[rows], radius[rows], reason[rows] = corner[good], clean[good], ""
     sigma[rows] = np.sqrt(0.5 * np.trace(cov[good], axis1=1, axis2=2))
     residual[rows] = rms[good] / (2.0 * np.abs(params[good, 6]))
     return out_uv, radius, sigma, residual, reason
+
+
+def symmetric_centre(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(n, 2) the point within CENTRE_REACH_PX of uv (n, 2), on a grid of 1 px refined to 0.5 px,
+    whose log ring of CENTRE_RING_PX has the point-symmetric part most like an X (ring quality x
+    log contrast). A shadow edge adds a step to the log ring whose point-symmetric part is nearly
+    constant, so this stays within ~1 px of a shadowed X's corner where the candidate and the fits
+    are drawn 3-4 px towards the shadow edge."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    reach = np.arange(-CENTRE_REACH_PX, CENTRE_REACH_PX + 1e-9)
+    for steps in (reach, 0.5 * np.arange(-1.0, 2.0)):
+        grid = np.array([(x, y) for y in steps for x in steps])
+        uv = _most_symmetric_x(img, uv[:, None, :] + grid[None])
+    return uv
+
+
+def _most_symmetric_x(img: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(n, 2) of points (n, g, 2), the one per row whose log ring of CENTRE_RING_PX has the
+    point-symmetric part most like an X."""
+    n, g = points.shape[:2]
+    if n == 0:
+        return np.zeros((0, 2))
+    logs = np.log(np.maximum(sample(img, points[:, :, None, :] + _ring_offsets(CENTRE_RING_PX)[None, None]), 1.0))
+    logs = logs.reshape(n * g, -1).astype(np.float64)
+    quality, high, low, _ = _ring_stats(0.5 * (logs + np.roll(logs, logs.shape[1] // 2, axis=1)))
+    best = np.argmax((quality * (high - low)).reshape(n, g), axis=1)
+    return points[np.arange(n), best]
 
 
 def _plausible(params, cov, rms, converged, window, contrast) -> np.ndarray:
