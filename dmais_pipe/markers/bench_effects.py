@@ -31,7 +31,7 @@ from .refine import refine_corners
 from .scenes import CAMERA, marker_scene, regime_settings, starts
 
 MATCH_PX = 2.0
-REJECTED_PX = 3.0  # rejections are reported at the unrefined position (~1 px off)
+REJECTED_PX = 3.0  # rejections are reported at unrefined positions (~1-1.5 px off)
 EFFECTS = {
     "none": {},
     "shadow": {"shadow_fraction": 1.0},

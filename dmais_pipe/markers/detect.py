@@ -122,8 +122,8 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
     Markers whose X-corner is nearer than ~5 px to the image border are not found. With
     `with_rejected`, also a DataFrame u, v, reason of the X-corners found but not returned: those
     the ring tests failed because a shadow edge crosses them near the centre and whose fit with the
-    shadow edge failed its checks (SHADOW_REASON, at the unrefined position, ~1 px) and the
-    verified ones the refinement rejected (e.g. a poor fit). The corners fitted with a shadow edge
+    shadow edge failed its checks (SHADOW_REASON, within ~1.5 px of the corner) and the
+    verified ones the refinement rejected (e.g. a poor fit); none within DUPLICATE_PX of a detection. The corners fitted with a shadow edge
     have the ring quality MIN_QUALITY in their score (their rings pass only with the shade divided out).
     """
     raw = np.asarray(image)
@@ -168,6 +168,10 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
     keep = _dedupe(cand, score)
     frame = pd.DataFrame({"u": cand[keep, 0], "v": cand[keep, 1], "score": score[keep], "sigma_px": sigma[keep],
                           "fit_residual": fit[keep]}).sort_values(["v", "u"], ignore_index=True)
+    if with_rejected and len(rejected) and len(frame):
+        # A second candidate of a detected X-corner (e.g. started as a shadowed X) is no rejection.
+        distance = cKDTree(frame[["u", "v"]].to_numpy()).query(rejected[["u", "v"]].to_numpy(dtype=float))[0]
+        rejected = rejected[distance >= DUPLICATE_PX].reset_index(drop=True)
     return (frame, rejected) if with_rejected else frame
 
 

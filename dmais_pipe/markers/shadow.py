@@ -55,6 +55,10 @@ AGREE_PX = 0.08  # the two fits' corners, at most this apart
 UNSHADED_ROUNDS = 3
 BAND_BLURS = 2.5  # half-width of the band about the shadow edge the final fit leaves out, in its blurs
 MIN_CLEAN_PX = 7.0  # px: the X with the shade divided out must stay clean beyond this radius
+CENTRE_RING_PX = 4.0  # `symmetric_centre`: radius of its log ring
+CENTRE_REACH_PX = 4  # and how far from the candidate it looks (px)
+CENTRE_SAMPLES = 48  # samples of that ring
+CENTRE_X_LOG = 0.9  # least log contrast of the X on the start ring about the symmetric centre
 _STEPS = [(phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.6, -0.3, 0.0, 0.3, 0.6)]
 
 
@@ -74,7 +78,12 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     reason = np.full(n, None, dtype=object)
     if n == 0:
         return out_uv, radius, sigma, residual, reason
-    uv, start = _start(img, uv)
+    given = uv
+    uv, start, unstarted = _start(img, uv)
+    # Where neither the candidate nor its centring starts one, a shadowed X the start finds about
+    # the symmetric centre is rejected there without a fit (a fit from there can settle beside the corner).
+    centred, centre = _centred_start(img, uv, unstarted, contrast)
+    reason[centred], out_uv[centred] = SHADOW_REASON, centre[centred]
     tried = np.nonzero(np.all(np.isfinite(start), axis=1) & (2.0 * np.abs(start[:, 6]) >= contrast))[0]
     if len(tried) == 0:
         return out_uv, radius, sigma, residual, reason
@@ -111,14 +120,42 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     # (where the edge crosses the X's edges, and in the shade's level): they must agree.
     good &= np.hypot(*(corner - joint).T) <= AGREE_PX
     # A shadowed X the start found whose corner the fits do not confirm: rejected, with the reason,
-    # at the first fit's corner where that moved plausibly (the candidate can be a few px off).
+    # at its symmetric centre (the candidate and the fits can be 3-4 px off, drawn to the shadow edge).
     reason[tried[~good]] = SHADOW_REASON
-    out_uv[tried] = np.where(moved[:, None], first, uv[tried])
+    out_uv[tried[~good]] = symmetric_centre(img, given[tried[~good]])
     rows = tried[good]
     out_uv[rows], radius[rows], reason[rows] = corner[good], clean[good], ""
     sigma[rows] = np.sqrt(0.5 * np.trace(cov[good], axis1=1, axis2=2))
     residual[rows] = rms[good] / (2.0 * np.abs(params[good, 6]))
     return out_uv, radius, sigma, residual, reason
+
+
+def symmetric_centre(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(n, 2) the point within CENTRE_REACH_PX of uv (n, 2), on a grid of 1 px (rings of
+    CENTRE_SAMPLES / 2) refined to 0.5 px,
+    whose log ring of CENTRE_RING_PX has the point-symmetric part most like an X (ring quality x
+    log contrast). A shadow edge adds a step to the log ring whose point-symmetric part is nearly
+    constant, so this stays within ~1 px of a shadowed X's corner where the candidate and the fits
+    are drawn 3-4 px towards the shadow edge."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    reach = np.arange(-CENTRE_REACH_PX, CENTRE_REACH_PX + 1e-9)
+    for steps, k in ((reach, CENTRE_SAMPLES // 2), (0.5 * np.arange(-1.0, 2.0), CENTRE_SAMPLES)):
+        grid = np.array([(x, y) for y in steps for x in steps])
+        uv = _most_symmetric_x(img, uv[:, None, :] + grid[None], k)
+    return uv
+
+
+def _most_symmetric_x(img: np.ndarray, points: np.ndarray, k: int) -> np.ndarray:
+    """(n, 2) of points (n, g, 2), the one per row whose log ring of CENTRE_RING_PX (k samples) has
+    the point-symmetric part most like an X."""
+    n, g = points.shape[:2]
+    if n == 0:
+        return np.zeros((0, 2))
+    logs = np.log(np.maximum(sample(img, points[:, :, None, :] + _ring_offsets(CENTRE_RING_PX, k)[None, None]), 1.0))
+    logs = logs.reshape(n * g, -1).astype(np.float64)
+    quality, high, low, _ = _ring_stats(0.5 * (logs + np.roll(logs, logs.shape[1] // 2, axis=1)))
+    best = np.argmax((quality * (high - low)).reshape(n, g), axis=1)
+    return points[np.arange(n), best]
 
 
 def _plausible(params, cov, rms, converged, window, contrast) -> np.ndarray:
@@ -194,13 +231,13 @@ def _fit_about(img: np.ndarray, centre: np.ndarray, params: np.ndarray, radius: 
 
 
 def _start(img: np.ndarray, uv: np.ndarray):
-    """(start points (n, 2), `_start_params` (n, 11) about them): the candidates uv (n, 2), or
-    where no start is found there, their coarse centring (`refine.seed`; the candidates of a
-    shadowed X can be a few px off its corner)."""
+    """(start points (n, 2), `_start_params` (n, 11) about them, rows (m,) of a point-symmetric X
+    but no start): the candidates uv (n, 2), or where no start is found there, their coarse
+    centring (`refine.seed`; the candidates of a shadowed X can be a few px off its corner)."""
     start, symmetric = _start_params(img, uv)
     retry = np.nonzero(symmetric & ~np.all(np.isfinite(start), axis=1))[0]
     if len(retry) == 0:
-        return uv, start
+        return uv, start, retry
     uv = uv.copy()
     moved = seed(img, uv[retry], SEED_SHIFT_PX)
     ok = np.all(np.isfinite(moved), axis=1)
@@ -208,10 +245,23 @@ def _start(img: np.ndarray, uv: np.ndarray):
     found = np.all(np.isfinite(again), axis=1)
     rows = retry[ok][found]
     uv[rows], start[rows] = moved[ok][found], again[found]
-    return uv, start
+    return uv, start, retry[~np.all(np.isfinite(start[retry]), axis=1)]
 
 
-def _start_params(img: np.ndarray, uv: np.ndarray):
+def _centred_start(img: np.ndarray, uv: np.ndarray, rows: np.ndarray, contrast: float):
+    """((n,) True where the rows of points uv (n, 2) (a point-symmetric X but no start) have a start
+    (`_start_params`, the X of at least CENTRE_X_LOG log contrast) about their symmetric centre,
+    those centres (n, 2), NaN elsewhere)."""
+    found, centre = np.zeros(len(uv), dtype=bool), np.full((len(uv), 2), np.nan)
+    if len(rows) == 0:
+        return found, centre
+    centre[rows] = symmetric_centre(img, uv[rows])
+    params = _start_params(img, centre[rows], CENTRE_X_LOG)[0]
+    found[rows] = np.all(np.isfinite(params), axis=1) & (2.0 * np.abs(params[:, 6]) >= contrast)
+    return found, centre
+
+
+def _start_params(img: np.ndarray, uv: np.ndarray, min_x_log: float = MIN_X_LOG):
     """Shaded-model parameters (n, 11) about uv (n, 2) from a log ring of START_RING_PX: the
     straight step (`_best_step`) and the X of the ring with it taken away (`refine.ring_params`);
     NaN rows where no step leaves an X. And (n,) where the ring's point-symmetric part is an X."""
@@ -222,7 +272,7 @@ def _start_params(img: np.ndarray, uv: np.ndarray):
     # marker's log contrast, which the shade does not change (texture's is mostly less).
     k = logs.shape[1]
     quality, high, low, _ = _ring_stats(0.5 * (logs + np.roll(logs, k // 2, axis=1)))
-    is_x = (quality >= MIN_START_QUALITY) & (high - low >= MIN_X_LOG)
+    is_x = (quality >= MIN_START_QUALITY) & (high - low >= min_x_log)
     symmetric = np.nonzero(is_x)[0]
     phi, offset, step = (np.full(len(uv), np.nan) for _ in range(3))
     lit = np.full(logs.shape, np.nan)
