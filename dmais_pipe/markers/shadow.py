@@ -18,7 +18,10 @@ rejected with SHADOW_REASON, never dropped without a trace. The product of the b
 is not the blurred product where the shadow edge crosses an edge of the X, which moves that
 fit's corner by up to ~0.2 px: the corner returned is that of a final fit of the X alone to the
 pixels beside the shadow edge with the shade divided out (`_unshaded_fit`), and it must agree
-with the first within AGREE_PX. Verified with the shade divided out: the rings about the corner must be a clean X
+with the first within AGREE_PX. Where the band it leaves out covers the corner, the corner is
+extrapolated from the X's edges, which misfit beyond its cells can draw (both fits 0.2 px off,
+agreeing): it must then also agree with the fit leaving out a narrower band
+(`_stable_under_band`). Verified with the shade divided out: the rings about the corner must be a clean X
 (`refine.clean_radius`) beyond MIN_CLEAN_PX.
 """
 
@@ -54,6 +57,8 @@ CLEAR_BLURS = 1.75  # a shadow edge along an edge of the X: at least this many b
 AGREE_PX = 0.08  # the two fits' corners, at most this apart
 UNSHADED_ROUNDS = 3
 BAND_BLURS = 2.5  # half-width of the band about the shadow edge the final fit leaves out, in its blurs
+NEAR_BAND_BLURS = 1.5  # the same, of the check fit where that band covers the corner
+NEAR_AGREE_PX = 0.12  # that check fit's corner and the final one, at most this apart
 MIN_CLEAN_PX = 7.0  # px: the X with the shade divided out must stay clean beyond this radius
 CENTRE_RING_PX = 4.0  # `symmetric_centre`: radius of its log ring
 CENTRE_REACH_PX = 4  # and how far from the candidate it looks (px)
@@ -108,7 +113,7 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     params, cov, rms, converged = fitted
     corner = centre + params[:, :2]
     line = _line_about(params, centre, corner)
-    joint = corner
+    joint, joint_line = corner, line
     corner, line, cov, rms, converged = _unshaded_fit(img, corner, line, window, cov, rms, converged)
     clean = np.zeros(len(tried))
     good = _plausible(line, cov, rms, converged, window, contrast) & (np.hypot(*(corner - uv[tried]).T)
@@ -119,6 +124,7 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     # The fit of the shaded model and that of the X alone beside the shadow edge err differently
     # (where the edge crosses the X's edges, and in the shade's level): they must agree.
     good &= np.hypot(*(corner - joint).T) <= AGREE_PX
+    good &= _stable_under_band(img, joint, joint_line, window, corner, good)
     # A shadowed X the start found whose corner the fits do not confirm: rejected, with the reason,
     # at its symmetric centre (the candidate and the fits can be 3-4 px off, drawn to the shadow edge).
     reason[tried[~good]] = SHADOW_REASON
@@ -181,10 +187,27 @@ def _plausible(params, cov, rms, converged, window, contrast) -> np.ndarray:
     return ok
 
 
-def _unshaded_fit(img, corner, params, window, cov, rms, converged):
+def _stable_under_band(img, joint, line, window, corner, good) -> np.ndarray:
+    """(n,) False where the band the final fit leaves out (BAND_BLURS about the shadow edge of line
+    (n, 11, about the first fit's corner joint (n, 2))) covers the corner and the final fit with a
+    band of NEAR_BAND_BLURS moves its corner (n, 2) more than NEAR_AGREE_PX. With the corner in the
+    band the final fit sees the X only away from it and extrapolates the corner from its edges,
+    which misfit beyond the corner's cells can draw by 0.2 px (effects bench seed 53, a 10 px
+    window); a fit that sees nearer the corner does not follow."""
+    with np.errstate(invalid="ignore"):
+        covered = good & (np.abs(line[:, 8]) < BAND_BLURS * line[:, 9])
+    if not covered.any():
+        return np.ones(len(joint), dtype=bool)
+    n = len(joint)
+    near = _unshaded_fit(img, joint, line, np.where(covered, window, np.nan), np.full((n, 2, 2), np.nan),
+                         np.full(n, np.nan), np.zeros(n, dtype=bool), NEAR_BAND_BLURS)[0]
+    return ~covered | (np.hypot(*(near - corner).T) <= NEAR_AGREE_PX)
+
+
+def _unshaded_fit(img, corner, params, window, cov, rms, converged, band_blurs=BAND_BLURS):
     """The final fit of the X alone (`xfit.model`) to the pixels of windows (n,) about corner (n, 2)
     with the fitted shade of params (n, 11, about the corner) divided out and the band of
-    BAND_BLURS x its blur about the shadow edge left out: there the product of the blurred
+    band_blurs x its blur about the shadow edge left out: there the product of the blurred
     factors is not the blurred product, and the corner would move. Returns (corner, params
     about it, cov, rms, converged), the inputs where the fit is not made (NaN window)."""
     corner, params = corner.copy(), params.copy()
@@ -195,7 +218,7 @@ def _unshaded_fit(img, corner, params, window, cov, rms, converged):
         x, y, values, weights = xfit.window(img, corner[idx], float(value))
         x, y = x - corner[idx, :1], y - corner[idx, 1:]
         edge = (np.cos(params[idx, 7:8]) * x + np.sin(params[idx, 7:8]) * y - params[idx, 8:9]) / params[idx, 9:10]
-        weights = weights * (np.abs(edge) > BAND_BLURS)
+        weights = weights * (np.abs(edge) > band_blurs)
         shaded = edge > 0
         kept = 1.0 - params[idx, 10:11]  # the share of light in the shade
         fitted = (params[idx, :7].copy(),)
