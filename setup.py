@@ -7,9 +7,10 @@ keeps every rounding as in a portable build (no fused multiply-adds), so the can
 same bit for bit. DMAIS_PORTABLE_BUILD=1 builds for any CPU of the architecture instead (for a
 wheel or a build shared between machines). A tuned build records the build CPU's flags in
 dmais_pipe/pose/_build_cpu.txt, which `pose.build_cpu` checks before loading the cores (a cluster
-node without the build CPU's AVX-512 gets one clear error, not an illegal instruction). -fno-wrapv undoes CPython's -fwrapv (which Cython's
-code does not need): with it, GCC cannot count the iterations of loops indexed by a C int and
-leaves them scalar, e.g. the column updates of the QR iteration.
+node without the build CPU's AVX-512 gets one clear error, not an illegal instruction).
+-fno-wrapv undoes CPython's -fwrapv (which Cython's code does not need): with it, GCC cannot
+count the iterations of loops indexed by a C int and leaves them scalar, e.g. the column updates
+of the QR iteration.
 """
 
 import os
