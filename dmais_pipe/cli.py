@@ -7,6 +7,7 @@ directory, disk full, a file that vanished) are printed on one line to stderr an
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import sys
 from pathlib import Path
@@ -290,18 +291,25 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _add_settings(parser: argparse.ArgumentParser, stage: str) -> None:
-    """--conf and --set, with every setting, its default and the named confs listed under --help."""
+    """--conf and --set, with every setting, its default and the named confs listed under --help
+    (`_stage_help`: the stage is loaded only for its help, so other commands start without it)."""
+    conf = parser.add_argument("--conf", metavar="NAME")
+    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
+                        help="change one setting of the conf (repeatable); the settings are listed below")
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.format_help = functools.partial(_stage_help, parser, conf, stage)
+
+
+def _stage_help(parser: argparse.ArgumentParser, conf: argparse.Action, stage: str) -> str:
+    """The --help text of a stage's command, with its named confs and settings (`settings_help`)."""
     from importlib import import_module
 
     from .stages import settings_help
 
     confs = import_module(f"dmais_pipe.stages.{stage}").CONFS
-    parser.add_argument("--conf", metavar="NAME",
-                        help=f"named settings of the stage: {', '.join(confs)} (default: {next(iter(confs))})")
-    parser.add_argument("--set", action="append", metavar="KEY=VALUE",
-                        help="change one setting of the conf (repeatable); the settings are listed below")
-    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    conf.help = f"named settings of the stage: {', '.join(confs)} (default: {next(iter(confs))})"
     parser.epilog = settings_help(confs) + "\n\nSee docs/design.md, 'Stage settings'."
+    return argparse.ArgumentParser.format_help(parser)
 
 
 def _version() -> str:
@@ -315,11 +323,10 @@ def _version() -> str:
 
 def main(argv: list[str] | None = None) -> int:
     try:
-        parser = _parser()  # lists the stages' settings, so it loads them (and the pose solver's cores)
+        args = _parser().parse_args(argv)  # a stage's --help loads the stage (and the pose solver's cores)
     except DmaisError as error:
         print(f"dmais: error: {error}", file=sys.stderr)
         return 2
-    args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.DEBUG if args.verbose else logging.INFO,
         format="%(asctime)s %(name)s %(levelname)s: %(message)s",
