@@ -71,6 +71,11 @@ class Rig:
         cam_from_world = self.cam_from_rig[camera] * rig_from_world
         return self.cameras[camera].project(cam_from_world.apply(points_world))
 
+    def project_rig_points(self, camera: str, points_rig) -> np.ndarray:
+        """Distorted pixels (n, 2) in `camera` of points (n, 3) in the rig frame."""
+        self._check_known(camera)
+        return self.cameras[camera].project(self.cam_from_rig[camera].apply(points_rig))
+
     def to_dict(self) -> dict:
         """The rig.json layout of docs/design.md."""
         return {

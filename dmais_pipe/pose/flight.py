@@ -63,11 +63,11 @@ def rows_pixel_residuals(rig: Rig, R: np.ndarray, t: np.ndarray, cameras: np.nda
     residuals = np.empty_like(uv, dtype=float)
     for name in pd.unique(cameras):
         mask = cameras == name
-        residuals[mask] = uv[mask] - rig.cameras[name].project(rig.cam_from_rig[name].apply(x_rig[mask]))
+        residuals[mask] = uv[mask] - rig.project_rig_points(name, x_rig[mask])
     return residuals
 
 
-def solve_frame(rig: Rig, origins: np.ndarray, directions: np.ndarray, points: np.ndarray, focal_px: np.ndarray,
+def solve_frame(origins: np.ndarray, directions: np.ndarray, points: np.ndarray, focal_px: np.ndarray,
                 robust: bool, refine: bool, threshold_px: float = ROBUST_THRESHOLD_PX):
     """Pose of one frame from its observations' generalized rays (n, 3) and points (n, 3);
     focal_px (n,) the cameras' fx (for robust's per-observation threshold).
@@ -101,7 +101,7 @@ def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, camer
     """
     flight = flight_observations_by_frame(dataset, rig, observations, cameras, groups)
     focal = _per_observation(flight.cameras, {name: rig.cameras[name].fx for name in cameras})
-    R, t, ms, used, certified, failures = _solve_frames(rig, flight, focal, robust, refine, threshold_px)
+    R, t, ms, used, certified, failures = _solve_frames(flight, focal, robust, refine, threshold_px)
     index = flight.frame_index
     residuals = rows_pixel_residuals(rig, R[index], t[index], flight.cameras, flight.uv, flight.points)
     hidden = np.bincount(index, used & ~np.isfinite(residuals).all(axis=1), minlength=len(flight)) > 0
@@ -121,7 +121,7 @@ def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, camer
     return table, per_observation
 
 
-def _solve_frames(rig: Rig, flight: FlightObservations, focal: np.ndarray, robust: bool, refine: bool,
+def _solve_frames(flight: FlightObservations, focal: np.ndarray, robust: bool, refine: bool,
                   threshold_px: float):
     """Every frame's solve: R (F, 3, 3), t (F, 3) (NaN where not solved), time_ms (F,), used (N,),
     certified (F,), failures (F,) str ('' where solved)."""
@@ -139,9 +139,9 @@ def _solve_frames(rig: Rig, flight: FlightObservations, focal: np.ndarray, robus
             problem = (origins[part], directions[part], points[part], focal[part], robust, refine, threshold_px)
             try:
                 if not warm:  # one untimed solve loads the template: time_ms is the solve alone
-                    solve_frame(rig, *problem)
+                    solve_frame(*problem)
                     warm = True
-                R[k], t[k], ms[k], used[part], certified[k] = solve_frame(rig, *problem)
+                R[k], t[k], ms[k], used[part], certified[k] = solve_frame(*problem)
             except PoseError as error:
                 failures[k] = str(error)
     return R, t, ms, used, certified, failures

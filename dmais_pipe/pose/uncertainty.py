@@ -98,19 +98,22 @@ def pose_uncertainty(origins, directions, points, focal_px, frame_index, R, t, n
     own = np.ones(len(R), bool) if own_noise is None else np.asarray(own_noise, bool)
     firsts = range(0, max(len(R), 1), BLOCK_FRAMES)
     bounds = np.searchsorted(frame_index, [*firsts, len(R)])
+    attitude = heading_pitch_roll(R)
     blocks = [_block_covariances(origins[a:b], directions[a:b], points[a:b], focal_px[a:b], frame_index[a:b] - first,
-                                 R[first:first + BLOCK_FRAMES], t[first:first + BLOCK_FRAMES], object_space)
+                                 R[first:first + BLOCK_FRAMES], t[first:first + BLOCK_FRAMES],
+                                 attitude[first:first + BLOCK_FRAMES], object_space)
               for first, a, b in zip(firsts, bounds[:-1], bounds[1:])]
     position, angles = (np.concatenate(parts) for parts in zip(*blocks))
-    return PoseUncertainty(attitude=heading_pitch_roll(R), sigma_position=noise_px[:, None] * _sigmas(position),
+    return PoseUncertainty(attitude=attitude, sigma_position=noise_px[:, None] * _sigmas(position),
                            sigma_attitude=noise_px[:, None] * _sigmas(angles) * ARCMIN_PER_RAD, noise_px=noise_px,
                            own_noise=own)
 
 
-def _block_covariances(origins, directions, points, focal_px, frame_index, R, t, object_space: bool
+def _block_covariances(origins, directions, points, focal_px, frame_index, R, t, attitude, object_space: bool
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Covariances (F, 3, 3) of the rig centre and of (heading, pitch, roll) for unit pixel noise, of
-    one block of frames (arguments as `pose_uncertainty`'s, frame_index from 0)."""
+    one block of frames (arguments as `pose_uncertainty`'s, frame_index from 0; attitude (F, 3) the
+    frames' `heading_pitch_roll` in degrees)."""
     n_frames = len(R)
     counts = np.maximum(np.bincount(frame_index, minlength=n_frames), 1)
     centroid = np.stack([np.bincount(frame_index, points[:, k], minlength=n_frames) for k in range(3)], axis=1)
@@ -130,7 +133,7 @@ def _block_covariances(origins, directions, points, focal_px, frame_index, R, t,
     A_inverse = inverse_normal_matrices(A)
     covariance = A_inverse @ B @ A_inverse
     G = -np.swapaxes(R, 1, 2) @ np.concatenate([skew(t_centred), np.broadcast_to(np.eye(3), R.shape)], axis=2)
-    E_inverse = np.linalg.inv(euler_zyx_rates(np.radians(heading_pitch_roll(R))))
+    E_inverse = np.linalg.inv(euler_zyx_rates(np.radians(attitude)))
     return (G @ covariance @ np.swapaxes(G, 1, 2),
             E_inverse @ covariance[:, :3, :3] @ np.swapaxes(E_inverse, 1, 2))
 
