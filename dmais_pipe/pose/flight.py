@@ -63,7 +63,7 @@ def rows_pixel_residuals(rig: Rig, R: np.ndarray, t: np.ndarray, cameras: np.nda
     residuals = np.empty_like(uv, dtype=float)
     for name in pd.unique(cameras):
         mask = cameras == name
-        residuals[mask] = uv[mask] - rig.project_rig_points(name, x_rig[mask])
+        residuals[mask] = uv[mask] - rig.project_rig_points(str(name), x_rig[mask])
     return residuals
 
 
