@@ -93,16 +93,16 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     if len(tried) == 0:
         return out_uv, radius, sigma, residual, reason
     params, cov, rms, converged = _fit_about(img, uv[tried], start[tried], FIRST_WINDOW_PX)
-    centre = first = uv[tried] + params[:, :2]
+    centre = uv[tried] + params[:, :2]
+    about = _line_about(params, uv[tried], centre)  # the first fit's model about its corner
     moved = np.all(np.isfinite(centre), axis=1) & (np.hypot(*(centre - uv[tried]).T) <= MAX_MOVE_PX)
-    moved &= _plausible(_line_about(params, uv[tried], centre), cov, rms, converged, FIRST_WINDOW_PX, contrast)
+    moved &= _plausible(about, cov, rms, converged, FIRST_WINDOW_PX, contrast)
     # The second fit about the first's corner, over the clean X with the shade divided out.
     window = np.full(len(tried), np.nan)
     if moved.any():
-        line = _line_about(params[moved], uv[tried][moved], centre[moved])
-        window[moved] = np.clip(_deshaded_clean_radius(img, centre[moved], line, min_quality), MIN_WINDOW_PX,
+        window[moved] = np.clip(_deshaded_clean_radius(img, centre[moved], about[moved], min_quality), MIN_WINDOW_PX,
                                 MAX_WINDOW_PX)
-    params = np.where(moved[:, None], _line_about(params, uv[tried], centre), np.nan)
+    params = np.where(moved[:, None], about, np.nan)
     params[:, :2] = 0.0
     fitted = (np.full_like(params, np.nan), np.full_like(cov, np.nan), np.full_like(rms, np.nan),
               np.zeros_like(converged))
