@@ -23,7 +23,6 @@
 
 from __future__ import annotations
 
-from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -32,7 +31,7 @@ from scipy.spatial import cKDTree
 
 from .refine import (_ring_offsets, _ring_stats, as_float_image, clean_radius, refine_corners, ring_quality, sample,
                      seed)
-from .shadow import SHADOW_REASON, shadowed_corners
+from .shadow import SHADOW_REASON, both_sides, line_ends, shadowed_corners, step_masks
 
 COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
 REJECTED_COLUMNS = ["u", "v", "reason"]
@@ -230,8 +229,8 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
 SHADOW_RADII = (4.0, 6.0, 8.0)  # px, rings of the shadowed-X test
 SHADOW_SAMPLES = 24  # samples per ring of the shadowed-X test
 MIN_SHADOW_LOG = 0.3  # least darkening in the shade, as a step of log(intensity): ~26% of the light
-SAME_RATIO = 0.6  # the log contrast on either side of the shadow line: at least this share of the other's
-_SHADOW_LINES = [(phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.5, 0.0, 0.5)]
+SHADOW_SIDE_SAMPLES = 3  # samples of each level of the X on either side of a shadow line, at least
+_SHADOW_LINES = tuple((phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.5, 0.0, 0.5))
 
 
 def shadowed_x(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: float = MIN_QUALITY) -> np.ndarray:
@@ -274,7 +273,7 @@ def _best_shadow_line(values: np.ndarray, contrast: float, min_quality: float):
     whose step, least-squares fitted to the rings' point asymmetry and taken away, leaves the best
     X; passes where that X has quality >= min_quality, contrast >= `contrast` and the step darkens."""
     m, k = values.shape
-    shade, h = _shadow_masks(k)  # (l, k) each
+    shade, h = step_masks(_SHADOW_LINES, k)  # (l, k) each
     anti = values - np.roll(values, k // 2, axis=1)
     g = anti @ h.T / (h * h).sum(axis=1)  # (m, l) log step of each line
     lit = values[:, None, :] - g[:, :, None] * shade[None]
@@ -283,42 +282,14 @@ def _best_shadow_line(values: np.ndarray, contrast: float, min_quality: float):
     # Both levels of the X on both sides of the line, in the same ratio (a shadow takes the same
     # share of light from both): a step over one level (the background beyond an outline) or over
     # texture is no shadow of the X.
-    both, ratio = np.ones((m, len(shade)), dtype=bool), []
-    for side in (shade, 1.0 - shade):
-        on_bright, on_dark = bright * side[None], ~bright * side[None]
-        n_bright, n_dark = on_bright.sum(axis=2), on_dark.sum(axis=2)
-        both &= (n_bright >= 3) & (n_dark >= 3)
-        ratio.append((lit * on_bright).sum(axis=2) / np.maximum(n_bright, 1)
-                     - (lit * on_dark).sum(axis=2) / np.maximum(n_dark, 1))
-    both &= np.minimum(*ratio) >= SAME_RATIO * np.maximum(*ratio)
+    both = both_sides(lit, bright, shade[None], SHADOW_SIDE_SAMPLES)
     # The line must cross the X's edges, not run along one: an outline T-junction whose background
     # lies near the geometric mean of the cells' levels reads as an X shadowed along an edge.
-    ends = bright[:, np.arange(len(shade))[:, None, None], _line_ends(k)]  # (m, l, 2, w)
+    ends = bright[:, np.arange(len(shade))[:, None, None], line_ends(_SHADOW_LINES, k)]  # (m, l, 2, w)
     both &= np.all(ends == ends[..., :1], axis=(2, 3))
     good = both & (quality >= min_quality) & (high - low >= contrast) & (-g >= MIN_SHADOW_LOG)
     best = np.argmax(np.where(good, quality, -1.0), axis=1)
     return good.any(axis=1), np.array([phi for phi, _ in _SHADOW_LINES])[best]
-
-
-@lru_cache(maxsize=4)
-def _line_ends(k: int, half_width: int = 1) -> np.ndarray:
-    """(l, 2, 2 half_width + 1) ring sample indexes about the two points where each line of
-    _SHADOW_LINES crosses a ring of k samples."""
-    ends = []
-    for phi, t in _SHADOW_LINES:
-        crossing = [phi + np.arccos(t), phi - np.arccos(t)]
-        centre = np.rint(np.mod(crossing, 2.0 * np.pi) / (2.0 * np.pi) * k - 0.5).astype(int)
-        ends.append(np.mod(centre[:, None] + np.arange(-half_width, half_width + 1)[None], k))
-    return np.array(ends)
-
-
-@lru_cache(maxsize=4)
-def _shadow_masks(k: int):
-    """(shade (l, k) 0/1 of each ring sample beyond each line of _SHADOW_LINES, its point
-    asymmetry shade - shade(opposite) (l, k))."""
-    angle = 2.0 * np.pi * (np.arange(k) + 0.5) / k
-    shade = np.array([(np.cos(angle - phi) > t) for phi, t in _SHADOW_LINES], dtype=float)
-    return shade, shade - np.roll(shade, k // 2, axis=1)
 
 
 def _dedupe(points: np.ndarray, score: np.ndarray) -> np.ndarray:

@@ -47,7 +47,7 @@ MIN_STEP_LOG = 0.2  # least darkening of a start line, as a step of log(intensit
 TOP_STEPS = 24  # steps of a start ring (of _STEPS) that explain the most of its point asymmetry, tried
 MIN_X_LOG = 0.5  # least log contrast of the X on the start ring (a marker's cells: ~log(200 / 30) = 1.9)
 MIN_START_QUALITY = 0.5  # ring quality of the X with the start step taken away
-SAME_RATIO = 0.6  # the X's log contrast on either side of the start step: at least this share of the other's
+SAME_RATIO = 0.6  # the X's log contrast on either side of a shadow line: at least this share of the other's
 MIN_SIDE_SAMPLES = 2  # samples of each level of the X on either side of the start step, at least
 MIN_SHADE, MAX_SHADE = 0.2, 0.95  # the share of light the fitted shade takes
 MIN_CROSSING = np.radians(10.0)  # the shadow edge and either edge of the X, at least this apart
@@ -64,7 +64,7 @@ CENTRE_RING_PX = 4.0  # `symmetric_centre`: radius of its log ring
 CENTRE_REACH_PX = 4  # and how far from the candidate it looks (px)
 CENTRE_SAMPLES = 48  # samples of that ring
 CENTRE_X_LOG = 0.9  # least log contrast of the X on the start ring about the symmetric centre
-_STEPS = [(phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.6, -0.3, 0.0, 0.3, 0.6)]
+_STEPS = tuple((phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.6, -0.3, 0.0, 0.3, 0.6))
 
 
 def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: float, min_radius: float):
@@ -324,7 +324,7 @@ def _best_step(logs: np.ndarray):
     n, k = logs.shape
     if n == 0:
         return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros((0, k))
-    shade, asym = _step_masks(k)
+    shade, asym = step_masks(_STEPS, k)
     anti = logs - np.roll(logs, k // 2, axis=1)
     norm = np.maximum((asym * asym).sum(axis=1), 1e-9)
     g = anti @ asym.T / norm  # (n, l)
@@ -336,10 +336,10 @@ def _best_step(logs: np.ndarray):
     quality, _, _, bright = _ring_stats(np.exp(lit).reshape(-1, k))
     quality, bright = quality.reshape(top.shape), bright.reshape(top.shape + (k,))
     # The line must cross the X's sectors, not run along an edge of the X (an outline T-junction).
-    ends = _line_ends(k)[top]  # (n, t, 2, w)
+    ends = line_ends(_STEPS, k)[top]  # (n, t, 2, w)
     ends = np.take_along_axis(bright, ends.reshape(n, top.shape[1], -1), axis=2)
     crosses = np.all(ends == ends[..., :1], axis=2)
-    quality = np.where((-g >= MIN_STEP_LOG) & crosses & _both_sides(lit, bright, shade), quality, -1.0)
+    quality = np.where((-g >= MIN_STEP_LOG) & crosses & both_sides(lit, bright, shade), quality, -1.0)
     best = np.argmax(quality, axis=1)
     rows = np.arange(n)
     ok = quality[rows, best] >= MIN_START_QUALITY
@@ -349,38 +349,41 @@ def _best_step(logs: np.ndarray):
             np.where(ok, g[rows, best], nan), lit[rows, best])
 
 
-def _both_sides(lit: np.ndarray, bright: np.ndarray, shade: np.ndarray) -> np.ndarray:
+def both_sides(lit: np.ndarray, bright: np.ndarray, shade: np.ndarray, min_samples: int = MIN_SIDE_SAMPLES
+               ) -> np.ndarray:
     """(n, l) True where log rings lit (n, l, k) with a step taken away (bright mask (n, l, k), the
-    step's shaded samples shade (n, l, k)) have both levels of the X on both sides of the step's line,
-    in the same ratio: a shadow takes the same share of the light from both. A marker's outline
-    (an L- or T-junction, the background beyond it one level) or texture fails."""
+    step's shaded samples shade (n, l, k), or (1, l, k) for the same lines on every ring) have both
+    levels of the X on both sides of the step's line, min_samples of each at least, in the same
+    ratio: a shadow takes the same share of the light from both. A marker's outline (an L- or
+    T-junction, the background beyond it one level) or texture fails."""
     both, contrast = np.ones(lit.shape[:2], dtype=bool), []
     for side in (shade, 1.0 - shade):
         on_bright, on_dark = bright * side, ~bright * side
         n_bright, n_dark = on_bright.sum(axis=2), on_dark.sum(axis=2)
-        both &= (n_bright >= MIN_SIDE_SAMPLES) & (n_dark >= MIN_SIDE_SAMPLES)
+        both &= (n_bright >= min_samples) & (n_dark >= min_samples)
         contrast.append((lit * on_bright).sum(axis=2) / np.maximum(n_bright, 1)
                         - (lit * on_dark).sum(axis=2) / np.maximum(n_dark, 1))
     return both & (np.minimum(*contrast) >= SAME_RATIO * np.maximum(*contrast))
 
 
-@lru_cache(maxsize=4)
-def _line_ends(k: int, half_width: int = 1) -> np.ndarray:
-    """(l, 2, 2 half_width + 1) indexes of the ring samples about the two points where each line of
-    _STEPS crosses a ring of k samples."""
+@lru_cache(maxsize=8)
+def line_ends(lines: tuple, k: int, half_width: int = 1) -> np.ndarray:
+    """(l, 2, 2 half_width + 1) indexes of the ring samples about the two points where each line
+    (phi, t) of lines (l) -- cos(angle - phi) = t -- crosses a ring of k samples."""
     ends = []
-    for phi, t in _STEPS:
+    for phi, t in lines:
         crossing = np.mod([phi + np.arccos(t), phi - np.arccos(t)], 2.0 * np.pi)
         centre = np.rint(crossing / (2.0 * np.pi) * k - 0.5).astype(int)
         ends.append(np.mod(centre[:, None] + np.arange(-half_width, half_width + 1)[None], k))
     return np.array(ends)
 
 
-@lru_cache(maxsize=4)
-def _step_masks(k: int):
-    """(shade (l, k) 0/1 of each ring sample beyond each line of _STEPS, its point asymmetry (l, k))."""
+@lru_cache(maxsize=8)
+def step_masks(lines: tuple, k: int):
+    """(shade (l, k) 0/1 of each ring sample of k beyond each line (phi, t) of lines (l), its point
+    asymmetry (l, k))."""
     angle = 2.0 * np.pi * (np.arange(k) + 0.5) / k
-    shade = np.array([(np.cos(angle - phi) > t) for phi, t in _STEPS], dtype=float)
+    shade = np.array([(np.cos(angle - phi) > t) for phi, t in lines], dtype=float)
     return shade, shade - np.roll(shade, k // 2, axis=1)
 
 
