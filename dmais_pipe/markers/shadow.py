@@ -4,25 +4,31 @@ A shadow multiplies the light: on the log of the image it adds a step on one sid
 line, while the X-corner itself stays point symmetric about its centre. The ring tests of
 `detect` fail such a corner (its rings are no longer two-valued or point symmetric), and the plain
 model fit of `refine` would move the corner towards the shadow edge. Here the corner is fitted
-with the shadow edge in the model (`xfit.shaded_model`): the line, its blur and the share of light
-it takes are fitted with the X. Started from the best straight step on a log ring about the
-candidate (`_best_step`, the same on a wider ring), or where none is found there about its coarse
-centring (`_start`), fitted in a small window, then in the window of the clean X with the shade
-divided out. The start is cheap and strict, so that marker outlines and texture never reach the
-fits: the ring's point-symmetric part must be an X of a marker's log contrast (MIN_X_LOG: the
-shade does not change it), and the step must darken, leave an X, run across the X's sectors
-rather than along an edge of the X (an outline's T-junction), and leave both levels of the X on
-both sides of its line in the same ratio (a shadow takes the same share of light from both; the
-background beyond an outline is one level). Every candidate that starts is either returned or
-rejected with SHADOW_REASON, never dropped without a trace. The product of the blurred factors
-is not the blurred product where the shadow edge crosses an edge of the X, which moves that
-fit's corner by up to ~0.2 px: the corner returned is that of a final fit of the X alone to the
-pixels beside the shadow edge with the shade divided out (`_unshaded_fit`), and it must agree
-with the first within AGREE_PX. Where the band it leaves out covers the corner, the corner is
-extrapolated from the X's edges, which misfit beyond its cells can draw (both fits 0.2 px off,
-agreeing): it must then also agree with the fit leaving out a narrower band
-(`_stable_under_band`). Verified with the shade divided out: the rings about the corner must be a clean X
-(`refine.clean_radius`) beyond MIN_CLEAN_PX.
+with the shadow edge in the model: the line, its blur and the share of light it takes are fitted
+with the X.
+
+- Start: the best straight step on a log ring about the candidate (`_best_step`, the same on a
+  wider ring), or where none is found there about its coarse centring, or about its symmetric
+  centre (`_start`). The start is cheap and strict, so that marker outlines and texture seldom
+  reach the fits: the ring's point-symmetric part must be an X of a marker's log contrast
+  (MIN_X_LOG: the shade does not change it), and the step must darken, leave an X, run across the
+  X's sectors rather than along an edge of the X (an outline's T-junction), and leave both levels
+  of the X on both sides of its line in the same ratio (a shadow takes the same share of light
+  from both; the background beyond an outline is one level).
+- Fits: the product of the blurred X and the blurred light (`xfit.shaded_model`, cheap) in a
+  small window (again from the symmetric centre where that fit fails, `_first_fit`), then in the
+  window of the clean X with the shade divided out; the corner returned is that of a final fit of
+  the blurred product (`xfit.product_shaded_model`, `_product_fit`): where the shadow edge
+  crosses an edge of the X the product of the blurred factors is not the blurred product, and
+  moves the fitted corner by up to ~0.3 px.
+- Checks: the final fit plausible (`_plausible`), the X with the shade divided out clean
+  (`refine.clean_radius`) beyond MIN_CLEAN_PX, and the corner confirmed within AGREE_PX by a fit
+  of the X alone to the pixels beside the shadow edge with the shade divided out
+  (`_unshaded_corner`), and its uncertainty within MAX_SIGMA_PX_SHADED. A marker's edge or outline corner crossed by a shadow edge can pass the
+  others (the fitted X's edges are then the marker's edge and the shadow's), not this one.
+
+Every candidate that starts is either returned or rejected with SHADOW_REASON, never dropped
+without a trace.
 """
 
 from __future__ import annotations
@@ -50,15 +56,13 @@ MIN_START_QUALITY = 0.5  # ring quality of the X with the start step taken away
 SAME_RATIO = 0.6  # the X's log contrast on either side of a shadow line: at least this share of the other's
 MIN_SIDE_SAMPLES = 2  # samples of each level of the X on either side of the start step, at least
 MIN_SHADE, MAX_SHADE = 0.2, 0.95  # the share of light the fitted shade takes
-MIN_CROSSING = np.radians(10.0)  # the shadow edge and either edge of the X, at least this apart
 MAX_MOVE_PX = 8.0
 SEED_SHIFT_PX = 4.0  # a candidate's coarse centring, at most this far, where no start is found at it
-CLEAR_BLURS = 1.75  # a shadow edge along an edge of the X: at least this many blurs from the corner
-AGREE_PX = 0.08  # the two fits' corners, at most this apart
+AGREE_PX = 0.13  # the final fit's corner and the check fit's, at most this apart
+MAX_SIGMA_PX_SHADED = 0.05  # px: the final fit's uncertainty at most (a corner within 0.1 px at 2 sigma)
+PRODUCT_ITERATIONS = 20  # of the final fit, from the second's parameters
 UNSHADED_ROUNDS = 3
-BAND_BLURS = 2.5  # half-width of the band about the shadow edge the final fit leaves out, in its blurs
-NEAR_BAND_BLURS = 1.5  # the same, of the check fit where that band covers the corner
-NEAR_AGREE_PX = 0.12  # that check fit's corner and the final one, at most this apart
+BAND_BLURS = 2.5  # half-width of the band about the shadow edge the check fit leaves out, in its blurs
 MIN_CLEAN_PX = 7.0  # px: the X with the shade divided out must stay clean beyond this radius
 CENTRE_RING_PX = 4.0  # `symmetric_centre`: radius of its log ring
 CENTRE_REACH_PX = 4  # and how far from the candidate it looks (px)
@@ -84,19 +88,11 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     if n == 0:
         return out_uv, radius, sigma, residual, reason
     given = uv
-    uv, start, unstarted = _start(img, uv)
-    # Where neither the candidate nor its centring starts one, a shadowed X the start finds about
-    # the symmetric centre is rejected there without a fit (a fit from there can settle beside the corner).
-    centred, centre = _centred_start(img, uv, unstarted, contrast)
-    reason[centred], out_uv[centred] = SHADOW_REASON, centre[centred]
+    uv, start = _start(img, uv)
     tried = np.nonzero(np.all(np.isfinite(start), axis=1) & (2.0 * np.abs(start[:, 6]) >= contrast))[0]
     if len(tried) == 0:
         return out_uv, radius, sigma, residual, reason
-    params, cov, rms, converged = _fit_about(img, uv[tried], start[tried], FIRST_WINDOW_PX)
-    centre = uv[tried] + params[:, :2]
-    about = _line_about(params, uv[tried], centre)  # the first fit's model about its corner
-    moved = np.all(np.isfinite(centre), axis=1) & (np.hypot(*(centre - uv[tried]).T) <= MAX_MOVE_PX)
-    moved &= _plausible(about, cov, rms, converged, FIRST_WINDOW_PX, contrast)
+    centre, about, moved = _first_fit(img, given[tried], uv[tried], start[tried], contrast)
     # The second fit about the first's corner, over the clean X with the shade divided out.
     window = np.full(len(tried), np.nan)
     if moved.any():
@@ -104,27 +100,30 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
                                 MAX_WINDOW_PX)
     params = np.where(moved[:, None], about, np.nan)
     params[:, :2] = 0.0
-    fitted = (np.full_like(params, np.nan), np.full_like(cov, np.nan), np.full_like(rms, np.nan),
-              np.zeros_like(converged))
+    n_tried = len(tried)
+    fitted = (np.full_like(params, np.nan), np.full((n_tried, 2, 2), np.nan), np.full(n_tried, np.nan),
+              np.zeros(n_tried, dtype=bool))
     for value in np.unique(window[moved]):
         idx = np.nonzero(moved & (window == value))[0]
         for array, result in zip(fitted, _fit_about(img, centre[idx], params[idx], float(value))):
             array[idx] = result
     params, cov, rms, converged = fitted
-    corner = centre + params[:, :2]
-    line = _line_about(params, centre, corner)
-    joint, joint_line = corner, line
-    corner, line, cov, rms, converged = _unshaded_fit(img, corner, line, window, cov, rms, converged)
-    clean = np.zeros(len(tried))
+    joint = centre + params[:, :2]
+    joint_line = _line_about(params, centre, joint)
+    corner, line, cov, rms, converged = _product_fit(img, joint, joint_line, window, cov, rms, converged)
+    clean = np.zeros(n_tried)
     good = _plausible(line, cov, rms, converged, window, contrast) & (np.hypot(*(corner - uv[tried]).T)
                                                                         <= MAX_MOVE_PX)
     if good.any():
         clean[good] = _deshaded_clean_radius(img, corner[good], line[good], min_quality)
     good &= clean >= max(min_radius, MIN_CLEAN_PX)
-    # The fit of the shaded model and that of the X alone beside the shadow edge err differently
-    # (where the edge crosses the X's edges, and in the shade's level): they must agree.
-    good &= np.hypot(*(corner - joint).T) <= AGREE_PX
-    good &= _stable_under_band(img, joint, joint_line, window, corner, good)
+    # The fit of the X alone beside the shadow edge must confirm the corner: where it does not, the
+    # "X" is mostly a marker's outline or edge crossed by the shadow edge.
+    check = _unshaded_corner(img, joint, joint_line, window)
+    good &= np.hypot(*(corner - check).T) <= AGREE_PX
+    with np.errstate(invalid="ignore"):
+        certain = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2)) <= MAX_SIGMA_PX_SHADED
+    good &= certain
     # A shadowed X the start found whose corner the fits do not confirm: rejected, with the reason,
     # at its symmetric centre (the candidate and the fits can be 3-4 px off, drawn to the shadow edge).
     reason[tried[~good]] = SHADOW_REASON
@@ -132,7 +131,7 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     rows = tried[good]
     out_uv[rows], radius[rows], reason[rows] = corner[good], clean[good], ""
     sigma[rows] = np.sqrt(0.5 * np.trace(cov[good], axis1=1, axis2=2))
-    residual[rows] = rms[good] / (2.0 * np.abs(params[good, 6]))
+    residual[rows] = rms[good] / (2.0 * np.abs(line[good, 6]))
     return out_uv, radius, sigma, residual, reason
 
 
@@ -167,8 +166,7 @@ def _most_symmetric_x(img: np.ndarray, points: np.ndarray, k: int) -> np.ndarray
 def _plausible(params, cov, rms, converged, window, contrast) -> np.ndarray:
     """(n,) fits (params (n, 11) about their corner) that are an X crossed by a real shadow edge:
     converged, the X of enough contrast, not degenerate, a good fit, certain; the shade taking
-    MIN_SHADE..MAX_SHADE of the light and crossing the window, not along an edge of the X unless
-    clear of the corner."""
+    MIN_SHADE..MAX_SHADE of the light and crossing the window."""
     with np.errstate(invalid="ignore"):
         sigma = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
         span = 2.0 * np.abs(params[:, 6])
@@ -179,37 +177,14 @@ def _plausible(params, cov, rms, converged, window, contrast) -> np.ndarray:
         ok &= np.abs(params[:, 8]) < window  # the line about the corner, through the window
         ok &= params[:, 4] < window
         ok &= np.abs(np.sin(params[:, 2] - params[:, 3])) >= np.sin(MIN_EDGE_ANGLE)
-        # A shadow edge along an edge of the X must pass beside the corner, clear of it: through
-        # it, the X's edge and the shadow's are one (a marker's edge crossed by a shadow edge).
-        clear = np.abs(params[:, 8]) >= CLEAR_BLURS * np.maximum(params[:, 4], params[:, 9])
-        for edge in (2, 3):
-            ok &= (np.abs(np.sin(params[:, 7] - params[:, edge])) >= np.sin(MIN_CROSSING)) | clear
     return ok
 
 
-def _stable_under_band(img, joint, line, window, corner, good) -> np.ndarray:
-    """(n,) False where the band the final fit leaves out (BAND_BLURS about the shadow edge of line
-    (n, 11, about the first fit's corner joint (n, 2))) covers the corner and the final fit with a
-    band of NEAR_BAND_BLURS moves its corner (n, 2) more than NEAR_AGREE_PX. With the corner in the
-    band the final fit sees the X only away from it and extrapolates the corner from its edges,
-    which misfit beyond the corner's cells can draw by 0.2 px (effects bench seed 53, a 10 px
-    window); a fit that sees nearer the corner does not follow."""
-    with np.errstate(invalid="ignore"):
-        covered = good & (np.abs(line[:, 8]) < BAND_BLURS * line[:, 9])
-    if not covered.any():
-        return np.ones(len(joint), dtype=bool)
-    n = len(joint)
-    near = _unshaded_fit(img, joint, line, np.where(covered, window, np.nan), np.full((n, 2, 2), np.nan),
-                         np.full(n, np.nan), np.zeros(n, dtype=bool), NEAR_BAND_BLURS)[0]
-    return ~covered | (np.hypot(*(near - corner).T) <= NEAR_AGREE_PX)
-
-
-def _unshaded_fit(img, corner, params, window, cov, rms, converged, band_blurs=BAND_BLURS):
-    """The final fit of the X alone (`xfit.model`) to the pixels of windows (n,) about corner (n, 2)
-    with the fitted shade of params (n, 11, about the corner) divided out and the band of
-    band_blurs x its blur about the shadow edge left out: there the product of the blurred
-    factors is not the blurred product, and the corner would move. Returns (corner, params
-    about it, cov, rms, converged), the inputs where the fit is not made (NaN window)."""
+def _product_fit(img, corner, params, window, cov, rms, converged):
+    """The final fit, of `xfit.product_shaded_model` (the blurred product), from the second fit's
+    params (n, 11, about corner (n, 2); index 9 the shadow edge's blur) in windows (n,) about the
+    corner. Returns (corner, params about it (index 9 the edge's blur again), cov, rms, converged),
+    the inputs where the fit is not made (NaN window)."""
     corner, params = corner.copy(), params.copy()
     cov, rms, converged = cov.copy(), rms.copy(), converged.copy()
     ok = np.isfinite(window) & np.all(np.isfinite(params), axis=1)
@@ -217,23 +192,43 @@ def _unshaded_fit(img, corner, params, window, cov, rms, converged, band_blurs=B
         idx = np.nonzero(ok & (window == value))[0]
         x, y, values, weights = xfit.window(img, corner[idx], float(value))
         x, y = x - corner[idx, :1], y - corner[idx, 1:]
+        start = params[idx].copy()
+        start[:, :2] = 0.0
+        start[:, 9] = np.sqrt(np.maximum(start[:, 9] ** 2 - start[:, 4] ** 2, xfit.MIN_BLUR**2))  # the penumbra
+        fitted, cov[idx], rms[idx], converged[idx] = xfit.fit(start, x, y, values, weights, PRODUCT_ITERATIONS,
+                                                              model=xfit.product_shaded_model)
+        fitted[:, 9] = np.hypot(fitted[:, 4], fitted[:, 9])
+        new = corner[idx] + fitted[:, :2]
+        corner[idx], params[idx] = new, _line_about(fitted, corner[idx], new)
+    return corner, params, cov, rms, converged
+
+
+def _unshaded_corner(img: np.ndarray, corner: np.ndarray, params: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """(n, 2) the corner of the check fit: the X alone (`xfit.model`) fitted to the pixels of
+    windows (n,) about corner (n, 2) with the fitted shade of params (n, 11, about the corner)
+    divided out and the band of BAND_BLURS x its blur about the shadow edge left out (there the
+    shade is no constant factor); NaN where the fit is not made (NaN window)."""
+    out = np.full((len(corner), 2), np.nan)
+    ok = np.isfinite(window) & np.all(np.isfinite(params), axis=1)
+    for value in np.unique(window[ok]):
+        idx = np.nonzero(ok & (window == value))[0]
+        x, y, values, weights = xfit.window(img, corner[idx], float(value))
+        x, y = x - corner[idx, :1], y - corner[idx, 1:]
         edge = (np.cos(params[idx, 7:8]) * x + np.sin(params[idx, 7:8]) * y - params[idx, 8:9]) / params[idx, 9:10]
-        weights = weights * (np.abs(edge) > band_blurs)
+        weights = weights * (np.abs(edge) > BAND_BLURS)
         shaded = edge > 0
         kept = 1.0 - params[idx, 10:11]  # the share of light in the shade
-        fitted = (params[idx, :7].copy(),)
-        fitted[0][:, :2] = 0.0
+        fitted = params[idx, :7].copy()
+        fitted[:, :2] = 0.0
         for _ in range(UNSHADED_ROUNDS):
             # Outside the band the shade is a constant factor: fit the X to the pixels with it
             # divided out, then the factor to the shaded pixels given the X, and again.
-            fitted = xfit.fit(fitted[0], x, y, np.where(shaded, values / np.maximum(kept, 1e-3), values), weights)
-            corner_model = xfit.model(fitted[0], x, y, jacobian=False)[0]
+            fitted = xfit.fit(fitted, x, y, np.where(shaded, values / np.maximum(kept, 1e-3), values), weights)[0]
+            corner_model = xfit.model(fitted, x, y, jacobian=False)[0]
             w = weights * shaded
             kept = ((w * values * corner_model).sum(1) / np.maximum((w * corner_model**2).sum(1), 1e-12))[:, None]
-        new = corner[idx] + fitted[0][:, :2]
-        moved = _line_about(np.column_stack([fitted[0], params[idx, 7:]]), corner[idx], new)
-        corner[idx], params[idx], cov[idx], rms[idx], converged[idx] = new, moved, fitted[1], fitted[2], fitted[3]
-    return corner, params, cov, rms, converged
+        out[idx] = corner[idx] + fitted[:, :2]
+    return out
 
 
 def _line_about(params: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndarray:
@@ -253,14 +248,46 @@ def _fit_about(img: np.ndarray, centre: np.ndarray, params: np.ndarray, radius: 
     return xfit.fit(params, x, y, values, weights, model=xfit.shaded_model)
 
 
+
+def _first_fit(img: np.ndarray, given: np.ndarray, uv: np.ndarray, start: np.ndarray, contrast: float):
+    """The first fit of the shaded model in FIRST_WINDOW_PX from start params (m, 11) about uv
+    (m, 2); where it is not plausible, again from the start about the symmetric centre of the
+    candidates given (m, 2) (a start a few px off, drawn towards the shadow edge, can fail to
+    converge). Returns (its corners (m, 2), its params about them (m, 11), plausible (m,))."""
+    centre, about, ok = _plausible_fit(img, uv, start, contrast, uv)
+    again = np.nonzero(~ok)[0]
+    if len(again) == 0:
+        return centre, about, ok
+    moved = symmetric_centre(img, given[again])
+    restart = _start_params(img, moved)[0]
+    started = np.all(np.isfinite(restart), axis=1)
+    again, moved, restart = again[started], moved[started], restart[started]
+    if len(again):
+        centre2, about2, ok2 = _plausible_fit(img, moved, restart, contrast, uv[again])
+        rows = again[ok2]
+        centre[rows], about[rows], ok[rows] = centre2[ok2], about2[ok2], True
+    return centre, about, ok
+
+
+def _plausible_fit(img, uv, start, contrast, anchor):
+    """`_fit_about` in FIRST_WINDOW_PX from start (m, 11) about uv (m, 2): (corners (m, 2), params
+    about them (m, 11), plausible (m,): `_plausible` and within MAX_MOVE_PX of anchor (m, 2))."""
+    params, cov, rms, converged = _fit_about(img, uv, start, FIRST_WINDOW_PX)
+    centre = uv + params[:, :2]
+    about = _line_about(params, uv, centre)
+    ok = np.all(np.isfinite(centre), axis=1) & (np.hypot(*(centre - anchor).T) <= MAX_MOVE_PX)
+    return centre, about, ok & _plausible(about, cov, rms, converged, FIRST_WINDOW_PX, contrast)
+
 def _start(img: np.ndarray, uv: np.ndarray):
-    """(start points (n, 2), `_start_params` (n, 11) about them, rows (m,) of a point-symmetric X
-    but no start): the candidates uv (n, 2), or where no start is found there, their coarse
-    centring (`refine.seed`; the candidates of a shadowed X can be a few px off its corner)."""
+    """(start points (n, 2), `_start_params` (n, 11) about them, NaN rows where none): the
+    candidates uv (n, 2); where no start is found there but the ring is a point-symmetric X, their
+    coarse centring (`refine.seed`; the candidates of a shadowed X can be a few px off its corner);
+    where neither starts, their symmetric centre (`symmetric_centre`, the X of at least
+    CENTRE_X_LOG log contrast there)."""
     start, symmetric = _start_params(img, uv)
     retry = np.nonzero(symmetric & ~np.all(np.isfinite(start), axis=1))[0]
     if len(retry) == 0:
-        return uv, start, retry
+        return uv, start
     uv = uv.copy()
     moved = seed(img, uv[retry], SEED_SHIFT_PX)
     ok = np.all(np.isfinite(moved), axis=1)
@@ -268,20 +295,13 @@ def _start(img: np.ndarray, uv: np.ndarray):
     found = np.all(np.isfinite(again), axis=1)
     rows = retry[ok][found]
     uv[rows], start[rows] = moved[ok][found], again[found]
-    return uv, start, retry[~np.all(np.isfinite(start[retry]), axis=1)]
-
-
-def _centred_start(img: np.ndarray, uv: np.ndarray, rows: np.ndarray, contrast: float):
-    """((n,) True where the rows of points uv (n, 2) (a point-symmetric X but no start) have a start
-    (`_start_params`, the X of at least CENTRE_X_LOG log contrast) about their symmetric centre,
-    those centres (n, 2), NaN elsewhere)."""
-    found, centre = np.zeros(len(uv), dtype=bool), np.full((len(uv), 2), np.nan)
-    if len(rows) == 0:
-        return found, centre
-    centre[rows] = symmetric_centre(img, uv[rows])
-    params = _start_params(img, centre[rows], CENTRE_X_LOG)[0]
-    found[rows] = np.all(np.isfinite(params), axis=1) & (2.0 * np.abs(params[:, 6]) >= contrast)
-    return found, centre
+    rows = retry[~np.all(np.isfinite(start[retry]), axis=1)]
+    if len(rows):
+        centre = symmetric_centre(img, uv[rows])
+        again = _start_params(img, centre, CENTRE_X_LOG)[0]
+        found = np.all(np.isfinite(again), axis=1)
+        uv[rows[found]], start[rows[found]] = centre[found], again[found]
+    return uv, start
 
 
 def _start_params(img: np.ndarray, uv: np.ndarray, min_x_log: float = MIN_X_LOG):

@@ -12,10 +12,14 @@ not move p to first order. Fitting explicitly for the blur is what keeps small, 
 foreshortened corners accurate, where the gradient condition of cv2.cornerSubPix is biased by the
 rounded saddle at the centre and needs a window larger than the marker.
 
+An X crossed by a cast shadow's edge: `shaded_model`, the product of the blurred X and the
+blurred light (cheap, exact away from where the shadow edge crosses an edge of the X), and
+`product_shaded_model`, the blurred product (computed on a fine grid).
+
 `fit` runs Levenberg-Marquardt on all corners at once (one window radius), with fixed taper
-weights w = (1 - d^2 / R^2)^2 about a fixed window centre, and returns the parameters, the
-covariance of p from the weighted residual (a sandwich estimate, so misfit raises it too) and the
-RMS residual.
+weights w = (1 - d^2 / R^2)^2 about a fixed window centre, the blurs held at their floor
+MIN_BLUR while a step would push them below, and returns the parameters, the covariance of p
+from the weighted residual (a sandwich estimate, so misfit raises it too) and the RMS residual.
 """
 
 from __future__ import annotations
@@ -101,6 +105,109 @@ def shaded_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: boo
     return value, jac
 
 
+
+GRID_PX = 0.25  # `product_shaded_model`: spacing of its fine grid (1 px / an integer)
+_SOFT = GRID_PX  # and the softening of the X's edges on it (standard deviation, taken off the blur)
+_LOGISTIC = np.sqrt(3.0) / np.pi  # a logistic step's scale per its standard deviation
+
+
+def product_shaded_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: bool = True):
+    """The blurred product of a sharp X-corner and a shadow edge's light: values (n, k) at pixels
+    x, y (n, k) (each row on one integer lattice) for params (n, 11), and the Jacobian (n, k, 11).
+
+    The parameters are `shaded_model`'s but for index 9: here the shadow edge's softness before
+    the optical blur (its penumbra, px; its blur in the image is sqrt(s^2 + penumbra^2)). The light
+    (1 - q step(l_3 / penumbra)) multiplies the X (m + c step(l_1) step(l_2), +-1 steps) on a fine
+    grid (GRID_PX; logistic steps, those of the X of standard deviation _SOFT), which is then
+    blurred by a Gaussian of sqrt(s^2 - _SOFT^2) and sampled at the pixels: separable, so two
+    matrix products per row. Exact where `shaded_model` is not, where the shadow edge crosses an
+    edge of the X (there the product of the blurred factors moves a fitted corner by up to
+    ~0.3 px); ~10 ms per row of a 15 px window (~100x `shaded_model`).
+    """
+    n, k = x.shape
+    value = np.empty((n, k))
+    jac = np.empty((n, k, N_SHADED)) if jacobian else None
+    for i in range(n):
+        value[i], row = _product_on_grid(params[i], x[i], y[i], jacobian)
+        if jacobian:
+            jac[i] = row
+    return value, jac
+
+
+def _product_on_grid(p: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: bool):
+    """One row of `product_shaded_model`: values (k,) and Jacobian (k, 11) or None."""
+    px, py, t1, t2, s, m, c, t3, e3, soft, q = p
+    blur = np.sqrt(max(s * s - _SOFT * _SOFT, 1e-4))
+    cols, col_of = np.unique(x, return_inverse=True)
+    rows, row_of = np.unique(y, return_inverse=True)
+    pad = np.ceil(4.0 * blur + 1.0)
+    gx = np.arange(cols[0] - pad, cols[-1] + pad + 1e-9, GRID_PX)
+    gy = np.arange(rows[0] - pad, rows[-1] + pad + 1e-9, GRID_PX)
+    kx, dkx = _blur_matrix(cols, gx, blur)
+    ky, dky = _blur_matrix(rows, gy, blur)
+    zx, zy = gx[None, :], gy[:, None]
+    c1, s1, c2, s2, c3, s3 = np.cos(t1), np.sin(t1), np.cos(t2), np.sin(t2), np.cos(t3), np.sin(t3)
+    ex, ey = zx - px, zy - py
+    l1, l2 = c1 * ex + s1 * ey, c2 * ex + s2 * ey
+    l3 = c3 * zx + s3 * zy - e3
+    # Sigmoids of the grid's edges: tanh(l / (2 w)) is a logistic step of standard deviation
+    # w pi / sqrt(3) (as smooth on the grid as the Gaussian's, at a third of erf's cost).
+    w_x, w_3 = _SOFT * _LOGISTIC, soft * _LOGISTIC
+    a, b = np.tanh(l1 * (0.5 / w_x)), np.tanh(l2 * (0.5 / w_x))
+    shade = np.tanh(l3 * (0.5 / w_3))
+    dshade = 1.0 - shade * shade  # d shade / d l3 = dshade / (4 w_3), shade in [0, 1] below
+    shade += 1.0
+    shade *= 0.5
+    ab = a * b
+    light = 1.0 - q * shade
+    corner = c * ab
+    corner += m
+    if not jacobian:
+        return (ky @ (corner * light) @ kx.T)[row_of, col_of], None
+    maps = np.empty((11,) + l1.shape)
+    np.multiply(corner, light, out=maps[0])
+    maps[5] = light
+    np.multiply(ab, light, out=maps[6])
+    np.multiply(corner, shade, out=maps[10])
+    np.negative(maps[10], out=maps[10])
+    # d a / d l1 = (1 - a^2) / (2 w_x), likewise b; times c * light and the other factor.
+    scale = c * light * (0.5 / w_x)
+    da = 1.0 - a * a
+    da *= b
+    da *= scale
+    db = 1.0 - b * b
+    db *= a
+    db *= scale
+    np.negative(c1 * da + c2 * db, out=maps[1])
+    np.negative(s1 * da + s2 * db, out=maps[2])
+    np.multiply(da, -s1 * ex + c1 * ey, out=maps[3])
+    np.multiply(db, -s2 * ex + c2 * ey, out=maps[4])
+    qc = dshade
+    qc *= corner
+    qc *= q / (4.0 * w_3)
+    maps[8] = qc
+    np.multiply(qc, -s3 * zx + c3 * zy, out=maps[7])
+    np.negative(maps[7], out=maps[7])
+    np.multiply(qc, l3 * (1.0 / soft), out=maps[9])
+    blurred = ky @ maps @ kx.T  # (11, rows, cols)
+    # d/ds acts on the kernels: d(Ky V Kx^T) = dKy V Kx^T + Ky V dKx^T, times d blur / d s.
+    dblur = (dky @ maps[0] @ kx.T + ky @ maps[0] @ dkx.T) * (s / blur)
+    out = blurred[:, row_of, col_of]
+    jac = np.empty((len(x), N_SHADED))
+    jac[:, [0, 1, 2, 3, 5, 6, 7, 8, 9, 10]] = out[1:].T
+    jac[:, 4] = dblur[row_of, col_of]
+    return out[0], jac
+
+
+def _blur_matrix(pixels: np.ndarray, grid: np.ndarray, blur: float):
+    """(m, g) weights of a Gaussian of `blur` from grid points (g,) to pixels (m,), each row
+    summing to 1, and their derivative in `blur`."""
+    u = pixels[:, None] - grid[None, :]
+    w = np.exp(-0.5 * (u / blur) ** 2)
+    dw = w * (u * u / blur**3)  # the -1/blur of the Gaussian's scale cancels in the normalisation
+    total, dtotal = w.sum(axis=1, keepdims=True), dw.sum(axis=1, keepdims=True)
+    return w / total, (dw - w * dtotal / total) / total
+
 def linear_levels(params: np.ndarray, x, y, values, weights) -> np.ndarray:
     """params (n, 7) with m, c set by weighted linear least squares for the other parameters."""
     params = params.copy()
@@ -135,19 +242,24 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=m
     eye = np.eye(n_params)
     converged = np.zeros(n, dtype=bool)
     active = np.arange(n)
+    bounded = [4, 9] if n_params == N_SHADED else [4]  # blurs, at least MIN_BLUR
     for _ in range(iterations):
         if len(active) == 0:
             break
         h = hess[active]
         damped = h + lam[active, None, None] * (eye * np.diagonal(h, axis1=1, axis2=2)[:, None, :] + 1e-9 * eye)
+        g = grad[active].copy()
+        # A blur at its floor that the step would push below is held for this step (an active
+        # set): clamping the step instead would spoil the other parameters' steps, and the fit creep.
+        for j in bounded:
+            held = (params[active, j] <= MIN_BLUR) & (g[:, j] > 0)
+            damped[held, j, :], damped[held, :, j], damped[held, j, j], g[held, j] = 0.0, 0.0, 1.0, 0.0
         try:
-            step = -np.linalg.solve(damped, grad[active][..., None])[..., 0]
+            step = -np.linalg.solve(damped, g[..., None])[..., 0]
         except np.linalg.LinAlgError:
-            step = -np.stack([np.linalg.lstsq(d, g, rcond=None)[0] for d, g in zip(damped, grad[active])])
+            step = -np.stack([np.linalg.lstsq(d, r, rcond=None)[0] for d, r in zip(damped, g)])
         trial = params[active] + step
-        trial[:, 4] = np.maximum(trial[:, 4], MIN_BLUR)
-        if n_params == N_SHADED:
-            trial[:, 9] = np.maximum(trial[:, 9], MIN_BLUR)
+        trial[:, bounded] = np.maximum(trial[:, bounded], MIN_BLUR)
         # The trial's Jacobian with its values: the next step's normal equations where it is taken.
         value, jac = model(trial, x[active], y[active])
         new_cost, new_hess, new_grad = _normal_equations(value - values[active], jac, weights[active])
