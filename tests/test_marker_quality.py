@@ -373,6 +373,22 @@ def test_shadowed_corner_fit_on_an_independent_render():
     assert shadow.shadowed_corners(edge.astype(np.float32), start, 25.0, 0.7, 4.0)[4][0] != ""
 
 
+def test_refinement_refits_a_corner_beside_a_shadow_edge(sharp_scene):
+    """`refine_corners` from starts near the truth, a shadow edge 3-5 px beyond the corners: the
+    corners it returns (15 of 54; the rest rejected as asymmetric) are all within 0.05 px, their
+    plain fits replaced by the fit with the edge in the model (0.05-0.14 px off before)."""
+    image, truth = sharp_scene
+    returned = 0
+    for offset in (3.0, 4.0, 5.0):
+        for angle in (35.0, 100.0, 160.0):
+            corners = refine_corners(in_the_shade(image, truth, offset, angle),
+                                     starts(truth, np.random.default_rng(int(angle))))
+            error = np.linalg.norm(corners.uv - truth, axis=1)
+            assert np.all(np.where(np.isnan(error), corners.reason != "", error < 0.05))
+            returned += int(np.count_nonzero(np.isfinite(error)))
+    assert returned >= 12
+
+
 def test_shadow_edge_off_the_corner_does_not_shift_it(sharp_scene):
     """A shadow edge 6 px from the corner, inside the window the marker allows: the window is cut
     to the part that is point symmetric about the corner; every corner within 0.1 px (0.15-0.2 px

@@ -126,6 +126,7 @@ REJECT_RESIDUAL = 0.08  # fit RMS residual / contrast above which a corner is re
 MAX_SIGMA_PX = 0.5  # corners less certain than this are rejected
 MIN_EDGE_ANGLE = np.radians(15.0)  # edges closer than this in direction are degenerate
 NO_CLEAN_X = "no clean X at the fit"
+SHADOW_MIN_QUALITY, SHADOW_MIN_RADIUS = 0.7, 4.0  # `_refit_shadowed`: the ring tests of the X with the shade divided out
 REASONS = ("no X pattern", "no convergence", "moved too far", "degenerate edges", "blur exceeds window", "poor fit",
            "uncertain", NO_CLEAN_X, "asymmetric at the corner (a shadow edge or an occluder)")
 
@@ -171,7 +172,9 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
     exceeds the window radius (no edge in the window, only a smooth saddle), its residual exceeds
     REJECT_RESIDUAL of the contrast (e.g. a shadow edge or an occluder through it), its
     uncertainty exceeds MAX_SIGMA_PX, or no ring about the fitted centre is a clean X (NO_CLEAN_X:
-    a shadow edge through the corner itself).
+    a shadow edge through the corner itself). Where the rings about a returned corner show a
+    shadow edge near it, the fit with the edge in the model replaces the plain one if confirmed
+    (`_refit_shadowed`).
     """
     img = as_float_image(image)
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
@@ -225,7 +228,24 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
     out.contrast[:] = 2.0 * np.abs(params[:, 6])
     out.fit_residual[:] = rms / np.maximum(out.contrast, 1e-9)
     out.blur_px[:], out.window_px[:], out.reason[:] = params[:, 4], radius, reason
+    _refit_shadowed(img, out, np.nonzero(good)[0])
     return out
+
+
+def _refit_shadowed(img: np.ndarray, out: Corners, rows: np.ndarray) -> None:
+    """Where the rings about corners out.uv[rows] show a shadow edge near them, the corner fitted
+    with the edge in the model (`shadow.shadowed_corners`, its X of at least half the plain fit's
+    contrast) replaces the plain fit's, with its sigma and residual, where that fit is confirmed
+    (in place): a shadow edge near a clean X draws the plain model's corner by up to ~0.3 px."""
+    if len(rows) == 0:
+        return
+    from .shadow import shadowed_corners  # it builds on this module's ring tests and fits
+
+    uv, _, sigma, residual, why = shadowed_corners(img, out.uv[rows], 0.5 * out.contrast[rows], SHADOW_MIN_QUALITY,
+                                                   SHADOW_MIN_RADIUS)
+    confirmed = why == ""
+    rows = rows[confirmed]
+    out.uv[rows], out.sigma_px[rows], out.fit_residual[rows] = uv[confirmed], sigma[confirmed], residual[confirmed]
 
 
 SHRINK = 0.75

@@ -71,7 +71,7 @@ CENTRE_X_LOG = 0.9  # least log contrast of the X on the start ring about the sy
 _STEPS = tuple((phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.6, -0.3, 0.0, 0.3, 0.6))
 
 
-def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: float, min_radius: float):
+def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast, min_quality: float, min_radius: float):
     """Fit X-corners crossed by a shadow edge near candidates uv (n, 2) of float image img (h, w).
 
     Returns (uv (n, 2) the corners (where rejected, the first fit's corner or the candidate), NaN
@@ -79,7 +79,7 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     out; sigma_px (n,); fit_residual (n,); reason (n,): '' for a corner, SHADOW_REASON where the
     start found an X crossed by a shadow edge (`_start_params`) but the fits did not confirm a
     corner, None where the candidate shows no shadowed X). contrast: least contrast (image units)
-    of the lit X; min_quality, min_radius: the ring tests' (`detect`)."""
+    of the lit X, one or (n,); min_quality, min_radius: the ring tests' (`detect`)."""
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     n = len(uv)
     out_uv, radius = np.full((n, 2), np.nan), np.zeros(n)
@@ -87,12 +87,12 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     reason = np.full(n, None, dtype=object)
     if n == 0:
         return out_uv, radius, sigma, residual, reason
-    given = uv
+    given, contrast = uv, np.broadcast_to(np.asarray(contrast, dtype=float), (n,))
     uv, start = _start(img, uv)
     tried = np.nonzero(np.all(np.isfinite(start), axis=1) & (2.0 * np.abs(start[:, 6]) >= contrast))[0]
     if len(tried) == 0:
         return out_uv, radius, sigma, residual, reason
-    centre, about, moved = _first_fit(img, given[tried], uv[tried], start[tried], contrast)
+    centre, about, moved = _first_fit(img, given[tried], uv[tried], start[tried], contrast[tried])
     # The second fit about the first's corner, over the clean X with the shade divided out.
     window = np.full(len(tried), np.nan)
     if moved.any():
@@ -112,7 +112,7 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast: float, min_quali
     joint_line = _line_about(params, centre, joint)
     corner, line, cov, rms, converged = _product_fit(img, joint, joint_line, window, cov, rms, converged)
     clean = np.zeros(n_tried)
-    good = _plausible(line, cov, rms, converged, window, contrast) & (np.hypot(*(corner - uv[tried]).T)
+    good = _plausible(line, cov, rms, converged, window, contrast[tried]) & (np.hypot(*(corner - uv[tried]).T)
                                                                         <= MAX_MOVE_PX)
     if good.any():
         clean[good] = _deshaded_clean_radius(img, corner[good], line[good], min_quality)
@@ -249,11 +249,12 @@ def _fit_about(img: np.ndarray, centre: np.ndarray, params: np.ndarray, radius: 
 
 
 
-def _first_fit(img: np.ndarray, given: np.ndarray, uv: np.ndarray, start: np.ndarray, contrast: float):
+def _first_fit(img: np.ndarray, given: np.ndarray, uv: np.ndarray, start: np.ndarray, contrast: np.ndarray):
     """The first fit of the shaded model in FIRST_WINDOW_PX from start params (m, 11) about uv
     (m, 2); where it is not plausible, again from the start about the symmetric centre of the
     candidates given (m, 2) (a start a few px off, drawn towards the shadow edge, can fail to
-    converge). Returns (its corners (m, 2), its params about them (m, 11), plausible (m,))."""
+    converge); contrast (m,) the least of the X. Returns (its corners (m, 2), its params about
+    them (m, 11), plausible (m,))."""
     centre, about, ok = _plausible_fit(img, uv, start, contrast, uv)
     again = np.nonzero(~ok)[0]
     if len(again) == 0:
@@ -263,7 +264,7 @@ def _first_fit(img: np.ndarray, given: np.ndarray, uv: np.ndarray, start: np.nda
     started = np.all(np.isfinite(restart), axis=1)
     again, moved, restart = again[started], moved[started], restart[started]
     if len(again):
-        centre2, about2, ok2 = _plausible_fit(img, moved, restart, contrast, uv[again])
+        centre2, about2, ok2 = _plausible_fit(img, moved, restart, contrast[again], uv[again])
         rows = again[ok2]
         centre[rows], about[rows], ok[rows] = centre2[ok2], about2[ok2], True
     return centre, about, ok
