@@ -17,7 +17,9 @@
    opposite sectors, two bright opposite sectors), whatever the rotation, foreshortening or
    polarity. Board outline corners (L), T-junctions and texture fail it.
 3. Sub-pixel refinement (`refine.refine_corners`: a blurred X-corner model fit, which rejects a
-   corner whose fit is poor and gives each its uncertainty), the rejection of detections less
+   corner whose fit is poor and gives each its uncertainty; where it calls a corner asymmetric or
+   its fit poor, ASYMMETRIC_REASONS, a shadow edge near it is the likely cause, and the fit with
+   the edge in the model has a second go, `_add_shadowed`), the rejection of detections less
    certain than MAX_SIGMA_PX (UNCERTAIN), and de-duplication.
 """
 
@@ -29,8 +31,8 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from .refine import (_ring_offsets, _ring_stats, as_float_image, clean_radius, refine_corners, ring_quality, sample,
-                     seed)
+from .refine import (ASYMMETRIC, NO_CLEAN_X, _ring_offsets, _ring_stats, as_float_image, clean_radius, refine_corners,
+                     ring_quality, sample, seed)
 from .shadow import SHADOW_REASON, both_sides, line_ends, shadowed_corners, step_masks
 
 COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
@@ -46,6 +48,7 @@ MAX_CANDIDATES = 20000
 DUPLICATE_PX = 2.0
 MAX_SIGMA_PX = 0.1  # px: detections less certain than this are rejected (UNCERTAIN)
 UNCERTAIN = "uncertain for a detection (sigma > 0.1 px)"
+ASYMMETRIC_REASONS = (ASYMMETRIC, "poor fit", NO_CLEAN_X)  # refinement failures a shadow edge can cause
 
 
 def _empty() -> pd.DataFrame:
@@ -142,7 +145,13 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
     if refine_points:
         corners = refine_corners(img, cand)
         ok = np.all(np.isfinite(corners.uv), axis=1)
-        failed = pd.DataFrame({"u": cand[~ok, 0], "v": cand[~ok, 1], "reason": corners.reason[~ok]})
+        # A shadow edge near the corner can fail the plain fit (asymmetric, a poor fit) where the
+        # ring tests passed: such candidates get the fit with the edge in the model.
+        asymmetric = np.nonzero(~ok & np.isin(corners.reason, ASYMMETRIC_REASONS))[0]
+        shade, saved = _add_shadowed(img, cand[asymmetric], contrast, min_quality, shade)
+        dropped = ~ok
+        dropped[asymmetric[saved]] = False
+        failed = pd.DataFrame({"u": cand[dropped, 0], "v": cand[dropped, 1], "reason": corners.reason[dropped]})
         rejected = pd.concat([rejected, failed], ignore_index=True) if len(failed) else rejected
         cand, radius, quality = corners.uv[ok], radius[ok], quality[ok]
         sigma, fit = corners.sigma_px[ok], corners.fit_residual[ok]
@@ -172,6 +181,20 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
         distance = cKDTree(frame[["u", "v"]].to_numpy()).query(rejected[["u", "v"]].to_numpy(dtype=float))[0]
         rejected = rejected[distance >= DUPLICATE_PX].reset_index(drop=True)
     return (frame, rejected) if with_rejected else frame
+
+
+def _add_shadowed(img, uv, contrast, min_quality, shade):
+    """The corners fitted with a shadow edge (`shadow.shadowed_corners`) about candidates uv (m, 2)
+    appended to shade (uv, clean radius, ring quality, sigma_px, fit_residual); and (m,) where one
+    was confirmed."""
+    if len(uv) == 0:
+        return shade, np.zeros(0, dtype=bool)
+    found_uv, found_radius, found_sigma, found_fit, why = shadowed_corners(img, uv, contrast, min_quality,
+                                                                           MIN_CLEAN_RADIUS)
+    saved = why == ""
+    more = (found_uv[saved], found_radius[saved], np.full(saved.sum(), min_quality), found_sigma[saved],
+            found_fit[saved])
+    return tuple(np.concatenate([a, b]) for a, b in zip(shade, more)), saved
 
 
 def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.ndarray | None = None,

@@ -22,9 +22,10 @@ with the X.
   crosses an edge of the X the product of the blurred factors is not the blurred product, and
   moves the fitted corner by up to ~0.3 px.
 - Checks: the final fit plausible (`_plausible`), the X with the shade divided out clean
-  (`refine.clean_radius`) beyond MIN_CLEAN_PX, and the corner confirmed within AGREE_PX by a fit
-  of the X alone to the pixels beside the shadow edge with the shade divided out
-  (`_unshaded_corner`), and its uncertainty within MAX_SIGMA_PX_SHADED. A marker's edge or outline corner crossed by a shadow edge can pass the
+  (`refine.clean_radius`) beyond MIN_CLEAN_PX, its uncertainty within MAX_SIGMA_PX_SHADED, and
+  the corner confirmed (`_confirmed`) by a fit of the X alone to the pixels beside the shadow
+  edge with the shade divided out (`_unshaded_corner`), or where that fit does not see the corner
+  by the final fit in a smaller window. A marker's edge or outline corner crossed by a shadow edge can pass the
   others (the fitted X's edges are then the marker's edge and the shadow's), not this one.
 
 Every candidate that starts is either returned or rejected with SHADOW_REASON, never dropped
@@ -59,6 +60,8 @@ MIN_SHADE, MAX_SHADE = 0.2, 0.95  # the share of light the fitted shade takes
 MAX_MOVE_PX = 8.0
 SEED_SHIFT_PX = 4.0  # a candidate's coarse centring, at most this far, where no start is found at it
 AGREE_PX = 0.13  # the final fit's corner and the check fit's, at most this apart
+SMALLER_WINDOW = 0.6  # or the final fit's in a window this much smaller (at least MIN_WINDOW_PX)
+WINDOW_AGREE_PX = 0.1  # at most this apart
 MAX_SIGMA_PX_SHADED = 0.05  # px: the final fit's uncertainty at most (a corner within 0.1 px at 2 sigma)
 PRODUCT_ITERATIONS = 20  # of the final fit, from the second's parameters
 UNSHADED_ROUNDS = 3
@@ -101,8 +104,7 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast, min_quality: flo
     params = np.where(moved[:, None], about, np.nan)
     params[:, :2] = 0.0
     n_tried = len(tried)
-    fitted = (np.full_like(params, np.nan), np.full((n_tried, 2, 2), np.nan), np.full(n_tried, np.nan),
-              np.zeros(n_tried, dtype=bool))
+    fitted = (np.full_like(params, np.nan),) + _no_fit(n_tried)
     for value in np.unique(window[moved]):
         idx = np.nonzero(moved & (window == value))[0]
         for array, result in zip(fitted, _fit_about(img, centre[idx], params[idx], float(value))):
@@ -117,13 +119,9 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast, min_quality: flo
     if good.any():
         clean[good] = _deshaded_clean_radius(img, corner[good], line[good], min_quality)
     good &= clean >= max(min_radius, MIN_CLEAN_PX)
-    # The fit of the X alone beside the shadow edge must confirm the corner: where it does not, the
-    # "X" is mostly a marker's outline or edge crossed by the shadow edge.
-    check = _unshaded_corner(img, joint, joint_line, window)
-    good &= np.hypot(*(corner - check).T) <= AGREE_PX
     with np.errstate(invalid="ignore"):
-        certain = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2)) <= MAX_SIGMA_PX_SHADED
-    good &= certain
+        good &= np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2)) <= MAX_SIGMA_PX_SHADED
+    good &= _confirmed(img, corner, joint, joint_line, window, good)
     # A shadowed X the start found whose corner the fits do not confirm: rejected, with the reason,
     # at its symmetric centre (the candidate and the fits can be 3-4 px off, drawn to the shadow edge).
     reason[tried[~good]] = SHADOW_REASON
@@ -133,6 +131,28 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast, min_quality: flo
     sigma[rows] = np.sqrt(0.5 * np.trace(cov[good], axis1=1, axis2=2))
     residual[rows] = rms[good] / (2.0 * np.abs(line[good, 6]))
     return out_uv, radius, sigma, residual, reason
+
+
+def _confirmed(img, corner, joint, line, window, rows) -> np.ndarray:
+    """(n,) where the final fit's corner (n, 2) is confirmed, of the rows (n,) asked: by the fit of
+    the X alone beside the shadow edge (`_unshaded_corner`, from the second fit: its corner joint
+    (n, 2), its line (n, 11) and window (n,)) within AGREE_PX, or, where that fit does not see the
+    corner (the band it leaves out covers it and it extrapolates, off by up to ~1 px), by the
+    final fit in a window SMALLER_WINDOW as large within WINDOW_AGREE_PX. A marker's outline or
+    edge crossed by the shadow edge, or a second shadow edge, passes neither."""
+    ok = np.zeros(len(corner), dtype=bool)
+    ok[rows] = np.hypot(*(corner - _unshaded_corner(img, joint, line, window)).T)[rows] <= AGREE_PX
+    again = rows & ~ok
+    if again.any():
+        smaller = np.where(again, np.maximum(MIN_WINDOW_PX, SMALLER_WINDOW * window), np.nan)
+        moved = _product_fit(img, joint, line, smaller, *_no_fit(len(corner)))[0]
+        ok[again] = np.hypot(*(corner - moved).T)[again] <= WINDOW_AGREE_PX
+    return ok
+
+
+def _no_fit(n: int):
+    """(cov (n, 2, 2), rms (n,), converged (n,)) of no fit, for the fits' outputs to fill."""
+    return np.full((n, 2, 2), np.nan), np.full(n, np.nan), np.zeros(n, dtype=bool)
 
 
 def symmetric_centre(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
