@@ -281,8 +281,10 @@ def _first_fit(img: np.ndarray, given: np.ndarray, uv: np.ndarray, start: np.nda
         return centre, about, ok
     moved = symmetric_centre(img, given[again])
     restart = _start_params(img, moved)[0]
-    started = np.all(np.isfinite(restart), axis=1)
-    again, moved, restart = again[started], moved[started], restart[started]
+    # No start there: the first start's X and line, moved to the symmetric centre.
+    unstarted = ~np.all(np.isfinite(restart), axis=1)
+    restart[unstarted] = _line_about(start[again[unstarted]], uv[again[unstarted]], moved[unstarted])
+    restart[unstarted, :2] = 0.0
     if len(again):
         centre2, about2, ok2 = _plausible_fit(img, moved, restart, contrast[again], uv[again])
         rows = again[ok2]

@@ -109,6 +109,7 @@ def shaded_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: boo
 GRID_PX = 0.25  # `product_shaded_model`: spacing of its fine grid (1 px / an integer)
 _SOFT = GRID_PX  # and the softening of the X's edges on it (standard deviation, taken off the blur)
 _LOGISTIC = np.sqrt(3.0) / np.pi  # a logistic step's scale per its standard deviation
+MAX_GRID_BLUR = 3.0  # px: the grid reaches 4 such blurs beyond the pixels at most (the kernel is cut there)
 
 
 def product_shaded_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: bool = True):
@@ -140,7 +141,7 @@ def _product_on_grid(p: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: bool
     blur = np.sqrt(max(s * s - _SOFT * _SOFT, 1e-4))
     cols, col_of = np.unique(x, return_inverse=True)
     rows, row_of = np.unique(y, return_inverse=True)
-    pad = np.ceil(4.0 * blur + 1.0)
+    pad = np.ceil(4.0 * min(blur, MAX_GRID_BLUR) + 1.0)  # a trial step's huge blur must not make a huge grid
     gx = np.arange(cols[0] - pad, cols[-1] + pad + 1e-9, GRID_PX)
     gy = np.arange(rows[0] - pad, rows[-1] + pad + 1e-9, GRID_PX)
     kx, dkx = _blur_matrix(cols, gx, blur)
