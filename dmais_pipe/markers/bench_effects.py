@@ -61,7 +61,7 @@ def _scene(rng: np.random.Generator, options: dict):
 def measure_effect(name: str, options: dict, images: int, seed: int) -> dict:
     """One row of the effects table."""
     rng = np.random.default_rng(seed)
-    found = errors = false = wrong = correct = n_true = rejected_true = 0
+    found = false = wrong = correct = n_true = rejected_true = 0
     errs, reasons, fine, fine_reasons, reasons_true = [], Counter(), [], Counter(), Counter()
     for k in range(images):
         image, truth = _scene(rng, options)
