@@ -28,25 +28,14 @@ import pandas as pd
 
 from .calib.rig_ba import add_colmap_frame, add_colmap_rig, colmap_pixels
 from .errors import DmaisError
-from .geometry import Rigid3
 from .rig import Rig
+from .workspace import rig_from_world_of
 
 FORMATS = ("text", "binary")
 #: The files of a COLMAP sparse model (COLMAP >= 3.12: with rigs and frames), by format.
 MODEL_FILES = {fmt: tuple(f"{name}.{'txt' if fmt == 'text' else 'bin'}"
                           for name in ("cameras", "images", "points3D", "rigs", "frames")) for fmt in FORMATS}
 RIG_ID = 1  # the rig add_colmap_rig adds
-
-
-def camera_order(rig: Rig) -> list[str]:
-    """The rig's cameras, reference first (COLMAP camera ids 1, 2, ... in this order)."""
-    return [rig.reference_camera] + [c for c in rig.camera_names if c != rig.reference_camera]
-
-
-def rig_from_world_of(pose_row) -> Rigid3:
-    """rig_from_world of a poses.csv row (qw, qx, qy, qz, tx, ty, tz)."""
-    return Rigid3.from_quat([pose_row.qw, pose_row.qx, pose_row.qy, pose_row.qz],
-                            [pose_row.tx, pose_row.ty, pose_row.tz])
 
 
 def flight_reconstruction(rig: Rig, poses: pd.DataFrame, images: pd.DataFrame, names: dict[str, str],
@@ -61,7 +50,7 @@ def flight_reconstruction(rig: Rig, poses: pd.DataFrame, images: pd.DataFrame, n
     import pycolmap
 
     rec = pycolmap.Reconstruction()
-    order = camera_order(rig)
+    order = rig.cameras_reference_first
     camera_ids = add_colmap_rig(rec, rig.cameras, order, {c: rig.cam_from_rig[c].inverse() for c in order})
     used = observations[observations["used"]]
     missing = sorted(set(used["point_id"]) - set(points.index))

@@ -43,11 +43,11 @@ import pandas as pd
 
 from .dataset import Dataset
 from .frames import frame_observations
-from .geometry import Rigid3, rotation_error, rotation_from_quat
+from .geometry import rotation_error, rotation_from_quat
 from .pos_calibration import ARCMIN_PER_RAD, LeverArm, fit_lever_arm
 from .pose.refine import cramer_rao_bound
 from .rig import Rig
-from .workspace import CENTER, QUAT, ResultsError
+from .workspace import CENTER, QUAT, ResultsError, rig_from_world_of
 
 log = logging.getLogger(__name__)
 
@@ -317,7 +317,7 @@ def reprojection_residuals(dataset: Dataset, rig: Rig, poses: pd.DataFrame, obse
         frame = by_frame.get(pose.frame)
         if frame is None:
             continue
-        rig_from_world = Rigid3.from_quat([pose.qw, pose.qx, pose.qy, pose.qz], [pose.tx, pose.ty, pose.tz])
+        rig_from_world = rig_from_world_of(pose)
         for camera in (rig.camera_names if every_camera else pose.cameras.split("+")):
             mine = frame.cameras == camera
             if not mine.any():

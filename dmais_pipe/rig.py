@@ -36,6 +36,11 @@ class Rig:
     def camera_names(self) -> list[str]:
         return list(self.cameras)
 
+    @property
+    def cameras_reference_first(self) -> list[str]:
+        """The cameras, the reference first, the others in their order (COLMAP's camera ids 1, 2, ...)."""
+        return [self.reference_camera] + [c for c in self.cameras if c != self.reference_camera]
+
     def camera_center(self, camera: str) -> np.ndarray:
         """(3,) centre of `camera` in the rig frame (the paper's v)."""
         self._check_known(camera)

@@ -23,6 +23,7 @@ from .camera import Camera
 from .dataset import STAGES, Dataset, Table, read_observation_table, read_table
 from .errors import DatasetError, DmaisError
 from .files import csv_text, write_csv_atomic, write_json_atomic, write_text_atomic
+from .geometry import Rigid3
 from .rig import Rig
 
 log = logging.getLogger(__name__)
@@ -47,6 +48,11 @@ MARKER_REQUIRED = ("u", "v", "score", "point_id")
 #: intrinsics/<camera>.residuals.csv: per observation of our calibration, observed minus projected (px).
 CALIBRATION_RESIDUAL_COLUMNS = ("image", "split", "point_id", "u", "v", "du", "dv")
 SUBSET_FILE = re.compile(r"^poses_(\d+)\.csv$")
+
+
+def rig_from_world_of(pose_row) -> Rigid3:
+    """rig_from_world of a poses.csv row (an itertuples row with qw, qx, qy, qz, tx, ty, tz)."""
+    return Rigid3.from_quat([getattr(pose_row, c) for c in QUAT], [getattr(pose_row, c) for c in TRANSLATION])
 
 
 class ResultsError(DatasetError):

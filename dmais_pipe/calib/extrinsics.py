@@ -287,7 +287,7 @@ def colmap_rig_config(rig: Rig, prefixes: dict[str, str] | None = None) -> list[
     camera (default "<camera>/").
     """
     prefixes = prefixes or {}
-    order = [rig.reference_camera] + [c for c in rig.camera_names if c != rig.reference_camera]
+    order = rig.cameras_reference_first
     cameras = []
     for name in order:
         entry = {"image_prefix": prefixes.get(name, f"{name}/")}
