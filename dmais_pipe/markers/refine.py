@@ -126,7 +126,8 @@ REJECT_RESIDUAL = 0.08  # fit RMS residual / contrast above which a corner is re
 MAX_SIGMA_PX = 0.5  # corners less certain than this are rejected
 MIN_EDGE_ANGLE = np.radians(15.0)  # edges closer than this in direction are degenerate
 NO_CLEAN_X = "no clean X at the fit"
-SHADOW_MIN_QUALITY, SHADOW_MIN_RADIUS = 0.7, 4.0  # `_refit_shadowed`: the ring tests of the X with the shade divided out
+SHADOW_MIN_QUALITY = 0.7  # `_refit_shadowed`: ring quality of the X with the shade divided out
+SHADOW_MIN_RADIUS = 4.0  # and the radius (px) beyond which it must stay clean
 REASONS = ("no X pattern", "no convergence", "moved too far", "degenerate edges", "blur exceeds window", "poor fit",
            "uncertain", NO_CLEAN_X, "asymmetric at the corner (a shadow edge or an occluder)")
 

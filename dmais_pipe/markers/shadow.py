@@ -24,9 +24,10 @@ with the X.
 - Checks: the final fit plausible (`_plausible`), the X with the shade divided out clean
   (`refine.clean_radius`) beyond MIN_CLEAN_PX, its uncertainty within MAX_SIGMA_PX_SHADED, and
   the corner confirmed (`_confirmed`) by a fit of the X alone to the pixels beside the shadow
-  edge with the shade divided out (`_unshaded_corner`), or where that fit does not see the corner
-  by the final fit in a smaller window. A marker's edge or outline corner crossed by a shadow edge can pass the
-  others (the fitted X's edges are then the marker's edge and the shadow's), not this one.
+  edge with the shade divided out (`_unshaded_corner`), or where that fit does not see the
+  corner by the final fit in a smaller window. A marker's edge or outline corner crossed by a
+  shadow edge can pass the others (the fitted X's edges are then the marker's edge and the
+  shadow's), not this one.
 
 Every candidate that starts is either returned or rejected with SHADOW_REASON, never dropped
 without a trace.
@@ -272,9 +273,9 @@ def _fit_about(img: np.ndarray, centre: np.ndarray, params: np.ndarray, radius: 
 def _first_fit(img: np.ndarray, given: np.ndarray, uv: np.ndarray, start: np.ndarray, contrast: np.ndarray):
     """The first fit of the shaded model in FIRST_WINDOW_PX from start params (m, 11) about uv
     (m, 2); where it is not plausible, again from the start about the symmetric centre of the
-    candidates given (m, 2) (a start a few px off, drawn towards the shadow edge, can fail to
-    converge); contrast (m,) the least of the X. Returns (its corners (m, 2), its params about
-    them (m, 11), plausible (m,))."""
+    candidates given (m, 2), or the first start moved there where none is found (a start a few px
+    off, drawn towards the shadow edge, can fail to converge); contrast (m,) the least of the X.
+    Returns (its corners (m, 2), its params about them (m, 11), plausible (m,))."""
     centre, about, ok = _plausible_fit(img, uv, start, contrast, uv)
     again = np.nonzero(~ok)[0]
     if len(again) == 0:
@@ -285,10 +286,9 @@ def _first_fit(img: np.ndarray, given: np.ndarray, uv: np.ndarray, start: np.nda
     unstarted = ~np.all(np.isfinite(restart), axis=1)
     restart[unstarted] = _line_about(start[again[unstarted]], uv[again[unstarted]], moved[unstarted])
     restart[unstarted, :2] = 0.0
-    if len(again):
-        centre2, about2, ok2 = _plausible_fit(img, moved, restart, contrast[again], uv[again])
-        rows = again[ok2]
-        centre[rows], about[rows], ok[rows] = centre2[ok2], about2[ok2], True
+    centre2, about2, ok2 = _plausible_fit(img, moved, restart, contrast[again], uv[again])
+    rows = again[ok2]
+    centre[rows], about[rows], ok[rows] = centre2[ok2], about2[ok2], True
     return centre, about, ok
 
 

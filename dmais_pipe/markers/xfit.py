@@ -105,7 +105,6 @@ def shaded_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: boo
     return value, jac
 
 
-
 GRID_PX = 0.25  # `product_shaded_model`: spacing of its fine grid (1 px / an integer)
 _SOFT = GRID_PX  # and the softening of the X's edges on it (standard deviation, taken off the blur)
 _LOGISTIC = np.sqrt(3.0) / np.pi  # a logistic step's scale per its standard deviation
@@ -123,7 +122,7 @@ def product_shaded_model(params: np.ndarray, x: np.ndarray, y: np.ndarray, jacob
     blurred by a Gaussian of sqrt(s^2 - _SOFT^2) and sampled at the pixels: separable, so two
     matrix products per row. Exact where `shaded_model` is not, where the shadow edge crosses an
     edge of the X (there the product of the blurred factors moves a fitted corner by up to
-    ~0.3 px); ~10 ms per row of a 15 px window (~100x `shaded_model`).
+    ~0.3 px); ~10 ms per evaluation of a row of a 15 px window (~100x `shaded_model`).
     """
     n, k = x.shape
     value = np.empty((n, k))
@@ -209,6 +208,7 @@ def _blur_matrix(pixels: np.ndarray, grid: np.ndarray, blur: float):
     total, dtotal = w.sum(axis=1, keepdims=True), dw.sum(axis=1, keepdims=True)
     return w / total, (dw - w * dtotal / total) / total
 
+
 def linear_levels(params: np.ndarray, x, y, values, weights) -> np.ndarray:
     """params (n, 7) with m, c set by weighted linear least squares for the other parameters."""
     params = params.copy()
@@ -266,7 +266,8 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=m
         new_cost, new_hess, new_grad = _normal_equations(value - values[active], jac, weights[active])
         better = np.isfinite(new_cost) & (new_cost <= cost[active])
         taken = active[better]
-        params[taken], cost[taken], hess[taken], grad[taken] = trial[better], new_cost[better], new_hess[better], new_grad[better]
+        params[taken], cost[taken] = trial[better], new_cost[better]
+        hess[taken], grad[taken] = new_hess[better], new_grad[better]
         lam[active] = np.where(better, lam[active] / 3.0, lam[active] * 4.0)
         small = np.hypot(step[:, 0], step[:, 1]) < 1e-4
         done = (better & small) | (lam[active] > 1e6)
