@@ -19,12 +19,11 @@
 3. Sub-pixel refinement (`refine.refine_corners`: a blurred X-corner model fit, which rejects a
    corner whose fit is poor and gives each its uncertainty; where it calls a corner asymmetric or
    its fit poor, ASYMMETRIC_REASONS, a shadow edge near it is the likely cause, and the fit with
-   the edge in the model has a second go, `_add_shadowed`), the rejection of detections less
+   the edge in the model has a second go), the rejection of detections less
    certain than MAX_SIGMA_PX (UNCERTAIN), and de-duplication.
 """
 
 from __future__ import annotations
-
 
 import cv2
 import numpy as np
@@ -148,9 +147,10 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
         # A shadow edge near the corner can fail the plain fit (asymmetric, a poor fit) where the
         # ring tests passed: such candidates get the fit with the edge in the model.
         asymmetric = np.nonzero(~ok & np.isin(corners.reason, ASYMMETRIC_REASONS))[0]
-        shade, saved = _add_shadowed(img, cand[asymmetric], contrast, min_quality, shade)
+        more, _, why = _shadow_fits(img, cand[asymmetric], contrast, min_quality)
+        shade = tuple(np.concatenate([a, b]) for a, b in zip(shade, more))
         dropped = ~ok
-        dropped[asymmetric[saved]] = False
+        dropped[asymmetric[why == ""]] = False
         failed = pd.DataFrame({"u": cand[dropped, 0], "v": cand[dropped, 1], "reason": corners.reason[dropped]})
         rejected = pd.concat([rejected, failed], ignore_index=True) if len(failed) else rejected
         cand, radius, quality = corners.uv[ok], radius[ok], quality[ok]
@@ -183,18 +183,15 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
     return (frame, rejected) if with_rejected else frame
 
 
-def _add_shadowed(img, uv, contrast, min_quality, shade):
-    """The corners fitted with a shadow edge (`shadow.shadowed_corners`) about candidates uv (m, 2)
-    appended to shade (uv, clean radius, ring quality, sigma_px, fit_residual); and (m,) where one
-    was confirmed."""
-    if len(uv) == 0:
-        return shade, np.zeros(0, dtype=bool)
+def _shadow_fits(img, uv, contrast, min_quality):
+    """`shadow.shadowed_corners` about candidates uv (m, 2): (the corners it confirmed as (uv (j, 2),
+    clean radius, ring quality min_quality, sigma_px, fit_residual (j,) each), its positions (m, 2)
+    and reasons (m,))."""
     found_uv, found_radius, found_sigma, found_fit, why = shadowed_corners(img, uv, contrast, min_quality,
                                                                            MIN_CLEAN_RADIUS)
     saved = why == ""
-    more = (found_uv[saved], found_radius[saved], np.full(saved.sum(), min_quality), found_sigma[saved],
-            found_fit[saved])
-    return tuple(np.concatenate([a, b]) for a, b in zip(shade, more)), saved
+    return ((found_uv[saved], found_radius[saved], np.full(saved.sum(), min_quality), found_sigma[saved],
+             found_fit[saved]), found_uv, why)
 
 
 def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.ndarray | None = None,
@@ -231,11 +228,7 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
     # The centring of a shadowed X is drawn towards the shadow edge: its candidate is the better start.
     failed = np.vstack([failed, unseeded[~good]])
     failed = failed[_dedupe(failed, np.ones(len(failed)))]
-    shade_uv, shade_radius, shade_sigma, shade_fit, why = shadowed_corners(img, failed, contrast, min_quality,
-                                                                           MIN_CLEAN_RADIUS)
-    fitted = why == ""
-    shade = (shade_uv[fitted], shade_radius[fitted], np.full(fitted.sum(), min_quality), shade_sigma[fitted],
-             shade_fit[fitted])
+    shade, shade_uv, why = _shadow_fits(img, failed, contrast, min_quality)
     unfitted = failed[why == None]  # noqa: E711 (an object array)
     shadowed = unfitted[shadowed_x(img, unfitted, lit_contrast, min_quality)] if len(unfitted) else unfitted
     shadowed = np.vstack([shade_uv[why == SHADOW_REASON], shadowed])
