@@ -32,7 +32,7 @@ from scipy.spatial import cKDTree
 
 from .refine import (ASYMMETRIC, NO_CLEAN_X, _ring_offsets, _ring_stats, as_float_image, clean_radius, refine_corners,
                      ring_quality, sample, seed)
-from .shadow import SHADOW_REASON, both_sides, line_ends, shadowed_corners, step_masks
+from .shadow import SHADOW_REASON, both_sides, line_ends, log_sample, shadowed_corners, step_masks
 
 COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
 REJECTED_COLUMNS = ["u", "v", "reason"]
@@ -265,14 +265,14 @@ def shadowed_x(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: fl
     # centre adds only a constant, must already look like an X of some contrast (not noise along a
     # straight edge, where it is flat).
     offsets = _ring_offsets(SHADOW_RADII[0], SHADOW_SAMPLES)
-    values = np.log(np.maximum(sample(img, uv[:, None, :] + offsets[None]), 1.0))
+    values = log_sample(img, uv[:, None, :] + offsets[None])
     quality, high, low, _ = _ring_stats(0.5 * (values + np.roll(values, SHADOW_SAMPLES // 2, axis=1)))
     ok = (quality >= 0.5) & (high - low >= MIN_SHADOW_LOG)
     direction = None
     for radius in SHADOW_RADII:
         if not ok.any():
             break
-        values = np.log(np.maximum(sample(img, uv[ok, None, :] + _ring_offsets(radius, SHADOW_SAMPLES)[None]), 1.0))
+        values = log_sample(img, uv[ok, None, :] + _ring_offsets(radius, SHADOW_SAMPLES)[None])
         good, phi = _best_shadow_line(values, contrast, min_quality)
         if direction is not None:
             good &= np.abs(np.angle(np.exp(1j * (phi - direction[ok])))) <= np.radians(30.0)

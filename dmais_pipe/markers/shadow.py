@@ -41,8 +41,7 @@ import numpy as np
 from scipy.special import ndtr
 
 from . import xfit
-from .refine import (_RADII, MAX_SIGMA_PX, MIN_EDGE_ANGLE, REJECT_RESIDUAL, _ring_offsets, _ring_stats,
-                     clean_radius, ring_params, sample, seed)
+from .refine import _RADII, _reasons, _ring_offsets, _ring_stats, clean_radius, ring_params, sample, seed
 
 SHADOW_REASON = "shadow edge at the corner"
 START_RING_PX = 5.0  # radius of the log ring the shadow line and the X are started from
@@ -121,7 +120,8 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast, min_quality: flo
         clean[good] = _deshaded_clean_radius(img, corner[good], line[good], min_quality)
     good &= clean >= max(min_radius, MIN_CLEAN_PX)
     with np.errstate(invalid="ignore"):
-        good &= np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2)) <= MAX_SIGMA_PX_SHADED
+        final_sigma = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
+        good &= final_sigma <= MAX_SIGMA_PX_SHADED
     good &= _confirmed(img, corner, joint, joint_line, window, good)
     # A shadowed X the start found whose corner the fits do not confirm: rejected, with the reason,
     # at its symmetric centre (the candidate and the fits can be 3-4 px off, drawn to the shadow edge).
@@ -129,7 +129,7 @@ def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast, min_quality: flo
     out_uv[tried[~good]] = symmetric_centre(img, given[tried[~good]])
     rows = tried[good]
     out_uv[rows], radius[rows], reason[rows] = corner[good], clean[good], ""
-    sigma[rows] = np.sqrt(0.5 * np.trace(cov[good], axis1=1, axis2=2))
+    sigma[rows] = final_sigma[good]
     residual[rows] = rms[good] / (2.0 * np.abs(line[good, 6]))
     return out_uv, radius, sigma, residual, reason
 
@@ -177,7 +177,7 @@ def _most_symmetric_x(img: np.ndarray, points: np.ndarray, k: int) -> np.ndarray
     n, g = points.shape[:2]
     if n == 0:
         return np.zeros((0, 2))
-    logs = np.log(np.maximum(sample(img, points[:, :, None, :] + _ring_offsets(CENTRE_RING_PX, k)[None, None]), 1.0))
+    logs = log_sample(img, points[:, :, None, :] + _ring_offsets(CENTRE_RING_PX, k)[None, None])
     logs = logs.reshape(n * g, -1).astype(np.float64)
     quality, high, low, _ = _ring_stats(0.5 * (logs + np.roll(logs, logs.shape[1] // 2, axis=1)))
     best = np.argmax((quality * (high - low)).reshape(n, g), axis=1)
@@ -186,18 +186,14 @@ def _most_symmetric_x(img: np.ndarray, points: np.ndarray, k: int) -> np.ndarray
 
 def _plausible(params, cov, rms, converged, window, contrast) -> np.ndarray:
     """(n,) fits (params (n, 11) about their corner) that are an X crossed by a real shadow edge:
-    converged, the X of enough contrast, not degenerate, a good fit, certain; the shade taking
+    a fit `refine_corners` would take (`refine._reasons`: converged, a good fit, certain, not
+    degenerate, not blurred beyond the window), the X of enough contrast; the shade taking
     MIN_SHADE..MAX_SHADE of the light and crossing the window."""
-    with np.errstate(invalid="ignore"):
-        sigma = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
-        span = 2.0 * np.abs(params[:, 6])
-        ok = converged & np.all(np.isfinite(params), axis=1) & (span >= contrast)
-        ok &= rms <= REJECT_RESIDUAL * span
-        ok &= sigma <= MAX_SIGMA_PX
+    with np.errstate(invalid="ignore"):  # a degenerate fit's covariance: NaN, or a negative variance
+        ok = _reasons(params, cov, rms, converged, params[:, :2], np.inf, window) == ""
+        ok &= 2.0 * np.abs(params[:, 6]) >= contrast
         ok &= (params[:, 10] >= MIN_SHADE) & (params[:, 10] <= MAX_SHADE)
         ok &= np.abs(params[:, 8]) < window  # the line about the corner, through the window
-        ok &= params[:, 4] < window
-        ok &= np.abs(np.sin(params[:, 2] - params[:, 3])) >= np.sin(MIN_EDGE_ANGLE)
     return ok
 
 
@@ -211,8 +207,7 @@ def _product_fit(img, corner, params, window, cov, rms, converged):
     ok = np.isfinite(window) & np.all(np.isfinite(params), axis=1)
     for value in np.unique(window[ok]):
         idx = np.nonzero(ok & (window == value))[0]
-        x, y, values, weights = xfit.window(img, corner[idx], float(value))
-        x, y = x - corner[idx, :1], y - corner[idx, 1:]
+        x, y, values, weights = _window_about(img, corner[idx], float(value))
         start = params[idx].copy()
         start[:, :2] = 0.0
         start[:, 9] = np.sqrt(np.maximum(start[:, 9] ** 2 - start[:, 4] ** 2, xfit.MIN_BLUR**2))  # the penumbra
@@ -233,9 +228,8 @@ def _unshaded_corner(img: np.ndarray, corner: np.ndarray, params: np.ndarray, wi
     ok = np.isfinite(window) & np.all(np.isfinite(params), axis=1)
     for value in np.unique(window[ok]):
         idx = np.nonzero(ok & (window == value))[0]
-        x, y, values, weights = xfit.window(img, corner[idx], float(value))
-        x, y = x - corner[idx, :1], y - corner[idx, 1:]
-        edge = (np.cos(params[idx, 7:8]) * x + np.sin(params[idx, 7:8]) * y - params[idx, 8:9]) / params[idx, 9:10]
+        x, y, values, weights = _window_about(img, corner[idx], float(value))
+        edge = _edge_blurs(params[idx], x, y)
         weights = weights * (np.abs(edge) > BAND_BLURS)
         shaded = edge > 0
         kept = 1.0 - params[idx, 10:11]  # the share of light in the shade
@@ -264,10 +258,13 @@ def _line_about(params: np.ndarray, old: np.ndarray, new: np.ndarray) -> np.ndar
 def _fit_about(img: np.ndarray, centre: np.ndarray, params: np.ndarray, radius: float):
     """xfit.fit of the shaded model in windows of `radius` about centre (n, 2), in coordinates
     about the centre; params (n, 11) in those coordinates."""
-    x, y, values, weights = xfit.window(img, centre, radius)
-    x, y = x - centre[:, :1], y - centre[:, 1:]
-    return xfit.fit(params, x, y, values, weights, model=xfit.shaded_model)
+    return xfit.fit(params, *_window_about(img, centre, radius), model=xfit.shaded_model)
 
+
+def _window_about(img: np.ndarray, centre: np.ndarray, radius: float):
+    """`xfit.window` of `radius` about centre (n, 2), its pixel positions x, y (n, k) about the centre."""
+    x, y, values, weights = xfit.window(img, centre, radius)
+    return x - centre[:, :1], y - centre[:, 1:], values, weights
 
 
 def _first_fit(img: np.ndarray, given: np.ndarray, uv: np.ndarray, start: np.ndarray, contrast: np.ndarray):
@@ -301,6 +298,7 @@ def _plausible_fit(img, uv, start, contrast, anchor):
     ok = np.all(np.isfinite(centre), axis=1) & (np.hypot(*(centre - anchor).T) <= MAX_MOVE_PX)
     return centre, about, ok & _plausible(about, cov, rms, converged, FIRST_WINDOW_PX, contrast)
 
+
 def _start(img: np.ndarray, uv: np.ndarray):
     """(start points (n, 2), `_start_params` (n, 11) about them, NaN rows where none): the
     candidates uv (n, 2); where no start is found there but the ring is a point-symmetric X, their
@@ -332,7 +330,7 @@ def _start_params(img: np.ndarray, uv: np.ndarray, min_x_log: float = MIN_X_LOG)
     straight step (`_best_step`) and the X of the ring with it taken away (`refine.ring_params`);
     NaN rows where no step leaves an X. And (n,) where the ring's point-symmetric part is an X."""
     offsets = _ring_offsets(START_RING_PX)
-    logs = np.log(np.maximum(sample(img, uv[:, None, :] + offsets[None]), 1.0)).astype(np.float64)
+    logs = log_sample(img, uv[:, None, :] + offsets[None]).astype(np.float64)
     # Cheap first: the point-symmetric part of the ring, where a shadow line near the centre adds
     # little more than a constant, must already be an X (not a straight edge: flat there) of a
     # marker's log contrast, which the shade does not change (texture's is mostly less).
@@ -345,7 +343,7 @@ def _start_params(img: np.ndarray, uv: np.ndarray, min_x_log: float = MIN_X_LOG)
     phi[symmetric], offset[symmetric], step[symmetric], lit[symmetric] = _best_step(logs[symmetric])
     # The same straight step on a wider ring: a shadow edge is a long line, texture is not.
     near = np.nonzero(np.isfinite(phi))[0]
-    wide = np.log(np.maximum(sample(img, uv[near, None, :] + CHECK_RING_PX / START_RING_PX * offsets[None]), 1.0))
+    wide = log_sample(img, uv[near, None, :] + CHECK_RING_PX / START_RING_PX * offsets[None])
     phi_wide = _best_step(wide.astype(np.float64))[0]
     phi[near[~(np.abs(np.angle(np.exp(1j * (phi[near] - phi_wide)))) <= MAX_TURN)]] = np.nan
     params = np.full((len(uv), xfit.N_SHADED), np.nan)
@@ -409,6 +407,12 @@ def both_sides(lit: np.ndarray, bright: np.ndarray, shade: np.ndarray, min_sampl
     return both & (np.minimum(*contrast) >= SAME_RATIO * np.maximum(*contrast))
 
 
+def log_sample(img: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """log of the image (h, w) sampled at points (..., 2) (`refine.sample`), from 1 up: a shadow's
+    factor on the light is a step there."""
+    return np.log(np.maximum(sample(img, points), 1.0))
+
+
 @lru_cache(maxsize=8)
 def line_ends(lines: tuple, k: int, half_width: int = 1) -> np.ndarray:
     """(l, 2, 2 half_width + 1) indexes of the ring samples about the two points where each line
@@ -440,16 +444,14 @@ def _deshaded_clean_radius(img: np.ndarray, corner: np.ndarray, params: np.ndarr
         ys, xs = np.mgrid[0:2 * half + 1, 0:2 * half + 1]
         xs, ys = xs + x0, ys + y0
         crop = img[np.clip(ys, 0, img.shape[0] - 1), np.clip(xs, 0, img.shape[1] - 1)].astype(np.float64)
-        _, light = _light(p, xs - c[0], ys - c[1])
+        light = 1.0 - p[10] * ndtr(_edge_blurs(p[None], xs - c[0], ys - c[1]))
         local = (crop / np.maximum(light, 1e-3)).astype(np.float32)
         out[i] = clean_radius(local, (c - [x0, y0])[None], min_quality=min_quality,
                               radii=_RADII[_RADII <= MAX_WINDOW_PX + 1.0])[0]
     return out
 
 
-def _light(params: np.ndarray, x: np.ndarray, y: np.ndarray):
-    """(shade, light = 1 - q shade) of the shadow edge of params (11,) at x, y (any shape), or of
-    params (n, 11) at x, y (n, k)."""
-    t3, e3, s3, q = (params[..., i:i + 1] if params.ndim == 2 else params[i] for i in range(7, 11))
-    shade = ndtr((np.cos(t3) * x + np.sin(t3) * y - e3) / s3)
-    return shade, 1.0 - q * shade
+def _edge_blurs(params: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Signed distance from the shadow edge of params (n, 11, about the corner) towards the shade,
+    in its blurs, at x, y (n, k), or at x, y of any shape for one params (1, 11)."""
+    return (np.cos(params[:, 7:8]) * x + np.sin(params[:, 7:8]) * y - params[:, 8:9]) / params[:, 9:10]
