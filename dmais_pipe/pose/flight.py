@@ -162,7 +162,7 @@ def _poses_table(dataset: Dataset, rig: Rig, cameras: list[str], flight: FlightO
     noise, own = frame_noise_px(residuals[rows], frame_of_row, n_frames, calibrated_noise_px)
     uncertainty = pose_uncertainty(flight.origins[rows], flight.directions[rows], flight.points[rows], focal[rows],
                                    frame_of_row, R, t, noise, own, object_space=object_space)
-    q = quat_from_rotation(R) if n_frames else np.zeros((0, 4))
+    q = quat_from_rotation(R)
     centre = -np.einsum("fji,fj->fi", R, t)
     columns = {"frame": flight.frames[solved], "group": flight.groups[solved],
                "cameras": _cameras_used(cameras, flight.cameras[rows], frame_of_row, n_frames), "n_points": n_points,

@@ -57,8 +57,6 @@ def heading_pitch_roll(R) -> np.ndarray:
     """(F, 3) heading, pitch, roll in degrees of rig_from_world rotations R (F, 3, 3): world_from_rig
     = R^T = Rz(heading) Ry(pitch) Rx(roll), heading in [0, 360), pitch in [-90, 90], roll in (-180, 180]."""
     R = np.asarray(R, dtype=float).reshape(-1, 3, 3)
-    if not len(R):
-        return np.zeros((0, 3))
     angles = np.degrees(euler_zyx_from_rotation(np.swapaxes(R, -1, -2)))
     angles[:, 0] %= 360.0
     return angles
