@@ -245,10 +245,10 @@ def test_virtual_corner_of_an_outline_and_a_shadow_edge_is_not_returned():
     tests; identified as the undetected marker beside it once the shadowed markers of that image
     were found. Its fit is uncertain (sigma 0.16 px; true detections <= 0.08): rejected, with the
     reason. No false detection, no wrong id in the row (2 false detections, 1 wrong id before)."""
-    from dmais_pipe.markers.bench_effects import EFFECTS, measure_effect
+    from dmais_pipe.markers.bench_effects import EFFECTS, measure_effect, row_seed
     from dmais_pipe.markers.detect import UNCERTAIN
 
-    row = measure_effect("shadow", EFFECTS["shadow"], 10, 2 * 7919 + 1)
+    row = measure_effect("shadow", EFFECTS["shadow"], 10, row_seed(2, list(EFFECTS).index("shadow")))
     assert row["false_per_image"] == 0.0 and row["wrong_ids"] == 0 and row["recall"] >= 0.75
     assert UNCERTAIN not in row["reasons_true"]  # no true corner rejected for its uncertainty
 
@@ -486,6 +486,17 @@ def test_shadowed_x_from_far_candidates_is_fitted_or_rejected_near_it():
     assert traced >= 34
 
 
+def _shadow_row_scene(seed: int, index: int):
+    """(image, truth) of image `index` of the shadow row of `dmais bench markers --suite effects --seed seed`."""
+    from itertools import islice
+
+    from dmais_pipe.markers.bench_effects import EFFECTS, effect_scenes, row_seed
+
+    scenes = effect_scenes(EFFECTS["shadow"], index + 1, row_seed(seed, list(EFFECTS).index("shadow")))
+    image, truth, _, _ = next(islice(scenes, index, None))
+    return image, truth
+
+
 def test_shadowed_corner_beside_the_edge_is_fitted_not_shifted():
     """`dmais bench markers --suite effects --seed 53`, shadow row, image 6, corner 0: a shadow edge
     0.7 px from the corner of a small marker (blur 1.4 px, a 10 px window). The fit of the X
@@ -494,14 +505,10 @@ def test_shadowed_corner_beside_the_edge_is_fitted_not_shifted():
     finds it 0.05 px off, which the final fit in a smaller window confirms: returned by `detect`
     within 0.1 px (rejected with the reason before); every other corner of the image is returned
     (within 0.11 px: corner 4 is the ordinary fit's, 0.101 px) or rejected with a reason near it."""
-    from dmais_pipe.markers.bench_effects import EFFECTS, REJECTED_PX, _scene
+    from dmais_pipe.markers.bench_effects import REJECTED_PX
     from dmais_pipe.markers.shadow import SHADOW_REASON, shadowed_corners
 
-    rng = np.random.default_rng(53 * 7919 + 1)  # the bench's draws for the shadow row
-    for _ in range(7):
-        image, truth = _scene(rng, EFFECTS["shadow"])
-        starts(truth, rng)
-        rng.uniform(-40, 40, 2), rng.normal(0, 2.0, truth.shape)
+    image, truth = _shadow_row_scene(53, 6)
     uv, _, _, _, reason = shadowed_corners(image.astype(float), truth[:1] + 0.5, 20.0, 0.5, 4.0)
     assert reason[0] == SHADOW_REASON or np.linalg.norm(uv[0] - truth[0]) < 0.1
     frame, rejected = detect(image, with_rejected=True)
@@ -519,15 +526,10 @@ def test_corner_the_plain_fit_calls_asymmetric_is_fitted_with_the_shadow_edge(mo
     0.019 measured); without that second chance it is only rejected."""
     import importlib
 
-    from dmais_pipe.markers.bench_effects import EFFECTS, _scene
     from dmais_pipe.markers.refine import ASYMMETRIC
 
     detection = importlib.import_module("dmais_pipe.markers.detect")
-    rng = np.random.default_rng(seed * 7919 + 1)  # the bench's draws for the shadow row
-    for _ in range(image_index + 1):
-        image, truth = _scene(rng, EFFECTS["shadow"])
-        starts(truth, rng)
-        rng.uniform(-40, 40, 2), rng.normal(0, 2.0, truth.shape)
+    image, truth = _shadow_row_scene(seed, image_index)
     found = detect(image)
     assert cKDTree(found[["u", "v"]].to_numpy()).query(truth[corner])[0] < 0.05
     monkeypatch.setattr(detection, "ASYMMETRIC_REASONS", ())

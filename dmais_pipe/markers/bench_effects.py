@@ -58,14 +58,29 @@ def _scene(rng: np.random.Generator, options: dict):
     return image, truth
 
 
+def row_seed(seed: int, index: int) -> int:
+    """The seed of the row of the index-th effect of a table of `seed`."""
+    return seed * 7919 + index
+
+
+def effect_scenes(options: dict, images: int, seed: int):
+    """The scenes of one row (`options` on, a row's `seed`), one per image: (image, truth (6, 2),
+    starts (6, 2) of the refinement from near the truth, predicted (6, 2) positions for
+    identification), all drawn for every image, so that no scene depends on what was detected in
+    those before it."""
+    rng = np.random.default_rng(seed)
+    for _ in range(images):
+        image, truth = _scene(rng, options)
+        start = starts(truth, rng)
+        yield image, truth, start, truth + rng.uniform(-40, 40, 2) + rng.normal(0, 2.0, truth.shape)
+
+
 def measure_effect(name: str, options: dict, images: int, seed: int) -> dict:
     """One row of the effects table."""
-    rng = np.random.default_rng(seed)
     found = false = wrong = correct = n_true = rejected_true = 0
     errs, reasons, fine, fine_reasons, reasons_true = [], Counter(), [], Counter(), Counter()
-    for k in range(images):
-        image, truth = _scene(rng, options)
-        corners = refine_corners(image, starts(truth, rng))
+    for image, truth, start, predicted in effect_scenes(options, images, seed):
+        corners = refine_corners(image, start)
         fine.append(np.linalg.norm(corners.uv - truth, axis=1))
         fine_reasons.update(r for r in corners.reason if r)
         frame, rejected = detect(image, with_rejected=True)
@@ -73,8 +88,6 @@ def measure_effect(name: str, options: dict, images: int, seed: int) -> dict:
         uv = frame[["u", "v"]].to_numpy()
         n_true += len(truth)
         hit = cKDTree(uv).query(truth)[0] < MATCH_PX if len(uv) else np.zeros(len(truth), dtype=bool)
-        # Drawn for every image, so the scenes that follow do not depend on what was detected.
-        predicted = truth + rng.uniform(-40, 40, 2) + rng.normal(0, 2.0, truth.shape)
         why = _rejected_reasons(truth[~hit], rejected)
         rejected_true += int(np.count_nonzero(why != ""))
         reasons_true.update(r for r in why if r)
@@ -126,7 +139,7 @@ def _rejected_reasons(truth: np.ndarray, rejected: pd.DataFrame) -> np.ndarray:
 def bench_effects(images: int = 10, seed: int = 0, effects: dict = EFFECTS) -> pd.DataFrame:
     """One row per effect and a final 'all' row (totals); `ok`: recall >= 0.99, <= 1 false
     detection per image and no wrong id; `ok_with_reasons`: the same with `accounted` >= 0.99."""
-    rows = [measure_effect(name, options, images, seed * 7919 + k) for k, (name, options) in enumerate(effects.items())]
+    rows = [measure_effect(name, options, images, row_seed(seed, k)) for k, (name, options) in enumerate(effects.items())]
     frame = pd.DataFrame(rows)
     total = {"effect": "all", "images": int(frame["images"].sum()), "n_true": int(frame["n_true"].sum()),
              "recall": float((frame["recall"] * frame["n_true"]).sum() / frame["n_true"].sum()),
