@@ -252,6 +252,7 @@ def _refit_shadowed(img: np.ndarray, out: Corners, rows: np.ndarray) -> None:
 SHRINK = 0.75
 REACH_PX = 1.0  # px beyond the window the symmetry is checked: the blur of an edge just outside
 MAX_ASYMMETRY = 0.1  # RMS difference of opposite ring samples / contrast, beyond what noise explains
+NOISE_ASYMMETRY = 3.0  # and this many times their noise (`symmetric_radius`)
 ASYMMETRIC = "asymmetric at the corner (a shadow edge or an occluder)"
 
 
@@ -280,18 +281,24 @@ def _symmetric_window(img, params, cov, rms, converged, radius):
     return params, cov, rms, converged, radius, shadowed
 
 
-def symmetric_radius(img: np.ndarray, centre: np.ndarray, contrast: np.ndarray, noise: np.ndarray,
+def symmetric_radius(img: np.ndarray, centre: np.ndarray, contrast: np.ndarray, rms: np.ndarray,
                      radius: np.ndarray) -> np.ndarray:
     """(n,) the radius (px) up to which rings about centre (n, 2), 1 px apart up to `radius` (n,)
-    + REACH_PX (a blurred edge reaches into the window from outside it), are point symmetric: RMS of (opposite sample differences) <= MAX_ASYMMETRY x contrast (n,)
-    and 2 x the noise (n,) added in quadrature; the first asymmetric ring's radius - 1 px (minus
-    REACH_PX where the ring is beyond the window), inf where all are symmetric."""
+    + REACH_PX (a blurred edge reaches into the window from outside it), are point symmetric: RMS of
+    (opposite sample differences) <= MAX_ASYMMETRY x contrast (n,) and NOISE_ASYMMETRY x their noise
+    added in quadrature; the first asymmetric ring's radius - 1 px (minus REACH_PX where the ring is
+    beyond the window), inf where all are symmetric. Their noise: the smaller of the most symmetric
+    ring's RMS difference and sqrt(2) x the fit's RMS residual rms (n,). Either alone can hide
+    what the test looks for: the residual includes the misfit of a shadow edge within the window,
+    and in a window cut to a few px every ring crosses the edge."""
     radii = np.arange(2.0, float(np.nanmax(radius)) + 1.0 + REACH_PX)
     values = sample(img, centre[:, None, None, :] + radii[None, :, None, None] * _ring_offsets(1.0)[None, None])
     half = values.shape[2] // 2
+    within = radii[None] <= radius[:, None] + REACH_PX  # (n, r)
     asym = np.sqrt(np.mean((values[:, :, :half] - values[:, :, half:]) ** 2, axis=2))  # (n, r)
-    allowed = np.sqrt((MAX_ASYMMETRY * contrast) ** 2 + 2.0 * (2.0 * noise) ** 2)
-    bad = (asym > allowed[:, None]) & (radii[None] <= radius[:, None] + REACH_PX)
+    noise = np.minimum(np.min(np.where(within, asym, np.inf), axis=1), np.sqrt(2.0) * rms)
+    allowed = np.sqrt((MAX_ASYMMETRY * contrast) ** 2 + (NOISE_ASYMMETRY * noise) ** 2)
+    bad = (asym > allowed[:, None]) & within
     first = np.where(bad.any(axis=1), radii[np.argmax(bad, axis=1)], np.inf)
     return np.where(first > radius, first - REACH_PX, first) - 1.0
 
