@@ -204,7 +204,7 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
         radius = _window_radius(img, centre, np.where(again > 0, again, radius))
     for attempt in range(3):
         todo = np.ones(n, dtype=bool) if attempt == 0 else (_reasons(params, cov, rms, converged, uv, limit, radius)
-                                                            == "poor fit") & (radius * SHRINK >= smallest)
+                                                            == "poor fit") & (radius * SHRINK >= _smallest_window(params))
         if not todo.any():
             break
         if attempt:
@@ -212,7 +212,6 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
         fitted = _fit_round(img, centre[todo], params[todo], radius[todo])
         for array, value in zip((params, cov, rms, converged), fitted):
             array[todo] = value
-        smallest = np.maximum(MIN_RADIUS, 2.0 * np.nan_to_num(params[:, 4], nan=1.0) + 1.0)
     params, cov, rms, converged, radius, shadowed = _symmetric_window(img, params, cov, rms, converged, radius)
     reason = _reasons(params, cov, rms, converged, uv, limit, radius)
     reason[shadowed & np.all(np.isfinite(params), axis=1)] = ASYMMETRIC
@@ -269,8 +268,7 @@ def _symmetric_window(img, params, cov, rms, converged, radius):
         limit = np.full(len(params), np.inf)
         if ok.any():
             limit[ok] = symmetric_radius(img, params[ok, :2], 2.0 * np.abs(params[ok, 6]), rms[ok], radius[ok])
-        smallest = np.maximum(MIN_RADIUS, 2.0 * np.nan_to_num(params[:, 4], nan=1.0) + 1.0)
-        shadowed |= ok & (limit < smallest)
+        shadowed |= ok & (limit < _smallest_window(params))
         cut = ok & ~shadowed & (limit < radius)
         if attempt == 2 or not cut.any():
             break
@@ -279,6 +277,12 @@ def _symmetric_window(img, params, cov, rms, converged, radius):
         for array, value in zip((params, cov, rms, converged), fitted):
             array[cut] = value
     return params, cov, rms, converged, radius, shadowed
+
+
+def _smallest_window(params: np.ndarray) -> np.ndarray:
+    """(n,) the smallest window radius (px) a fit of params (n, 7) may shrink to: MIN_RADIUS, or
+    2 blurs + 1 px where that is larger."""
+    return np.maximum(MIN_RADIUS, 2.0 * np.nan_to_num(params[:, 4], nan=1.0) + 1.0)
 
 
 def symmetric_radius(img: np.ndarray, centre: np.ndarray, contrast: np.ndarray, rms: np.ndarray,
