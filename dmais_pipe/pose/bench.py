@@ -233,7 +233,7 @@ def stage_flight(rng, n_frames: int):
         points.append(markers)
         x_rig = np.einsum("fji,fmj->fmi", world_from_rig, markers[["x", "y", "z"]].to_numpy()[None] - centres[:, None])
         for name, camera in rig.cameras.items():
-            uv = camera.project(rig.cam_from_rig[name].apply(x_rig.reshape(-1, 3)))
+            uv = rig.project_rig_points(name, x_rig.reshape(-1, 3))
             seen = np.isfinite(uv).all(axis=1) & camera.in_image(np.nan_to_num(uv, nan=-1e9), margin=5.0)
             frame_of, marker_of = np.divmod(np.flatnonzero(seen), len(markers))
             observations.append(pd.DataFrame({
