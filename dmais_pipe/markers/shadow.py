@@ -142,7 +142,8 @@ def _confirmed(img, corner, joint, line, window, rows) -> np.ndarray:
     final fit in a window SMALLER_WINDOW as large within WINDOW_AGREE_PX. A marker's outline or
     edge crossed by the shadow edge, or a second shadow edge, passes neither."""
     ok = np.zeros(len(corner), dtype=bool)
-    ok[rows] = np.hypot(*(corner - _unshaded_corner(img, joint, line, window)).T)[rows] <= AGREE_PX
+    unshaded = _unshaded_corner(img, joint, line, np.where(rows, window, np.nan))
+    ok[rows] = np.hypot(*(corner - unshaded).T)[rows] <= AGREE_PX
     again = rows & ~ok
     if again.any():
         smaller = np.where(again, np.maximum(MIN_WINDOW_PX, SMALLER_WINDOW * window), np.nan)
