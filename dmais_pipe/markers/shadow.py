@@ -83,7 +83,7 @@ _STEPS = tuple((phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t
 def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast, min_quality: float, min_radius: float):
     """Fit X-corners crossed by a shadow edge near candidates uv (n, 2) of float image img (h, w).
 
-    Returns (uv (n, 2) the corners (where rejected, the first fit's corner or the candidate), NaN
+    Returns (uv (n, 2) the corners (where rejected, the candidate's `symmetric_centre`), NaN
     where the candidate shows no shadowed X; clean radius (n,) px of the X with the shade divided
     out; sigma_px (n,); fit_residual (n,); reason (n,): '' for a corner, SHADOW_REASON where a
     sure start found an X crossed by a shadow edge (`_start_params`) but the fits did not confirm a
@@ -319,11 +319,13 @@ def _start(img: np.ndarray, uv: np.ndarray):
     retry = np.nonzero(symmetric & ~sure)[0]
     moved = seed(img, uv[retry], SEED_SHIFT_PX)
     ok = np.all(np.isfinite(moved), axis=1)
-    _take_better(uv, start, sure, retry[ok], moved[ok], *_start_params(img, moved[ok])[::2])
+    moved_start, _, moved_sure = _start_params(img, moved[ok])
+    _take_better(uv, start, sure, retry[ok], moved[ok], moved_start, moved_sure)
     retry = np.nonzero(~sure)[0]
     if len(retry):
         centre = symmetric_centre(img, given[retry])
-        _take_better(uv, start, sure, retry, centre, *_start_params(img, centre, CENTRE_X_LOG)[::2])
+        centre_start, _, centre_sure = _start_params(img, centre, CENTRE_X_LOG)
+        _take_better(uv, start, sure, retry, centre, centre_start, centre_sure)
     return uv, start, sure
 
 
