@@ -272,6 +272,23 @@ def test_identify_refuses_without_enough_structure():
     assert all(g == "" or g == i for g, i in zip(got, ids[:12]))
 
 
+def test_identify_leaves_unnamed_a_detection_beside_a_nearer_rejected_corner():
+    """A shadow edge along a small marker's stem: its corner rejected (with a reason), a "virtual"
+    X 8 px off where the edge crosses the outline detected. The prediction, nearer the rejected
+    corner, must not name the virtual X; a rejection farther than the detection changes nothing."""
+    rng = np.random.default_rng(3)
+    truth = rng.uniform([100, 100], [3900, 2900], (8, 2))
+    ids = np.array([f"M{k}" for k in range(len(truth))], dtype=object)
+    detections = truth + rng.normal(0, 0.05, truth.shape)
+    detections[2] = truth[2] + [-8.0, 0.3]
+    predicted = truth + [35.0, -20.0]
+    assert identify(detections, predicted, ids, (4096, 3000))[2] == "M2"  # the wrong id this guards against
+    got = identify(detections, predicted, ids, (4096, 3000), rejected=truth[[2]] + [0.7, 0.2])
+    assert list(got) == [i if k != 2 else "" for k, i in enumerate(ids)]
+    farther = identify(detections, predicted, ids, (4096, 3000), rejected=truth[[2]] + [-20.0, 0.0])
+    assert list(farther) == list(ids)
+
+
 # ------------------------------------------------------------------------------ stage
 
 

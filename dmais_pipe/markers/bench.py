@@ -55,13 +55,14 @@ def bench_markers(dataset_dir, out_csv=None, rig_path=None, images=None, seed: i
         true = truth[truth["image"] == image]
         true_uv = true[["u", "v"]].to_numpy(dtype=float)
         started = time.perf_counter()
-        found = detect(pixels)
+        found, rejected = detect(pixels, with_rejected=True)
         seconds = time.perf_counter() - started
         uv = found[["u", "v"]].to_numpy()
         prediction = predicted_projections(dataset, image, rig)
         ids = np.full(len(uv), "", dtype=object)
         if prediction is not None and len(uv):
-            ids = identify(uv, prediction[0], prediction[1], (width, height))
+            ids = identify(uv, prediction[0], prediction[1], (width, height),
+                           rejected=rejected[["u", "v"]].to_numpy(dtype=float))
         hit = np.zeros(len(true_uv), dtype=bool)
         matched = np.zeros(len(uv), dtype=bool)
         correct = wrong = 0

@@ -4,15 +4,15 @@ Each effect (`EFFECTS`: renderer options of `sim.effects`) renders `images` seed
 markers of mixed regimes (size 20-160 px log-uniform, foreshortened 0-60 deg, blur 0.8-1.5 px,
 noise 2-5 DN). Per effect: recall (a detection within MATCH_PX of a true corner), false detections
 per image (farther than MATCH_PX from every true corner), wrong identifications (ids from
-predictions shifted by ~40 px as a coarse prior would be), RMS and worst error of the detected
-corners against the truth; every true corner not detected is either rejected with a reason
-(`detect`'s rejections within REJECTED_PX: `rejected_true`, by reason in `reasons_true`) or missed
-(`missed`, no trace); `accounted` = (detected + rejected) / true corners, and `ok_with_reasons` the
-targets with `accounted` in place of recall (the issue accepts a corner a shadow edge crosses
-rejected with its reason); `rejected_other` counts the rejections far from any true corner. And
-`refine_corners` from the truth moved by
-0.3-1.5 px (as in the regime benchmark): its RMS, worst error (for `shadow`, the worst shift of a
-corner a shadow edge crosses) and rejections by reason.
+predictions shifted by ~40 px as a coarse prior would be, and detect's rejections, as the
+workflow does), RMS and worst error of the detected corners against the truth; every true corner
+not detected is either rejected with a reason (`detect`'s rejections within REJECTED_PX:
+`rejected_true`, by reason in `reasons_true`) or missed (`missed`, no trace); `accounted` =
+(detected + rejected) / true corners, and `ok_with_reasons` the targets with `accounted` in place
+of recall (the issue accepts a corner a shadow edge crosses rejected with its reason);
+`rejected_other` counts the rejections far from any true corner. And `refine_corners` from the
+truth moved by 0.3-1.5 px (as in the regime benchmark): its RMS, worst error (for `shadow`, the
+worst shift of a corner a shadow edge crosses) and rejections by reason.
 
 The shadow row's errors mix the shift the shadow edge causes with the noise, which weighs more on
 an X in the shade (~40% of its contrast) fitted in the smaller window beside the edge; its sigma
@@ -107,7 +107,8 @@ def measure_effect(name: str, options: dict, images: int, seed: int) -> dict:
         d_det, _ = cKDTree(truth).query(uv)
         false += int(np.count_nonzero(d_det >= MATCH_PX))
         ids = np.array([f"M{i}" for i in range(len(truth))], dtype=object)
-        given = identify(uv, predicted, ids, (CAMERA.width, CAMERA.height))
+        given = identify(uv, predicted, ids, (CAMERA.width, CAMERA.height),
+                         rejected=rejected[["u", "v"]].to_numpy(dtype=float))
         truth_of = np.full(len(uv), "", dtype=object)
         truth_of[nearest[hit]] = ids[hit]
         named = given != ""

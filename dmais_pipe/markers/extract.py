@@ -128,7 +128,7 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
     identify_gate_px, identify_min_inliers: `identify`'s final gate and fewest matches.
     """
     pixels = dataset.read_image(image)
-    found = detect(pixels)
+    found, rejected = detect(pixels, with_rejected=True)
     found["point_id"] = ""
     prediction = predicted_projections(dataset, image, rig, calibrated, margin_px)
     if prediction is None and len(found):
@@ -138,7 +138,8 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
         uv, ids = prediction
         height, width = pixels.shape
         found["point_id"] = identify(found[["u", "v"]].to_numpy(), uv, ids, (width, height),
-                                     gate_px=identify_gate_px, min_inliers=identify_min_inliers)
+                                     rejected=rejected[["u", "v"]].to_numpy(dtype=float), gate_px=identify_gate_px,
+                                     min_inliers=identify_min_inliers)
         if dataset.images.loc[dataset.images["image"] == image, "stage"].iloc[0] != "flight":
             found["point_id"] = verify_with_pose(found[["u", "v"]].to_numpy(), found["point_id"].to_numpy(),
                                                  dataset.points, image_centre(width, height), gate_px)

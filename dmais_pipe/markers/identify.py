@@ -11,8 +11,8 @@ predicted set with the detected set robustly:
    gate shrinking to `gate_px`;
 3. accepted only with >= `min_inliers` one-to-one matches, a small residual, and no competing
    hypothesis (a different assignment) nearly as good; each match must also be unambiguous
-   (no second detection or prediction near it). Anything else keeps an empty id: a wrong id is
-   worse than none.
+   (no second detection or prediction near it, and no X-corner the detector rejected nearer the
+   prediction than the detection). Anything else keeps an empty id: a wrong id is worse than none.
 """
 
 from __future__ import annotations
@@ -86,13 +86,16 @@ def _refine_hypothesis(pred, det, shift, centre, gate_px):
     return params, pi, di, rms
 
 
-def identify(detections, predicted, point_ids, image_size=None, *, gate_px: float = GATE_PX,
+def identify(detections, predicted, point_ids, image_size=None, *, rejected=None, gate_px: float = GATE_PX,
              max_shift: float = MAX_SHIFT_PX, min_inliers: int = MIN_INLIERS) -> np.ndarray:
     """Point ids (n,) object array for detections (n, 2); '' where not identified.
 
     predicted: (m, 2) projections of the known points from the priors (NaN rows are ignored);
     point_ids: (m,) their ids. image_size: (width, height), the centre of the radial term
-    (default: the detections' bounding box centre).
+    (default: the detections' bounding box centre). rejected: (k, 2) X-corners the detector found
+    but did not return (`detect`'s rejections, e.g. a corner a shadow edge crosses): a detection
+    farther from its prediction than one of them is not named, for it is likely no marker but a
+    "virtual" X beside the rejected one (an outline crossed by the same shadow edge).
     """
     det = np.asarray(detections, dtype=float).reshape(-1, 2)
     pred = np.asarray(predicted, dtype=float).reshape(-1, 2)
@@ -139,11 +142,21 @@ def identify(detections, predicted, point_ids, image_size=None, *, gate_px: floa
         other_pairs = set(zip(ids[other[1]], other[2]))
         if other_pairs != best and not other_pairs <= best and len(other[1]) >= max(min_inliers, len(pi) - 2):
             return out
-    # each match must be unambiguous: no second detection / prediction within 2 gates
+    # each match must be unambiguous: no second detection / prediction within 2 gates, no rejected
+    # X-corner nearer the prediction
     moved = _apply(params, pred, centre)
+    nearest_rejected = _nearest(rejected, moved)
     for p, d in zip(pi, di):
         near_det = tree.query_ball_point(moved[p], 2.5 * gate_px)
         near_pred = np.count_nonzero(np.hypot(*(moved - det[d]).T) <= 2.5 * gate_px)
-        if len(near_det) == 1 and near_pred == 1:
+        if len(near_det) == 1 and near_pred == 1 and nearest_rejected[p] >= np.hypot(*(moved[p] - det[d])):
             out[d] = ids[p]
     return out
+
+
+def _nearest(points, queries: np.ndarray) -> np.ndarray:
+    """(m,) distance from each of queries (m, 2) to the nearest of points (k, 2) (inf where none)."""
+    points = np.zeros((0, 2)) if points is None else np.asarray(points, dtype=float).reshape(-1, 2)
+    if len(points) == 0:
+        return np.full(len(queries), np.inf)
+    return cKDTree(points).query(queries)[0]
