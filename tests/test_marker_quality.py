@@ -15,6 +15,7 @@ from dmais_pipe.markers.bench_photos import PHOTOS, board_corners
 from dmais_pipe.markers.bench_regimes import corner_sub_pix
 from dmais_pipe.markers.refine import refine_corners
 from dmais_pipe.markers.scenes import marker_scene, regime_settings, starts
+from dmais_pipe.sim import effects
 from dmais_pipe.sim.effects import disc_kernel, motion_kernel
 
 
@@ -141,6 +142,19 @@ def test_overlapping_shadows_darken_once():
     ratio = shaded[lit] / plain[lit]
     assert ratio.min() > 1.0 - settings.shadow_depth - 0.03
     assert np.mean(ratio < 0.5) > 0.1  # and there is shade
+
+
+@pytest.mark.parametrize("edge_x", [10.2, 10.3, 10.45])
+def test_shadow_edge_pixels_are_its_area_mean(edge_x):
+    """A pixel of the shade map is the mean of the shade over its area, as a camera integrates it,
+    not the shade at its centre (which, for a penumbra narrower than a pixel, moves the edge with
+    its sub-pixel phase): a vertical edge at edge_x against a fine quadrature of each pixel."""
+    settings = regime_settings(1.0, 0.0)
+    shade = np.zeros((20, 30), np.float32)
+    effects._shadow(shade, np.array([edge_x, 10.0]), 0.0, 40.0, settings)
+    x = np.arange(30)[:, None] + np.linspace(-0.5, 0.5, 2001)[None]  # (30, 2001) within each pixel
+    exact = ndtr((x - edge_x) / settings.shadow_penumbra_px).mean(axis=1)
+    assert np.abs(shade[10] - exact).max() < 0.01
 
 
 def in_the_shade(sharp, truth, offset, angle_deg, depth=0.6, noise=3.0, seed=2):
