@@ -23,6 +23,7 @@ from scipy.special import ndtr
 SHADOW_EXTENT = 1.5  # radius of the shadowed disc, in marker sizes
 _SUPERSAMPLE = 8
 _SHADOW_SUPERSAMPLE = 4  # samples per pixel and axis of the shade map (the boards use 8: their edges are sharp)
+_SHADOW_ROWS = 64  # pixel rows of the shade map made at once
 
 
 def band_limited_noise(shape, rng: np.random.Generator, std: float, grain_px: float) -> np.ndarray:
@@ -119,15 +120,23 @@ def _shadow(shade: np.ndarray, point: np.ndarray, angle: float, size: float, set
     x1, y1 = np.minimum(np.ceil(point + radius).astype(int) + 1, [width, height])
     if x1 <= x0 or y1 <= y0:
         return
+    for top in range(y0, y1, _SHADOW_ROWS):  # in strips: a large board's shadow spans millions of samples
+        bottom = min(top + _SHADOW_ROWS, y1)
+        covered = _shade_coverage(point, angle, radius, settings.shadow_penumbra_px, top, bottom, x0, x1)
+        np.maximum(shade[top:bottom, x0:x1], covered, out=shade[top:bottom, x0:x1])
+
+
+def _shade_coverage(point, angle, radius, penumbra, y0, y1, x0, x1) -> np.ndarray:
+    """(y1 - y0, x1 - x0) float32 mean shade over the area of each pixel of rows y0..y1, columns
+    x0..x1 (`_shadow`'s edge and disc; _SHADOW_SUPERSAMPLE^2 samples a pixel)."""
     s = _SHADOW_SUPERSAMPLE
     # Pixel (i, j) covers [j - 0.5, j + 0.5]: sub-pixel k of it is at j - 0.5 + (k + 0.5) / s.
     ys, xs = ((np.mgrid[y0 * s:y1 * s, x0 * s:x1 * s] + 0.5) / s - 0.5).astype(np.float32)
     dx, dy = xs - np.float32(point[0]), ys - np.float32(point[1])
     distance = np.float32(np.cos(angle)) * dx + np.float32(np.sin(angle)) * dy
-    edge = ndtr(distance / max(settings.shadow_penumbra_px, 1e-3)).astype(np.float32)
+    edge = ndtr(distance / max(penumbra, 1e-3)).astype(np.float32)
     disc = np.clip(radius - np.hypot(dx, dy), 0.0, 1.0)  # the shadow's far outline: 1 px soft
-    covered = (edge * disc).reshape(y1 - y0, s, x1 - x0, s).mean(axis=(1, 3))
-    np.maximum(shade[y0:y1, x0:x1], covered, out=shade[y0:y1, x0:x1])
+    return (edge * disc).reshape(y1 - y0, s, x1 - x0, s).mean(axis=(1, 3))
 
 
 def blur_motion_and_defocus(image: np.ndarray, settings) -> np.ndarray:
