@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
+import site as site_module
 import subprocess
 import sys
 import zipfile
@@ -190,3 +191,49 @@ def test_a_faulty_dataset_stops_the_dry_run_with_the_loaders_line(tmp_path):
     assert dry.returncode != 0
     assert dry.stderr.strip().splitlines() == [
         f"dmais plan: error: {site / 'images.csv'}, line 4: unknown camera 'C9' (dataset.yaml has C0, C1)"]
+
+
+
+def _site_without_venv_on_path(tmp_path: Path) -> dict:
+    """A small dataset and its config site.yaml in tmp_path; the environment without the folder
+    of this Python (the venv's bin, with `dmais`) on PATH."""
+    site = _write(tmp_path / "site", _inputs())
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump({"dataset": "site", "dataset_dir": str(site)}))
+    bin_dir = Path(sys.executable).parent
+    path = os.pathsep.join(p for p in os.environ["PATH"].split(os.pathsep) if Path(p) != bin_dir)
+    assert shutil.which("dmais", path=path) is None  # else the tests below prove nothing
+    env = {**os.environ, "PATH": path}
+    env.pop("VIRTUAL_ENV", None)
+    return env
+
+
+def _snakemake_with(python, tmp_path: Path, env: dict, *options: str) -> subprocess.CompletedProcess:
+    command = [str(python), "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path),
+               "--configfile", "site.yaml", "--cores", "1", *options]
+    return subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, check=False)
+
+
+def test_snakemake_of_the_venv_runs_without_the_venv_on_path(tmp_path):
+    """`.venv/bin/snakemake` with the venv not activated: its rules' `dmais` (the dry run's `dmais
+    plan`, a job's shell command) is the one beside its Python, not a FileNotFoundError traceback."""
+    env = _site_without_venv_on_path(tmp_path)
+    dry = _snakemake_with(sys.executable, tmp_path, env, "-n")
+    assert dry.returncode == 0, dry.stdout[-2000:] + dry.stderr[-2000:]
+    assert "markers" in dry.stdout
+    run = _snakemake_with(sys.executable, tmp_path, env, "reports/site/dataset_summary.csv")
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert pd.read_csv(tmp_path / "reports/site/dataset_summary.csv")["images"].sum() > 0
+
+
+def test_snakemake_without_dmais_anywhere_says_so_in_one_line(tmp_path):
+    """A Snakemake whose Python has no `dmais` beside it and none on PATH: one line, no jobs."""
+    env = _site_without_venv_on_path(tmp_path)
+    bare = tmp_path / "bare" / "python"  # the venv's interpreter, in a folder without its scripts
+    bare.parent.mkdir()
+    bare.symlink_to(os.path.realpath(sys.executable))
+    env["PYTHONPATH"] = os.pathsep.join(site_module.getsitepackages())
+    result = _snakemake_with(bare, tmp_path, env, "-n")
+    assert result.returncode != 0
+    assert (result.stdout + result.stderr).strip() == (
+        f"dmais is not installed: it is neither on PATH nor beside {bare} "
+        "(make install, or run .venv/bin/snakemake after it)")

@@ -1,9 +1,27 @@
 import functools
 import json
+import os
 import shlex
+import shutil
 import subprocess
 import sys
 from pathlib import Path
+
+
+def find_dmais():
+    """Every rule runs `dmais`. Where it is not on PATH but installed beside the Python running
+    Snakemake (`.venv/bin/snakemake` with the venv not activated), that folder joins PATH, also for
+    the jobs; where it is nowhere, one line says so instead of each job's "command not found"."""
+    if shutil.which("dmais"):
+        return
+    beside = Path(sys.executable).parent
+    if not (beside / "dmais").is_file():
+        sys.exit(f"dmais is not installed: it is neither on PATH nor beside {sys.executable} "
+                 "(make install, or run .venv/bin/snakemake after it)")
+    os.environ["PATH"] = f"{beside}{os.pathsep}{os.environ.get('PATH', '')}"
+
+
+find_dmais()
 
 DATASET = config["dataset"]
 RESULTS = f"results/{DATASET}"
