@@ -99,9 +99,13 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
             "pose_methods_vs_paper.csv", "evaluation.csv", "report.html"} <= names
 
 
-def snakemake(workdir: Path, *options: str, timeout: int = 120) -> subprocess.CompletedProcess:
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
-    command = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
+def snakemake(workdir: Path, *options: str, timeout: int = 120, python=sys.executable,
+              env: dict | None = None) -> subprocess.CompletedProcess:
+    """Snakemake of `python` on the Snakefile in workdir; env: by default this one with the venv's
+    bin (`dmais`) first on PATH."""
+    if env is None:
+        env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
+    command = [str(python), "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(workdir),
                *options]
     return subprocess.run(command, cwd=workdir, env=env, capture_output=True, text=True, timeout=timeout)
 
@@ -193,7 +197,6 @@ def test_a_faulty_dataset_stops_the_dry_run_with_the_loaders_line(tmp_path):
         f"dmais plan: error: {site / 'images.csv'}, line 4: unknown camera 'C9' (dataset.yaml has C0, C1)"]
 
 
-
 def _site_without_venv_on_path(tmp_path: Path) -> dict:
     """A small dataset and its config site.yaml in tmp_path; the environment without the folder
     of this Python (the venv's bin, with `dmais`) on PATH."""
@@ -207,20 +210,15 @@ def _site_without_venv_on_path(tmp_path: Path) -> dict:
     return env
 
 
-def _snakemake_with(python, tmp_path: Path, env: dict, *options: str) -> subprocess.CompletedProcess:
-    command = [str(python), "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path),
-               "--configfile", "site.yaml", "--cores", "1", *options]
-    return subprocess.run(command, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=300, check=False)
-
-
 def test_snakemake_of_the_venv_runs_without_the_venv_on_path(tmp_path):
     """`.venv/bin/snakemake` with the venv not activated: its rules' `dmais` (the dry run's `dmais
     plan`, a job's shell command) is the one beside its Python, not a FileNotFoundError traceback."""
     env = _site_without_venv_on_path(tmp_path)
-    dry = _snakemake_with(sys.executable, tmp_path, env, "-n")
+    dry = snakemake(tmp_path, "--configfile", "site.yaml", "--cores", "1", "-n", env=env)
     assert dry.returncode == 0, dry.stdout[-2000:] + dry.stderr[-2000:]
     assert "markers" in dry.stdout
-    run = _snakemake_with(sys.executable, tmp_path, env, "reports/site/dataset_summary.csv")
+    run = snakemake(tmp_path, "--configfile", "site.yaml", "--cores", "1", "reports/site/dataset_summary.csv",
+                   timeout=300, env=env)
     assert run.returncode == 0, run.stderr[-2000:]
     assert pd.read_csv(tmp_path / "reports/site/dataset_summary.csv")["images"].sum() > 0
 
@@ -232,7 +230,7 @@ def test_snakemake_without_dmais_anywhere_says_so_in_one_line(tmp_path):
     bare.parent.mkdir()
     bare.symlink_to(os.path.realpath(sys.executable))
     env["PYTHONPATH"] = os.pathsep.join(site_module.getsitepackages())
-    result = _snakemake_with(bare, tmp_path, env, "-n")
+    result = snakemake(tmp_path, "--configfile", "site.yaml", "--cores", "1", "-n", python=bare, env=env)
     assert result.returncode != 0
     assert (result.stdout + result.stderr).strip() == (
         f"dmais is not installed: it is neither on PATH nor beside {bare} "
