@@ -4,9 +4,10 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(abspath $(VENV))/bin
 STAMP := $(VENV)/.installed-$(shell cat pyproject.toml constraints.txt | cksum | cut -d' ' -f1)
+SLURM_STAMP := $(VENV)/.slurm-$(shell cat pyproject.toml constraints.txt | cksum | cut -d' ' -f1)
 CORES ?= 2
 
-.PHONY: install run paper test lint clean
+.PHONY: install install-slurm run paper test test-cluster lint clean
 
 # The pose solver's compiled cores are rebuilt when their sources change.
 $(STAMP): pyproject.toml constraints.txt setup.py dmais_pipe/pose/_kernels.pyx dmais_pipe/pose/_refine.pyx dmais_pipe/pose/_small.pxd
@@ -17,6 +18,13 @@ $(STAMP): pyproject.toml constraints.txt setup.py dmais_pipe/pose/_kernels.pyx d
 
 install: $(STAMP)
 
+# Snakemake's SLURM executor plugin (README, "Running on a cluster").
+$(SLURM_STAMP): $(STAMP)
+	PIP_CONSTRAINT=$(abspath constraints.txt) $(BIN)/python -m pip install --quiet -e '.[slurm]'
+	rm -f $(VENV)/.slurm-* && touch $@
+
+install-slurm: $(SLURM_STAMP)
+
 run: $(STAMP)
 	PATH="$(BIN):$$PATH" $(BIN)/snakemake --cores $(CORES) --configfile config/config.yaml
 
@@ -25,6 +33,11 @@ paper: $(STAMP)
 
 test: $(STAMP)
 	PATH="$(BIN):$$PATH" $(BIN)/python -m pytest -q
+
+# The demo through the SLURM profile on a single-node SLURM brought up here (as root, from Debian's
+# packages: tests/cluster/slurm_up.sh), its tables compared with a local run's.
+test-cluster: $(SLURM_STAMP)
+	PATH="$(BIN):$$PATH" DMAIS_CLUSTER_TEST=1 $(BIN)/python -m pytest -q tests/cluster
 
 lint: $(STAMP)
 	PATH="$(BIN):$$PATH" $(BIN)/snakemake --lint --configfile config/config.yaml

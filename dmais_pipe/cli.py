@@ -14,6 +14,7 @@ from pathlib import Path
 
 from .errors import DmaisError, FileAccessError
 from .files import read_only
+from .plan import MARKERS_PER_JOB
 
 log = logging.getLogger("dmais")
 
@@ -37,9 +38,14 @@ def _cmd_plan(args) -> None:
     import json
 
     from .dataset import Dataset
+    from .files import write_json_atomic
     from .plan import workflow_plan
 
-    print(json.dumps(workflow_plan(Dataset.load(args.dataset)), indent=1))
+    plan = workflow_plan(Dataset.load(args.dataset), args.per_job)
+    if args.json is None:
+        print(json.dumps(plan, indent=1))
+    else:
+        write_json_atomic(args.json, plan)
 
 
 def _cmd_summarize(args) -> None:
@@ -99,6 +105,8 @@ def _cmd_markers(args) -> None:
         _print(markers.collect(workspace, args.collect))
     elif args.image:
         _print(markers.run_image(workspace, args.image, conf))
+    elif args.batch:
+        _print(markers.run_batch(workspace, args.batch, args.per_job, conf))
     else:
         _print(markers.run(workspace, conf))
 
@@ -189,15 +197,22 @@ def _parser() -> argparse.ArgumentParser:
 
     plan = commands.add_parser("plan", help="what the workflow needs to know of a dataset, as JSON")
     plan.add_argument("dataset", type=Path)
+    plan.add_argument("--per-job", type=_positive_int, default=MARKERS_PER_JOB,
+                      help="images per marker batch (default: %(default)s)")
+    plan.add_argument("--json", type=Path, help="write the plan to this file (atomically) instead of printing it")
     plan.set_defaults(run=_cmd_plan)
 
     markers = commands.add_parser("markers", help="detect, refine and identify the markers of every image")
     markers.add_argument("dataset", type=Path)
     markers.add_argument("--out", type=Path, required=True, help="results folder")
     one = markers.add_mutually_exclusive_group()
-    one.add_argument("--image", help="only this image -> RESULTS/markers/<image>.csv (one workflow job)")
+    one.add_argument("--image", help="only this image -> RESULTS/markers/<image>.csv")
+    one.add_argument("--batch", help="only this batch of images (a workflow job; `dmais plan` lists them) -> "
+                                     "their markers files and RESULTS/markers/batches/<batch>.csv")
     one.add_argument("--collect", choices=("intrinsics", "extrinsics", "flight"),
                      help="only gather the stage's marker files -> RESULTS/observations/<stage>.csv")
+    markers.add_argument("--per-job", type=_positive_int, default=MARKERS_PER_JOB,
+                         help="images per batch, as the plan was made with (default: %(default)s)")
     markers.set_defaults(run=_cmd_markers)
 
     intrinsics = commands.add_parser("intrinsics", help="calibrate every camera's intrinsics from the field")
@@ -310,6 +325,16 @@ def _stage_help(parser: argparse.ArgumentParser, conf: argparse.Action, stage: s
     conf.help = f"named settings of the stage: {', '.join(confs)} (default: {next(iter(confs))})"
     parser.epilog = settings_help(confs) + "\n\nSee docs/design.md, 'Stage settings'."
     return argparse.ArgumentParser.format_help(parser)
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value} is not positive")
+    return value
 
 
 def _version() -> str:

@@ -79,6 +79,10 @@ class Workspace:
     def markers_path(self, image: str) -> Path:
         return self.root / "markers" / f"{image}.csv"
 
+    def marker_batch_path(self, batch: str) -> Path:
+        """RESULTS/markers/batches/<batch>.csv: a marker job's images, counts and times (stages.markers)."""
+        return self.root / "markers" / "batches" / f"{batch}.csv"
+
     def observations_path(self, stage: str | None = None) -> Path:
         """RESULTS/observations/<stage>.csv (the workflow's), or RESULTS/observations.csv (None)."""
         return self.root / "observations.csv" if stage is None else self.root / "observations" / f"{stage}.csv"

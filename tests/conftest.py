@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
 import yaml
 
 from dmais_pipe.sim.simulate import simulate
+
+#: tests/cluster runs the demo on a SLURM it brings up (as root): only `make test-cluster` collects it.
+collect_ignore = [] if os.environ.get("DMAIS_CLUSTER_TEST") else ["cluster"]
 
 
 def observation_only(name: str, seed: int, calib_images: int, eval_images: int, frames_per_group: int) -> dict:

@@ -23,6 +23,7 @@ id, a neighbouring marker hundreds of pixels away, fails it.
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 import pandas as pd
@@ -120,15 +121,21 @@ def predicted_projections(dataset: Dataset, image: str, rig: Rig | None = None, 
 
 def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None,
                   margin_px: float = PREDICTION_MARGIN_PX, gate_px: float = VERIFY_GATE_PX,
-                  identify_gate_px: float = GATE_PX, identify_min_inliers: int = MIN_INLIERS) -> pd.DataFrame:
+                  identify_gate_px: float = GATE_PX, identify_min_inliers: int = MIN_INLIERS,
+                  seconds: dict | None = None) -> pd.DataFrame:
     """Detections of one image with ids: DataFrame of `detect`'s columns and point_id ('' when unidentified).
 
     rig, calibrated: as `predicted_projections`; margin_px: how far outside the image predictions
     are kept; gate_px: the pose verification's residual gate for calibration images;
-    identify_gate_px, identify_min_inliers: `identify`'s final gate and fewest matches.
+    identify_gate_px, identify_min_inliers: `identify`'s final gate and fewest matches;
+    seconds: if given, receives the wall time of each phase (decode_s, detect_s, identify_s).
     """
+    seconds = {} if seconds is None else seconds
+    started = time.perf_counter()
     pixels = dataset.read_image(image)
+    seconds["decode_s"] = time.perf_counter() - started
     found, rejected = detect(pixels, with_rejected=True)
+    seconds["detect_s"] = time.perf_counter() - started - seconds["decode_s"]
     found["point_id"] = ""
     prediction = predicted_projections(dataset, image, rig, calibrated, margin_px)
     if prediction is None and len(found):
@@ -147,6 +154,7 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
             log.warning("markers %s: %d detected, none identified: the priors predict %d known point(s) near the "
                         "image and none matches a detection (check the prior centre and attitude, and focal_px)",
                         image, len(found), len(uv))
+    seconds["identify_s"] = time.perf_counter() - started - seconds["decode_s"] - seconds["detect_s"]
     return found
 
 

@@ -1,6 +1,12 @@
 """`dmais markers`: every image's markers, and the observations of each stage.
 
-- `run_image` (the workflow's job per image): RESULTS/markers/<image>.csv;
+- `run_batch` (the workflow's job per batch of images, plan.marker_batches): RESULTS/markers/<image>.csv
+  for each image of the batch, then RESULTS/markers/batches/<batch>.csv with each image's counts and
+  time per phase. Each finished image is recorded at once in <batch>.progress with a digest of its
+  inputs, so that a batch run again (killed or failed midway: a node lost, a corrupt image; or
+  finished unnoticed by a controlling Snakemake that was killed) redoes only the images it had not
+  finished from the same inputs and code;
+- `run_image`: one image's RESULTS/markers/<image>.csv;
 - `collect` (one job per stage): RESULTS/observations/<stage>.csv from the stage's marker files and
   the dataset's own observations of that stage;
 - `run` (without the workflow): every image in turn, then RESULTS/observations.csv. Images run one
@@ -12,15 +18,22 @@ intrinsics when those exist (markers.extract).
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import logging
+import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
+
+import pandas as pd
 
 from ..camera import Camera
 from ..errors import DmaisError
 from ..markers.extract import PREDICTION_MARGIN_PX, VERIFY_GATE_PX, observation_table, process_image
 from ..markers.identify import GATE_PX, MIN_INLIERS
+from ..files import write_csv_atomic
+from ..plan import MARKERS_PER_JOB, marker_batches
 from . import setting
 from ..rig import Rig
 from ..workspace import Workspace
@@ -73,22 +86,140 @@ def run_image(workspace: Workspace, image: str, conf: Conf = Conf()) -> list[Pat
     return [workspace.save_markers(image, _extract(workspace, image, conf, rig))]
 
 
+#: RESULTS/markers/batches/<batch>.csv: per image, its detections and identified ones, the seconds of
+#: each phase (decode, detect, identify, write) and whether an earlier run of the batch had done it.
+BATCH_COLUMNS = ("image", "camera", "detected", "identified", "decode_s", "detect_s", "identify_s", "write_s",
+                 "resumed")
+_PROGRESS_COLUMNS = ("image", "key", *BATCH_COLUMNS[2:-1])
+
+
+def run_batch(workspace: Workspace, batch: str, per_job: int = MARKERS_PER_JOB, conf: Conf = Conf()) -> list[Path]:
+    """The images of `batch` (plan.marker_batches of the dataset with `per_job`) -> their markers files
+    and RESULTS/markers/batches/<batch>.csv. An image whose markers an earlier run of this batch wrote
+    from the same inputs is not redone. An image that fails does not stop the others; the batch then
+    fails naming the first, and its finished images are kept for the next run."""
+    dataset = workspace.dataset
+    batches = marker_batches(dataset, per_job)
+    if batch not in batches:
+        raise DmaisError(f"markers: no batch {batch!r} among the {len(batches)} marker batches of {dataset.root} "
+                         f"with {per_job} images per job (`dmais plan` lists them)")
+    images, stage = batches[batch]["images"], batches[batch]["stage"]
+    rig = workspace.load_rig() if stage == "flight" else None
+    key = _inputs_key(workspace, batches[batch], conf)
+    progress = workspace.marker_batch_path(batch).with_suffix(".progress")
+    done = _finished(progress, workspace)
+    rows, failed = [], []
+    for k, image in enumerate(images, 1):
+        image_key = _image_key(dataset, image, key)
+        if done.get(image, {}).get("key") == image_key:
+            rows.append({**done[image], "resumed": True})
+            continue
+        try:
+            row = _extract_and_save(workspace, image, conf, rig, f"{k}/{len(images)} ")
+        except (DmaisError, OSError) as error:
+            log.error("markers %s: %s", image, error)
+            failed.append((image, error))
+            continue
+        _record(progress, {"image": image, "key": image_key, **row})
+        rows.append({"image": image, **row, "resumed": False})
+    if failed:
+        image, error = failed[0]
+        raise DmaisError(f"markers: {len(failed)} of {len(images)} images of batch {batch} failed, first {image}: "
+                         f"{error} (the {len(images) - len(failed)} finished are kept for the next run)")
+    table = pd.DataFrame(rows, columns=["image", *BATCH_COLUMNS[2:]])
+    table.insert(1, "camera", batches[batch]["camera"])
+    written = write_csv_atomic(workspace.marker_batch_path(batch), table.round(6))
+    log.info("markers %s: %d images, %d done before (%.1f s of detection work)", batch, len(images),
+             int(table["resumed"].sum()), float(table[["decode_s", "detect_s", "identify_s", "write_s"]].sum().sum()))
+    return [written]
+
+
+def _extract_and_save(workspace: Workspace, image: str, conf: Conf, rig: Rig | None, progress: str) -> dict:
+    """One image's markers written; its counts and seconds per phase (a progress row without image and key)."""
+    seconds = {}
+    found = _extract(workspace, image, conf, rig, progress, seconds)
+    started = time.perf_counter()
+    workspace.save_markers(image, found)
+    return {"detected": len(found), "identified": int((found["point_id"] != "").sum()), **seconds,
+            "write_s": time.perf_counter() - started}
+
+
+def _inputs_key(workspace: Workspace, batch: dict, conf: Conf) -> str:
+    """A digest of what a batch's markers depend on besides the image file: the code, the settings, the
+    dataset's tables and the calibration the stage identifies with (rig.json, or the camera's intrinsics)."""
+    digest = hashlib.sha256(_code_digest().encode() + repr(conf).encode())
+    root = workspace.dataset.root
+    prerequisites = {"flight": [workspace.rig_path],
+                     "extrinsics": [workspace.intrinsics_path(batch["camera"])]}.get(batch["stage"], [])
+    for path in sorted(root.glob("*.csv")) + [root / "dataset.yaml"]:
+        stat = path.stat()
+        digest.update(f"{path.name}:{stat.st_size}:{stat.st_mtime_ns};".encode())
+    for path in prerequisites:
+        digest.update(path.read_bytes() if path.is_file() else b"absent")
+    return digest.hexdigest()[:16]
+
+
+@functools.lru_cache(maxsize=1)
+def _code_digest() -> str:
+    """A digest of this package's source (a changed detector redoes every image)."""
+    digest = hashlib.sha256()
+    for path in sorted(Path(__file__).resolve().parents[1].rglob("*")):
+        if path.suffix in (".py", ".pyx", ".pxd"):
+            digest.update(path.read_bytes())
+    return digest.hexdigest()
+
+
+def _image_key(dataset, image: str, inputs_key: str) -> str:
+    path = dataset.image_path(image)
+    stat = path.stat() if path is not None and path.is_file() else None
+    return inputs_key + ("-" if stat is None else f"-{stat.st_size}-{stat.st_mtime_ns}")
+
+
+def _finished(progress: Path, workspace: Workspace) -> dict[str, dict]:
+    """The images earlier runs of a batch recorded in `progress` and whose markers file is there:
+    image -> its last progress row. A line cut short by a kill is ignored."""
+    if not progress.is_file():
+        return {}
+    finished = {}
+    for line in progress.read_text().splitlines()[1:]:
+        cells = line.split(",")
+        if len(cells) != len(_PROGRESS_COLUMNS) or not workspace.markers_path(cells[0]).is_file():
+            continue
+        try:
+            row = dict(zip(_PROGRESS_COLUMNS, cells[:2] + [int(c) for c in cells[2:4]] + [float(c) for c in cells[4:]]))
+        except ValueError:
+            continue
+        finished[cells[0]] = row
+    return finished
+
+
+def _record(progress: Path, row: dict) -> None:
+    """Append one finished image to the batch's progress file, on disk before the next image starts."""
+    progress.parent.mkdir(parents=True, exist_ok=True)
+    header = "" if progress.is_file() else ",".join(_PROGRESS_COLUMNS) + "\n"
+    with open(progress, "a") as handle:
+        handle.write(header + ",".join(str(row[c]) for c in _PROGRESS_COLUMNS) + "\n")
+        handle.flush()
+        os.fsync(handle.fileno())
+
+
 def collect(workspace: Workspace, stage: str) -> list[Path]:
     """RESULTS/observations/<stage>.csv from the stage's marker files and the dataset's own observations."""
     images = workspace.dataset.images_to_extract(stage)
     absent = [str(workspace.markers_path(image)) for image in images if not workspace.markers_path(image).is_file()]
     if absent:
         raise DmaisError(f"markers: {len(absent)} marker file(s) of stage {stage} missing, e.g. {absent[0]}; "
-                         "run `dmais markers --image` for them")
+                         "run `dmais markers --batch` or `--image` for them")
     markers = {image: workspace.load_markers(image) for image in images}
     return [workspace.save_observations(observation_table(workspace.dataset, images, markers, stage), stage)]
 
 
-def _extract(workspace: Workspace, image: str, conf: Conf, rig: Rig | None, progress: str = ""):
+def _extract(workspace: Workspace, image: str, conf: Conf, rig: Rig | None, progress: str = "",
+             seconds: dict | None = None):
     started = time.perf_counter()
     found = process_image(workspace.dataset, image, rig, _calibrated(workspace, image),
                           conf.prediction_margin_px, conf.verify_gate_px, conf.identify_gate_px,
-                          conf.identify_min_inliers)
+                          conf.identify_min_inliers, seconds)
     log.info("markers %s%s: %d detected, %d identified (%.2f s)", progress, image, len(found),
              int((found["point_id"] != "").sum()), time.perf_counter() - started)
     return found

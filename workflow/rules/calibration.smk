@@ -7,8 +7,8 @@ rule intrinsics:
         methods=f"{RESULTS}/intrinsics/{{camera}}.methods.csv",
         residuals=f"{RESULTS}/intrinsics/{{camera}}.residuals.csv",
     params:
-        dataset_dir=folder_of("manifest"),
-        results=folder_of("json", up=1),
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
         settings=stage_settings("intrinsics"),
     log:
         f"{LOGS}/intrinsics/{{camera}}.log",
@@ -29,8 +29,8 @@ rule intrinsics_table:
         csv=report(f"{RESULTS}/tables/intrinsics.csv", caption="../report/intrinsics_table.rst", category="Tables",
                    subcategory="Calibration"),
     params:
-        dataset_dir=folder_of("manifest"),
-        results=folder_of("csv", up=1),
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
     log:
         f"{LOGS}/intrinsics_table.log",
     conda:
@@ -53,8 +53,8 @@ rule extrinsics:
         translations=report(f"{RESULTS}/tables/extrinsics_t.csv", caption="../report/extrinsics_tables.rst",
                             category="Tables", subcategory="Calibration"),
     params:
-        dataset_dir=folder_of("manifest"),
-        results=folder_of("rig"),
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
         settings=stage_settings("extrinsics"),
     log:
         f"{LOGS}/extrinsics.log",

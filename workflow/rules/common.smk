@@ -1,4 +1,5 @@
 import functools
+import hashlib
 import json
 import os
 import shlex
@@ -32,6 +33,8 @@ LOGS = f"logs/{DATASET}"
 BENCHMARKS = f"benchmarks/{DATASET}"
 #: Camera subsets of tab:conf, as camera indexes in the manifest's order ("01" = first two cameras).
 SUBSETS = config.get("subsets", ["0", "01", "012", "1234"])
+#: Images per marker job (the config's markers_per_job; plan.MARKERS_PER_JOB by default).
+MARKERS_PER_JOB = config.get("markers_per_job", 100)
 BENCH_POSE = {"repeats": 50, "batch_frames": 100, "stage_frames": 10_000, **config.get("bench_pose", {})}
 
 
@@ -43,30 +46,42 @@ def dataset_manifest():
 def dataset_ready():
     """The manifest path once the dataset exists: with `simulate`, waits for that checkpoint so that
     the images, cameras and frame groups below are read from the simulated files."""
-    if config.get("simulate"):
+    if config.get("simulate") and workflow.is_main_process:  # a job's own Snakemake runs after simulate
         return checkpoints.simulate.get().output.manifest
     return dataset_manifest()
 
 
-def folder_of(name, up=0):
-    """A params function: the folder holding the rule's input or output file `name`, or the one
-    `up` levels above it (e.g. RESULTS from RESULTS/markers/<image>.csv with up=1)."""
+#: Bumped when `dmais plan`'s JSON changes, so that a plan file of an older layout is not read.
+PLAN_FORMAT = 2
 
-    def folder(wildcards, input, output):
-        files = {**dict(input.items()), **dict(output.items())}
-        return str(Path(files[name]).parents[up])
 
-    return folder
+def _plan_file(dataset_dir):
+    """RESULTS/plan/<key>.json, the key a digest of the dataset's tables (name, size, mtime) and the
+    batch size: the plan is made once per run of the workflow and read by every job's own Snakemake
+    (on a cluster, each job parses the workflow again), and made anew when the dataset changes."""
+    root = Path(dataset_dir)
+    digest = hashlib.sha256(f"{PLAN_FORMAT}|{root.resolve()}|{MARKERS_PER_JOB}".encode())
+    for path in sorted(root.glob("*.csv")) + [root / "dataset.yaml"]:
+        stat = path.stat()
+        digest.update(f"{path.name}:{stat.st_size}:{stat.st_mtime_ns};".encode())
+    return Path(RESULTS) / "plan" / f"{digest.hexdigest()[:16]}.json"
 
 
 @functools.lru_cache(maxsize=None)
 def _plan(dataset_dir):
     """`dmais plan DATASET`: the dataset as the stages see it (validated by the same loader; a
-    faulty dataset stops here with its one-line error)."""
-    done = subprocess.run(["dmais", "plan", dataset_dir], capture_output=True, text=True)
-    if done.returncode != 0:
-        sys.exit(done.stderr.strip() or f"dmais plan {dataset_dir} failed")
-    return json.loads(done.stdout)
+    faulty dataset stops here with its one-line error), from its plan file when one is there."""
+    path = _plan_file(dataset_dir)
+    if not path.is_file():
+        command = ["dmais", "plan", dataset_dir, "--per-job", str(MARKERS_PER_JOB), "--json", str(path)]
+        done = subprocess.run(command, capture_output=True, text=True)
+        if done.returncode != 0:
+            sys.exit(done.stderr.strip() or f"dmais plan {dataset_dir} failed")
+        if workflow.is_main_process:  # plans of earlier states of the dataset
+            for old in path.parent.glob("*.json"):
+                if old != path:
+                    old.unlink(missing_ok=True)
+    return json.loads(path.read_text())
 
 
 def plan():
@@ -78,9 +93,10 @@ def cameras():
     return plan()["cameras"]
 
 
-def extracted_images(stage):
-    """Images of `stage` whose markers the workflow extracts: with a file and no given observations."""
-    return plan()["extract"][stage]
+def marker_batches(stage):
+    """Names of the marker batches of `stage` (plan.marker_batches: per camera, at most
+    MARKERS_PER_JOB images of a file and no given observations each)."""
+    return list(plan()["batches"][stage])
 
 
 def calibrated_cameras():
@@ -120,12 +136,12 @@ def stage_settings(stage):
 
 
 def marker_inputs(wildcards):
-    """An image's prerequisites: extrinsics images are identified with the calibrated intrinsics of
+    """A batch's prerequisites: extrinsics images are identified with the calibrated intrinsics of
     their camera, flight images with the calibrated rig."""
-    stage, camera = plan()["image_stage"][wildcards.image], plan()["image_camera"][wildcards.image]
+    stage = next(stage for stage, batches in plan()["batches"].items() if wildcards.batch in batches)
     inputs = {"manifest": dataset_ready()}
     if stage == "extrinsics":
-        inputs["intrinsics"] = f"{RESULTS}/intrinsics/{camera}.json"
+        inputs["intrinsics"] = f"{RESULTS}/intrinsics/{plan()['batches'][stage][wildcards.batch]['camera']}.json"
     elif stage == "flight":
         inputs["rig"] = f"{RESULTS}/rig.json"
     return inputs

@@ -9,8 +9,8 @@ rule dataset_report:
         ),
         summary=f"{REPORTS}/dataset_summary.csv",
     params:
-        dataset_dir=folder_of("manifest"),
-        reports=folder_of("summary"),
+        dataset_dir=DATASET_DIR,
+        reports=REPORTS,
     log:
         f"{LOGS}/dataset_report.log",
     conda:

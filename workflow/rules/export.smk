@@ -15,8 +15,8 @@ rule export_colmap:
            for fmt in EXPORT_FORMATS},
         rig_config=f"{RESULTS}/colmap/rig_config.json",
     params:
-        dataset_dir=folder_of("manifest"),
-        results=folder_of("rig"),
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
         settings=stage_settings("export"),
     log:
         f"{LOGS}/export_colmap.log",

@@ -2,33 +2,35 @@ rule markers:
     input:
         unpack(marker_inputs),
     output:
-        csv=f"{RESULTS}/markers/{{image}}.csv",
+        csv=f"{RESULTS}/markers/batches/{{batch}}.csv",
     params:
-        dataset_dir=folder_of("manifest"),
-        results=folder_of("csv", up=1),
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
+        per_job=MARKERS_PER_JOB,
         settings=stage_settings("markers"),
     log:
-        f"{LOGS}/markers/{{image}}.log",
+        f"{LOGS}/markers/{{batch}}.log",
     benchmark:
-        f"{BENCHMARKS}/markers/{{image}}.tsv"
+        f"{BENCHMARKS}/markers/{{batch}}.tsv"
     conda:
         DMAIS_ENV
     shell:
-        "dmais markers {params.dataset_dir} --out {params.results} --image {wildcards.image} {params.settings} "
-        "> {log} 2>&1"
+        "dmais markers {params.dataset_dir} --out {params.results} --batch {wildcards.batch} "
+        "--per-job {params.per_job} {params.settings} > {log} 2>&1"
 
 
 rule observations:
     input:
         manifest=lambda wildcards: dataset_ready(),
-        markers=lambda wildcards: expand(f"{RESULTS}/markers/{{image}}.csv", image=extracted_images(wildcards.stage)),
+        batches=lambda wildcards: expand(f"{RESULTS}/markers/batches/{{batch}}.csv",
+                                         batch=marker_batches(wildcards.stage)),
     output:
         csv=f"{RESULTS}/observations/{{stage}}.csv",
     wildcard_constraints:
         stage="intrinsics|extrinsics|flight",
     params:
-        dataset_dir=folder_of("manifest"),
-        results=folder_of("csv", up=1),
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
     log:
         f"{LOGS}/observations/{{stage}}.log",
     benchmark:

@@ -9,8 +9,8 @@ rule pose_group:
     wildcard_constraints:
         subset=r"all|\d+",
     params:
-        dataset_dir=folder_of("manifest"),
-        results=folder_of("csv", up=2),
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
         cameras=lambda wildcards: ",".join(subset_cameras(wildcards.subset)),
         settings=stage_settings("pose"),
     log:
@@ -33,8 +33,8 @@ rule poses:
         csv=f"{RESULTS}/poses.csv",
         observations=f"{RESULTS}/poses.observations.csv",
     params:
-        dataset_dir=folder_of("manifest"),
-        results=folder_of("csv"),
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
     log:
         f"{LOGS}/poses.log",
     conda:
@@ -54,8 +54,8 @@ rule poses_subset:
     wildcard_constraints:
         subset=r"\d+",
     params:
-        dataset_dir=folder_of("manifest"),
-        results=folder_of("csv"),
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
         cameras=lambda wildcards: ",".join(subset_cameras(wildcards.subset)),
     log:
         f"{LOGS}/poses_{{subset}}.log",

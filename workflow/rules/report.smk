@@ -16,8 +16,8 @@ rule evaluate:
         **({"conf": report(f"{RESULTS}/tables/conf.csv", caption="../report/conf.rst", category="Tables",
                            subcategory="Pose")} if SUBSETS else {}),
     params:
-        dataset_dir=folder_of("manifest"),
-        results=folder_of("evaluation"),
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
         settings=stage_settings("evaluate"),
     log:
         f"{LOGS}/evaluate.log",
@@ -69,8 +69,8 @@ rule report:
         tables=report(directory(f"{REPORTS}/tables"), patterns=["{name}_vs_paper.csv"],
                       caption="../report/paper_tables.rst", category="Tables", subcategory="Versus the paper"),
     params:
-        dataset_dir=folder_of("manifest"),
-        results=folder_of("evaluation"),
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
         benchmarks=BENCHMARKS,
         settings=stage_settings("report"),
     log:

@@ -8,7 +8,7 @@ if config.get("simulate"):
         output:
             manifest=f"{DATASET_DIR}/dataset.yaml",
         params:
-            dataset_dir=folder_of("manifest"),
+            dataset_dir=DATASET_DIR,
         log:
             f"{LOGS}/simulate.log",
         threads: 8  # snakemake caps it at --cores

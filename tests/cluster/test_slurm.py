@@ -1,0 +1,163 @@
+"""The README's cluster section, run verbatim on a real single-node SLURM (`make test-cluster`).
+
+`slurm_up.sh` brings the cluster up (as root, from Debian's packages); without root or packages the
+module is skipped with its one-line reason. In two copies of the repository (sharing `.venv`), the
+demo runs once with `make run` and once with the README's SLURM commands; the SLURM run is killed
+while a marker batch is half done, its jobs cancelled, and resumed. Then the account and partition
+override of the README and a failing job's message are checked, and every table of the two runs is
+compared: equal, but for the columns that are wall-clock times (TIME_COLUMN) and the runtime
+benchmark's tables (time_points*), which measure this machine rather than compute a result.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+#: Columns holding wall-clock times, the one thing two runs of the same config may not share.
+TIME_COLUMN = re.compile(r"(^|_)(time|ms|s|seconds)(_|$)")
+ACCOUNT, PARTITION = "dmais", "debug"  # made by slurm_up.sh besides the default partition
+RUN_TIMEOUT_S = 900
+
+
+def readme_cluster_commands() -> list[str]:
+    """The sh blocks of the README's "Running on a cluster" section, as they are written."""
+    text = (REPO / "README.md").read_text()
+    section = text.split("## Running on a cluster", 1)[1].split("\n## ", 1)[0]
+    return re.findall(r"```sh\n(.*?)```", section, re.S)
+
+
+def copy_repository(target: Path) -> Path:
+    """The repository's files (tracked and not ignored) in `target`, with a link to its .venv."""
+    listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"], cwd=REPO,
+                            capture_output=True, check=True).stdout.decode().split("\0")
+    for name in filter(None, listed):
+        source = REPO / name
+        if source.is_file():
+            (target / name).parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(source, target / name)
+    (target / ".venv").symlink_to(REPO / ".venv")
+    return target
+
+
+def start(script: str, cwd: Path, log: Path) -> subprocess.Popen:
+    """`script` in bash (stopping at the first failing command) in its own process group."""
+    return subprocess.Popen(["bash", "-ec", script], cwd=cwd, stdout=open(log, "w"), stderr=subprocess.STDOUT,
+                            start_new_session=True, env={**os.environ, "PATH": _path_without_venv()})
+
+
+def finish(process: subprocess.Popen, log: Path) -> str:
+    process.wait(timeout=RUN_TIMEOUT_S)
+    output = log.read_text()
+    assert process.returncode == 0, output[-4000:]
+    return output
+
+
+def _path_without_venv() -> str:
+    """PATH as a user's fresh shell has it: the README's `source .venv/bin/activate` adds the venv."""
+    venv = str(REPO / ".venv" / "bin")
+    return os.pathsep.join(p for p in os.environ["PATH"].split(os.pathsep) if p != venv)
+
+
+def wait_for_idle_queue(seconds: float = 120) -> None:
+    deadline = time.monotonic() + seconds
+    while subprocess.run(["squeue", "-h"], capture_output=True, text=True).stdout.strip():
+        assert time.monotonic() < deadline, "SLURM jobs left after scancel"
+        time.sleep(0.5)
+
+
+def progress_lines(results: Path) -> list[str]:
+    """Every image each marker batch recorded as finished, over all runs."""
+    return [line.split(",")[0] for path in sorted((results / "markers" / "batches").glob("*.progress"))
+            for line in path.read_text().splitlines()[1:]]
+
+
+@pytest.fixture(scope="module")
+def slurm():
+    done = subprocess.run(["bash", str(REPO / "tests/cluster/slurm_up.sh")], capture_output=True, text=True,
+                          timeout=900)
+    if done.returncode == 77:
+        pytest.skip(done.stderr.strip().splitlines()[-1])
+    assert done.returncode == 0, done.stderr[-3000:]
+
+
+@pytest.fixture(scope="module")
+def runs(slurm, tmp_path_factory):
+    """The demo run locally and on SLURM (killed once midway and resumed): their two folders and logs."""
+    local = copy_repository(tmp_path_factory.mktemp("local"))
+    cluster = copy_repository(tmp_path_factory.mktemp("slurm"))
+    logs = tmp_path_factory.mktemp("logs")
+    started = time.strftime("%Y-%m-%dT%H:%M:%S")
+    run_locally = start("make run", local, logs / "local.log")
+
+    first, override = readme_cluster_commands()[:2]
+    interrupted = start(first, cluster, logs / "slurm_killed.log")
+    batches = cluster / "results/demo/markers/batches"
+    deadline = time.monotonic() + RUN_TIMEOUT_S
+    while not any(not p.with_suffix(".csv").exists() for p in batches.glob("*.progress")):  # a batch half done
+        assert interrupted.poll() is None, (logs / "slurm_killed.log").read_text()[-4000:]
+        assert time.monotonic() < deadline, "no marker batch started on SLURM"
+        time.sleep(0.05)
+    half_done = next(p.stem for p in batches.glob("*.progress") if not p.with_suffix(".csv").exists())
+    os.killpg(interrupted.pid, signal.SIGKILL)  # the controlling snakemake dies without cleaning up
+    interrupted.wait()
+    finished_before = {p.name: p.stat().st_mtime_ns for p in batches.glob("*.csv")}
+    subprocess.run(["scancel", "--user", "root"], check=True)
+    wait_for_idle_queue()
+
+    resumed = start("source .venv/bin/activate\nsnakemake --configfile config/config.yaml --unlock\n" + first,
+                    cluster, logs / "slurm_resumed.log")
+    resumed_output = finish(resumed, logs / "slurm_resumed.log")
+    overridden = start(override.replace("slurm_account=NAME", f"slurm_account={ACCOUNT}")
+                       .replace("slurm_partition=NAME", f"slurm_partition={PARTITION}").strip()
+                       + " --forcerun dataset_report", cluster, logs / "slurm_override.log")
+    finish(overridden, logs / "slurm_override.log")
+    finish(run_locally, logs / "local.log")
+    return {"local": local, "slurm": cluster, "started": started, "half_done": half_done, "finished_before": finished_before,
+            "resumed_output": resumed_output}
+
+
+def test_the_resumed_run_redid_no_finished_work(runs):
+    results = runs["slurm"] / "results/demo"
+    batches = results / "markers" / "batches"
+    for name, mtime in runs["finished_before"].items():  # complete batches were not run again
+        assert (batches / name).stat().st_mtime_ns == mtime, name
+    extracted = progress_lines(results)
+    assert len(extracted) == len(set(extracted)), "an image was extracted twice"
+    half_done = pd.read_csv(batches / f"{runs['half_done']}.csv")
+    assert half_done["resumed"].any(), f"batch {runs['half_done']} redid its finished images"
+    assert "slurm" in runs["resumed_output"].lower()
+
+
+def test_jobs_ran_on_slurm_with_the_overridden_account_and_partition(runs):
+    jobs = subprocess.run(["sacct", "-X", "-n", "-P", "-S", runs["started"], "-o", "JobID,Comment,Account,Partition,State"],
+                          capture_output=True, text=True, check=True).stdout.splitlines()
+    rows = [line.split("|") for line in jobs]
+    report_jobs = [row for row in rows if row[1].startswith("rule_dataset_report")]
+    assert report_jobs and report_jobs[-1][2:] == [ACCOUNT, PARTITION, "COMPLETED"], rows
+    markers_jobs = [row for row in rows if row[1].startswith("rule_markers")]
+    assert len(markers_jobs) >= len(list((runs["slurm"] / "results/demo/markers/batches").glob("*.csv")))
+
+
+def test_slurm_tables_equal_the_local_runs(runs):
+    local, cluster = runs["local"], runs["slurm"]
+    tables = sorted({p.relative_to(local) for folder in ("reports/demo/tables", "results/demo")
+                     for p in (local / folder).rglob("*.csv")
+                     if not p.name.startswith("time_points") and "markers/batches" not in str(p)})
+    assert len(tables) > 200  # the report's tables, every image's markers, poses, observations, ...
+    for name in tables:
+        ours, theirs = pd.read_csv(local / name), pd.read_csv(cluster / name)
+        keep = [c for c in ours.columns if not TIME_COLUMN.search(str(c))]
+        if "quantity" in ours:  # a vs_paper table: its time rows
+            ours, theirs = (t[~t["quantity"].astype(str).str.contains("time|ms")] for t in (ours, theirs))
+        pd.testing.assert_frame_equal(ours[keep].reset_index(drop=True), theirs[keep].reset_index(drop=True),
+                                      check_exact=True, obj=str(name))
