@@ -176,6 +176,13 @@ def _cmd_bench_pose(args) -> None:
     bench_pose(args.csv, repeats=args.repeats, batch_frames=args.batch_frames, stage_frames=args.stage_frames)
 
 
+def _cmd_bench_campaign(args) -> None:
+    from .campaign import bench_campaign
+
+    bench_campaign(args.source, args.out, args.csv, frames=args.frames, frames_per_group=args.frames_per_group,
+                   slurm=args.slurm, slurm_batches=args.slurm_batches)
+
+
 def _parser() -> argparse.ArgumentParser:
     from .stages.intrinsics import Conf as IntrinsicsConf
 
@@ -302,6 +309,21 @@ def _parser() -> argparse.ArgumentParser:
                             help="frames of the generated flight in the pose-stage throughput run (0: skip it; "
                                  "default: %(default)s)")
     bench_pose.set_defaults(run=_cmd_bench_pose)
+    campaign = benches.add_parser("campaign", help="the workflow at flight-campaign scale: dry runs, one core, SLURM")
+    campaign.add_argument("--source", type=Path, default=Path("results/demo/dataset"),
+                          help="simulated dataset whose flight is repeated, with its run's results beside it "
+                               "(default: the demo's, as `make run` makes it)")
+    campaign.add_argument("--out", type=Path, default=Path("data/campaign"), help="campaign dataset to write "
+                          "(default: %(default)s)")
+    campaign.add_argument("--frames", type=_positive_int, default=10_000, help="flight frames (default: %(default)s)")
+    campaign.add_argument("--frames-per-group", type=_positive_int, default=500,
+                          help="frames per flight group (default: %(default)s)")
+    campaign.add_argument("--slurm", action="store_true", help="also run flight batches through the SLURM profile")
+    campaign.add_argument("--slurm-batches", type=_positive_int, default=4,
+                          help="flight batches run on SLURM (default: %(default)s)")
+    campaign.add_argument("--csv", type=Path, default=Path("reports/bench/campaign.csv"),
+                          help="output table (default: %(default)s)")
+    campaign.set_defaults(run=_cmd_bench_campaign)
     return parser
 
 

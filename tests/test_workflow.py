@@ -17,7 +17,8 @@ import pytest
 import yaml
 
 from dmais_pipe.dataset import Dataset
-from dmais_pipe.plan import workflow_plan
+from dmais_pipe.plan import marker_batches, workflow_plan
+from dmais_pipe.stages.markers import BATCH_COLUMNS
 from test_dataset import _inputs, _set_cells, _write
 
 REPO = Path(__file__).resolve().parents[1]
@@ -45,7 +46,7 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
         "render": {"intrinsics": False, "extrinsics": False, "flight": True},
     }))
     (tmp_path / "config.yaml").write_text(yaml.safe_dump(
-        {"dataset": "tiny", "simulate": "sim.yaml", "subsets": ["0", "012"],
+        {"dataset": "tiny", "simulate": "sim.yaml", "subsets": ["0", "012"], "markers_per_job": 3,
          "bench_pose": {"repeats": 2, "batch_frames": 5, "stage_frames": 0}}))
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     command = [sys.executable, "-m", "snakemake", "-s", str(REPO / "Snakefile"), "--directory", str(tmp_path),
@@ -63,11 +64,23 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
                                "A rendered marker and its true centre"]
 
     results = tmp_path / "results/tiny"
-    # one marker job per rendered flight image, identified with the rig the workflow calibrated
+    # the rendered flight images in marker jobs of at most markers_per_job (3) images per camera, each
+    # identified with the rig the workflow calibrated; every image has its markers file
     flight_images = pd.read_csv(tmp_path / "results/tiny/dataset/images.csv").query("stage == 'flight'")["image"]
     assert len(flight_images) == 25
+    batches = marker_batches(Dataset.load(results / "dataset"), 3)
+    assert sorted(batches) == [f"flight-C{c}-{k}" for c in range(5) for k in (1, 2)]  # 5 images a camera: 3 + 2
+    assert sorted(image for batch in batches.values() for image in batch["images"]) == sorted(flight_images)
+    for name, batch in batches.items():
+        assert (tmp_path / f"logs/tiny/markers/{name}.log").is_file(), name
+        table = pd.read_csv(results / "markers" / "batches" / f"{name}.csv")
+        assert list(table.columns) == list(BATCH_COLUMNS), name
+        assert table["image"].tolist() == batch["images"] and set(table["camera"]) == {batch["camera"]}, name
+        assert not table["resumed"].any(), name
+    assert sorted(path.name for path in (results / "markers" / "batches").glob("*.csv")) == sorted(
+        f"{name}.csv" for name in batches)
     for image in flight_images:
-        assert (results / "markers" / f"{image}.csv").is_file() and (tmp_path / f"logs/tiny/markers/{image}.log").is_file()
+        assert (results / "markers" / f"{image}.csv").is_file(), image
     flight = pd.read_csv(results / "observations" / "flight.csv")
     assert set(flight["image"]) <= set(flight_images) and flight["image"].nunique() >= 20
 
@@ -183,9 +196,14 @@ def test_a_faulty_dataset_stops_the_dry_run_with_the_loaders_line(tmp_path):
     """The Snakefile learns the dataset from `dmais plan`: the same loader, so the same one line."""
     site = _write(tmp_path / "site", _inputs())
     plan = workflow_plan(Dataset.load(site))
-    assert plan["extract"] == {"intrinsics": ["i1"], "extrinsics": ["e0"], "flight": ["f1"]}
-    assert plan["image_camera"] == {"i1": "C1", "e0": "C1", "f1": "C1"} and plan["groups"] == ["1"]
-    assert plan["calibrated_cameras"] == ["C0", "C1"]
+    assert plan == {"cameras": ["C0", "C1"], "calibrated_cameras": ["C0", "C1"], "groups": ["1"],
+                    "batches": {"intrinsics": {"intrinsics-C1-1": {"camera": "C1", "images": 1}},
+                                "extrinsics": {"extrinsics-C1-1": {"camera": "C1", "images": 1}},
+                                "flight": {"flight-C1-1": {"camera": "C1", "images": 1}}}}
+    assert marker_batches(Dataset.load(site)) == {  # i0 has given observations and f0 no file: not extracted
+        "intrinsics-C1-1": {"stage": "intrinsics", "camera": "C1", "images": ["i1"]},
+        "extrinsics-C1-1": {"stage": "extrinsics", "camera": "C1", "images": ["e0"]},
+        "flight-C1-1": {"stage": "flight", "camera": "C1", "images": ["f1"]}}
     (tmp_path / "site.yaml").write_text(yaml.safe_dump({"dataset": "site", "dataset_dir": str(site)}))
     dry = snakemake(tmp_path, "--configfile", "site.yaml", "--cores", "1", "-n")
     assert dry.returncode == 0, dry.stderr[-2000:]

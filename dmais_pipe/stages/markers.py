@@ -18,8 +18,10 @@ intrinsics when those exist (markers.extract).
 
 from __future__ import annotations
 
+import csv
 import functools
 import hashlib
+import io
 import logging
 import os
 import time
@@ -90,7 +92,8 @@ def run_image(workspace: Workspace, image: str, conf: Conf = Conf()) -> list[Pat
 #: each phase (decode, detect, identify, write) and whether an earlier run of the batch had done it.
 BATCH_COLUMNS = ("image", "camera", "detected", "identified", "decode_s", "detect_s", "identify_s", "write_s",
                  "resumed")
-_PROGRESS_COLUMNS = ("image", "key", *BATCH_COLUMNS[2:-1])
+#: <batch>.progress: an image, its inputs' digest, its markers file's size and mtime, then its batch row.
+_PROGRESS_COLUMNS = ("image", "key", "markers", *BATCH_COLUMNS[2:-1])
 
 
 def run_batch(workspace: Workspace, batch: str, per_job: int = MARKERS_PER_JOB, conf: Conf = Conf()) -> list[Path]:
@@ -120,7 +123,7 @@ def run_batch(workspace: Workspace, batch: str, per_job: int = MARKERS_PER_JOB, 
             log.error("markers %s: %s", image, error)
             failed.append((image, error))
             continue
-        _record(progress, {"image": image, "key": image_key, **row})
+        _record(progress, {"image": image, "key": image_key, "markers": _stamp(workspace.markers_path(image)), **row})
         rows.append({"image": image, **row, "resumed": False})
     if failed:
         image, error = failed[0]
@@ -176,29 +179,42 @@ def _image_key(dataset, image: str, inputs_key: str) -> str:
 
 
 def _finished(progress: Path, workspace: Workspace) -> dict[str, dict]:
-    """The images earlier runs of a batch recorded in `progress` and whose markers file is there:
-    image -> its last progress row. A line cut short by a kill is ignored."""
+    """The images earlier runs of a batch recorded in `progress` whose markers file is still the one
+    they wrote: image -> its last progress row (without the markers file's stamp). A line cut short
+    by a kill is ignored."""
     if not progress.is_file():
         return {}
     finished = {}
-    for line in progress.read_text().splitlines()[1:]:
-        cells = line.split(",")
-        if len(cells) != len(_PROGRESS_COLUMNS) or not workspace.markers_path(cells[0]).is_file():
+    for cells in list(csv.reader(progress.read_text(errors="replace").splitlines()))[1:]:
+        if len(cells) != len(_PROGRESS_COLUMNS) or cells[2] != _stamp(workspace.markers_path(cells[0])):
             continue
         try:
-            row = dict(zip(_PROGRESS_COLUMNS, cells[:2] + [int(c) for c in cells[2:4]] + [float(c) for c in cells[4:]]))
+            counts, seconds = [int(c) for c in cells[3:5]], [float(c) for c in cells[5:]]
         except ValueError:
             continue
-        finished[cells[0]] = row
+        finished[cells[0]] = dict(zip(("image", "key", *_PROGRESS_COLUMNS[3:]), cells[:2] + counts + seconds))
     return finished
 
 
+def _stamp(path: Path) -> str:
+    """A file's size and modification time, '' when it is absent."""
+    return f"{path.stat().st_size}-{path.stat().st_mtime_ns}" if path.is_file() else ""
+
+
 def _record(progress: Path, row: dict) -> None:
-    """Append one finished image to the batch's progress file, on disk before the next image starts."""
+    """Append one finished image to the batch's progress file, on disk before the next image starts
+    (after a line a kill cut short, on a line of its own)."""
     progress.parent.mkdir(parents=True, exist_ok=True)
-    header = "" if progress.is_file() else ",".join(_PROGRESS_COLUMNS) + "\n"
+    lines = io.StringIO()
+    if not progress.is_file():
+        csv.writer(lines, lineterminator="\n").writerow(_PROGRESS_COLUMNS)
+    else:
+        with open(progress, "rb") as handle:
+            if handle.seek(0, os.SEEK_END) and (handle.seek(-1, os.SEEK_END), handle.read(1))[1] != b"\n":
+                lines.write("\n")
+    csv.writer(lines, lineterminator="\n").writerow([row[c] for c in _PROGRESS_COLUMNS])
     with open(progress, "a") as handle:
-        handle.write(header + ",".join(str(row[c]) for c in _PROGRESS_COLUMNS) + "\n")
+        handle.write(lines.getvalue())
         handle.flush()
         os.fsync(handle.fileno())
 

@@ -93,6 +93,7 @@ AccountingStorageHost=localhost
 ReturnToService=2
 MpiDefault=none
 SchedulerType=sched/backfill
+AccountingStoreFlags=job_comment
 $node State=UNKNOWN
 PartitionName=$PARTITION Nodes=ALL Default=YES MaxTime=INFINITE State=UP
 CONF

@@ -117,13 +117,53 @@ def runs(slurm, tmp_path_factory):
     resumed = start("source .venv/bin/activate\nsnakemake --configfile config/config.yaml --unlock\n" + first,
                     cluster, logs / "slurm_resumed.log")
     resumed_output = finish(resumed, logs / "slurm_resumed.log")
+    broken = start_broken_batch(cluster, local, logs)
     overridden = start(override.replace("slurm_account=NAME", f"slurm_account={ACCOUNT}")
                        .replace("slurm_partition=NAME", f"slurm_partition={PARTITION}").strip()
                        + " --forcerun dataset_report", cluster, logs / "slurm_override.log")
     finish(overridden, logs / "slurm_override.log")
+    broken.wait(timeout=RUN_TIMEOUT_S)
+    failed_output = (logs / "slurm_broken.log").read_text()
+    progress_after_failure = progress_lines(cluster / "results/mysite")
+    (cluster / "mysite" / broken.image_path).write_bytes(broken.original)
+    repaired = start(f"source .venv/bin/activate\n{broken.command}", cluster, logs / "slurm_repaired.log")
+    finish(repaired, logs / "slurm_repaired.log")
     finish(run_locally, logs / "local.log")
-    return {"local": local, "slurm": cluster, "started": started, "half_done": half_done, "finished_before": finished_before,
+    return {"failed_returncode": broken.returncode, "failed_output": failed_output, "bad_image": broken.image,
+            "progress_after_failure": progress_after_failure, "local": local, "slurm": cluster, "started": started, "half_done": half_done, "finished_before": finished_before,
             "resumed_output": resumed_output}
+
+
+def start_broken_batch(cluster: Path, local: Path, logs: Path) -> subprocess.Popen:
+    """A user's dataset (the demo's, copied once simulated) with one unreadable intrinsics image, its
+    batch run on SLURM as a target of the README's command: the process, with what repairs it."""
+    while not (local / "results/demo/dataset/images.csv").is_file():  # the local run simulates it
+        time.sleep(0.5)
+    time.sleep(2)  # let the simulator's last renames land
+    user = cluster / "mysite"
+    shutil.copytree(local / "results/demo/dataset", user, ignore=shutil.ignore_patterns("truth"))
+    images = pd.read_csv(user / "images.csv")
+    row = images[images["stage"] == "intrinsics"].iloc[3]
+    original = (user / row["path"]).read_bytes()
+    (user / row["path"]).write_bytes(original[: len(original) // 3])  # a PNG cut short
+    (cluster / "mysite.yaml").write_text(f"dataset: mysite\ndataset_dir: {user}\n")
+    first = readme_cluster_commands()[0].strip().splitlines()[-1]
+    target = f"results/mysite/markers/batches/intrinsics-{row['camera']}-1.csv"  # before --configfile's values
+    command = first.replace("snakemake ", f"snakemake {target} ", 1).replace("config/config.yaml", "mysite.yaml")
+    process = start(f"source .venv/bin/activate\n{command}", cluster, logs / "slurm_broken.log")
+    process.image, process.image_path, process.original, process.command = row["image"], row["path"], original, command
+    return process
+
+
+def test_a_failed_job_names_its_image_and_keeps_the_batchs_finished_images(runs):
+    assert runs["failed_returncode"] != 0
+    lines = [line for line in runs["failed_output"].splitlines() if "dmais markers: error:" in line]
+    assert lines and runs["bad_image"] in lines[0] and "intrinsics-" in lines[0], runs["failed_output"][-3000:]
+    assert runs["bad_image"] not in runs["progress_after_failure"] and len(runs["progress_after_failure"]) >= 1
+    batch = next((runs["slurm"] / "results/mysite/markers/batches").glob("*.csv"))
+    table = pd.read_csv(batch)
+    assert table.loc[table["image"] == runs["bad_image"], "resumed"].tolist() == [False]
+    assert table.loc[table["image"] != runs["bad_image"], "resumed"].all()  # not redone after the repair
 
 
 def test_the_resumed_run_redid_no_finished_work(runs):

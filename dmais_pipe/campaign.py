@@ -1,0 +1,416 @@
+"""`dmais bench campaign`: the workflow at the scale of a flight campaign (10,000 frames, 50,055 images).
+
+The targets (the campaign issue): such a flight plans in <= 30 s (`snakemake -n`, with and without the
+SLURM profile), runs at most one cluster job per 50 images, costs <= 0.25 s of detection work per 12 MP
+image (decode + detect + identify + write) and <= 0.1 s of cluster overhead per image.
+
+- `campaign_dataset`: a dataset whose flight repeats the frames of a simulated one (the demo's 30 frames
+  of 5 cameras) up to `frames` frames, its calibration images as they are;
+- `bench_campaign`, from the repository's root (where the Snakefile is), on that dataset as the
+  workflow's dataset `campaign` (results/campaign/, which the bench owns and empties first):
+  1. four dry runs, without and with the SLURM profile, each first with no plan file (cold) then with
+     the one the first made (warm): wall seconds and the jobs Snakemake plans;
+  2. one marker batch run by `dmais markers --batch` on one core, upstream results copied from the
+     demo's: seconds per image of each phase, and what the process costs besides (its start, imports,
+     loading the dataset);
+  3. with `slurm`, a few flight batches run through the SLURM profile: per job its images, elapsed
+     time, detection work, overhead and peak memory (sacct, the job's Snakemake benchmark file).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from datetime import datetime, timedelta
+from pathlib import Path
+
+import pandas as pd
+
+from .dataset import FRAMES, IMAGES, MANIFEST, OBSERVATIONS, Dataset
+from .errors import DmaisError
+from .files import copy_atomic, write_csv_atomic, write_yaml_atomic
+from .plan import MARKERS_PER_JOB
+
+log = logging.getLogger(__name__)
+
+#: The workflow's name of the campaign: results/campaign/, logs/campaign/, benchmarks/campaign/.
+NAME = "campaign"
+PROFILE = ("--workflow-profile", "workflow/profiles/slurm")
+PHASES = ("decode_s", "detect_s", "identify_s", "write_s")
+COLUMNS = ("metric", "value", "unit", "note")
+#: Files a campaign dataset is made of besides its links to the source's image folders.
+_OWN_FILES = (MANIFEST, "control_points.csv", "ground_points.csv", IMAGES, FRAMES, OBSERVATIONS)
+_COPIED = (MANIFEST, "control_points.csv", "ground_points.csv")
+
+
+# ------------------------------------------------------------------------------ the dataset
+
+
+def campaign_dataset(source: str | Path, out: str | Path, frames: int = 10_000, frames_per_group: int = 500) -> Path:
+    """Write the dataset folder `out` from the dataset `source` and return it: its flight has `frames`
+    frames, frame k a copy of source frame k % n (n frames, in frames.csv order) with id `c<k:06d>` and
+    group `line<k // frames_per_group:03d>`, and one image `<frame>_<camera>` per flight image of that
+    source frame (its camera, path and priors). The other images, the points, the manifest and the given
+    observations of non-flight images are the source's (those of flight images follow their copies);
+    the folders the image paths start with are links to the source's; no truth/."""
+    source, out = Path(source).absolute(), Path(out).absolute()
+    if frames < 1 or frames_per_group < 1:
+        raise DmaisError(f"campaign: frames ({frames}) and frames per group ({frames_per_group}) must be positive")
+    _check_out(source, out)
+    Dataset.load(source)  # a faulty source stops here with the loader's one-line error
+    images, source_frames = _read(source / IMAGES), _read(source / FRAMES)
+    if source_frames.empty:
+        raise DmaisError(f"campaign: {source / FRAMES} has no flight frame to repeat")
+    frame_copies, flight_frames = _frame_copies(source_frames, frames, frames_per_group)
+    source_flight = images[images["stage"] == "flight"]
+    flight = _repeat(source_flight, "placement", frame_copies)
+    image_copies = pd.DataFrame({"new": flight["placement"] + "_" + flight["camera"], "source": flight["image"]})
+    flight["image"] = image_copies["new"].to_numpy()
+    written = [copy_atomic(source / name, out / name) for name in _COPIED if (source / name).exists()]
+    written.append(write_csv_atomic(out / IMAGES, pd.concat([images[images["stage"] != "flight"], flight])))
+    written.append(write_csv_atomic(out / FRAMES, flight_frames))
+    if (source / OBSERVATIONS).exists():
+        given = _read(source / OBSERVATIONS)
+        kept = given[~given["image"].isin(source_flight["image"])]
+        written.append(write_csv_atomic(out / OBSERVATIONS, pd.concat([kept, _repeat(given, "image", image_copies)])))
+    written += [_link(source / name, out / name) for name in _linked_names(images)]
+    _remove_stale(out, {path.name for path in written})
+    return out
+
+
+def _read(path: Path) -> pd.DataFrame:
+    """A dataset CSV with every cell as its text ('' where empty), so that it is written back unchanged."""
+    return pd.read_csv(path, dtype=str, keep_default_na=False, encoding="utf-8-sig")
+
+
+def _frame_copies(source_frames: pd.DataFrame, frames: int, frames_per_group: int) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """(copies: new, source frame ids (frames, 2); the new frames.csv table (frames rows))."""
+    table = source_frames.iloc[[k % len(source_frames) for k in range(frames)]].reset_index(drop=True)
+    copies = pd.DataFrame({"new": [f"c{k:06d}" for k in range(frames)], "source": table["frame"]})
+    table["frame"] = copies["new"]
+    table["group"] = [f"line{k // frames_per_group:03d}" for k in range(frames)]
+    return copies, table
+
+
+def _repeat(table: pd.DataFrame, column: str, copies: pd.DataFrame) -> pd.DataFrame:
+    """The rows of `table` whose `column` is a source id of `copies` (new, source), once per copy in
+    copies' order (rows of one source in table's order), `column` set to the copy's new id."""
+    keys = copies.rename(columns={"new": "\0new", "source": "\0source"})
+    joined = keys.merge(table, left_on="\0source", right_on=column, how="inner", sort=False)
+    joined[column] = joined["\0new"]
+    return joined[list(table.columns)].reset_index(drop=True)
+
+
+def _linked_names(images: pd.DataFrame) -> list[str]:
+    """The top-level names (folders, or files) of the dataset folder that image paths start with."""
+    return sorted({Path(path).parts[0] for path in images["path"] if path})
+
+
+def _link(target: Path, link: Path) -> Path:
+    """`link` made (or replaced) as a symbolic link to `target`."""
+    temporary = link.with_name(f".{link.name}.link")
+    temporary.unlink(missing_ok=True)
+    temporary.symlink_to(target.resolve(), target_is_directory=target.is_dir())
+    os.replace(temporary, link)
+    return link
+
+
+def _check_out(source: Path, out: Path) -> None:
+    """`out` is the source's folder, or an existing folder that is not a campaign dataset: refuse it."""
+    if out.resolve() == source.resolve():
+        raise DmaisError(f"campaign: the campaign dataset {out} would overwrite its source; give another --out")
+    if out.exists() and not out.is_dir():
+        raise DmaisError(f"campaign: {out} is a file, not a folder for the campaign dataset")
+    for entry in out.iterdir() if out.is_dir() else ():
+        if not (entry.name in _OWN_FILES or entry.is_symlink() or entry.name.startswith(".")):
+            raise DmaisError(f"campaign: {out} holds {entry.name}, so it is not a campaign dataset "
+                             "`dmais bench campaign` wrote; give another --out")
+
+
+def _remove_stale(out: Path, written: set[str]) -> None:
+    """Files and links of an earlier campaign dataset in `out` that this one does not have."""
+    for entry in out.iterdir():
+        if entry.name not in written and not entry.name.startswith(".") and (entry.is_symlink() or entry.is_file()):
+            entry.unlink()
+
+
+# ------------------------------------------------------------------------------ the bench
+
+
+def bench_campaign(source: Path, out: Path, csv: Path, frames: int = 10_000, frames_per_group: int = 500,
+                   slurm: bool = False, slurm_batches: int = 4) -> pd.DataFrame:
+    """Run the bench (module docstring), print its table and write it to `csv` (metric, value, unit,
+    note); with `slurm`, the per-job table too, beside it (<csv>_slurm_jobs.csv). Returns the table."""
+    root = _repository()
+    source, out, csv = Path(source).absolute(), Path(out).absolute(), Path(csv).absolute()
+    demo = _demo_results(source)
+    log.info("campaign: writing %d frames into %s", frames, out)
+    dataset = campaign_dataset(source, out, frames, frames_per_group)
+    results = root / "results" / NAME
+    shutil.rmtree(results, ignore_errors=True)
+    config = write_yaml_atomic(results / f"{NAME}.yaml", {"dataset": NAME, "dataset_dir": str(dataset)})
+    rows, plan = _dry_runs(root, config, results)
+    rows += _one_core(root, dataset, demo, results, plan)
+    jobs = None
+    if slurm and shutil.which("sbatch") is None:
+        print("slurm: skipped: sbatch is not on PATH")
+    elif slurm:
+        jobs = _on_slurm(root, config, results, plan, slurm_batches)
+        rows += _slurm_rows(jobs)
+    table = pd.DataFrame(rows, columns=COLUMNS, dtype=object)  # counts stay integers
+    print(table.to_string(index=False, formatters={"value": _shown}))
+    write_csv_atomic(csv, table)
+    if jobs is not None:
+        print(jobs.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
+        write_csv_atomic(csv.with_name(f"{csv.stem}_slurm_jobs.csv"), jobs.round(4))
+    return table
+
+
+def _row(metric: str, value, unit: str, note: str = "") -> dict:
+    return {"metric": metric, "value": round(value, 4) if isinstance(value, float) else value, "unit": unit,
+            "note": note}
+
+
+def _shown(value) -> str:
+    return str(value) if isinstance(value, int) or abs(value) >= 1000 else f"{value:.4g}"
+
+
+def _repository() -> Path:
+    """The source tree this package runs from, whose Snakefile the bench runs."""
+    root = Path(__file__).resolve().parents[1]
+    if not (root / "Snakefile").is_file():
+        raise DmaisError(f"campaign: no Snakefile in {root}: the bench runs the workflow of a source checkout "
+                         "(pip install -e .)")
+    return root
+
+
+def _demo_results(source: Path) -> Path:
+    """The results folder of the source dataset's run (results/demo for results/demo/dataset)."""
+    if not (source / MANIFEST).is_file() or not (source.parent / "rig.json").is_file():
+        raise DmaisError(f"campaign: no dataset with calibrated results at {source} (and {source.parent}): "
+                         "run `make run` first")
+    return source.parent
+
+
+def _tool(name: str) -> str:
+    """`name` installed beside the running Python (the venv's snakemake, dmais)."""
+    path = Path(sys.executable).parent / name
+    if not path.is_file():
+        raise DmaisError(f"campaign: {name} is not installed beside {sys.executable} (make install)")
+    return str(path)
+
+
+def _run(command: list[str], root: Path, timeout: float) -> tuple[float, subprocess.CompletedProcess]:
+    """(wall seconds, the finished process) of `command` run in `root`; a failure raises one line."""
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    started = time.perf_counter()
+    try:
+        done = subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        raise DmaisError(f"campaign: `{' '.join(command)}` took longer than {timeout:.0f} s") from None
+    seconds = time.perf_counter() - started
+    if done.returncode != 0:
+        lines = [line for line in (done.stderr + "\n" + done.stdout).splitlines() if line.strip()] or ["no output"]
+        last = next((line for line in reversed(lines) if "Error" in line), lines[-1]).strip()
+        raise DmaisError(f"campaign: `{' '.join(command)}` failed (status {done.returncode}): {last}")
+    return seconds, done
+
+
+def job_stats(text: str) -> dict[str, int]:
+    """Rule -> jobs (and 'total') of the "Job stats:" table of Snakemake's output `text` ({} without one)."""
+    lines = text.splitlines()
+    start = next((k for k, line in enumerate(lines) if line.strip() == "Job stats:"), None)
+    stats = {}
+    for line in lines[start + 3:] if start is not None else ():  # after the header and its dashes
+        cells = line.split()
+        if len(cells) != 2 or not cells[1].isdigit():
+            break
+        stats[cells[0]] = int(cells[1])
+    return stats
+
+
+# ------------------------------------------------------------------------------ dry runs
+
+
+def _dry_runs(root: Path, config: Path, results: Path) -> tuple[list[dict], dict]:
+    """Rows of the four dry runs and of the jobs they plan; the plan file the runs made (`dmais plan`)."""
+    rows, stats = [], {}
+    for profile in (False, True):
+        shutil.rmtree(results / "plan", ignore_errors=True)
+        for run in ("cold", "warm"):
+            command = [_tool("snakemake"), "-n", "--configfile", str(config), *(PROFILE if profile else ())]
+            log.info("campaign: dry run %s%s", run, " with the SLURM profile" if profile else "")
+            seconds, done = _run(command, root, timeout=1800)
+            stats = job_stats(done.stdout + "\n" + done.stderr)
+            rows.append(_row(f"dry_run{'_profile' if profile else ''}_{run}_s", seconds, "s",
+                             ("makes the plan file (dmais plan)" if run == "cold" else "reads the plan file")
+                             + "; issue: <= 30 s"))
+    plan = json.loads(next((results / "plan").glob("*.json")).read_text())
+    images = sum(batch["images"] for stage in plan["batches"].values() for batch in stage.values())
+    markers = stats.get("markers", 0)
+    rows += [_row("jobs_total", stats.get("total", 0), "jobs", "every rule of the workflow, nothing done yet"),
+             _row("marker_jobs", markers, "jobs", f"markers_per_job {MARKERS_PER_JOB}"),
+             _row("images", images, "images", "images to extract (images.csv rows with a file)"),
+             _row("images_per_marker_job", images / max(markers, 1), "images", "issue: >= 50"),
+             _row("images_per_job", images / max(stats.get("total", 0), 1), "images",
+                  "over every job of the run; issue: >= 50 (<= 1 cluster job per 50 images)")]
+    return rows, plan
+
+
+# ------------------------------------------------------------------------------ one core
+
+
+def _one_core(root: Path, dataset: Path, demo: Path, results: Path, plan: dict) -> list[dict]:
+    """Rows of the first flight batch run by `dmais markers --batch` pinned to CPU 0 (taskset)."""
+    _copy_upstream(demo, results, plan)
+    batch = next(iter(plan["batches"]["flight"]))
+    _forget(results, [batch])
+    command = ["taskset", "-c", "0", _tool("dmais"), "markers", str(dataset), "--out", str(results),
+               "--batch", batch, "--per-job", str(MARKERS_PER_JOB)]
+    log.info("campaign: marker batch %s on one core", batch)
+    wall, _ = _run(command, root, timeout=3600)
+    phases = pd.read_csv(results / "markers" / "batches" / f"{batch}.csv")[list(PHASES)]
+    images, work = len(phases), float(phases.to_numpy().sum())
+    note = f"{batch}: {images} images, mean per image"
+    return [*(_row(f"one_core_{phase}", float(phases[phase].mean()), "s", note) for phase in PHASES),
+            _row("one_core_per_image_s", work / images, "s", "decode+detect+identify+write; issue: <= 0.25 s"),
+            _row("one_core_batch_wall_s", wall, "s", f"`dmais markers --batch {batch}` as a process"),
+            _row("one_core_overhead_per_image_s", (wall - work) / images, "s",
+                 "(wall - phases) / images: interpreter start, imports, loading the dataset, planning its "
+                 "batches, per-image bookkeeping")]
+
+
+def _copy_upstream(demo: Path, results: Path, plan: dict) -> None:
+    """The demo's results the flight batches need, into `results` in the order the workflow makes
+    them (so that none is older than its inputs and Snakemake plans no job upstream): per calibration
+    stage its marker batches and markers files, its observations, then the intrinsics or the rig."""
+    for stage in ("intrinsics", "extrinsics"):
+        names = [f"markers/batches/{batch}.csv" for batch in plan["batches"][stage]]
+        names += [f"markers/{image}.csv" for name in list(names)
+                  for image in pd.read_csv(_needed(demo / name), dtype=str)["image"]]
+        names.append(f"observations/{stage}.csv")
+        if stage == "intrinsics":
+            names += [f"intrinsics/{camera}{ext}" for camera in plan["calibrated_cameras"]
+                      for ext in (".json", ".methods.csv", ".residuals.csv")]
+        else:
+            names += ["rig.json", "rig_config.json", "tables/extrinsics_R.csv", "tables/extrinsics_t.csv"]
+        for name in names:
+            copy_atomic(_needed(demo / name), results / name)
+
+
+def _needed(path: Path) -> Path:
+    if not path.is_file():
+        raise DmaisError(f"campaign: {path} is missing: run `make run` first")
+    return path
+
+
+def _forget(results: Path, batches: list[str]) -> None:
+    """Remove the batches' tables and progress files, so that they are done again from the start."""
+    for batch in batches:
+        for suffix in (".csv", ".progress"):
+            (results / "markers" / "batches" / f"{batch}{suffix}").unlink(missing_ok=True)
+
+
+# ------------------------------------------------------------------------------ SLURM
+
+
+def _on_slurm(root: Path, config: Path, results: Path, plan: dict, count: int) -> pd.DataFrame:
+    """Per job (one per batch) of `count` flight batches (the first of each camera in turn) run through
+    the SLURM profile: batch, images, elapsed_s, shell_s (the job's `dmais markers`), work_s (its
+    phases), overhead_per_image_s ((elapsed - work) / images), max_rss_mb."""
+    flight = plan["batches"]["flight"]
+    batches = sorted(flight, key=lambda name: (name.rsplit("-", 1)[1], list(flight).index(name)))[:count]
+    _forget(results, batches)
+    targets = [f"results/{NAME}/markers/batches/{batch}.csv" for batch in batches]
+    command = [_tool("snakemake"), *targets, *PROFILE, "--configfile", str(config)]  # --configfile takes 1+ values
+    _, dry = _run([*command, "-n"], root, timeout=1800)
+    planned = job_stats(dry.stdout + "\n" + dry.stderr)
+    if planned != {"markers": len(batches), "total": len(batches)}:
+        raise DmaisError(f"campaign: the SLURM run would run {planned} instead of {len(batches)} marker jobs "
+                         f"(results in {results} older than their inputs?)")
+    start = (datetime.now() - timedelta(seconds=5)).strftime("%Y-%m-%dT%H:%M:%S")
+    log.info("campaign: %d marker jobs on SLURM: %s", len(batches), ", ".join(batches))
+    wall, done = _run(command, root, timeout=3 * 3600)
+    found = re.search(r"SLURM run ID: (\S+)", done.stdout + done.stderr)
+    if found is None:
+        raise DmaisError("campaign: the SLURM run printed no run ID to find its jobs with in sacct")
+    jobs = _sacct(found.group(1), start)
+    table = pd.DataFrame([_job(results, root, batch, flight[batch]["images"], jobs) for batch in batches])
+    table.attrs["wall_s"] = wall
+    return table
+
+
+def _job(results: Path, root: Path, batch: str, images: int, jobs: pd.DataFrame) -> dict:
+    """One batch's row of the per-job table (`_on_slurm`)."""
+    mine = jobs[jobs["batch"] == batch]
+    if mine.empty:
+        raise DmaisError(f"campaign: sacct shows no completed SLURM job of batch {batch}")
+    job = mine.iloc[-1]
+    work = float(pd.read_csv(results / "markers" / "batches" / f"{batch}.csv")[list(PHASES)].to_numpy().sum())
+    shell = float(pd.read_csv(root / "benchmarks" / NAME / "markers" / f"{batch}.tsv", sep="\t")["s"].iloc[0])
+    return {"batch": batch, "job": job["job"], "images": images, "elapsed_s": job["elapsed_s"], "shell_s": shell,
+            "work_s": work, "overhead_per_image_s": (job["elapsed_s"] - work) / images,
+            "max_rss_mb": job["max_rss_mb"]}
+
+
+def _sacct(run_id: str, start: str) -> pd.DataFrame:
+    """The completed marker jobs of the SLURM run `run_id` (its job name): job, batch, elapsed_s and
+    max_rss_mb (the largest of its steps')."""
+    fields = ["sacct", "-n", "-P", "-S", start]
+    jobs = subprocess.run([*fields, "-X", "--name", run_id, "-o", "JobID,Comment,Elapsed,State"],
+                          capture_output=True, text=True, check=True).stdout
+    rows = [line.split("|") for line in jobs.splitlines() if line.count("|") == 3]
+    rows = [(job, comment.split("_wildcards_", 1)[-1], _seconds(elapsed)) for job, comment, elapsed, state in rows
+            if comment.startswith("rule_markers") and state == "COMPLETED"]
+    table = pd.DataFrame(rows, columns=["job", "batch", "elapsed_s"])
+    if table.empty:
+        return table.assign(max_rss_mb=[])
+    steps = subprocess.run([*fields, "-j", ",".join(table["job"]), "-o", "JobID,MaxRSS"],
+                           capture_output=True, text=True, check=True).stdout
+    rss = {}
+    for job, size in (line.split("|") for line in steps.splitlines() if line.count("|") == 1):
+        key = job.split(".")[0]
+        rss[key] = max(rss.get(key, 0.0), _megabytes(size))
+    return table.assign(max_rss_mb=table["job"].map(rss).fillna(float("nan")))
+
+
+def _seconds(elapsed: str) -> float:
+    """sacct's [D-]HH:MM:SS (or MM:SS) in seconds."""
+    days, _, clock = elapsed.rpartition("-")
+    seconds = 0.0
+    for part in clock.split(":"):
+        seconds = 60 * seconds + float(part)
+    return seconds + 86400 * int(days or 0)
+
+
+def _megabytes(size: str) -> float:
+    """sacct's MaxRSS (e.g. 281234K, 1.2G; '' when not measured) in MB (2^20 bytes)."""
+    if not size:
+        return 0.0
+    scale = {"K": 2 ** -10, "M": 1.0, "G": 2 ** 10, "T": 2 ** 20}
+    return float(size[:-1]) * scale[size[-1]] if size[-1] in scale else float(size) / 2 ** 20
+
+
+def _slurm_rows(jobs: pd.DataFrame) -> list[dict]:
+    """The main table's rows of the per-job table (`_on_slurm`)."""
+    images = int(jobs["images"].sum())
+    per_image = lambda column: float(column.sum()) / images  # noqa: E731
+    note = "sum over the jobs / their images"
+    return [_row("slurm_jobs", len(jobs), "jobs", f"{images} images, 1 CPU each"),
+            _row("slurm_run_wall_s", float(jobs.attrs["wall_s"]), "s",
+                 "the controlling snakemake: submission, queue, status checks every 20 s"),
+            _row("slurm_elapsed_per_job_s", float(jobs["elapsed_s"].mean()), "s", "sacct Elapsed, mean"),
+            _row("slurm_per_image_s", per_image(jobs["work_s"]), "s", f"detection work; {note}; issue: <= 0.25 s"),
+            _row("slurm_overhead_per_image_s", per_image(jobs["elapsed_s"] - jobs["work_s"]), "s",
+                 f"(elapsed - work); {note}; issue: <= 0.1 s"),
+            _row("slurm_job_snakemake_per_image_s", per_image(jobs["elapsed_s"] - jobs["shell_s"]), "s",
+                 "(elapsed - the job's shell command): the job's own snakemake"),
+            _row("slurm_job_dmais_start_per_image_s", per_image(jobs["shell_s"] - jobs["work_s"]), "s",
+                 "(shell command - work): the dmais process besides its phases"),
+            _row("slurm_max_rss_mb", float(jobs["max_rss_mb"].max()), "MB", "largest over the jobs' steps")]
