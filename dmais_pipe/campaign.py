@@ -140,13 +140,30 @@ def _remove_stale(out: Path, written: set[str]) -> None:
             entry.unlink()
 
 
+def given_flight_source(source: str | Path, demo: str | Path, out: str | Path) -> Path:
+    """Write the dataset folder `out`: `source`'s files as links, but observations.csv, which adds to
+    the source's own the flight observations its run identified (`demo`/observations/flight.csv), so
+    that a campaign made from it runs every stage of the workflow but flight marker extraction."""
+    source, out = Path(source).absolute(), Path(out).absolute()
+    _check_out(source, out)
+    flight = pd.read_csv(Path(demo) / "observations" / "flight.csv", dtype={"image": str, "point_id": str})
+    given = _read(source / OBSERVATIONS) if (source / OBSERVATIONS).exists() else flight.iloc[:0, :0]
+    observations = pd.concat([given, flight[["image", "point_id", "u", "v"]]], ignore_index=True)
+    written = [write_csv_atomic(out / OBSERVATIONS, observations)]
+    names = [MANIFEST, "control_points.csv", "ground_points.csv", IMAGES, FRAMES, *_linked_names(_read(source / IMAGES))]
+    written += [_link(source / name, out / name) for name in names if (source / name).exists()]
+    _remove_stale(out, {path.name for path in written})
+    return out
+
+
 # ------------------------------------------------------------------------------ the bench
 
 
 def bench_campaign(source: Path, out: Path, csv: Path, frames: int = 10_000, frames_per_group: int = 500,
-                   slurm: bool = False, slurm_batches: int = 4) -> pd.DataFrame:
+                   slurm: bool = False, slurm_batches: int = 4, stages: bool = False) -> pd.DataFrame:
     """Run the bench (module docstring), print its table and write it to `csv` (metric, value, unit,
-    note); with `slurm`, the per-job table too, beside it (<csv>_slurm_jobs.csv). Returns the table."""
+    note); with `slurm`, the per-job table too, beside it (<csv>_slurm_jobs.csv); with `stages`, the
+    per-rule table of a whole run (`_all_stages`, <csv>_stages.csv). Returns the table."""
     root = _repository()
     source, out, csv = Path(source).absolute(), Path(out).absolute(), Path(csv).absolute()
     demo = _demo_results(source)
@@ -163,6 +180,8 @@ def bench_campaign(source: Path, out: Path, csv: Path, frames: int = 10_000, fra
     elif slurm:
         jobs = _on_slurm(root, config, results, plan, slurm_batches)
         rows += _slurm_rows(jobs)
+    if stages:
+        _all_stages(root, source, demo, out.with_name(f"{out.name}_stages"), csv, frames, frames_per_group)
     table = pd.DataFrame(rows, columns=COLUMNS, dtype=object)  # counts stay integers
     print(table.to_string(index=False, formatters={"value": _shown}))
     write_csv_atomic(csv, table)
@@ -170,6 +189,28 @@ def bench_campaign(source: Path, out: Path, csv: Path, frames: int = 10_000, fra
         print(jobs.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
         write_csv_atomic(csv.with_name(f"{csv.stem}_slurm_jobs.csv"), jobs.round(4))
     return table
+
+
+def _all_stages(root: Path, source: Path, demo: Path, out: Path, csv: Path, frames: int, frames_per_group: int):
+    """The whole workflow, locally on every core, on the campaign of `frames` frames whose flight
+    observations are given (`given_flight_source`; its marker extraction is what the rest measures):
+    per rule its jobs, total and largest wall time and peak memory, from the rules' benchmark files."""
+    from .report.html import benchmark_table
+
+    given = given_flight_source(source, demo, out.with_name(f"{out.name}_source"))
+    dataset = campaign_dataset(given, out, frames, frames_per_group)
+    name = f"{NAME}_stages"
+    for folder in ("results", "benchmarks", "logs"):
+        shutil.rmtree(root / folder / name, ignore_errors=True)
+    config = write_yaml_atomic(root / "results" / name / f"{name}.yaml", {
+        "dataset": name, "dataset_dir": str(dataset), "bench_pose": {"repeats": 5, "batch_frames": 10, "stage_frames": 0}})
+    seconds, _ = _run([_tool("snakemake"), "--cores", str(os.cpu_count()), "--configfile", str(config)], root,
+                      timeout=6 * 3600)
+    table = benchmark_table(root / "benchmarks" / name)
+    print(f"every stage on {frames} frames with given flight observations: {seconds:.0f} s "
+          f"on {os.cpu_count()} cores")
+    print(table.to_string(index=False, float_format=lambda x: f"{x:.2f}"))
+    write_csv_atomic(csv.with_name(f"{csv.stem}_stages.csv"), table.round(3))
 
 
 def _row(metric: str, value, unit: str, note: str = "") -> dict:

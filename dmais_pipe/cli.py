@@ -180,7 +180,7 @@ def _cmd_bench_campaign(args) -> None:
     from .campaign import bench_campaign
 
     bench_campaign(args.source, args.out, args.csv, frames=args.frames, frames_per_group=args.frames_per_group,
-                   slurm=args.slurm, slurm_batches=args.slurm_batches)
+                   slurm=args.slurm, slurm_batches=args.slurm_batches, stages=args.stages)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -321,6 +321,9 @@ def _parser() -> argparse.ArgumentParser:
     campaign.add_argument("--slurm", action="store_true", help="also run flight batches through the SLURM profile")
     campaign.add_argument("--slurm-batches", type=_positive_int, default=4,
                           help="flight batches run on SLURM (default: %(default)s)")
+    campaign.add_argument("--stages", action="store_true",
+                          help="also run every stage locally on the campaign with its flight observations given "
+                               "(per-rule time and memory)")
     campaign.add_argument("--csv", type=Path, default=Path("reports/bench/campaign.csv"),
                           help="output table (default: %(default)s)")
     campaign.set_defaults(run=_cmd_bench_campaign)

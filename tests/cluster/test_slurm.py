@@ -6,7 +6,9 @@ demo runs once with `make run` and once with the README's SLURM commands; the SL
 while a marker batch is half done, its jobs cancelled, and resumed. Then the account and partition
 override of the README and a failing job's message are checked, and every table of the two runs is
 compared: equal, but for the columns that are wall-clock times (TIME_COLUMN) and the runtime
-benchmark's tables (time_points*), which measure this machine rather than compute a result.
+benchmark's tables (time_points*), which measure this machine rather than compute a result, and
+to RTOL: OpenCV's calibrateCamera (the `opencv` rows of tab:intrinsics) adds up its threads' sums
+in the order they finish, which moves its last digits (1.8e-12 relative seen between two runs).
 """
 
 from __future__ import annotations
@@ -25,6 +27,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 #: Columns holding wall-clock times, the one thing two runs of the same config may not share.
 TIME_COLUMN = re.compile(r"(^|_)(time|ms|s|seconds)(_|$)")
+#: Relative tolerance of the numbers of two runs (the module docstring says why it is not zero).
+RTOL = 1e-9
 ACCOUNT, PARTITION = "dmais", "debug"  # made by slurm_up.sh besides the default partition
 RUN_TIMEOUT_S = 900
 
@@ -118,7 +122,7 @@ def runs(slurm, tmp_path_factory):
                     cluster, logs / "slurm_resumed.log")
     resumed_output = finish(resumed, logs / "slurm_resumed.log")
     broken = start_broken_batch(cluster, local, logs)
-    overridden = start(override.replace("slurm_account=NAME", f"slurm_account={ACCOUNT}")
+    overridden = start("source .venv/bin/activate\n" + override.replace("slurm_account=NAME", f"slurm_account={ACCOUNT}")
                        .replace("slurm_partition=NAME", f"slurm_partition={PARTITION}").strip()
                        + " --forcerun dataset_report", cluster, logs / "slurm_override.log")
     finish(overridden, logs / "slurm_override.log")
@@ -200,4 +204,4 @@ def test_slurm_tables_equal_the_local_runs(runs):
         if "quantity" in ours:  # a vs_paper table: its time rows
             ours, theirs = (t[~t["quantity"].astype(str).str.contains("time|ms")] for t in (ours, theirs))
         pd.testing.assert_frame_equal(ours[keep].reset_index(drop=True), theirs[keep].reset_index(drop=True),
-                                      check_exact=True, obj=str(name))
+                                      check_exact=False, rtol=RTOL, atol=0, obj=str(name))

@@ -62,8 +62,8 @@ def _plan_file(dataset_dir):
     root = Path(dataset_dir)
     digest = hashlib.sha256(f"{PLAN_FORMAT}|{root.resolve()}|{MARKERS_PER_JOB}".encode())
     for path in sorted(root.glob("*.csv")) + [root / "dataset.yaml"]:
-        stat = path.stat()
-        digest.update(f"{path.name}:{stat.st_size}:{stat.st_mtime_ns};".encode())
+        stat = path.stat() if path.is_file() else None  # none: `dmais plan` names what is missing
+        digest.update(f"{path.name}:{stat and (stat.st_size, stat.st_mtime_ns)};".encode())
     return Path(RESULTS) / "plan" / f"{digest.hexdigest()[:16]}.json"
 
 

@@ -13,6 +13,8 @@ rule dataset_report:
         reports=REPORTS,
     log:
         f"{LOGS}/dataset_report.log",
+    benchmark:
+        f"{BENCHMARKS}/dataset_report.tsv"
     conda:
         "../envs/dmais.yaml"
     shell:

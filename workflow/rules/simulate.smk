@@ -11,6 +11,8 @@ if config.get("simulate"):
             dataset_dir=DATASET_DIR,
         log:
             f"{LOGS}/simulate.log",
+        benchmark:
+            f"{BENCHMARKS}/simulate.tsv"
         threads: 8  # snakemake caps it at --cores
         conda:
             "../envs/dmais.yaml"
