@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import site as site_module
@@ -253,3 +254,24 @@ def test_snakemake_without_dmais_anywhere_says_so_in_one_line(tmp_path):
     assert (result.stdout + result.stderr).strip() == (
         f"dmais is not installed: it is neither on PATH nor beside {bare} "
         "(make install, or run .venv/bin/snakemake after it)")
+
+
+def test_the_plan_is_made_once_per_state_of_the_dataset(tmp_path):
+    """The dry run writes results/<dataset>/plan/<key>.json and later runs (a cluster job's own
+    Snakemake) read it instead of loading the dataset; an edited table makes a new plan."""
+    site = _write(tmp_path / "site", _inputs())
+    (tmp_path / "site.yaml").write_text(yaml.safe_dump({"dataset": "site", "dataset_dir": str(site),
+                                                        "markers_per_job": 7}))
+    assert snakemake(tmp_path, "--configfile", "site.yaml", "--cores", "1", "-n").returncode == 0
+    (made,) = (tmp_path / "results/site/plan").glob("*.json")
+    plan = json.loads(made.read_text())
+    assert plan == workflow_plan(Dataset.load(site), 7)
+    plan["batches"]["flight"] = {"flight-C1-9": {"camera": "C1", "images": 1}}  # read from the file, not remade
+    made.write_text(json.dumps(plan))
+    dry = snakemake(tmp_path, "--configfile", "site.yaml", "--cores", "1", "-n")
+    assert "markers/batches/flight-C1-9.csv" in dry.stdout and "flight-C1-1.csv" not in dry.stdout
+    _set_cells(site, "images.csv", 2, prior_x=1.5)  # another state of the dataset
+    dry = snakemake(tmp_path, "--configfile", "site.yaml", "--cores", "1", "-n")
+    assert "flight-C1-1.csv" in dry.stdout and "flight-C1-9.csv" not in dry.stdout
+    assert [p.name for p in (tmp_path / "results/site/plan").glob("*.json")] != [made.name]
+    assert len(list((tmp_path / "results/site/plan").glob("*.json"))) == 1  # the older plan is gone

@@ -13,6 +13,7 @@ in the order they finish, which moves its last digits (1.8e-12 relative seen bet
 
 from __future__ import annotations
 
+import getpass
 import os
 import re
 import shutil
@@ -96,49 +97,69 @@ def slurm():
 
 @pytest.fixture(scope="module")
 def runs(slurm, tmp_path_factory):
-    """The demo run locally and on SLURM (killed once midway and resumed): their two folders and logs."""
+    """The demo run locally and on SLURM (killed once midway and resumed), the override and the broken
+    dataset's runs: their folders and what the tests check of them."""
+    started_processes = []
+    try:
+        yield _runs(tmp_path_factory, started_processes)
+    finally:  # a failed step leaves nothing running
+        for process in started_processes:
+            if process.poll() is None:
+                os.killpg(process.pid, signal.SIGKILL)
+        subprocess.run(["scancel", "--user", getpass.getuser()])
+
+
+def _runs(tmp_path_factory, started_processes: list) -> dict:
     local = copy_repository(tmp_path_factory.mktemp("local"))
     cluster = copy_repository(tmp_path_factory.mktemp("slurm"))
     logs = tmp_path_factory.mktemp("logs")
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
-    run_locally = start("make run", local, logs / "local.log")
 
+    def run(script: str, cwd: Path, name: str) -> subprocess.Popen:
+        started_processes.append(start(script, cwd, logs / f"{name}.log"))
+        return started_processes[-1]
+
+    run_locally = run("make run", local, "local")
     first, override = readme_cluster_commands()[:2]
-    interrupted = start(first, cluster, logs / "slurm_killed.log")
-    batches = cluster / "results/demo/markers/batches"
-    deadline = time.monotonic() + RUN_TIMEOUT_S
-    while not any(not p.with_suffix(".csv").exists() for p in batches.glob("*.progress")):  # a batch half done
-        assert interrupted.poll() is None, (logs / "slurm_killed.log").read_text()[-4000:]
-        assert time.monotonic() < deadline, "no marker batch started on SLURM"
-        time.sleep(0.05)
-    half_done = next(p.stem for p in batches.glob("*.progress") if not p.with_suffix(".csv").exists())
+    interrupted = run(first, cluster, "slurm_killed")
+    half_done = wait_for_a_half_done_batch(interrupted, cluster / "results/demo/markers/batches")
     os.killpg(interrupted.pid, signal.SIGKILL)  # the controlling snakemake dies without cleaning up
     interrupted.wait()
-    finished_before = {p.name: p.stat().st_mtime_ns for p in batches.glob("*.csv")}
-    subprocess.run(["scancel", "--user", "root"], check=True)
+    finished_before = {p.name: p.stat().st_mtime_ns for p in (cluster / "results/demo/markers/batches").glob("*.csv")}
+    subprocess.run(["scancel", "--user", getpass.getuser()], check=True)  # as the README says
     wait_for_idle_queue()
 
-    resumed = start("source .venv/bin/activate\nsnakemake --configfile config/config.yaml --unlock\n" + first,
-                    cluster, logs / "slurm_resumed.log")
+    resumed = run(f"source .venv/bin/activate\nsnakemake --configfile config/config.yaml --unlock\n{first}",
+                  cluster, "slurm_resumed")
     resumed_output = finish(resumed, logs / "slurm_resumed.log")
-    broken = start_broken_batch(cluster, local, logs)
-    overridden = start("source .venv/bin/activate\n" + override.replace("slurm_account=NAME", f"slurm_account={ACCOUNT}")
-                       .replace("slurm_partition=NAME", f"slurm_partition={PARTITION}").strip()
-                       + " --forcerun dataset_report", cluster, logs / "slurm_override.log")
+    broken = start_broken_batch(cluster, local, run)
+    with_names = override.replace("slurm_account=NAME", f"slurm_account={ACCOUNT}").replace(
+        "slurm_partition=NAME", f"slurm_partition={PARTITION}").strip()
+    overridden = run(f"source .venv/bin/activate\n{with_names} --forcerun dataset_report", cluster, "slurm_override")
     finish(overridden, logs / "slurm_override.log")
     broken.wait(timeout=RUN_TIMEOUT_S)
-    failed_output = (logs / "slurm_broken.log").read_text()
-    progress_after_failure = progress_lines(cluster / "results/mysite")
+    failed = {"failed_returncode": broken.returncode, "failed_output": (logs / "slurm_broken.log").read_text(),
+              "bad_image": broken.image, "progress_after_failure": progress_lines(cluster / "results/mysite")}
     (cluster / "mysite" / broken.image_path).write_bytes(broken.original)
-    repaired = start(f"source .venv/bin/activate\n{broken.command}", cluster, logs / "slurm_repaired.log")
-    finish(repaired, logs / "slurm_repaired.log")
+    finish(run(f"source .venv/bin/activate\n{broken.command}", cluster, "slurm_repaired"), logs / "slurm_repaired.log")
     finish(run_locally, logs / "local.log")
-    return {"failed_returncode": broken.returncode, "failed_output": failed_output, "bad_image": broken.image,
-            "progress_after_failure": progress_after_failure, "local": local, "slurm": cluster, "started": started, "half_done": half_done, "finished_before": finished_before,
-            "resumed_output": resumed_output}
+    return {"local": local, "slurm": cluster, "started": started, "half_done": half_done,
+            "finished_before": finished_before, "resumed_output": resumed_output, **failed}
 
 
-def start_broken_batch(cluster: Path, local: Path, logs: Path) -> subprocess.Popen:
+def wait_for_a_half_done_batch(process: subprocess.Popen, batches: Path) -> str:
+    """The first marker batch seen with a finished image (its progress file) and no table yet."""
+    deadline = time.monotonic() + RUN_TIMEOUT_S
+    while True:
+        half_done = [p.stem for p in batches.glob("*.progress") if not p.with_suffix(".csv").exists()]
+        if half_done:
+            return half_done[0]
+        assert process.poll() is None, "the SLURM run ended before a marker batch was half done"
+        assert time.monotonic() < deadline, "no marker batch started on SLURM"
+        time.sleep(0.05)
+
+
+def start_broken_batch(cluster: Path, local: Path, run) -> subprocess.Popen:
     """A user's dataset (the demo's, copied once simulated) with one unreadable intrinsics image, its
     batch run on SLURM as a target of the README's command: the process, with what repairs it."""
     while not (local / "results/demo/dataset/images.csv").is_file():  # the local run simulates it
@@ -154,7 +175,7 @@ def start_broken_batch(cluster: Path, local: Path, logs: Path) -> subprocess.Pop
     first = readme_cluster_commands()[0].strip().splitlines()[-1]
     target = f"results/mysite/markers/batches/intrinsics-{row['camera']}-1.csv"  # before --configfile's values
     command = first.replace("snakemake ", f"snakemake {target} ", 1).replace("config/config.yaml", "mysite.yaml")
-    process = start(f"source .venv/bin/activate\n{command}", cluster, logs / "slurm_broken.log")
+    process = run(f"source .venv/bin/activate\n{command}", cluster, "slurm_broken")
     process.image, process.image_path, process.original, process.command = row["image"], row["path"], original, command
     return process
 
@@ -183,8 +204,9 @@ def test_the_resumed_run_redid_no_finished_work(runs):
 
 
 def test_jobs_ran_on_slurm_with_the_overridden_account_and_partition(runs):
-    jobs = subprocess.run(["sacct", "-X", "-n", "-P", "-S", runs["started"], "-o", "JobID,Comment,Account,Partition,State"],
-                          capture_output=True, text=True, check=True).stdout.splitlines()
+    fields = "JobID,Comment,Account,Partition,State"
+    jobs = subprocess.run(["sacct", "-X", "-n", "-P", "-S", runs["started"], "-o", fields], capture_output=True,
+                          text=True, check=True).stdout.splitlines()
     rows = [line.split("|") for line in jobs]
     report_jobs = [row for row in rows if row[1].startswith("rule_dataset_report")]
     assert report_jobs and report_jobs[-1][2:] == [ACCOUNT, PARTITION, "COMPLETED"], rows

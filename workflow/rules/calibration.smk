@@ -33,6 +33,8 @@ rule intrinsics_table:
         results=RESULTS,
     log:
         f"{LOGS}/intrinsics_table.log",
+    benchmark:
+        f"{BENCHMARKS}/intrinsics_table.tsv"
     conda:
         DMAIS_ENV
     shell:

@@ -37,6 +37,8 @@ rule poses:
         results=RESULTS,
     log:
         f"{LOGS}/poses.log",
+    benchmark:
+        f"{BENCHMARKS}/poses.tsv"
     conda:
         DMAIS_ENV
     shell:
@@ -59,6 +61,8 @@ rule poses_subset:
         cameras=lambda wildcards: ",".join(subset_cameras(wildcards.subset)),
     log:
         f"{LOGS}/poses_{{subset}}.log",
+    benchmark:
+        f"{BENCHMARKS}/poses_subset/{{subset}}.tsv"
     conda:
         DMAIS_ENV
     shell:
