@@ -13,8 +13,9 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:  # the CLI reads MARKERS_PER_JOB for every command: the dataset module loads only when used
     from .dataset import Dataset
 
-#: Images per marker job: a 12 MP image costs ~0.25 s, so a job runs for about half a minute and its
-#: start-up (a Snakemake and a Python per cluster job, ~3 s) is ~0.03 s per image (docs/design.md).
+#: Images per marker job: a 12 MP image costs ~0.24 s, so a job runs for about half a minute and its
+#: start-up (a Snakemake, a Python and the dataset per cluster job: ~6 s for 50,055 images) is ~0.06 s
+#: per image (`dmais bench campaign`, docs/design.md).
 MARKERS_PER_JOB = 100
 
 
