@@ -1,6 +1,6 @@
 """`dmais bench campaign`: the workflow at the scale of a flight campaign (10,000 frames, 50,055 images).
 
-The targets (the campaign issue): such a flight plans in <= 30 s (`snakemake -n`, with and without the
+The targets (docs/design.md, "Marker batches"): such a flight plans in <= 30 s (`snakemake -n`, with and without the
 SLURM profile), runs at most one cluster job per 50 images, costs <= 0.25 s of detection work per 12 MP
 image (decode + detect + identify + write) and <= 0.1 s of cluster overhead per image.
 
@@ -294,16 +294,16 @@ def _dry_runs(root: Path, config: Path, results: Path) -> tuple[list[dict], dict
             stats = job_stats(done.stdout + "\n" + done.stderr)
             rows.append(_row(f"dry_run{'_profile' if profile else ''}_{run}_s", seconds, "s",
                              ("makes the plan file (dmais plan)" if run == "cold" else "reads the plan file")
-                             + "; issue: <= 30 s"))
+                             + "; target: <= 30 s"))
     plan = json.loads(next((results / "plan").glob("*.json")).read_text())
     images = sum(batch["images"] for stage in plan["batches"].values() for batch in stage.values())
     markers = stats.get("markers", 0)
     rows += [_row("jobs_total", stats.get("total", 0), "jobs", "every rule of the workflow, nothing done yet"),
              _row("marker_jobs", markers, "jobs", f"markers_per_job {MARKERS_PER_JOB}"),
              _row("images", images, "images", "images to extract (images.csv rows with a file)"),
-             _row("images_per_marker_job", images / max(markers, 1), "images", "issue: >= 50"),
+             _row("images_per_marker_job", images / max(markers, 1), "images", "target: >= 50"),
              _row("images_per_job", images / max(stats.get("total", 0), 1), "images",
-                  "over every job of the run; issue: >= 50 (<= 1 cluster job per 50 images)")]
+                  "over every job of the run; target: >= 50 (<= 1 cluster job per 50 images)")]
     return rows, plan
 
 
@@ -323,7 +323,7 @@ def _one_core(root: Path, dataset: Path, demo: Path, results: Path, plan: dict) 
     images, work = len(phases), float(phases.to_numpy().sum())
     note = f"{batch}: {images} images, mean per image"
     return [*(_row(f"one_core_{phase}", float(phases[phase].mean()), "s", note) for phase in PHASES),
-            _row("one_core_per_image_s", work / images, "s", "decode+detect+identify+write; issue: <= 0.25 s"),
+            _row("one_core_per_image_s", work / images, "s", "decode+detect+identify+write; target: <= 0.25 s"),
             _row("one_core_batch_wall_s", wall, "s", f"`dmais markers --batch {batch}` as a process"),
             _row("one_core_overhead_per_image_s", (wall - work) / images, "s",
                  "(wall - phases) / images: interpreter start, imports, loading the dataset, planning its "
@@ -450,9 +450,9 @@ def _slurm_rows(jobs: pd.DataFrame) -> list[dict]:
             _row("slurm_run_wall_s", float(jobs.attrs["wall_s"]), "s",
                  "the controlling snakemake: submission, queue, status checks (the profile's interval)"),
             _row("slurm_elapsed_per_job_s", float(jobs["elapsed_s"].mean()), "s", "sacct Elapsed, mean"),
-            _row("slurm_per_image_s", per_image(jobs["work_s"]), "s", f"detection work; {note}; issue: <= 0.25 s"),
+            _row("slurm_per_image_s", per_image(jobs["work_s"]), "s", f"detection work; {note}; target: <= 0.25 s"),
             _row("slurm_overhead_per_image_s", per_image(jobs["elapsed_s"] - jobs["work_s"]), "s",
-                 f"(elapsed - work); {note}; issue: <= 0.1 s"),
+                 f"(elapsed - work); {note}; target: <= 0.1 s"),
             _row("slurm_job_snakemake_per_image_s", per_image(jobs["elapsed_s"] - jobs["shell_s"]), "s",
                  "(elapsed - the job's shell command): the job's own snakemake"),
             _row("slurm_job_dmais_start_per_image_s", per_image(jobs["shell_s"] - jobs["work_s"]), "s",
