@@ -31,6 +31,13 @@ cdef double STATIONARY_TOLERANCE = 1e-8
 cdef double DUPLICATE_TOLERANCE = 1e-9
 # Gauss-Newton steps at most that move the solving frame from its start to a minimum.
 cdef int DESCENT_ITERATIONS = 30
+# A root whose Newton polish fails is descended from its unpolished value by at most this many
+# Gauss-Newton steps and polished again (`settle`), if its Riemannian gradient is below
+# SETTLE_GRADIENT (trace H + |g|): in a cluster of nearly repeated roots (or a nearly real pair
+# of them) the Hessian is nearly singular and Newton's steps overshoot, while starts far from any
+# stationary point (complex pairs taken as real) are left to fail.
+cdef int SETTLE_ITERATIONS = 10
+cdef double SETTLE_GRADIENT = 1e-2
 # Longest descent step (radians).
 cdef double MAX_STEP = 0.5
 # The descent stops after a step shorter than this (radians); Newton polishing continues.
@@ -325,6 +332,30 @@ cdef bint polish(const Problem *p, double *R) noexcept nogil:
         if solve_linear(hessian, step, 3):
             cayley_times(step, R, R)
     return stationary
+
+
+cdef bint settle(const Problem *p, const double *start, double *R) noexcept nogil:
+    """The fallback of a root start (3, 3) whose Newton polish failed: R (3, 3) <- start descended
+    by at most SETTLE_ITERATIONS damped Gauss-Newton steps (`descend`, downhill whatever the
+    curvature) and polished; returns whether R ends stationary. Starts with a gradient above
+    SETTLE_GRADIENT (trace H + |g|) are no roots and are not tried.
+
+    Newton's method converges only where the Hessian stays well away from singular, and between
+    the nearly repeated roots of a cluster it is nearly singular: e.g. a minimum and a saddle
+    0.02 rad apart that rounding merges into a nearly real complex pair (`real_roots` polishes its
+    real part), from which Newton's first step lands 0.25 rad away, or a root 3e-3 rad off that
+    needs more than NEWTON_ITERATIONS steps. Whether a cluster comes out as real roots or as such
+    a pair depends on the last bits of the template (the solving frame, the BLAS kernel), so
+    without this fallback the whole cluster, with the sought minimum, could be lost.
+    """
+    cdef double gradient[3]
+    cdef double hessian[9]
+    derivatives(p, start, False, gradient, hessian)
+    if not sqrt(sum_squares(gradient, 3)) < SETTLE_GRADIENT * statistics_size(p):
+        return False
+    memcpy(R, start, 9 * sizeof(double))
+    descend(p, R, SETTLE_ITERATIONS)
+    return polish(p, R)
 
 
 cdef inline double sum_squares(const double *x, int d) noexcept nogil:
@@ -1138,6 +1169,18 @@ cdef class Kernel:
             release(&scratch)
         return rotations[:k]
 
+    def polish_rotations(self, const double[:, ::1] H, const double[::1] g, double c, const double[:, :, ::1] R):
+        """The stationary points (k, 3, 3) that the rotations R (m, 3, 3) polish to (`polished`, as
+        the roots are) for statistics H (9, 9), g (9,), c. For tests."""
+        cdef Problem p
+        p.H, p.g, p.c = &H[0, 0], &g[0], c
+        out = np.array(R, dtype=float, order="C").reshape(-1, 9)
+        cdef double[:, ::1] view = out
+        cdef int k = 0
+        if out.shape[0] > 0:
+            k = self.polished(&p, &view[0, 0], 0, out.shape[0])
+        return out[:k].reshape(k, 3, 3)
+
     def certify(self, const double[:, ::1] H, const double[::1] g, double c, const double[:, ::1] R):
         """`certified` for statistics H (9, 9), g (9,), c and a rotation R (3, 3)."""
         cdef Problem p
@@ -1252,10 +1295,12 @@ cdef class Kernel:
 
     cdef int polished(self, const Problem *p, double *R, int start, int stop) noexcept nogil:
         """Polish rotations start..stop of R (k, 9) and keep the stationary ones (compacted from
-        start); returns the new end."""
+        start), those Newton's method misses settled by descent (`settle`); returns the new end."""
         cdef int i, end = start
+        cdef double unpolished[9]
         for i in range(start, stop):
-            if polish(p, R + 9 * i):
+            memcpy(unpolished, R + 9 * i, 9 * sizeof(double))
+            if polish(p, R + 9 * i) or settle(p, unpolished, R + 9 * i):
                 if end != i:
                     memcpy(R + 9 * end, R + 9 * i, 9 * sizeof(double))
                 end += 1
