@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from dmais_pipe import cli
-from dmais_pipe.campaign import campaign_dataset, job_stats
+from dmais_pipe.campaign import campaign_dataset, given_flight_source, job_stats
 from dmais_pipe.dataset import Dataset
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.plan import marker_batches
@@ -128,3 +128,23 @@ def test_job_stats_reads_snakemake_table():
             "markers              4\nobservations         1\ntotal                5\n\nReasons:\n")
     assert job_stats(text) == {"markers": 4, "observations": 1, "total": 5}
     assert job_stats("Nothing to be done (all requested files are present and up to date).") == {}
+
+
+def test_a_source_with_the_flight_observations_given_extracts_no_flight_image(source, tmp_path):
+    """given_flight_source: the flight observations a run identified join the source's given ones,
+    so that a campaign made from it extracts markers of no flight image (`--stages`)."""
+    demo = tmp_path / "demo"
+    (demo / "observations").mkdir(parents=True)
+    images = _read(source / "images.csv")
+    flight = images.query("stage == 'flight' and path != ''")["image"]
+    point = _read(source / "ground_points.csv")["point_id"].iloc[0]
+    identified = pd.DataFrame({"image": flight, "camera": "C0", "point_id": point, "u": 1.5, "v": 2.5})
+    identified.to_csv(demo / "observations" / "flight.csv", index=False)
+    given = given_flight_source(source, demo, tmp_path / "given")
+    observations = _read(given / "observations.csv")
+    assert len(observations) == len(_read(source / "observations.csv")) + len(flight)
+    assert set(flight) <= set(observations["image"]) and list(observations.columns) == ["image", "point_id", "u", "v"]
+    assert (given / "images.csv").is_symlink() and (given / "images").is_symlink()
+    dataset = Dataset.load(given)
+    assert dataset.images_to_extract("flight") == []
+    assert dataset.images_to_extract("intrinsics") == Dataset.load(source).images_to_extract("intrinsics")
