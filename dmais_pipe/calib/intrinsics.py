@@ -413,11 +413,15 @@ def calibrate_camera_opencv(points_world_per_image, uv_per_image, width: int, he
     flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
              | cv2.CALIB_FIX_K4 | cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6)
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # its threads' partial sums, added in the order they finish, moved the result by 1e-8
     try:
         _, K, dist, rvecs, tvecs, std_intr, _, _ = cv2.calibrateCameraExtended(
             object_points, image_points, (width, height), K0, np.zeros(5), flags=flags, criteria=criteria)
     except cv2.error as error:
         raise DmaisError(f"camera {name}: OpenCV calibrateCamera failed: {str(error).strip()}") from None
+    finally:
+        cv2.setNumThreads(threads)
     camera = Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], d=float(dist.ravel()[0]), width=width,
                     height=height)
     poses = {k: Rigid3(cv2.Rodrigues(r)[0], t.ravel()) for k, r, t in zip(names, rvecs, tvecs)}

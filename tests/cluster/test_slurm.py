@@ -7,8 +7,8 @@ while a marker batch is half done, its jobs cancelled, and resumed. Then the acc
 override of the README and a failing job's message are checked, and every table of the two runs is
 compared: equal, but for the columns that are wall-clock times (TIME_COLUMN) and the runtime
 benchmark's tables (time_points*), which measure this machine rather than compute a result, and
-to RTOL: OpenCV's calibrateCamera (the `opencv` rows of tab:intrinsics) adds up its threads' sums
-in the order they finish, which moves its last digits (1.8e-12 relative seen between two runs).
+to RTOL, a margin for sums whose order a library's threads decide (OpenCV's calibrateCamera, the
+`opencv` rows of tab:intrinsics, moved by up to 1.5e-8 relative until it ran on one thread).
 """
 
 from __future__ import annotations
