@@ -90,8 +90,8 @@ def run_image(workspace: Workspace, image: str, conf: Conf = Conf()) -> list[Pat
 
 #: RESULTS/markers/batches/<batch>.csv: per image, its detections and identified ones, the seconds of
 #: each phase (decode, detect, identify, write) and whether an earlier run of the batch had done it.
-BATCH_COLUMNS = ("image", "camera", "detected", "identified", "decode_s", "detect_s", "identify_s", "write_s",
-                 "resumed")
+_PHASE_COLUMNS = ("decode_s", "detect_s", "identify_s", "write_s")
+BATCH_COLUMNS = ("image", "camera", "detected", "identified", *_PHASE_COLUMNS, "resumed")
 #: <batch>.progress: an image, its inputs' digest, its markers file's size and mtime, then its batch row.
 _PROGRESS_COLUMNS = ("image", "key", "markers", *BATCH_COLUMNS[2:-1])
 
@@ -133,7 +133,7 @@ def run_batch(workspace: Workspace, batch: str, per_job: int = MARKERS_PER_JOB, 
     table.insert(1, "camera", batches[batch]["camera"])
     written = write_csv_atomic(workspace.marker_batch_path(batch), table.round(6))
     log.info("markers %s: %d images, %d done before (%.1f s of detection work)", batch, len(images),
-             int(table["resumed"].sum()), float(table[["decode_s", "detect_s", "identify_s", "write_s"]].sum().sum()))
+             int(table["resumed"].sum()), float(table[list(_PHASE_COLUMNS)].to_numpy().sum()))
     return [written]
 
 
@@ -155,8 +155,7 @@ def _inputs_key(workspace: Workspace, batch: dict, conf: Conf) -> str:
     prerequisites = {"flight": [workspace.rig_path],
                      "extrinsics": [workspace.intrinsics_path(batch["camera"])]}.get(batch["stage"], [])
     for path in sorted(root.glob("*.csv")) + [root / "dataset.yaml"]:
-        stat = path.stat()
-        digest.update(f"{path.name}:{stat.st_size}:{stat.st_mtime_ns};".encode())
+        digest.update(f"{path.name}:{_stamp(path)};".encode())
     for path in prerequisites:
         digest.update(path.read_bytes() if path.is_file() else b"absent")
     return digest.hexdigest()[:16]
@@ -174,8 +173,7 @@ def _code_digest() -> str:
 
 def _image_key(dataset, image: str, inputs_key: str) -> str:
     path = dataset.image_path(image)
-    stat = path.stat() if path is not None and path.is_file() else None
-    return inputs_key + ("-" if stat is None else f"-{stat.st_size}-{stat.st_mtime_ns}")
+    return f"{inputs_key}-{'' if path is None else _stamp(path)}"
 
 
 def _finished(progress: Path, workspace: Workspace) -> dict[str, dict]:

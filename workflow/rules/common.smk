@@ -33,8 +33,8 @@ LOGS = f"logs/{DATASET}"
 BENCHMARKS = f"benchmarks/{DATASET}"
 #: Camera subsets of tab:conf, as camera indexes in the manifest's order ("01" = first two cameras).
 SUBSETS = config.get("subsets", ["0", "01", "012", "1234"])
-#: Images per marker job (the config's markers_per_job; plan.MARKERS_PER_JOB by default).
-MARKERS_PER_JOB = config.get("markers_per_job", 100)
+#: Images per marker job (the config's markers_per_job; the schema's default is plan.MARKERS_PER_JOB).
+MARKERS_PER_JOB = config["markers_per_job"]
 BENCH_POSE = {"repeats": 50, "batch_frames": 100, "stage_frames": 10_000, **config.get("bench_pose", {})}
 
 
