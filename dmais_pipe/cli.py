@@ -114,10 +114,10 @@ def _cmd_markers(args) -> None:
 def _cmd_bench_markers(args) -> None:
     import pandas as pd
 
-    from .markers.bench import bench_markers, summary
+    from .bench.markers import bench_markers, summary
 
     if args.suite != "dataset":
-        from .markers.bench_suites import run_suite
+        from .bench.marker_suites import run_suite
 
         run_suite(args.suite, args.csv, seed=args.seed, images=args.images)
         return
@@ -171,13 +171,13 @@ def _cmd_report(args) -> None:
 
 
 def _cmd_bench_pose(args) -> None:
-    from .pose.bench import bench_pose
+    from .bench.pose import bench_pose
 
     bench_pose(args.csv, repeats=args.repeats, batch_frames=args.batch_frames, stage_frames=args.stage_frames)
 
 
 def _cmd_bench_campaign(args) -> None:
-    from .campaign import bench_campaign
+    from .bench.campaign import bench_campaign
 
     bench_campaign(args.source, args.out, args.csv, frames=args.frames, frames_per_group=args.frames_per_group,
                    slurm=args.slurm, slurm_batches=args.slurm_batches, stages=args.stages)

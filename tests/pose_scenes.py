@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from dmais_pipe.pose.bench import FOCAL_PX, HEIGHT, WIDTH, dmais_cam_from_rig
+from dmais_pipe.bench.pose import FOCAL_PX, HEIGHT, WIDTH, dmais_cam_from_rig
 
 
 def random_rotation(rng, max_angle=np.deg2rad(180)) -> np.ndarray:

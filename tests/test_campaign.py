@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from dmais_pipe import cli
-from dmais_pipe.campaign import campaign_dataset, given_flight_source, job_stats
+from dmais_pipe.bench.campaign import campaign_dataset, given_flight_source, job_stats
 from dmais_pipe.dataset import Dataset
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.plan import marker_batches

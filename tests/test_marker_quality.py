@@ -11,10 +11,10 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
 from dmais_pipe.markers import detect
-from dmais_pipe.markers.bench_photos import PHOTOS, board_corners
-from dmais_pipe.markers.bench_regimes import corner_sub_pix
+from dmais_pipe.bench.marker_photos import PHOTOS, board_corners
+from dmais_pipe.bench.marker_regimes import corner_sub_pix
 from dmais_pipe.markers.refine import refine_corners
-from dmais_pipe.markers.scenes import marker_scene, regime_settings, starts
+from dmais_pipe.bench.marker_scenes import marker_scene, regime_settings, starts
 from dmais_pipe.sim import effects
 from dmais_pipe.sim.effects import disc_kernel, motion_kernel
 
@@ -245,7 +245,7 @@ def test_every_shadowed_marker_is_found_or_rejected_with_a_reason():
     edge through each, `sim.effects`): every true corner detected within 0.1 px or rejected with a
     reason near it, none missed without a trace (before: 11 of 36 missed, recall 0.64; now 0 missed,
     recall 0.83), no wrong identification, no false detection."""
-    from dmais_pipe.markers.bench_effects import EFFECTS, measure_effect
+    from dmais_pipe.bench.marker_effects import EFFECTS, measure_effect
 
     row = measure_effect("shadow", EFFECTS["shadow"], 6, 5)
     assert row["missed"] == 0 and row["accounted"] == 1.0
@@ -259,7 +259,7 @@ def test_virtual_corner_of_an_outline_and_a_shadow_edge_is_not_returned():
     tests; identified as the undetected marker beside it once the shadowed markers of that image
     were found. Its fit is uncertain (sigma 0.16 px; true detections <= 0.08): rejected, with the
     reason. No false detection, no wrong id in the row (2 false detections, 1 wrong id before)."""
-    from dmais_pipe.markers.bench_effects import EFFECTS, measure_effect, row_seed
+    from dmais_pipe.bench.marker_effects import EFFECTS, measure_effect, row_seed
     from dmais_pipe.markers.detect import UNCERTAIN
 
     row = measure_effect("shadow", EFFECTS["shadow"], 10, row_seed(2, list(EFFECTS).index("shadow")))
@@ -444,7 +444,7 @@ def test_detection_recall_on_real_x_junctions(photos):
 
 
 def test_real_photo_corners_fit_the_camera_better_than_corner_sub_pix():
-    from dmais_pipe.markers.bench_photos import bench_photos
+    from dmais_pipe.bench.marker_photos import bench_photos
 
     table = bench_photos().set_index("method")
     assert table.loc["refine", "corners"] >= 530
@@ -505,7 +505,7 @@ def _shadow_row_scene(seed: int, index: int, noise_free: bool = False):
     --seed seed` (of its noise-free twin if `noise_free`)."""
     from itertools import islice
 
-    from dmais_pipe.markers.bench_effects import EFFECTS, effect_scenes, row_seed
+    from dmais_pipe.bench.marker_effects import EFFECTS, effect_scenes, row_seed
 
     options = {**EFFECTS["shadow"], "read_noise_dn": 0.0} if noise_free else EFFECTS["shadow"]
     scenes = effect_scenes(options, index + 1, row_seed(seed, list(EFFECTS).index("shadow")))
@@ -536,8 +536,8 @@ def test_noise_free_shadow_row_is_the_shadow_rows_scenes_and_its_own_target(monk
     only with no error beyond MAX_SHIFT_PX."""
     from itertools import islice
 
-    from dmais_pipe.markers import bench_effects
-    from dmais_pipe.markers.bench_effects import EFFECTS, NOISE_FREE_SHADOW, bench_effects as table, effect_scenes
+    from dmais_pipe.bench import marker_effects as bench_effects
+    from dmais_pipe.bench.marker_effects import EFFECTS, NOISE_FREE_SHADOW, bench_effects as table, effect_scenes
 
     noisy = next(islice(effect_scenes(EFFECTS["shadow"], 1, 3), 0, None))
     clean = next(islice(effect_scenes({**EFFECTS["shadow"], "read_noise_dn": 0.0}, 1, 3), 0, None))
@@ -562,7 +562,7 @@ def test_shadowed_corner_beside_the_edge_is_fitted_not_shifted():
     finds it 0.05 px off, which the final fit in a smaller window confirms: returned by `detect`
     within 0.1 px (rejected with the reason before); every other corner of the image is returned
     (within 0.11 px: corner 4 is the ordinary fit's, 0.101 px) or rejected with a reason near it."""
-    from dmais_pipe.markers.bench_effects import REJECTED_PX
+    from dmais_pipe.bench.marker_effects import REJECTED_PX
     from dmais_pipe.markers.shadow import SHADOW_REASON, shadowed_corners
 
     image, truth = _shadow_row_scene(53, 6)
@@ -621,7 +621,7 @@ def test_starts_only_the_narrower_ring_confirms_blame_no_shadow_on_gravel():
     narrower check ring: such starts whose fits fail are no shadowed X, so they are not rejected
     as one (the effects benchmark's gravel row, `--seed 202`: 13 such rejections away from every
     marker in its 10 images when they were, 1 now; 12 and 2 with `--seed 203`)."""
-    from dmais_pipe.markers.bench_effects import EFFECTS, effect_scenes, row_seed
+    from dmais_pipe.bench.marker_effects import EFFECTS, effect_scenes, row_seed
     from dmais_pipe.markers.shadow import SHADOW_REASON
 
     blamed = 0

@@ -16,7 +16,7 @@ from scipy.spatial.transform import Rotation
 
 from dmais_pipe.camera import Camera
 from dmais_pipe.geometry import Rigid3, euler_zyx_rates, rotation_from_euler_zyx
-from dmais_pipe.pose.bench import HEIGHT, WIDTH, dmais_cam_from_rig, flight_dataset
+from dmais_pipe.bench.pose import HEIGHT, WIDTH, dmais_cam_from_rig, flight_dataset
 from dmais_pipe.pose.flight import COLUMNS, estimate_poses
 from dmais_pipe.pose.uncertainty import MIN_DEGREES_OF_FREEDOM, frame_noise_px, heading_pitch_roll
 from dmais_pipe.rig import Rig

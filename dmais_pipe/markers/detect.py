@@ -12,7 +12,7 @@
    fitted with the shadow edge in the model (`shadow.shadowed_corners`) and returned where that
    fit passes its checks, else reported as rejected with that reason (SHADOW_REASON; also where
    the stricter ring test `shadowed_x` finds a shadowed X the fit did not start on).
-2. Verification at full resolution by rings around the candidate (`refine.ring_quality`): an
+2. Verification at full resolution by rings around the candidate (`rings.ring_quality`): an
    X-corner ring is two-valued, point symmetric and changes level exactly four times (two dark
    opposite sectors, two bright opposite sectors), whatever the rotation, foreshortening or
    polarity. Board outline corners (L), T-junctions and texture fail it.
@@ -30,8 +30,9 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from .refine import (ASYMMETRIC, NO_CLEAN_X, _ring_offsets, _ring_stats, as_float_image, clean_radius, refine_corners,
-                     ring_quality, sample, seed)
+from .centring import seed
+from .refine import ASYMMETRIC, NO_CLEAN_X, refine_corners
+from .rings import as_float_image, clean_radius, ring_offsets, ring_quality, ring_stats, sample
 from .shadow import SHADOW_REASON, both_sides, line_ends, log_sample, shadowed_corners, step_masks
 
 COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
@@ -211,7 +212,7 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
     if len(cand) == 0:
         return none, np.zeros((0, 2)), tuple(np.zeros((0, 2)) if i == 0 else np.zeros(0) for i in range(5))
     # Prefilter at the unrefined position: a ring of radius 4 px must already look like an X.
-    values = sample(img, cand[:, None, :] + _ring_offsets(4.0)[None])
+    values = sample(img, cand[:, None, :] + ring_offsets(4.0)[None])
     quality, ring_contrast = ring_quality(values)
     passed = (quality >= PRE_QUALITY) & (np.abs(ring_contrast) >= contrast)
     # A shadowed X keeps its full contrast on the lit side: the rest is texture.
@@ -237,7 +238,7 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
         return none, shadowed, shade
     # Contrast and quality on a ring well inside the clean area, away from the blurred centre.
     probe = np.clip(0.5 * radius, 3.0, 12.0)[:, None, None]
-    quality, ring_contrast = ring_quality(sample(img, cand[:, None, :] + probe * _ring_offsets(1.0)[None]))
+    quality, ring_contrast = ring_quality(sample(img, cand[:, None, :] + probe * ring_offsets(1.0)[None]))
     good = np.abs(ring_contrast) >= contrast
     return (cand[good], radius[good], quality[good]), shadowed, shade
 
@@ -264,15 +265,15 @@ def shadowed_x(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: fl
     # Cheap first: the point-symmetric part of the smallest ring, where a shadow line through the
     # centre adds only a constant, must already look like an X of some contrast (not noise along a
     # straight edge, where it is flat).
-    offsets = _ring_offsets(SHADOW_RADII[0], SHADOW_SAMPLES)
+    offsets = ring_offsets(SHADOW_RADII[0], SHADOW_SAMPLES)
     values = log_sample(img, uv[:, None, :] + offsets[None])
-    quality, high, low, _ = _ring_stats(0.5 * (values + np.roll(values, SHADOW_SAMPLES // 2, axis=1)))
+    quality, high, low, _ = ring_stats(0.5 * (values + np.roll(values, SHADOW_SAMPLES // 2, axis=1)))
     ok = (quality >= 0.5) & (high - low >= MIN_SHADOW_LOG)
     direction = None
     for radius in SHADOW_RADII:
         if not ok.any():
             break
-        values = log_sample(img, uv[ok, None, :] + _ring_offsets(radius, SHADOW_SAMPLES)[None])
+        values = log_sample(img, uv[ok, None, :] + ring_offsets(radius, SHADOW_SAMPLES)[None])
         good, phi = _best_shadow_line(values, contrast, min_quality)
         if direction is not None:
             good &= np.abs(np.angle(np.exp(1j * (phi - direction[ok])))) <= np.radians(30.0)
@@ -294,7 +295,7 @@ def _best_shadow_line(values: np.ndarray, contrast: float, min_quality: float):
     g = anti @ h.T / (h * h).sum(axis=1)  # (m, l) log step of each line
     lit = values[:, None, :] - g[:, :, None] * shade[None]
     quality, high, low, bright = (a.reshape(m, len(shade), *a.shape[1:])
-                                  for a in _ring_stats(np.exp(lit).reshape(-1, k)))
+                                  for a in ring_stats(np.exp(lit).reshape(-1, k)))
     # Both levels of the X on both sides of the line, in the same ratio (a shadow takes the same
     # share of light from both): a step over one level (the background beyond an outline) or over
     # texture is no shadow of the X.

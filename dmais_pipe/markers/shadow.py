@@ -23,7 +23,7 @@ with the X.
   crosses an edge of the X the product of the blurred factors is not the blurred product, and
   moves the fitted corner by up to ~0.3 px.
 - Checks: the final fit plausible (`_plausible`), the X with the shade divided out clean
-  (`refine.clean_radius`) beyond MIN_CLEAN_PX, its uncertainty within MAX_SIGMA_PX_SHADED, and
+  (`rings.clean_radius`) beyond MIN_CLEAN_PX, its uncertainty within MAX_SIGMA_PX_SHADED, and
   the corner confirmed (`_confirmed`) by a fit of the X alone to the pixels beside the shadow
   edge with the shade divided out (`_unshaded_corner`), or where that fit does not see the
   corner by the final fit in a smaller window. A marker's edge or outline corner crossed by a
@@ -46,7 +46,9 @@ import numpy as np
 from scipy.special import ndtr
 
 from . import xfit
-from .refine import _RADII, _reasons, _ring_offsets, _ring_stats, clean_radius, ring_params, sample, seed
+from .centring import seed
+from .rings import RADII, clean_radius, ring_offsets, ring_params, ring_stats, sample
+from .xfit import rejection_reasons
 
 SHADOW_REASON = "shadow edge at the corner"
 START_RING_PX = 5.0  # radius of the log ring the shadow line and the X are started from
@@ -185,20 +187,20 @@ def _most_symmetric_x(img: np.ndarray, points: np.ndarray, k: int) -> np.ndarray
     n, g = points.shape[:2]
     if n == 0:
         return np.zeros((0, 2))
-    logs = log_sample(img, points[:, :, None, :] + _ring_offsets(CENTRE_RING_PX, k)[None, None])
+    logs = log_sample(img, points[:, :, None, :] + ring_offsets(CENTRE_RING_PX, k)[None, None])
     logs = logs.reshape(n * g, -1).astype(np.float64)
-    quality, high, low, _ = _ring_stats(0.5 * (logs + np.roll(logs, logs.shape[1] // 2, axis=1)))
+    quality, high, low, _ = ring_stats(0.5 * (logs + np.roll(logs, logs.shape[1] // 2, axis=1)))
     best = np.argmax((quality * (high - low)).reshape(n, g), axis=1)
     return points[np.arange(n), best]
 
 
 def _plausible(params, cov, rms, converged, window, contrast) -> np.ndarray:
     """(n,) fits (params (n, 11) about their corner) that are an X crossed by a real shadow edge:
-    a fit `refine_corners` would take (`refine._reasons`: converged, a good fit, certain, not
+    a fit `refine_corners` would take (`xfit.rejection_reasons`: converged, a good fit, certain, not
     degenerate, not blurred beyond the window), the X of enough contrast; the shade taking
     MIN_SHADE..MAX_SHADE of the light and crossing the window."""
     with np.errstate(invalid="ignore"):  # a degenerate fit's covariance: NaN, or a negative variance
-        ok = _reasons(params, cov, rms, converged, params[:, :2], np.inf, window) == ""
+        ok = rejection_reasons(params, cov, rms, converged, params[:, :2], np.inf, window) == ""
         ok &= 2.0 * np.abs(params[:, 6]) >= contrast
         ok &= (params[:, 10] >= MIN_SHADE) & (params[:, 10] <= MAX_SHADE)
         ok &= np.abs(params[:, 8]) < window  # the line about the corner, through the window
@@ -310,7 +312,7 @@ def _plausible_fit(img, uv, start, contrast, anchor):
 def _start(img: np.ndarray, uv: np.ndarray):
     """(start points (n, 2), `_start_params` (n, 11) about them, NaN rows where none, sure (n,)):
     the candidates uv (n, 2); where no sure start is found there but the ring is a point-symmetric
-    X, their coarse centring (`refine.seed`; the candidates of a shadowed X can be a few px off
+    X, their coarse centring (`centring.seed`; the candidates of a shadowed X can be a few px off
     its corner); where neither gives a sure start, their symmetric centre (`symmetric_centre`, the
     X of at least CENTRE_X_LOG log contrast there). A start found later replaces one found before
     where it is sure or none was found."""
@@ -341,17 +343,17 @@ def _take_better(uv, start, sure, rows, new_uv, new_start, new_sure) -> None:
 
 def _start_params(img: np.ndarray, uv: np.ndarray, min_x_log: float = MIN_X_LOG):
     """Shaded-model parameters (n, 11) about uv (n, 2) from a log ring of START_RING_PX: the
-    straight step (`_best_step`) and the X of the ring with it taken away (`refine.ring_params`);
+    straight step (`_best_step`) and the X of the ring with it taken away (`rings.ring_params`);
     NaN rows where no step leaves an X; (n,) where the ring's point-symmetric part is an X; and
     sure (n,): the step is the same on the ring of CHECK_RING_PX (else only on the ring of
     INNER_RING_PX, which stays inside markers whose cells are ~5 px across, foreshortened or small)."""
-    offsets = _ring_offsets(START_RING_PX)
+    offsets = ring_offsets(START_RING_PX)
     logs = log_sample(img, uv[:, None, :] + offsets[None]).astype(np.float64)
     # Cheap first: the point-symmetric part of the ring, where a shadow line near the centre adds
     # little more than a constant, must already be an X (not a straight edge: flat there) of a
     # marker's log contrast, which the shade does not change (texture's is mostly less).
     k = logs.shape[1]
-    quality, high, low, _ = _ring_stats(0.5 * (logs + np.roll(logs, k // 2, axis=1)))
+    quality, high, low, _ = ring_stats(0.5 * (logs + np.roll(logs, k // 2, axis=1)))
     is_x = (quality >= MIN_START_QUALITY) & (high - low >= min_x_log)
     symmetric = np.nonzero(is_x)[0]
     phi, offset, step = (np.full(len(uv), np.nan) for _ in range(3))
@@ -377,7 +379,7 @@ def _start_params(img: np.ndarray, uv: np.ndarray, min_x_log: float = MIN_X_LOG)
 def _same_step(img: np.ndarray, uv: np.ndarray, phi: np.ndarray, radius: float) -> np.ndarray:
     """(n,) where the best straight step (`_best_step`) on the log ring of `radius` about uv (n, 2)
     runs within MAX_TURN of the directions phi (n,) found on the start ring."""
-    ring = log_sample(img, uv[:, None, :] + _ring_offsets(radius)[None]).astype(np.float64)
+    ring = log_sample(img, uv[:, None, :] + ring_offsets(radius)[None]).astype(np.float64)
     return np.abs(np.angle(np.exp(1j * (phi - _best_step(ring)[0])))) <= MAX_TURN
 
 
@@ -399,7 +401,7 @@ def _best_step(logs: np.ndarray):
     g = np.take_along_axis(g, top, axis=1)
     shade = shade[top]  # (n, t, k)
     lit = logs[:, None, :] - g[:, :, None] * shade
-    quality, _, _, bright = _ring_stats(np.exp(lit).reshape(-1, k))
+    quality, _, _, bright = ring_stats(np.exp(lit).reshape(-1, k))
     quality, bright = quality.reshape(top.shape), bright.reshape(top.shape + (k,))
     # The line must cross the X's sectors, not run along an edge of the X (an outline T-junction).
     ends = line_ends(_STEPS, k)[top]  # (n, t, 2, w)
@@ -433,7 +435,7 @@ def both_sides(lit: np.ndarray, bright: np.ndarray, shade: np.ndarray, min_sampl
 
 
 def log_sample(img: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """log of the image (h, w) sampled at points (..., 2) (`refine.sample`), from 1 up: a shadow's
+    """log of the image (h, w) sampled at points (..., 2) (`rings.sample`), from 1 up: a shadow's
     factor on the light is a step there."""
     return np.log(np.maximum(sample(img, points), 1.0))
 
@@ -460,7 +462,7 @@ def step_masks(lines: tuple, k: int):
 
 
 def _deshaded_clean_radius(img: np.ndarray, corner: np.ndarray, params: np.ndarray, min_quality: float):
-    """(n,) `refine.clean_radius` about corner (n, 2) of the image with the fitted shade of params
+    """(n,) `rings.clean_radius` about corner (n, 2) of the image with the fitted shade of params
     (n, 11, about the corner) divided out, within MAX_WINDOW_PX + 1 px."""
     half = int(np.ceil(MAX_WINDOW_PX)) + 3
     out = np.zeros(len(corner))
@@ -472,7 +474,7 @@ def _deshaded_clean_radius(img: np.ndarray, corner: np.ndarray, params: np.ndarr
         light = 1.0 - p[10] * ndtr(_edge_blurs(p[None], xs - c[0], ys - c[1]))
         local = (crop / np.maximum(light, 1e-3)).astype(np.float32)
         out[i] = clean_radius(local, (c - [x0, y0])[None], min_quality=min_quality,
-                              radii=_RADII[_RADII <= MAX_WINDOW_PX + 1.0])[0]
+                              radii=RADII[RADII <= MAX_WINDOW_PX + 1.0])[0]
     return out
 
 

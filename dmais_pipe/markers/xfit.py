@@ -289,3 +289,27 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=m
             cov[ok] = (sigma2[ok, None, None] * (inv @ meat[ok] @ inv))[:, :2, :2]
     rms = np.sqrt((weights * r**2).sum(1) / np.maximum(sw, 1e-12))
     return params, cov, rms, converged
+
+
+REJECT_RESIDUAL = 0.08  # fit RMS residual / contrast above which a corner is rejected
+MAX_SIGMA_PX = 0.5  # corners less certain than this are rejected
+MIN_EDGE_ANGLE = np.radians(15.0)  # edges closer than this in direction are degenerate
+
+
+def rejection_reasons(params, cov, rms, converged, uv, limit, window) -> np.ndarray:
+    """(n,) '' for a good fit (window radius (n,) px), else why the corner is rejected (`refine.REASONS`)."""
+    p = params[:, :2]
+    sigma = np.sqrt(0.5 * np.trace(cov, axis1=1, axis2=2))
+    residual = rms / np.maximum(2.0 * np.abs(params[:, 6]), 1e-9)
+    edge_angle = np.abs(np.sin(params[:, 2] - params[:, 3]))
+    reason = np.full(len(p), "", dtype=object)
+    reason[sigma > MAX_SIGMA_PX] = "uncertain"
+    reason[residual > REJECT_RESIDUAL] = "poor fit"
+    # Blurred wider than its window the model is a smooth saddle, whose centre any smooth shading
+    # (a shadow edge through the corner) sets, with a small residual and a tiny sigma.
+    reason[params[:, 4] > window] = "blur exceeds window"
+    reason[edge_angle < np.sin(MIN_EDGE_ANGLE)] = "degenerate edges"
+    reason[~(np.hypot(*(p - uv).T) <= limit)] = "moved too far"
+    reason[~(converged & np.all(np.isfinite(p), axis=1) & np.isfinite(sigma))] = "no convergence"
+    reason[~np.all(np.isfinite(params), axis=1)] = "no X pattern"
+    return reason

@@ -13,9 +13,9 @@ The modules: `statistics` (the O(n) statistics of eq. objfun3), `generate` -> `_
 (the sympy derivation of eq. EF6), `template` -> `_template.json` (the elimination template),
 `_kernels.pyx` (the compiled core), `_refine.pyx` (refinement, MSAC scoring and gP3P compiled;
 `_small.pxd` holds the small matrix helpers both cimport), `solver` (the API), `gp3p` (minimal solver), `refine`
-(Levenberg-Marquardt on angular residuals, Cramer-Rao bound), `robust`, `bench` (`dmais bench
-pose`), `build_cpu` (the CPU the cores were built for) and `flight` (every flight frame of a
-dataset, for the pose stage `stages.pose`).
+(Levenberg-Marquardt on angular residuals, Cramer-Rao bound), `robust`, `build_cpu` (the CPU the
+cores were built for) and `flight` (every flight frame of a dataset, for the pose stage
+`stages.pose`). Its benchmark is `bench.pose` (`dmais bench pose`).
 """
 
 from __future__ import annotations

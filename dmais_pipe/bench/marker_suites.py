@@ -11,9 +11,9 @@ from pathlib import Path
 import pandas as pd
 
 from ..files import write_csv_atomic
-from .bench_effects import bench_effects
-from .bench_photos import bench_photos
-from .bench_regimes import bench_regimes
+from .marker_effects import bench_effects
+from .marker_photos import bench_photos
+from .marker_regimes import bench_regimes
 
 
 def _print(title: str, frame: pd.DataFrame, path: Path) -> None:

@@ -19,8 +19,8 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from .bench_regimes import corner_sub_pix
-from .refine import refine_corners
+from .marker_regimes import corner_sub_pix
+from ..markers.refine import refine_corners
 
 PATTERN = (9, 6)
 PHOTOS = Path(__file__).resolve().parents[2] / "tests" / "data" / "chessboard"

@@ -32,10 +32,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from .dataset import FRAMES, IMAGES, MANIFEST, OBSERVATIONS, Dataset
-from .errors import DmaisError
-from .files import copy_atomic, write_csv_atomic, write_yaml_atomic
-from .plan import MARKERS_PER_JOB
+from ..dataset import FRAMES, IMAGES, MANIFEST, OBSERVATIONS, Dataset
+from ..errors import DmaisError
+from ..files import copy_atomic, write_csv_atomic, write_yaml_atomic
+from ..plan import MARKERS_PER_JOB
 
 log = logging.getLogger(__name__)
 
@@ -195,7 +195,7 @@ def _all_stages(root: Path, source: Path, demo: Path, out: Path, csv: Path, fram
     """The workflow but its COLMAP export, locally on every core, on the campaign of `frames` frames whose
     flight observations are given (`given_flight_source`; its marker extraction is what the rest measures):
     per rule its jobs, total and largest wall time and peak memory, from the rules' benchmark files."""
-    from .report.html import benchmark_table
+    from ..report.html import benchmark_table
 
     given = given_flight_source(source, demo, out.with_name(f"{out.name}_source"))
     dataset = campaign_dataset(given, out, frames, frames_per_group)
@@ -227,7 +227,7 @@ def _shown(value) -> str:
 
 def _repository() -> Path:
     """The source tree this package runs from, whose Snakefile the bench runs."""
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     if not (root / "Snakefile").is_file():
         raise DmaisError(f"campaign: no Snakefile in {root}: the bench runs the workflow of a source checkout "
                          "(pip install -e .)")

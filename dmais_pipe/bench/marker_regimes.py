@@ -1,6 +1,6 @@
 """Sub-pixel refinement per regime: marker size x foreshortening x blur x noise, against cv2.cornerSubPix.
 
-Every cell renders `images` seeded scenes (`scenes.marker_scene`, 6 markers each) and refines every
+Every cell renders `images` seeded scenes (`marker_scenes.marker_scene`, 6 markers each) and refines every
 true X-corner from the same starting points (truth + 0.3...1.5 px) with `refine` and with
 cv2.cornerSubPix at several window half-sizes. The cell's cornerSubPix figure is its best window
 in that cell (chosen with the truth, so the comparison favours OpenCV). Errors are distances to
@@ -16,8 +16,8 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from .refine import refine
-from .scenes import marker_scene, regime_settings, starts
+from ..markers.refine import refine
+from .marker_scenes import marker_scene, regime_settings, starts
 
 SIZES_PX = (20, 30, 40, 80, 160)
 TILTS_DEG = (0, 45, 65)

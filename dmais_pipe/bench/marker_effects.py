@@ -31,10 +31,10 @@ import pandas as pd
 from scipy.spatial import cKDTree
 
 from ..sim.render import RenderSettings
-from .detect import detect
-from .identify import identify
-from .refine import refine_corners
-from .scenes import CAMERA, marker_scene, regime_settings, starts
+from ..markers.detect import detect
+from ..markers.identify import identify
+from ..markers.refine import refine_corners
+from .marker_scenes import CAMERA, marker_scene, regime_settings, starts
 
 MATCH_PX = 2.0
 MAX_SHIFT_PX = 0.1  # the most a shadow edge may shift a corner (noise-free)

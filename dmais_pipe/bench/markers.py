@@ -21,10 +21,10 @@ from scipy.spatial import cKDTree
 from ..dataset import Dataset
 from ..files import write_csv_atomic
 from ..rig import Rig
-from .detect import detect
-from .identify import identify
-from .refine import refine
-from .extract import predicted_projections
+from ..markers.detect import detect
+from ..markers.identify import identify
+from ..markers.refine import refine
+from ..markers.extract import predicted_projections
 
 log = logging.getLogger(__name__)
 MATCH_PX = 2.0

@@ -52,9 +52,9 @@ from ..dataset import CameraSpec, Dataset
 from ..files import write_csv_atomic
 from ..geometry import Rigid3, rotation_error
 from ..errors import PoseError
-from .refine import refine_pose
-from .robust import solve_robust
-from .solver import solve_batch, solve_generalized_pose
+from ..pose.refine import refine_pose
+from ..pose.robust import solve_robust
+from ..pose.solver import solve_batch, solve_generalized_pose
 
 POINT_COUNTS = (10, 50, 100, 200, 300, 400, 500)
 PAPER_TABLE = Path(__file__).resolve().parents[1] / "report" / "paper_tables" / "time_points.csv"
@@ -285,7 +285,7 @@ def _points_table(xyz, ids=()) -> pd.DataFrame:
 def bench_stage(n_frames: int, seed: int = 0) -> dict:
     """The pose stage on a generated flight of n_frames frames (`stage_flight`): frames/s of
     `estimate_poses` (paper conf) and its peak traced memory (MB)."""
-    from .flight import estimate_poses
+    from ..pose.flight import estimate_poses
 
     dataset, rig, observations = stage_flight(np.random.default_rng(seed), n_frames)
     with single_threaded_blas():

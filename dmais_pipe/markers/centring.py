@@ -1,0 +1,81 @@
+"""Coarse centring of X-corners by the gradient condition (as cv2.cornerSubPix does it).
+
+The centre of an X-corner is the point through which all its edges pass: for every pixel x_i near
+it with image gradient g_i, g_i . (p - x_i) = 0. `seed` takes a few steps of the Gaussian-weighted
+least squares of that condition in a small window: the start of `refine`'s model fit and of
+`shadow`'s.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SEED_RADIUS = 5.0
+SEED_EPS = 0.01
+SEED_STEPS = 4
+SIGMA_FRACTION = 0.35
+MIN_SIGMA = 2.5
+
+
+def seed(img: np.ndarray, uv: np.ndarray, max_shift) -> np.ndarray:
+    """A coarse centring (n, 2) with a small window (SEED_RADIUS); NaN where it fails."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    # A few steps, not to convergence: under strong blur a small window's fixed point can drift.
+    return _refine_fixed(img, uv, SEED_RADIUS, SEED_STEPS, SEED_EPS,
+                         np.broadcast_to(np.asarray(max_shift, float), (len(uv),)), converge=False)
+
+
+def _refine_fixed(img, start, radius, max_iterations, eps, max_shift, converge: bool = True) -> np.ndarray:
+    """The gradient condition's fixed point with one window half-size for all points, vectorized over points (n, 2).
+
+    Gradients are central differences at the integer pixels of a window around the start (no
+    interpolation, whose smoothing depends on the sub-pixel phase and would bias the result);
+    p = argmin sum_i w_i (g_i . (p - x_i))^2 in closed form, the Gaussian weights w_i centred on
+    the previous p; iterated until p moves less than `eps`.
+    """
+    height, width = img.shape
+    # A fixed window around the start (weights follow p smoothly, so the iteration converges).
+    half = int(np.ceil(radius + min(float(np.max(max_shift, initial=0.0)), 2 * radius + 4))) + 1
+    offs = np.arange(-half, half + 1)
+    oy, ox = np.meshgrid(offs, offs, indexing="ij")
+    ox, oy = ox.ravel(), oy.ravel()
+    # Not narrower than MIN_SIGMA: the blurred saddle at the very centre violates the edge model.
+    sigma2 = 2.0 * max(SIGMA_FRACTION * radius, MIN_SIGMA) ** 2
+    p = np.array(start, dtype=float).reshape(-1, 2)
+    n = len(p)
+    out = np.full((n, 2), np.nan)
+    active = np.nonzero(np.all(np.isfinite(p), axis=1))[0]
+    for _ in range(max_iterations):
+        if len(active) == 0:
+            break
+        q = p[active]
+        inside = (q[:, 0] >= 0) & (q[:, 0] <= width - 1) & (q[:, 1] >= 0) & (q[:, 1] <= height - 1)
+        q = np.where(inside[:, None], q, 0.0)
+        s0 = np.where(inside[:, None], start[active], 0.0)
+        cx, cy = np.rint(s0[:, 0]).astype(int), np.rint(s0[:, 1]).astype(int)
+        x = cx[:, None] + ox[None]  # (k, m) integer pixel positions
+        y = cy[:, None] + oy[None]
+        xc, yc = np.clip(x, 1, width - 2), np.clip(y, 1, height - 2)
+        gx = 0.5 * (img[yc, xc + 1].astype(np.float64) - img[yc, xc - 1])
+        gy = 0.5 * (img[yc + 1, xc].astype(np.float64) - img[yc - 1, xc])
+        rx, ry = x - q[:, :1], y - q[:, 1:]
+        d2 = rx**2 + ry**2
+        # Gaussian tapered smoothly to 0 at `radius`: no pixel enters or leaves the window abruptly.
+        w = np.exp(-d2 / sigma2) * np.maximum(1.0 - d2 / radius**2, 0.0) ** 2 * (x == xc) * (y == yc)
+        wxx, wxy, wyy = (w * gx * gx).sum(1), (w * gx * gy).sum(1), (w * gy * gy).sum(1)
+        bx = (w * (gx * gx * x + gx * gy * y)).sum(1)
+        by = (w * (gx * gy * x + gy * gy * y)).sum(1)
+        det = wxx * wyy - wxy**2
+        trace = wxx + wyy
+        ok = inside & (trace > 0) & (det > 1e-6 * trace**2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            new = np.column_stack([wyy * bx - wxy * by, wxx * by - wxy * bx]) / det[:, None]
+        delta = new - q
+        ok &= np.all(np.isfinite(new), axis=1) & (np.hypot(*(new - start[active]).T) <= max_shift[active])
+        p[active] = new
+        done = ok & (np.hypot(*delta.T) < eps)
+        out[active[done]] = new[done]
+        active = active[ok & ~done]
+        if not converge:
+            out[active] = p[active]
+    return out

@@ -1,0 +1,139 @@
+"""Rings of samples about a point: the primitives of the X-corner tests and starts.
+
+An X-corner seen on a ring of samples about its centre is point symmetric, two-valued and changes
+level exactly four times, at the same angles on every radius (its edges are straight lines
+through the centre). `detect`, `refine` and `shadow` test candidates, choose windows and start
+their fits with these.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+RING_SAMPLES = 48
+RADII = 3.0 * 1.35 ** np.arange(14)  # ring radii probed by clean_radius: 3 ... ~150 px
+
+
+def as_float_image(image) -> np.ndarray:
+    """(h, w) float32 copy/view of an 8- or 16-bit (or float) grayscale image."""
+    image = np.asarray(image)
+    if image.ndim != 2:
+        raise ValueError(f"expected a (height, width) grayscale image, got shape {image.shape}")
+    return image.astype(np.float32, copy=False)
+
+
+def sample(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Bilinear samples of float32 `image` at pixel positions xy (..., 2); replicated border."""
+    xy = np.asarray(xy, dtype=np.float32)
+    shape = xy.shape[:-1]
+    flat = xy.reshape(-1, 1, 2)
+    # cv2.remap is limited to SHRT_MAX rows per call.
+    out = np.empty(len(flat), dtype=np.float32)
+    for s in range(0, len(flat), 30000):
+        out[s:s + 30000] = cv2.remap(image, flat[s:s + 30000, :, 0].copy(), flat[s:s + 30000, :, 1].copy(),
+                                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
+    return out.reshape(shape)
+
+
+def ring_quality(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Quality (m,) in [0, 1] and contrast (m,) of rings of samples (m, k) as an X-corner.
+
+    An X-corner ring is point symmetric (opposite samples equal), two-valued, and changes level
+    exactly four times. Quality = bimodality (between-class / total variance of the two levels split
+    at the ring mean) x point symmetry, 0 unless there are exactly 4 transitions.
+    """
+    quality, high_level, low_level, _ = ring_stats(values)
+    return quality, high_level - low_level
+
+
+def ring_stats(values: np.ndarray):
+    """quality (m,), bright level (m,), dark level (m,), bright mask (m, k) of rings (m, k)."""
+    values = np.asarray(values, dtype=np.float64)
+    k = values.shape[1]
+    mean = values.mean(axis=1, keepdims=True)
+    high = values > mean
+    transitions = np.count_nonzero(high != np.roll(high, 1, axis=1), axis=1)
+    n_high = high.sum(axis=1)
+    total = ((values - mean) ** 2).sum(axis=1) + 1e-9
+    mean_high = np.where(high, values, 0).sum(axis=1) / np.maximum(n_high, 1)
+    mean_low = np.where(~high, values, 0).sum(axis=1) / np.maximum(k - n_high, 1)
+    within = (np.where(high, values - mean_high[:, None], values - mean_low[:, None]) ** 2).sum(axis=1)
+    bimodal = np.clip(1.0 - within / total, 0.0, 1.0)
+    opposite = np.roll(values, k // 2, axis=1)
+    symmetric = np.clip(1.0 - ((values - opposite) ** 2).sum(axis=1) / (2.0 * total), 0.0, 1.0)
+    quality = np.where(transitions == 4, bimodal * symmetric, 0.0)
+    return quality, mean_high, mean_low, high
+
+
+def ring_offsets(radius: float, k: int = RING_SAMPLES) -> np.ndarray:
+    angle = 2.0 * np.pi * (np.arange(k) + 0.5) / k
+    return radius * np.column_stack([np.cos(angle), np.sin(angle)])
+
+
+def clean_radius(image: np.ndarray, uv: np.ndarray, min_quality: float = 0.6,
+                 radii: np.ndarray = RADII, max_first: float = 8.0) -> np.ndarray:
+    """(n,) largest radius of `radii` up to which the rings around uv (n, 2) stay the same clean
+    X-corner: quality >= min_quality, the same bright/dark sectors (edges are straight lines through
+    the centre, so the pattern does not change with the radius) and the same two levels as the
+    previous ring (the pattern: as the first clean ring, at most `max_first` px); 0 where no ring qualifies."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    n = len(uv)
+    result = np.zeros(n)
+    started = np.zeros(n, dtype=bool)
+    alive = np.ones(n, dtype=bool)
+    ref_high, ref_low = np.zeros(n), np.zeros(n)
+    ref_mask = np.zeros((n, RING_SAMPLES), dtype=bool)
+    for radius in radii:
+        idx = np.nonzero(alive)[0]
+        if len(idx) == 0:
+            break
+        values = sample(image, uv[idx, None, :] + ring_offsets(radius)[None])
+        quality, high, low, mask = ring_stats(values)
+        ok = quality >= min_quality
+        was = started[idx]
+        contrast = np.maximum(ref_high[idx] - ref_low[idx], 1e-9)
+        same = ((np.mean(mask == ref_mask[idx], axis=1) >= 0.9)
+                & (high >= ref_high[idx] - 0.25 * contrast) & (low <= ref_low[idx] + 0.25 * contrast))
+        ok = np.where(was, ok & same, ok)
+        first = ok & ~was
+        ref_mask[idx[first]] = mask[first]
+        # Levels, ring to ring: blur lets them spread with the radius, but a ring leaving the
+        # board (background, outline) pulls a level back.
+        ref_high[idx[ok]], ref_low[idx[ok]] = high[ok], low[ok]
+        started[idx[first]] = True
+        result[idx[ok]] = radius
+        stop = np.where(was, ~ok, ~ok & (radius >= max_first))
+        alive[idx[stop]] = False
+    return result
+
+
+def ring_params(start: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Model parameters (n, 7) from rings of samples values (n, k) (`ring_offsets` order) about
+    start (n, 2): edge normals from its four level changes, blur 1 px, levels from the ring; NaN
+    rows where the ring does not change level exactly four times."""
+    params = np.full((len(start), 7), np.nan)
+    k = values.shape[1]
+    mean = values.mean(axis=1, keepdims=True)
+    high = values > mean
+    nxt = np.roll(values, -1, axis=1)
+    change = high != np.roll(high, -1, axis=1)
+    ok = change.sum(axis=1) == 4
+    if not ok.any():
+        return params
+    # Sub-sample angle of each level change (the crossing of the ring mean between samples j, j+1).
+    j = np.nonzero(change[ok])[1].reshape(-1, 4)
+    rows = np.arange(ok.sum())[:, None]
+    v0, v1 = values[ok][rows, j], nxt[ok][rows, j]
+    t = np.clip((v0 - mean[ok]) / np.where(v0 == v1, 1.0, v0 - v1), 0.0, 1.0)
+    angle = 2.0 * np.pi * (j + 0.5 + t) / k
+    # An edge line runs through changes 0 and 2, the other through 1 and 3; normals = direction + 90 deg.
+    d1 = _mean_direction(angle[:, 0], angle[:, 2] - np.pi)
+    d2 = _mean_direction(angle[:, 1], angle[:, 3] - np.pi)
+    params[ok] = np.column_stack([start[ok], d1 + 0.5 * np.pi, d2 + 0.5 * np.pi, np.ones(ok.sum()), mean[ok, 0],
+                                  0.5 * (values[ok].max(axis=1) - values[ok].min(axis=1))])
+    return params
+
+
+def _mean_direction(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.arctan2(np.sin(a) + np.sin(b), np.cos(a) + np.cos(b))
