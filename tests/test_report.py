@@ -6,6 +6,7 @@ import json
 import shutil
 from html.parser import HTMLParser
 
+import jinja2
 import numpy as np
 import pandas as pd
 import pytest
@@ -17,7 +18,9 @@ from dmais_pipe.dataset import flight_observations
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.evaluate import conf_table, pose_methods_table
 from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
-from dmais_pipe.report.html import FIGURE_FILES, SECTIONS, benchmark_table
+from dmais_pipe.report import page
+from dmais_pipe.report.html import FIGURE_FILES, SECTIONS, Section, benchmark_table
+from dmais_pipe.report.page import Image, Table, cell_text
 from dmais_pipe.report.paper import BY_CONSTRUCTION, PAPER_DIR, PAPER_TABLES, compare_with_paper, paper_comparisons, paper_notes
 from dmais_pipe.pose.flight import pixel_residuals
 from dmais_pipe.rig import Rig
@@ -221,6 +224,98 @@ def test_layout_figure_is_embedded_and_text_escaped(dataset, results, tmp_path):
     page = parse(out)
     assert any(src.startswith("data:image/svg+xml;base64,") for src in page.srcs)
     assert page.ids == SECTION_IDS
+
+
+class Tables(HTMLParser):
+    """Per section id, its tables, each a list of rows of cell texts (the header row first)."""
+
+    def __init__(self):
+        super().__init__()
+        self.sections: dict[str, list[list[list[str]]]] = {}
+        self._section, self._cell = None, None
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "h2":
+            self._section = dict(attrs)["id"]
+        elif tag == "table":
+            self.sections.setdefault(self._section, []).append([])
+        elif tag == "tr":
+            self.sections[self._section][-1].append([])
+        elif tag in ("td", "th"):
+            self._cell = []
+
+    def handle_endtag(self, tag):
+        if tag in ("td", "th"):
+            self.sections[self._section][-1][-1].append("".join(self._cell))
+            self._cell = None
+
+    def handle_data(self, data):
+        if self._cell is not None:
+            self._cell.append(data)
+
+
+def cells_by(table: list[list[str]], key: str) -> dict[str, dict[str, str]]:
+    """The table's rows keyed by their cell in column `key`, each row a mapping column -> cell."""
+    header, *rows = table
+    return {row[header.index(key)]: dict(zip(header, row)) for row in rows}
+
+
+def test_tables_show_each_number_in_its_cell(dataset, results, tmp_path):
+    write_benchmarks(tmp_path / "benchmarks")
+    out = render(dataset, results, tmp_path / "report.html", benchmarks=tmp_path / "benchmarks")
+    parser = Tables()
+    parser.feed(out.read_text(encoding="utf-8"))
+    tables = parser.sections
+    time_points = cells_by(tables["runtime"][0], "n_points")
+    assert time_points["50"]["pycolmap_ms"] == "0.6" and time_points["100"]["paper_ms"] == "0.55"
+    stages = cells_by(tables["stages"][0], "stage")
+    assert (stages["markers"]["jobs"], stages["markers"]["total_s"], stages["markers"]["max_rss_mb"]) == ("2", "6", "150")
+    intrinsics = cells_by(tables["intrinsics"][0], "camera")
+    assert intrinsics["C3"]["fy"].endswith(" ± 2.4") and intrinsics["C3"]["eps_eval_px"] == "0.15"
+    fx = Rig.load(dataset / "truth" / "rig.json").cameras["C0"].fx
+    assert fx >= 1e4 and cells_by(tables["rig"][0], "camera")["C0"]["fx"] == f"{fx:.1f}"  # large: to 0.1, no exponent
+
+
+def test_cells_are_text_as_the_tables_showed_them():
+    values = (12345.678, 0.000123456, 2.0, np.float32(0.5), -3e-12, np.nan, None, pd.NA, np.int64(7), True, "a<b")
+    assert [cell_text(v) for v in values] == ["12345.7", "0.0001235", "2", "0.5", "-3e-12", "", "", "", "7", "True",
+                                              "a<b"]
+
+
+HOSTILE = "<script>alert(1)</script>"
+
+
+def test_templates_escape_text_from_files():
+    escaped = "&lt;script&gt;alert(1)&lt;/script&gt;"
+    fov = page.render("sections/fov.html.j2", extent={"cameras": 1, "axis_camera": HOSTILE, "width": "1.0",
+                                                      "height": "2.0"},
+                      cameras=[{"name": HOSTILE, "width": "1.00", "height": "2.00"}], footprints_missing=None,
+                      footprints=Image.inline("<svg><circle r='1'/></svg>"), frame=HOSTILE, ground_z="75.0",
+                      points_kind="ground", not_drawn=[HOSTILE, "C1"])
+    assert "<script" not in fov and fov.count(escaped) == 4
+    assert "<svg><circle r='1'/></svg>" in fov  # our figure's markup, marked as such, is embedded as it is
+    assert f"Not drawn (looking above the horizon): {escaped}, C1." in fov
+    macros = page.environment().get_template("macros.html.j2").module
+    assert f"<td>{escaped}</td>" in macros.table(Table(["camera"], [[HOSTILE]]))
+    image = Image.data_uri(b"<svg/>", "image/svg+xml", alt=f'a"{HOSTILE}')
+    figure = macros.figure(image, caller=lambda: HOSTILE)
+    assert "<script" not in figure and f'alt="a&#34;{escaped}"' in figure and f"<figcaption>{escaped}" in figure
+    whole = page.render("report.html.j2", dataset_name=HOSTILE, dataset_root="/data/<x>", results="r & s",
+                        sections=[Section("fov", "Fields of view", missing=HOSTILE)])
+    assert "<script" not in whole and whole.count(escaped) == 3  # the title twice, the note
+    assert "<code>/data/&lt;x&gt;</code>" in whole and "r &amp; s" in whole
+
+
+def test_a_value_missing_from_a_template_context_raises():
+    values = {"runtime_figure": Image.inline("<svg/>"), "time_points": Table(["n_points"], [["10"]])}
+    assert "<td>10</td>" in page.render("sections/runtime.html.j2", **values)
+    misspelt = {"runtime_figure": values["runtime_figure"], "time_point": values["time_points"]}
+    with pytest.raises(jinja2.UndefinedError, match="time_points"):
+        page.render("sections/runtime.html.j2", **misspelt)
+    with pytest.raises(jinja2.UndefinedError, match="colums"):
+        page.environment().from_string("{% for c in t.colums %}{{ c }}{% endfor %}").render(t=Table([], []))
+    with pytest.raises(jinja2.UndefinedError):  # not even in a condition: a misspelt flag does not hide its branch
+        page.render("sections/attitude.html.j2", scater=None)
 
 
 def test_benchmark_table(tmp_path):

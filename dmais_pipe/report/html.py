@@ -1,25 +1,28 @@
 """`report.html`: one self-contained page for a reader who did not run the pipeline.
 
-Every figure is drawn with matplotlib and embedded (inline SVG, or a JPEG data URI for the image
-montages), so the page needs no other file; the figures of the paper that the other results lack
-(marker overlays, fields of view on the ground, calibration residuals) are also written beside the
-page, figures/<name>.svg|jpg, for the workflow's report. Every section is an <h2> with a stable id
-(SECTIONS). A section whose inputs are missing says what is missing instead of failing the report.
-All text taken from files is HTML-escaped.
+This module prepares what the page shows, section by section: numbers formatted to their digits,
+tables as rows of text cells, figures drawn with matplotlib and embedded (inline SVG, or a JPEG data URI
+for the image montages), so the page needs no other file. The page's markup and prose are jinja2
+templates (report/templates/: report.html.j2, one sections/<id>.html.j2 per section), rendered by
+report.page with autoescaping, so all text taken from files is HTML-escaped. The figures of the paper
+that the other results lack (marker overlays, fields of view on the ground, calibration residuals) are
+also written beside the page, figures/<name>.svg|jpg, for the workflow's report. Every section is an
+<h2> with a stable id (SECTIONS). A section whose inputs are missing says what is missing instead of
+failing the report.
 """
 
 from __future__ import annotations
 
-import base64
-import html
 import io
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from markupsafe import Markup
 from matplotlib.figure import Figure
 
 from ..errors import DmaisError
@@ -32,6 +35,7 @@ from .calibration import image_eps_figure, image_eps_table, residual_quiver_figu
 from .dataset import rig_table, summary_table
 from .footprint import angular_extent_deg, footprint_figure, ground_footprints
 from .overlays import marker_montage
+from .page import Image, render, table_of
 from .paper import BY_CONSTRUCTION, PAPER_TABLES, paper_notes
 
 log = logging.getLogger(__name__)
@@ -81,9 +85,20 @@ def write_report(workspace: Workspace, out_html: str | Path, benchmarks_dir: str
                 "residuals": _residuals_section, "frames": _frames_section, "attitude": _attitude_section,
                 "subsets": _subsets_section, "runtime": _runtime_section, "stages": _stages_section,
                 "paper": _paper_section}
-    sections = [(key, title, _build(builders[key], context, key)) for key, title in SECTIONS]
-    title = f"DMAIS report: {context.name}"
-    return write_text_atomic(out_html, _page(title, context.intro(), sections))
+    sections = [_section(key, title, builders[key], context) for key, title in SECTIONS]
+    page = render("report.html.j2", dataset_name=context.name, dataset_root=str(context.dataset.root),
+                  results=str(context.results), sections=sections)
+    return write_text_atomic(out_html, page)
+
+
+@dataclass(frozen=True)
+class Section:
+    """One <h2> of the page: its id, its title, and its body (sections/<id>.html.j2) or why it has none."""
+
+    key: str
+    title: str
+    body: Markup | None = None
+    missing: str | None = None
 
 
 class _Context:
@@ -97,25 +112,19 @@ class _Context:
         for name in FIGURE_FILES:
             (figures_dir / name).unlink(missing_ok=True)
 
-    def figure(self, name: str, fig, caption: str) -> str:
-        """Write `fig` to figures/<name> (SVG, or JPEG for .jpg) and return it embedded with its caption."""
+    def figure(self, name: str, fig) -> Image:
+        """Write `fig` to figures/<name> (SVG, or JPEG for .jpg) and return it to embed."""
         if name.endswith(".jpg"):
             data = _jpeg(fig)
             write_bytes_atomic(self.figures_dir / name, data)
-            content = f'<img alt="{_esc(name)}" src="data:image/jpeg;base64,{base64.b64encode(data).decode("ascii")}">'
-        else:
-            content = _svg(fig)
-            write_text_atomic(self.figures_dir / name, content)
-        return _figure(content, caption)
+            return Image.data_uri(data, "image/jpeg", alt=name)
+        svg = _svg(fig)
+        write_text_atomic(self.figures_dir / name, svg)
+        return Image.inline(svg)
 
     @property
     def name(self) -> str:
         return self.dataset.name
-
-    def intro(self) -> str:
-        return (f"Dataset <code>{_esc(self.dataset.root)}</code>, results <code>{_esc(self.results)}</code>. "
-                "Units: metres, pixels, arc-minutes (&prime;); eps_pos is the distance to the POS reference "
-                "after the lever-arm calibration, eps_ang = eps_proj &times; angular resolution.")
 
     @cached_property
     def rig(self) -> Rig:
@@ -140,61 +149,42 @@ class _Context:
         return table
 
 
-def _build(builder: Callable[[_Context], str], context: _Context, key: str) -> str:
+def _section(key: str, title: str, builder: Callable[[_Context], dict], context: _Context) -> Section:
+    """The section drawn from the values its builder prepares, or the note saying why it could not be."""
     try:
-        return builder(context)
+        values = builder(context)
     except MissingInput as missing:
-        return _missing(str(missing))
+        return Section(key, title, missing=str(missing))
     except DmaisError as error:
         log.warning("report section %s: %s", key, error)
-        return _missing(f"This section could not be drawn: {error}")
+        return Section(key, title, missing=f"This section could not be drawn: {error}")
     except (KeyError, ValueError, pd.errors.ParserError, pd.errors.EmptyDataError) as error:
         # A malformed table (missing column, unparsable value) must not cost the whole report.
         log.warning("report section %s: malformed input", key, exc_info=True)
-        return _missing(f"This section could not be drawn from malformed input: {type(error).__name__}: {error}")
-
-
-def _page(title: str, intro: str, sections: list[tuple[str, str, str]]) -> str:
-    toc = "".join(f'<li><a href="#{key}">{_esc(name)}</a></li>' for key, name, _ in sections)
-    body = "\n".join(f'<section><h2 id="{key}">{_esc(name)}</h2>\n{content}\n</section>'
-                     for key, name, content in sections)
-    style = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222;line-height:1.4}"
-             "table{border-collapse:collapse;margin:0.5em 0}td,th{padding:2px 8px;border-bottom:1px solid #ddd;"
-             "text-align:right}th{background:#f4f4f4}.missing{color:#a33;font-style:italic}"
-             "figure{margin:1em 0}figcaption{font-size:90%;color:#555}svg{max-width:100%;height:auto}"
-             "pre{background:#f7f7f7;padding:0.5em}.scroll{overflow-x:auto}td{white-space:nowrap}"
-             ".note{font-size:92%;background:#f8f8ec;padding:0.4em 0.6em}")
-    return (f"<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\"><title>{_esc(title)}</title>"
-            f"<style>{style}</style></head>\n<body><h1>{_esc(title)}</h1>\n<p>{intro}</p>\n"
-            f"<nav><ul>{toc}</ul></nav>\n{body}\n</body></html>\n")
+        return Section(key, title, missing="This section could not be drawn from malformed input: "
+                                           f"{type(error).__name__}: {error}")
+    # Rendered outside the try: a template naming a value its section lacks is a bug, not a missing input.
+    return Section(key, title, body=render(f"sections/{key}.html.j2", **values))
 
 
 # ------------------------------------------------------------------------------ sections
+# Each returns the values of its template, sections/<id>.html.j2, which holds the section's prose.
 
 
-def _dataset_section(ctx: _Context) -> str:
-    dataset = ctx.dataset
-    parts = [f"<pre>{_esc(dataset.summary())}</pre>", _table(summary_table(dataset))]
-    if ctx.truth_rig is not None:
-        parts.append("<p>Simulated dataset: ground truth under <code>truth/</code> is used for the true errors "
-                     "below (never by the pipeline's estimation).</p>")
-    return "\n".join(parts)
+def _dataset_section(ctx: _Context) -> dict:
+    return {"summary": ctx.dataset.summary(), "images": table_of(summary_table(ctx.dataset)),
+            "simulated": ctx.truth_rig is not None}
 
 
-def _markers_section(ctx: _Context) -> str:
+def _markers_section(ctx: _Context) -> dict:
     images = ctx.table("marker_images", "no image's markers were extracted (observations given), or run "
                        "`dmais markers` and `dmais evaluate`")
     markers = {image: ctx.workspace.load_markers(image) for image in images["image"]}
     camera_of = dict(zip(images["image"], images["camera"]))
-    caption = ("Sub-pixel standard deviation (per axis) of every refined corner, from the residual of its fit, "
-               "per camera (log scale). Images are flagged when their median is well above their camera's "
-               "median (`dmais evaluate`, settings flag_factor and flag_min_sigma_px).")
-    parts = [_figure(_svg(marker_sigma_figure(markers, camera_of)), caption),
-             _table(ctx.table("marker_cameras", "run `dmais evaluate`"))]
     flagged = images[images["flagged"]]
-    if len(flagged):
-        parts += ["<p>Flagged images (poor corners):</p>", _table(flagged.drop(columns="flagged"))]
-    return "\n".join(parts)
+    return {"sigma_figure": Image.inline(_svg(marker_sigma_figure(markers, camera_of))),
+            "cameras": table_of(ctx.table("marker_cameras", "run `dmais evaluate`")),
+            "flagged": table_of(flagged.drop(columns="flagged")) if len(flagged) else None}
 
 
 def marker_sigma_figure(markers: dict[str, pd.DataFrame], camera_of: dict[str, str]):
@@ -212,24 +202,16 @@ def marker_sigma_figure(markers: dict[str, pd.DataFrame], camera_of: dict[str, s
     return fig
 
 
-def _extraction_section(ctx: _Context) -> str:
+def _extraction_section(ctx: _Context) -> dict:
     """fig:calib and fig:A: one calibration image and one flight frame per camera, detections drawn."""
-    parts = []
     calibration = _calibration_showcase(ctx)
-    if calibration:
-        parts.append(ctx.figure("markers_calibration.jpg", _montage(ctx, calibration),
-                                "Calibration images (per camera the intrinsics image with the most identified "
-                                "markers), then crops at full resolution around single markers. Green: detected "
-                                "and identified (point id); red: detected but not identified (markers/<image>.csv)."))
     frame, flight = _flight_showcase(ctx)
-    if flight:
-        parts.append(ctx.figure("markers_flight.jpg", _montage(ctx, flight),
-                                f"Flight frame {frame}, one image per camera, with its detected markers "
-                                "(green: identified, red: unidentified) and crops around single markers."))
-    if not parts:
+    if not calibration and not flight:
         raise MissingInput(f"No image with a file has a markers file under {ctx.results / 'markers'} "
                            "(run `dmais markers`).")
-    return "\n".join(parts)
+    montages = {name: ctx.figure(f"markers_{name}.jpg", _montage(ctx, images))
+                for name, images in (("calibration", calibration), ("flight", flight)) if images}
+    return {"calibration": montages.get("calibration"), "flight": montages.get("flight"), "flight_frame": frame}
 
 
 def _calibration_showcase(ctx: _Context) -> list[str]:
@@ -266,47 +248,31 @@ def _montage(ctx: _Context, images: list[str]):
     return marker_montage(rows)
 
 
-def _intrinsics_section(ctx: _Context) -> str:
+def _intrinsics_section(ctx: _Context) -> dict:
     workspace = ctx.workspace
     records = [workspace.load_intrinsics(c)[1] for c in ctx.dataset.cameras if workspace.intrinsics_path(c).is_file()]
     if not records:
         raise MissingInput(f"{workspace.root / 'intrinsics'} holds no <camera>.json (run `dmais intrinsics`).")
-    parts = ["<p>Calibrated intrinsics (eq. 2-3 model) &plusmn; one standard deviation from the "
-             "covariance of the final Levenberg-Marquardt; eps_calib / eps_eval are RMS reprojection "
-             "distances on the calibration / held-out images.</p>", _table(intrinsics_table(records))]
     truth = ctx.truth_rig
-    if truth is not None:
-        parts += ["<p>Calibrated minus true values (simulator):</p>", _table(_intrinsics_vs_truth(records, truth))]
-    parts += _calibration_residual_parts(ctx, records)
-    baselines = workspace.load_table("intrinsics")
-    if baselines is not None:
-        parts += ["<p>All methods (tab:intrinsics layout): ours; opencv = cv2.calibrateCamera with the same "
-                  "one-coefficient model; dlt_lm = our DLT + Levenberg-Marquardt baseline (in the paper's place "
-                  "of Bouguet's toolbox, which is not run here); BabelCalib is not run.</p>", _table(baselines)]
-    return "\n".join(parts)
+    methods = workspace.load_table("intrinsics")
+    return {"cameras": table_of(intrinsics_table(records)),
+            "versus_truth": None if truth is None else table_of(_intrinsics_vs_truth(records, truth)),
+            **_calibration_residual_figures(ctx, records),
+            "methods": None if methods is None else table_of(methods)}
 
 
-def _calibration_residual_parts(ctx: _Context, records: list[dict]) -> list[str]:
-    """The residual vectors over each sensor and the RMS per image, from what the intrinsics stage wrote."""
-    parts = []
+def _calibration_residual_figures(ctx: _Context, records: list[dict]) -> dict:
+    """The residual vectors over each sensor and the RMS per image (each None when its input is missing)."""
     residuals = {r["camera"]: table for r in records
                  if (table := ctx.workspace.load_calibration_residuals(r["camera"])) is not None}
+    vectors = None
     if residuals:
         sizes = {r["camera"]: (r["width"], r["height"]) for r in records}
-        parts.append(ctx.figure("calibration_residuals.svg", residual_quiver_figure(residuals, sizes),
-                                "Residual (observed minus projected) of every observation of our calibration, "
-                                "drawn from the observed position over each sensor, magnified; blue: calibration "
-                                "images after the final Levenberg-Marquardt, orange: held-out images after their "
-                                "pose-only fit (intrinsics/<camera>.residuals.csv)."))
-    else:
-        parts.append(_missing("No intrinsics/<camera>.residuals.csv (written by `dmais intrinsics` since the "
-                              "residual files were added): rerun the intrinsics stage for the residual vectors."))
+        vectors = ctx.figure("calibration_residuals.svg", residual_quiver_figure(residuals, sizes))
     per_image = image_eps_table(records)
-    if not per_image.empty:
-        parts.append(ctx.figure("calibration_image_eps.svg", image_eps_figure(per_image),
-                                "RMS reprojection distance per image: eps_calib of each calibration image, eps_eval "
-                                "of each held-out image (intrinsics/<camera>.json)."))
-    return parts
+    return {"residual_vectors": vectors,
+            "image_eps": None if per_image.empty else ctx.figure("calibration_image_eps.svg",
+                                                                  image_eps_figure(per_image))}
 
 
 def intrinsics_table(records: list[dict]) -> pd.DataFrame:
@@ -340,27 +306,19 @@ def _intrinsics_vs_truth(records: list[dict], truth: Rig) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def _rig_section(ctx: _Context) -> str:
-    parts = []
+def _rig_section(ctx: _Context) -> dict:
     layout = ctx.workspace.layout_figure_path
     if layout.is_file():
-        parts.append(_figure(_svg_file(layout), "Camera centres and optical axes in the rig frame, calibrated with "
-                             "and without the RTK camera-centre priors."))
+        image, drawn = Image.data_uri(layout.read_bytes(), "image/svg+xml", alt=layout.name), None
     else:
         rigs = _rig_variants(ctx)
         if not rigs:
             raise MissingInput(f"{ctx.workspace.rig_path} is missing (run `dmais extrinsics`).")
-        parts.append(_figure(_svg(rig_layout_figure(rigs)), "Camera centres (dots) and optical axes (lines) in the "
-                             "rig frame (C0's; z drawn downwards, the way the cameras look); " + ", ".join(rigs) + "."))
-    if ctx.workspace.has_rig():
-        parts += ["<p>rig.json: rig_from_cam as ZYX Euler angles (deg) and camera centres (m).</p>",
-                  _table(rig_table(ctx.rig))]
-    for name, caption in (("extrinsics_R", "Relative rotations with known / unknown initial positions "
-                           "(tab:extrinsics_R)"), ("extrinsics_t", "Relative translations (tab:extrinsics_t)")):
-        table = ctx.workspace.load_table(name)
-        if table is not None:
-            parts += [f"<p>{_esc(caption)}:</p>", _table(table)]
-    return "\n".join(parts)
+        image, drawn = Image.inline(_svg(rig_layout_figure(rigs))), list(rigs)
+    extrinsics = {name: ctx.workspace.load_table(name) for name in ("extrinsics_R", "extrinsics_t")}
+    return {"layout": image, "drawn_rigs": drawn,
+            "rig": table_of(rig_table(ctx.rig)) if ctx.workspace.has_rig() else None,
+            **{name: None if table is None else table_of(table) for name, table in extrinsics.items()}}
 
 
 def _rig_variants(ctx: _Context) -> dict[str, Rig]:
@@ -376,21 +334,25 @@ def _rig_variants(ctx: _Context) -> dict[str, Rig]:
     return rigs
 
 
-def _fov_section(ctx: _Context) -> str:
+def _fov_section(ctx: _Context) -> dict:
     """fig:5cam: every camera's footprint on the ground for one solved frame, and the rig's angular extent."""
     rig = ctx.rig
     width, height = angular_extent_deg(rig)
-    text = (f"<p>Total angular extent of the {len(rig.camera_names)} cameras (spread of all image-corner rays "
-            f"seen along {_esc(rig.camera_names[0])}'s axis, from rig.json): {width:.1f}&deg; &times; "
-            f"{height:.1f}&deg; (the paper: about 90&deg; &times; 90&deg;). Each camera alone covers "
-            + ", ".join(f"{_esc(c)} {w:.2f}&deg; &times; {h:.2f}&deg;"
-                        for c, (w, h) in ((c, _camera_fov_deg(rig, c)) for c in rig.camera_names)) + ".</p>")
+    return {"extent": {"cameras": len(rig.camera_names), "axis_camera": rig.camera_names[0],
+                       "width": f"{width:.1f}", "height": f"{height:.1f}"},
+            "cameras": [{"name": c, "width": f"{w:.2f}", "height": f"{h:.2f}"}
+                        for c, (w, h) in ((c, _camera_fov_deg(rig, c)) for c in rig.camera_names)],
+            **_footprints(ctx, rig)}
+
+
+def _footprints(ctx: _Context, rig: Rig) -> dict:
+    """The figure of the footprints for the first full-rig frame of poses.csv, or why there is none."""
     poses = ctx.workspace.poses_path()
     if not poses.is_file():
-        return text + _missing(f"{poses} is missing (run `dmais pose`) for the footprints on the ground.")
+        return {"footprints_missing": f"{poses} is missing (run `dmais pose`) for the footprints on the ground."}
     table = pd.read_csv(poses, dtype={"frame": str, "cameras": str})
     if table.empty:
-        return text + _missing(f"{poses} has no frame.")
+        return {"footprints_missing": f"{poses} has no frame."}
     full = table[table["cameras"].str.count(r"\+") == table["cameras"].str.count(r"\+").max()].iloc[0]
     rig_from_world = Rigid3.from_quat(full[["qw", "qx", "qy", "qz"]].to_numpy(float),
                                       full[["tx", "ty", "tz"]].to_numpy(float))
@@ -399,14 +361,11 @@ def _fov_section(ctx: _Context) -> str:
     ground_z = float(points["z"].mean())
     footprints = ground_footprints(rig, rig_from_world, ground_z)
     centre = rig_from_world.center
-    missing = [c for c, corners in footprints.items() if corners is None]
     fig = footprint_figure(footprints, centre[:2], points[["x", "y"]].to_numpy(float),
                            title=f"frame {full['frame']}, {centre[2] - ground_z:.0f} m above z = {ground_z:.1f} m")
-    caption = (f"The image corners of every camera cut with the plane z = {ground_z:.1f} m (the mean height of the "
-               f"{'ground' if len(ground) else 'control'} points) for frame {full['frame']}'s pose (poses.csv) "
-               "and rig.json; grey dots: the markers." + (f" Not drawn (looking above the horizon): "
-                                                         f"{', '.join(missing)}." if missing else ""))
-    return text + ctx.figure("fov_ground.svg", fig, caption)
+    return {"footprints_missing": None, "footprints": ctx.figure("fov_ground.svg", fig), "frame": full["frame"],
+            "ground_z": f"{ground_z:.1f}", "points_kind": "ground" if len(ground) else "control",
+            "not_drawn": [c for c, corners in footprints.items() if corners is None]}
 
 
 def _camera_fov_deg(rig: Rig, camera: str) -> tuple[float, float]:
@@ -415,7 +374,7 @@ def _camera_fov_deg(rig: Rig, camera: str) -> tuple[float, float]:
             float(np.degrees(2 * np.arctan(cam.height / 2 / cam.fy))))
 
 
-def _residuals_section(ctx: _Context) -> str:
+def _residuals_section(ctx: _Context) -> dict:
     workspace = ctx.workspace
     if not workspace.poses_path().is_file():
         raise MissingInput(f"{workspace.poses_path()} is missing (run `dmais pose`).")
@@ -426,54 +385,36 @@ def _residuals_section(ctx: _Context) -> str:
     if residuals.empty:
         raise MissingInput("No flight observation belongs to a frame of poses.csv.")
     cameras = [c for c in ctx.rig.camera_names if c in set(residuals["camera"])]
-    caption = ("Top: observed minus projected marker positions over each sensor (colour = distance, px); "
-               "bottom: histogram of the distances. Projections use rig.json and poses.csv; the observations "
-               "each pose was solved from (RANSAC's inliers with --robust).")
-    return "\n".join([_figure(_svg(residual_figure(residuals, ctx.rig, cameras)), caption),
-                      _table(ctx.table("residuals", "run `dmais evaluate`"))])
+    return {"residual_figure": Image.inline(_svg(residual_figure(residuals, ctx.rig, cameras))),
+            "per_camera": table_of(ctx.table("residuals", "run `dmais evaluate`"))}
 
 
-def _frames_section(ctx: _Context) -> str:
+def _frames_section(ctx: _Context) -> dict:
     evaluation = ctx.workspace.load_evaluation()
     if evaluation is None:
         raise MissingInput(f"{ctx.workspace.evaluation_path()} is missing (run `dmais evaluate`).")
-    parts = [_figure(_svg(frame_errors_figure(evaluation)),
-                     "Errors of every frame in file order, coloured by flight group. eps_pos: distance to the POS "
-                     "position after the one lever arm fitted over all frames (table below); eps_pos_group: after "
-                     "removing each group's mean offset to the POS instead (a literal reading of the paper's "
-                     "\"average offset\", which absorbs each group's bias)."
-                     + (" True errors against the simulator's truth in the last panels." if
-                        TRUE_ERROR_COLUMNS[0] in evaluation else ""))]
-    parts.append(_pos_calibration_part(ctx))
-    table = ctx.table("pose_methods", "run `dmais evaluate`")
-    parts += ["<p>Per group mean and standard deviation (tab:pose_methods); eps_pos_* with the lever arm "
-              "(compared with the paper), eps_pos_group_* with the per-group mean offsets:</p>", _table(table)]
-    if len(evaluation) <= _MAX_TABLE_ROWS:
-        parts += ["<details><summary>Every frame</summary>", _table(evaluation), "</details>"]
-    return "\n".join(parts)
+    return {"errors_figure": Image.inline(_svg(frame_errors_figure(evaluation))),
+            "true_errors": TRUE_ERROR_COLUMNS[0] in evaluation,
+            "lever_arm": _lever_arm(ctx),
+            "pose_methods": table_of(ctx.table("pose_methods", "run `dmais evaluate`")),
+            "every_frame": table_of(evaluation) if len(evaluation) <= _MAX_TABLE_ROWS else None}
 
 
-def _attitude_section(ctx: _Context) -> str:
+def _attitude_section(ctx: _Context) -> dict:
     """eps_ang is the paper's proxy for the attitude error; beside it the true error where the simulator gives it."""
     evaluation = ctx.workspace.load_evaluation()
     if evaluation is None:
         raise MissingInput(f"{ctx.workspace.evaluation_path()} is missing (run `dmais evaluate`).")
-    text = ("<p>eps_ang is not a measured attitude error: like the paper, it is eps_proj (the RMS reprojection "
-            "distance, px) times the cameras' angular resolution (arc-minutes per pixel), a proxy that needs no "
-            "attitude reference.")
     truth = TRUE_ERROR_COLUMNS[1]
     if truth not in evaluation:
-        return text + " This dataset has no true attitude (no simulator truth), so only the proxy is shown.</p>"
-    text += (" On this simulated dataset the true attitude error (the rotation angle between the estimated and "
-             "the simulator's rig_from_world) is known and shown beside it.</p>")
+        return {"scatter": None}
     columns = {"eps_ang_arcmin": "eps_ang (proxy)", truth: "true attitude error"}
     if "crb_ang_arcmin" in evaluation:
         columns["crb_ang_arcmin"] = "Cramer-Rao bound"
     grouped = evaluation.groupby(evaluation["group"].astype(str), sort=False)[list(columns)].mean()
     table = grouped.rename(columns={c: f"{label} mean (′)" for c, label in columns.items()}).reset_index()
-    caption = ("Per frame: the proxy eps_ang against the true attitude error (arc-minutes); the line is equality.")
-    return "\n".join([text, ctx.figure("attitude_proxy_vs_truth.svg", attitude_figure(evaluation, truth), caption),
-                      _table(table)])
+    return {"scatter": ctx.figure("attitude_proxy_vs_truth.svg", attitude_figure(evaluation, truth)),
+            "per_group": table_of(table)}
 
 
 def attitude_figure(evaluation: pd.DataFrame, truth_column: str):
@@ -492,31 +433,19 @@ def attitude_figure(evaluation: pd.DataFrame, truth_column: str):
     return fig
 
 
-def _pos_calibration_part(ctx: _Context) -> str:
-    """tables/lever_arm.csv with what its rows mean (or a line saying it is missing)."""
+def _lever_arm(ctx: _Context) -> dict:
+    """tables/lever_arm.csv and which kinds of rows it has (or why it is missing)."""
     table = ctx.workspace.load_table("lever_arm")
     if table is None:
-        return _missing(f"{ctx.workspace.table_path('lever_arm')} is missing (run `dmais evaluate`).")
-    world = table["parameter"].str.startswith("world_offset").any()
-    text = ("The frames share one attitude, so no lever arm could be told from a world offset: eps_pos removes "
-            "one world-frame offset POS - estimate (m)." if world else
-            "POS lever arm: the POS reference point in the rig frame (POS = rig centre + R_world_from_rig l), "
-            "fitted once over every frame of poses.csv and applied to every camera subset; 1-sigma with an error "
-            "shared by a group's frames.")
-    if table["parameter"].str.startswith("boresight").any():
-        text += (" INS boresight: imu_from_rig as a rotation vector in the rig axes (INS attitude = B "
-                 "rig_from_world), from frames.csv's INS attitudes.")
-    if "truth" in table:
-        text += " truth: the simulator's values."
-    return "\n".join([f"<p>{_esc(text)}</p>", _table(table)])
+        return {"missing": f"{ctx.workspace.table_path('lever_arm')} is missing (run `dmais evaluate`)."}
+    return {"missing": None, "table": table_of(table),
+            "world_offset": table["parameter"].str.startswith("world_offset").any(),
+            "boresight": table["parameter"].str.startswith("boresight").any(), "truth": "truth" in table}
 
 
-def _subsets_section(ctx: _Context) -> str:
+def _subsets_section(ctx: _Context) -> dict:
     conf = ctx.table("conf", "run `dmais pose --cameras ...` per subset, then `dmais evaluate`")
-    caption = ("Mean errors per camera subset (label = camera indexes, e.g. 012 = C0, C1, C2; the full rig of "
-               "poses.csv is the label of all its cameras) and flight group; log scale. eps_pos with the full rig's "
-               "lever arm, eps_pos_group with the full rig's per-group mean offsets.")
-    return "\n".join([_figure(_svg(subset_figure(conf)), caption), _table(conf_wide(conf))])
+    return {"subset_figure": Image.inline(_svg(subset_figure(conf))), "conf": table_of(conf_wide(conf))}
 
 
 def conf_wide(conf: pd.DataFrame) -> pd.DataFrame:
@@ -529,20 +458,18 @@ def conf_wide(conf: pd.DataFrame) -> pd.DataFrame:
     return wide.reindex(columns=labels).reset_index().rename_axis(columns=None)
 
 
-def _runtime_section(ctx: _Context) -> str:
+def _runtime_section(ctx: _Context) -> dict:
     table = ctx.table("time_points", "run the runtime benchmark")
-    return "\n".join([_figure(_svg(runtime_figure(table)), "Mean solve time against the number of 2D-3D "
-                              "correspondences (tab:time_points)."), _table(table)])
+    return {"runtime_figure": Image.inline(_svg(runtime_figure(table))), "time_points": table_of(table)}
 
 
-def _stages_section(ctx: _Context) -> str:
+def _stages_section(ctx: _Context) -> dict:
     if ctx.benchmarks_dir is None:
         raise MissingInput("Not available: no benchmark folder was given (snakemake `benchmark:` files).")
     table = benchmark_table(ctx.benchmarks_dir)
     if table.empty:
         raise MissingInput(f"Not available: {ctx.benchmarks_dir} holds no benchmark *.tsv file.")
-    return "\n".join([_figure(_svg(stage_figure(table)), "Total wall time per stage (sum over its jobs)."),
-                      _table(table)])
+    return {"stage_figure": Image.inline(_svg(stage_figure(table))), "stages": table_of(table)}
 
 
 def benchmark_table(folder: str | Path) -> pd.DataFrame:
@@ -569,30 +496,22 @@ def benchmark_table(folder: str | Path) -> pd.DataFrame:
     return table.reset_index()
 
 
-def _paper_section(ctx: _Context) -> str:
+def _paper_section(ctx: _Context) -> dict:
     comparisons = {name: table for name in PAPER_TABLES
                    if (table := ctx.workspace.load_table(f"{name}_vs_paper")) is not None}
     if not comparisons:
         raise MissingInput(f"No table of {ctx.results / 'tables'} has a published counterpart yet.")
     low, high = RATIO_LIMITS
-    parts = [f"<p>Our tables beside the paper's published numbers (ratio = ours / paper). Rows flagged "
-             f"differ by more than a factor {high:g}. In tab:intrinsics the paper's Bouguet row holds our own "
-             "DLT + LM baseline (dlt_lm; Bouguet's toolbox is not run), its OpenCV row our cv2.calibrateCamera run, "
-             "and its BabelCalib row is the paper's alone (column ours_is). A corrected misprint of the paper is "
-             "named in the note column. Angles near &plusmn;180&deg; or 0 make ratios meaningless, see the "
-             "difference column.</p>"]
     notes = paper_notes(ctx.paper_dir)
-    for name, table in comparisons.items():
-        flagged = table.assign(flag=np.where((table["ratio"] < low) | (table["ratio"] > high), "!", ""))
-        parts += [f"<h3>{_esc(name)}</h3>"]
-        parts += [f'<p class="note">{_esc(notes[name])}</p>'] if name in notes else []
-        if ctx.truth_rig is not None and name in BY_CONSTRUCTION:
-            parts.append(f'<p class="note">By construction: {_esc(BY_CONSTRUCTION[name])}</p>')
-        run_note = ctx.workspace.load_extrinsics_note()  # the extrinsics stage explains its run
-        if name == "extrinsics_t" and run_note:
-            parts.append(f'<p class="note">This run: {_esc(run_note)}</p>')
-        parts.append(_table(flagged))
-    return "\n".join(parts)
+    simulated = ctx.truth_rig is not None
+    run_note = ctx.workspace.load_extrinsics_note() or None  # the extrinsics stage explains its run
+    return {"flag_factor": f"{high:g}",
+            "comparisons": [{"name": name, "note": notes.get(name),
+                             "by_construction": BY_CONSTRUCTION.get(name) if simulated else None,
+                             "run_note": run_note if name == "extrinsics_t" else None,
+                             "table": table_of(table.assign(flag=np.where((table["ratio"] < low)
+                                                                         | (table["ratio"] > high), "!", "")))}
+                            for name, table in comparisons.items()]}
 
 
 # ------------------------------------------------------------------------------ figures
@@ -716,7 +635,7 @@ def stage_figure(table: pd.DataFrame):
     return fig
 
 
-# ------------------------------------------------------------------------------ HTML helpers
+# ------------------------------------------------------------------------------ figures to embed
 
 
 def _svg(fig) -> str:
@@ -735,34 +654,3 @@ def _jpeg(fig) -> bytes:
     buffer = io.BytesIO()
     fig.savefig(buffer, format="jpeg", dpi=MONTAGE_DPI, pil_kwargs={"quality": 85})
     return buffer.getvalue()
-
-
-def _svg_file(path: Path) -> str:
-    """An SVG file as an <img> with a data URI (scripts in it cannot run, its ids cannot clash)."""
-    data = base64.b64encode(path.read_bytes()).decode("ascii")
-    return f'<img alt="{_esc(path.name)}" src="data:image/svg+xml;base64,{data}">'
-
-
-def _figure(content: str, caption: str) -> str:
-    return f"<figure>{content}<figcaption>{_esc(caption)}</figcaption></figure>"
-
-
-def _table(frame: pd.DataFrame) -> str:
-    """The frame as an HTML table; wide ones scroll sideways instead of wrapping their cells."""
-    html = frame.to_html(index=False, border=0, escape=True, na_rep="", float_format=_number)
-    return f'<div class="scroll">{html}</div>'
-
-
-
-def _number(x: float) -> str:
-    """4 significant digits, but large values (focal lengths, coordinates) to 0.1 without exponent."""
-    return f"{x:.1f}" if 1e4 <= abs(x) < 1e9 else f"{x:.4g}"
-
-
-def _missing(message: str) -> str:
-    return f'<p class="missing">{_esc(message)}</p>'
-
-
-def _esc(value) -> str:
-    return html.escape(str(value), quote=True)
-
