@@ -183,6 +183,13 @@ def _cmd_bench_campaign(args) -> None:
                    slurm=args.slurm, slurm_batches=args.slurm_batches, stages=args.stages)
 
 
+def _cmd_bench_periodic(args) -> None:
+    from .bench.periodic import bench_periodic, print_tables
+
+    images, calibration = bench_periodic(args.photos, args.csv, seed=args.seed, work=args.work)
+    print_tables(images, calibration, args.csv)
+
+
 def _parser() -> argparse.ArgumentParser:
     from .stages.intrinsics import Conf as IntrinsicsConf
 
@@ -327,6 +334,15 @@ def _parser() -> argparse.ArgumentParser:
     campaign.add_argument("--csv", type=Path, default=Path("reports/bench/campaign.csv"),
                           help="output table (default: %(default)s)")
     campaign.set_defaults(run=_cmd_bench_campaign)
+    periodic = benches.add_parser("periodic", help="identification on a periodic target: real chessboard "
+                                                   "photographs with loose priors, ids and intrinsics against OpenCV")
+    periodic.add_argument("--photos", type=Path, help="folder of OpenCV's chessboard photographs (leftNN.jpg, "
+                                                      "rightNN.jpg; default: tests/data/chessboard)")
+    periodic.add_argument("--seed", type=int, default=0, help="seed of the priors' perturbation (default: %(default)s)")
+    periodic.add_argument("--work", type=Path, help="folder for the dataset and results (default: a temporary one)")
+    periodic.add_argument("--csv", type=Path, default=Path("reports/bench/periodic.csv"),
+                          help="per-image table; the intrinsics beside it, <stem>_intrinsics.csv (default: %(default)s)")
+    periodic.set_defaults(run=_cmd_bench_periodic)
     return parser
 
 
