@@ -14,11 +14,12 @@ import yaml
 
 from dmais_pipe.calib.extrinsics import extrinsics_tables
 from dmais_pipe.calib.intrinsics import TABLE_COLUMNS
-from dmais_pipe.dataset import flight_observations
+from dmais_pipe.dataset import Dataset, flight_observations
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.evaluate import conf_table, pose_methods_table
 from dmais_pipe.geometry import Rigid3, quat_from_rotation, rotation_from_euler_zyx
 from dmais_pipe.report import page
+from dmais_pipe.report.dataset import page_values, summarize, summary_table
 from dmais_pipe.report.html import FIGURE_FILES, SECTIONS, Section, benchmark_table
 from dmais_pipe.report.page import Image, Table, cell_text
 from dmais_pipe.report.paper import BY_CONSTRUCTION, PAPER_DIR, PAPER_TABLES, compare_with_paper, paper_comparisons, paper_notes
@@ -227,16 +228,18 @@ def test_layout_figure_is_embedded_and_text_escaped(dataset, results, tmp_path):
 
 
 class Tables(HTMLParser):
-    """Per section id, its tables, each a list of rows of cell texts (the header row first)."""
+    """Per section (its h2's id, or its heading where it has none), its tables, each a list of rows of cell
+    texts (the header row first)."""
 
     def __init__(self):
         super().__init__()
         self.sections: dict[str, list[list[list[str]]]] = {}
-        self._section, self._cell = None, None
+        self._section, self._cell, self._heading = None, None, None
 
     def handle_starttag(self, tag, attrs):
         if tag == "h2":
-            self._section = dict(attrs)["id"]
+            self._section = dict(attrs).get("id")
+            self._heading = [] if self._section is None else None
         elif tag == "table":
             self.sections.setdefault(self._section, []).append([])
         elif tag == "tr":
@@ -248,10 +251,14 @@ class Tables(HTMLParser):
         if tag in ("td", "th"):
             self.sections[self._section][-1][-1].append("".join(self._cell))
             self._cell = None
+        elif tag == "h2" and self._heading is not None:
+            self._section, self._heading = "".join(self._heading), None
 
     def handle_data(self, data):
         if self._cell is not None:
             self._cell.append(data)
+        elif self._heading is not None:
+            self._heading.append(data)
 
 
 def cells_by(table: list[list[str]], key: str) -> dict[str, dict[str, str]]:
@@ -429,3 +436,45 @@ def test_marker_quality_flags_the_image_whose_corners_are_poor():
     assert cameras.loc["A", ["images", "detected", "identified"]].tolist() == [3, 47, 43]
     expected = np.median(np.concatenate([tables[i]["sigma_px"] for i in ("a0", "a1", "a2")]))
     assert cameras.loc["A", "sigma_median_px"] == pytest.approx(expected)
+
+
+# ------------------------------------------------------------------------------ the dataset page (dmais summarize)
+
+
+def test_dataset_page_escapes_camera_and_image_names(dataset, tmp_path):
+    """A dataset and a camera named like markup show as text: in the title, the table, the marker's caption."""
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    manifest = yaml.safe_load((copy / "dataset.yaml").read_text())
+    manifest["name"] = HOSTILE
+    manifest["cameras"][HOSTILE] = manifest["cameras"].pop("C4")
+    (copy / "dataset.yaml").write_text(yaml.safe_dump(manifest))
+    images = pd.read_csv(copy / "images.csv", dtype=str, keep_default_na=False)
+    images.assign(camera=images["camera"].replace("C4", HOSTILE)).to_csv(copy / "images.csv", index=False)
+    escaped = "&lt;script&gt;alert(1)&lt;/script&gt;"
+    text = summarize(copy, tmp_path / "reports").read_text(encoding="utf-8")
+    assert "<script" not in text and f"<h1>Dataset {escaped}</h1>" in text
+    assert text.count(f"<td>{escaped}</td>") == 3  # its intrinsics, extrinsics and flight rows
+    loaded = Dataset.load(copy)  # this dataset renders no image: the marker's caption as marker_example writes it
+    values = page_values(loaded, summary_table(loaded), (b"png", f"Image {HOSTILE}, point P1."))
+    with_marker = page.render("dataset_page.html.j2", **values)
+    assert "<script" not in with_marker and f"<figcaption>Image {escaped}, point P1.</figcaption>" in with_marker
+
+
+def test_dataset_page_shows_each_value_in_its_cell(dataset, tmp_path):
+    parser = Tables()
+    parser.feed(summarize(dataset, tmp_path / "reports").read_text(encoding="utf-8"))
+    tables = parser.sections
+    assert list(tables) == ["Images and observations", "Truth rig", "Simulator noise budget"]
+    header, *rows = tables["Images and observations"][0]
+    by_stage_camera = {(row[0], row[1]): dict(zip(header, row)) for row in rows}
+    images = pd.read_csv(dataset / "images.csv", dtype=str, keep_default_na=False)
+    observations = pd.read_csv(dataset / "observations.csv", dtype=str).merge(images, on="image")
+    given = len(observations.query("stage == 'intrinsics' and camera == 'C2'"))
+    assert by_stage_camera["intrinsics", "C2"] == {"stage": "intrinsics", "camera": "C2", "images": "3",
+                                                   "image_files": "0", "observations": str(given)}
+    fx = Rig.load(dataset / "truth" / "rig.json").cameras["C0"].fx
+    assert cells_by(tables["Truth rig"][0], "camera")["C0"]["fx"] == f"{fx:.4g}"  # this page: 4 digits, always
+    pixel_sigma = yaml.safe_load((dataset / "truth" / "simulation.yaml").read_text())["flight"]["pixel_sigma_px"]
+    noise = cells_by(tables["Simulator noise budget"][0], "source")
+    assert noise["flight markers, not rendered"]["standard deviation"] == f"{pixel_sigma:g} px per axis"

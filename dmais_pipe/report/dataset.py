@@ -1,13 +1,13 @@
 """`dmais summarize DATASET --out REPORTS`: what a dataset holds, as CSV and a self-contained HTML page.
 
 For simulated datasets (with `truth/`) the page also shows the truth rig, the noise budget and one
-rendered marker beside its true centre.
+rendered marker beside its true centre. This module prepares the page's values (tables as text cells,
+the marker as a PNG data URI); its markup and prose are the template templates/dataset_page.html.j2,
+rendered autoescaped by report.page like the accuracy report.
 """
 
 from __future__ import annotations
 
-import base64
-import html
 import io
 from pathlib import Path
 
@@ -19,6 +19,7 @@ from ..dataset import Dataset
 from ..files import write_bytes_atomic, write_csv_atomic, write_text_atomic
 from ..geometry import euler_zyx_from_rotation
 from ..rig import Rig
+from .page import Image, Table, render, table_of
 
 
 def summarize(dataset_dir: str | Path, out: str | Path) -> Path:
@@ -27,19 +28,34 @@ def summarize(dataset_dir: str | Path, out: str | Path) -> Path:
     out = Path(out)
     table = summary_table(dataset)
     write_csv_atomic(out / "dataset_summary.csv", table)
-    sections = [("Images and observations", _html_table(table)), ("Points", _points_html(dataset))]
-    truth = dataset.truth_dir
-    if (truth / "rig.json").is_file():
-        sections.append(("Truth rig", _html_table(rig_table(Rig.load(truth / "rig.json")))))
-    if (truth / "simulation.yaml").is_file():
-        sections.append(("Simulator noise budget", _noise_html(yaml.safe_load((truth / "simulation.yaml").read_text()))))
     example = marker_example(dataset)
     if example is not None:
-        png, caption = example
-        write_bytes_atomic(out / "marker_example.png", png)
-        image = f'<img alt="marker" src="data:image/png;base64,{base64.b64encode(png).decode()}">'
-        sections.append(("A rendered marker and its true centre", f"{image}<p>{html.escape(caption)}</p>"))
-    return write_text_atomic(out / "dataset.html", _page(f"Dataset {dataset.name}", sections))
+        write_bytes_atomic(out / "marker_example.png", example[0])
+    page = render("dataset_page.html.j2", **page_values(dataset, table, example))
+    return write_text_atomic(out / "dataset.html", page)
+
+
+def page_values(dataset: Dataset, summary: pd.DataFrame, example: tuple[bytes, str] | None) -> dict:
+    """The context of dataset_page.html.j2; the truth rig, noise budget and marker are None when absent."""
+    truth = dataset.truth_dir
+    rig = Rig.load(truth / "rig.json") if (truth / "rig.json").is_file() else None
+    simulation = truth / "simulation.yaml"
+    config = yaml.safe_load(simulation.read_text()) if simulation.is_file() else None
+    return {"dataset_name": dataset.name, "images": _cells(summary), "points": point_counts(dataset),
+            "rig": None if rig is None else _cells(rig_table(rig)),
+            "noise": None if config is None else _cells(noise_table(config)),
+            "marker": None if example is None else marker_figure(*example)}
+
+
+def point_counts(dataset: Dataset) -> dict[str, str]:
+    """The Points section's numbers: control and ground points, flight frames, the marker size (m)."""
+    return {"control": str(len(dataset.control_points)), "ground": str(len(dataset.ground_points)),
+            "frames": str(len(dataset.frames)), "marker_size_m": f"{dataset.marker_size_m:g}"}
+
+
+def marker_figure(png: bytes, caption: str) -> dict:
+    """The rendered marker (marker_example's PNG) as an embedded image, with its caption."""
+    return {"image": Image.data_uri(png, "image/png", alt="marker"), "caption": caption}
 
 
 def summary_table(dataset: Dataset) -> pd.DataFrame:
@@ -53,6 +69,7 @@ def summary_table(dataset: Dataset) -> pd.DataFrame:
 
 
 def rig_table(rig: Rig) -> pd.DataFrame:
+    """Per camera of the rig: its intrinsics, rig_from_cam as ZYX Euler angles (deg), tilt (deg) and centre (m)."""
     rows = []
     for name, camera in rig.cameras.items():
         rig_from_cam = rig.cam_from_rig[name].inverse()
@@ -109,13 +126,8 @@ def _plot_crops(crops) -> bytes:
     return buffer.getvalue()
 
 
-def _points_html(dataset: Dataset) -> str:
-    return (f"<p>{len(dataset.control_points)} control points (calibration field), "
-            f"{len(dataset.ground_points)} ground points (flight sites), {len(dataset.frames)} flight frames, "
-            f"marker size {dataset.marker_size_m:g} m.</p>")
-
-
-def _noise_html(config: dict) -> str:
+def noise_table(config: dict) -> pd.DataFrame:
+    """The simulator's noise sources (truth/simulation.yaml) and their standard deviations, as text."""
     fl = config["flight"]
     rows = [
         ("control points (survey)", f"{config['field']['survey_sigma_m'] * 1000:g} mm per axis"),
@@ -130,16 +142,9 @@ def _noise_html(config: dict) -> str:
             *np.multiply(fl["pos_sigma_m"], 100), fl["lever_arm_m"])),
         ("INS attitude prior", f"{fl['ins_attitude_sigma_deg']:g} deg per axis"),
     ]
-    return _html_table(pd.DataFrame(rows, columns=["source", "standard deviation"]))
+    return pd.DataFrame(rows, columns=["source", "standard deviation"])
 
 
-def _html_table(frame: pd.DataFrame) -> str:
-    return frame.to_html(index=False, border=0, classes="table", float_format=lambda x: f"{x:.4g}")
-
-
-def _page(title: str, sections: list[tuple[str, str]]) -> str:
-    body = "\n".join(f"<section><h2>{html.escape(name)}</h2>\n{content}</section>" for name, content in sections)
-    style = ("body{font-family:sans-serif;max-width:1000px;margin:2em auto;color:#222}"
-             "table{border-collapse:collapse}td,th{padding:2px 10px;border-bottom:1px solid #ddd;text-align:right}")
-    return (f"<!DOCTYPE html>\n<html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
-            f"<style>{style}</style></head>\n<body><h1>{html.escape(title)}</h1>\n{body}\n</body></html>\n")
+def _cells(frame: pd.DataFrame) -> Table:
+    """The frame as the page's table: floats to 4 significant digits, as this page always showed them."""
+    return table_of(frame, number=lambda x: f"{x:.4g}")

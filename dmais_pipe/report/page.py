@@ -11,6 +11,7 @@ with Markup where it is made. A variable that a template names but its context l
 from __future__ import annotations
 
 import base64
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -49,18 +50,18 @@ class Image:
         return cls(src=f"data:{mime};base64,{base64.b64encode(data).decode('ascii')}", alt=alt)
 
 
-def table_of(frame: pd.DataFrame) -> Table:
-    """The frame's columns and cells as text (cell_text), in its order."""
+def table_of(frame: pd.DataFrame, number: Callable[[float], str] | None = None) -> Table:
+    """The frame's columns and cells as text (cell_text, floats by `number`, default number_text), in its order."""
     return Table([str(column) for column in frame.columns],
-                 [[cell_text(value) for value in row] for row in frame.itertuples(index=False, name=None)])
+                 [[cell_text(value, number) for value in row] for row in frame.itertuples(index=False, name=None)])
 
 
-def cell_text(value) -> str:
-    """A table cell: blank when missing, a float by number_text, anything else as str() writes it."""
+def cell_text(value, number: Callable[[float], str] | None = None) -> str:
+    """A table cell: blank when missing, a float by `number` (default number_text), anything else as str()."""
     if value is None or (pd.api.types.is_scalar(value) and pd.isna(value)):
         return ""
     if pd.api.types.is_float(value):
-        return number_text(float(value))
+        return (number or number_text)(float(value))
     return str(value)
 
 
