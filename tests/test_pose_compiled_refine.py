@@ -10,9 +10,10 @@ import pytest
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
+from dmais_pipe.bench import pose as bench
 from dmais_pipe.errors import PoseError
 from dmais_pipe.geometry import rotation_error, skew
-from dmais_pipe.pose import _refine, bench
+from dmais_pipe.pose import _refine
 from dmais_pipe.pose.gp3p import gp3p_unchecked
 from dmais_pipe.pose.refine import _inverse_normal_matrix, _jacobian, angular_residuals, ray_errors, refine_pose, tangent_bases
 from dmais_pipe.pose.robust import solve_robust
