@@ -7,9 +7,13 @@ of overhead each, and one gP3P solve ~150; here they run on plain loops over the
 arithmetic is that of the Python modules' docstrings (`refine.py`, `robust.py`, `gp3p.py`), which
 stay the reference: tests compare the two. Matrices are C-ordered doubles; LAPACK (scipy's
 `cython_lapack`) takes column-major ones. Everything runs on stack buffers or per-call
-allocations, so the functions are safe in threads.
+allocations, so the functions are safe in threads. `refine` reads its arrays in place (the buffer
+protocol, no memoryviews or numpy indexing) and returns the covariance from the same call: at 10
+points the call's own overhead, not the iteration, was most of its time (issue 31).
 """
 
+from cpython.buffer cimport (PyBUF_C_CONTIGUOUS, PyBUF_FORMAT, PyBUF_STRIDES, PyBUF_WRITABLE, PyBuffer_Release,
+                            PyObject_CheckBuffer, PyObject_GetBuffer)
 from libc.math cimport INFINITY, NAN, cos, fabs, isfinite, sin, sqrt
 from libc.stdlib cimport free, malloc
 from libc.string cimport memcpy, memset
@@ -93,7 +97,9 @@ cdef void tangent_bases(const double *f, int n, double *B) noexcept nogil:
 cdef double evaluate(const double *v, const double *B, const double *M, int n, const double *R, const double *t,
                      double *JtJ, double *Jtr) noexcept nogil:
     """Cost sum_i ||r_i||^2 at (R, t) and, when JtJ is given, J^T J (6, 6) and J^T r (6,) of
-    refine.py's residuals and analytic Jacobian (with respect to (omega, delta_t))."""
+    refine.py's residuals and analytic Jacobian (with respect to (omega, delta_t)). The sums run
+    in local arrays, not through the output pointers, which may alias the inputs as far as the
+    compiler knows (it would store every addition: ~8% of a 500-point refinement)."""
     cdef int i, a, j, k
     cdef double cost = 0.0
     cdef double q[3]
@@ -101,11 +107,12 @@ cdef double evaluate(const double *v, const double *B, const double *M, int n, c
     cdef double u[3]
     cdef double d[3]
     cdef double row[6]
+    cdef double normal[36]
+    cdef double gradient[6]
     cdef double norm, r
     cdef const double *b
-    if JtJ != NULL:
-        memset(JtJ, 0, 36 * sizeof(double))
-        memset(Jtr, 0, 6 * sizeof(double))
+    memset(normal, 0, 36 * sizeof(double))
+    memset(gradient, 0, 6 * sizeof(double))
     for i in range(n):
         for k in range(3):
             q[k] = R[3 * k] * M[3 * i] + R[3 * k + 1] * M[3 * i + 1] + R[3 * k + 2] * M[3 * i + 2]
@@ -127,13 +134,15 @@ cdef double evaluate(const double *v, const double *B, const double *M, int n, c
             row[2] = q[0] * d[1] - q[1] * d[0]
             row[3], row[4], row[5] = d[0], d[1], d[2]
             for j in range(6):
-                Jtr[j] += row[j] * r
+                gradient[j] += row[j] * r
                 for k in range(j, 6):
-                    JtJ[6 * j + k] += row[j] * row[k]
+                    normal[6 * j + k] += row[j] * row[k]
     if JtJ != NULL:
         for j in range(6):
-            for k in range(j):
-                JtJ[6 * j + k] = JtJ[6 * k + j]
+            Jtr[j] = gradient[j]
+            for k in range(j, 6):
+                JtJ[6 * j + k] = normal[6 * j + k]
+                JtJ[6 * k + j] = normal[6 * j + k]
     return cost
 
 
@@ -230,15 +239,63 @@ cdef int levenberg_marquardt(const double *v, const double *B, const double *M, 
     return max_iterations
 
 
+cdef bint cholesky_inverse(const double *N, double *inverse, double *condition) noexcept nogil:
+    """inverse (6, 6) of a symmetric positive definite N (6, 6) through its Cholesky factor
+    (N = L L^T, N^-1 = L^-T L^-1) and condition = ||N||_F ||N^-1||_F, which lies between N's
+    2-norm condition number and 6 times it; False when a pivot is not positive."""
+    cdef double L[36]
+    cdef double Li[36]  # L^-1, lower triangular
+    cdef double s, norm = 0.0, inverse_norm = 0.0
+    cdef int i, j, k
+    memset(L, 0, 36 * sizeof(double))
+    memset(Li, 0, 36 * sizeof(double))
+    for j in range(6):
+        s = N[7 * j]
+        for k in range(j):
+            s -= L[6 * j + k] * L[6 * j + k]
+        if not s > 0:
+            return False
+        L[7 * j] = sqrt(s)
+        for i in range(j + 1, 6):
+            s = N[6 * i + j]
+            for k in range(j):
+                s -= L[6 * i + k] * L[6 * j + k]
+            L[6 * i + j] = s / L[7 * j]
+    for j in range(6):
+        Li[7 * j] = 1.0 / L[7 * j]
+        for i in range(j + 1, 6):
+            s = 0.0
+            for k in range(j, i):
+                s -= L[6 * i + k] * Li[6 * k + j]
+            Li[6 * i + j] = s / L[7 * i]
+    for i in range(6):
+        for j in range(i, 6):
+            s = 0.0
+            for k in range(j, 6):
+                s += Li[6 * k + i] * Li[6 * k + j]
+            inverse[6 * i + j] = s
+            inverse[6 * j + i] = s
+    for k in range(36):
+        norm += N[k] * N[k]
+        inverse_norm += inverse[k] * inverse[k]
+    condition[0] = sqrt(norm * inverse_norm)
+    return True
+
+
 cdef void inverse_normal_matrix(const double *JtJ, double *out) noexcept nogil:
     """(J^T J)^-1 (6, 6), or NaN if its unit-diagonal version has a condition number above
-    MAX_CONDITION (the pose is not observable)."""
+    MAX_CONDITION (the pose is not observable).
+
+    A Cholesky inverse where the Frobenius condition bound (at least the 2-norm condition number)
+    is below MAX_CONDITION / 100, as for every pose observed well; otherwise the eigenvalues decide
+    (LAPACK's dsyev, which costs several times the whole 10-point refinement)."""
     cdef double scale[6]
     cdef double N[36]
+    cdef double inverse[36]
     cdef double w[6]
     cdef double work[256]
     cdef int six = 6, lwork = 256, info = 0, i, j, k
-    cdef double s
+    cdef double s, condition = INFINITY
     for i in range(6):
         scale[i] = sqrt(JtJ[7 * i])
         if not scale[i] > 0:
@@ -248,6 +305,11 @@ cdef void inverse_normal_matrix(const double *JtJ, double *out) noexcept nogil:
     for i in range(6):
         for j in range(6):
             N[6 * i + j] = JtJ[6 * i + j] / (scale[i] * scale[j])
+    if cholesky_inverse(N, inverse, &condition) and condition <= MAX_CONDITION / 100:
+        for i in range(6):
+            for j in range(6):
+                out[6 * i + j] = inverse[6 * i + j] / (scale[i] * scale[j])
+        return
     dsyev(b"V", b"L", &six, N, &six, w, work, &lwork, &info)  # eigenvectors as rows of N (symmetric input)
     if info != 0 or not (fabs(w[0]) > 0) or fabs(w[5]) / fabs(w[0]) > MAX_CONDITION:
         for j in range(36):
@@ -262,117 +324,208 @@ cdef void inverse_normal_matrix(const double *JtJ, double *out) noexcept nogil:
             out[6 * j + i] = out[6 * i + j]
 
 
-def refine(origins, directions, points, R0, t0, int max_iterations, double step_tolerance, double cost_tolerance,
-           double sigma, double zero_direction, bint covariance=True):
-    """refine.refine_pose compiled: (R, t, covariance or None, cost, n_iterations, converged), or
-    None when the input fails a check (refine_pose's Python checks then name the fault).
+cdef int prepare(const double *v, const double *f_in, const double *P, int n, double zero_direction,
+                 double *f, double *B, double *Mc, double *m) noexcept nogil:
+    """Unit directions f (n, 3), their tangent bases B (n, 6), the centroid m (3,) of the points
+    P (n, 3) and the centred points Mc (n, 3); False when an input is not finite or a direction is
+    shorter than zero_direction."""
+    cdef int i, k
+    cdef double norm
+    for i in range(n):
+        norm = sqrt(f_in[3 * i] * f_in[3 * i] + f_in[3 * i + 1] * f_in[3 * i + 1] + f_in[3 * i + 2] * f_in[3 * i + 2])
+        if not (norm >= zero_direction and isfinite(norm)):
+            return False
+        for k in range(3):
+            if not (isfinite(v[3 * i + k]) and isfinite(P[3 * i + k])):
+                return False
+            f[3 * i + k] = f_in[3 * i + k] / norm
+    for k in range(3):
+        m[k] = 0.0
+        for i in range(n):
+            m[k] += P[3 * i + k]
+        m[k] /= n
+    for i in range(n):
+        for k in range(3):
+            Mc[3 * i + k] = P[3 * i + k] - m[k]
+    tangent_bases(f, n, B)
+    return True
 
-    origins, directions, points: float64 C-contiguous (n, 3), n >= 3, finite, no direction shorter
-    than zero_direction (they are normalized here); R0 (3, 3) a rotation within refine_pose's
-    tolerance (re-orthonormalized here), t0 (3,). The points are centred (t' = t + R m) while
-    iterating. covariance (6, 6) of (omega, t): sigma^2 (J^T J)^-1, with the a-posteriori
-    cost / (2 n - 6) for sigma NaN (NaN for n = 3 then, and where the pose is not observable)."""
-    if not (_rows(origins) and _rows(directions) and _rows(points) and type(R0) is np.ndarray and type(t0) is np.ndarray
-            and R0.dtype == np.float64 and t0.dtype == np.float64 and R0.shape == (3, 3) and t0.shape == (3,)):
-        return None
-    cdef const double[:, ::1] v = origins
-    cdef const double[:, ::1] f_in = directions
-    cdef const double[:, ::1] P = points
-    cdef int n = P.shape[0], i, j, k, l, iterations = 0
-    if n < 3 or v.shape[0] != n or f_in.shape[0] != n:
-        return None
-    cdef double m[3]
-    cdef double R[9]
-    cdef double t[3]
-    cdef double Rm[3]
-    cdef double JtJ[36]
+
+cdef double objective(const double *v, const double *f, const double *M, int n, const double *R,
+                      const double *t) noexcept nogil:
+    """The paper's eq. objfun at (R, t): sum_i ||f_i x (R M_i + t - v_i)||^2 (unit f (n, 3))."""
+    cdef int i, k
+    cdef double p[3]
+    cdef double cx, cy, cz, total = 0.0
+    for i in range(n):
+        for k in range(3):
+            p[k] = R[3 * k] * M[3 * i] + R[3 * k + 1] * M[3 * i + 1] + R[3 * k + 2] * M[3 * i + 2] + t[k] - v[3 * i + k]
+        cx = f[3 * i + 1] * p[2] - f[3 * i + 2] * p[1]
+        cy = f[3 * i + 2] * p[0] - f[3 * i] * p[2]
+        cz = f[3 * i] * p[1] - f[3 * i + 1] * p[0]
+        total += cx * cx + cy * cy + cz * cz
+    return total
+
+
+cdef void pose_covariance(const double *JtJ, const double *Rm, double variance, double *cov) noexcept nogil:
+    """cov (6, 6) of (omega, t) = variance T (J^T J)^-1 T^T, J^T J (6, 6) of the centred parameters
+    (omega, t' = t + R m): delta_t = delta_t' + [R m]x omega, i.e. T = [[I, 0], [[R m]x, I]]."""
     cdef double inverse[36]
     cdef double T[36]
-    cdef double cost = 0.0, norm, variance, s
-    cdef bint converged = False, valid = True
-    for i in range(3):
-        t[i] = t0[i]
-        for j in range(3):
-            R[3 * i + j] = R0[i, j]
-    if not rotation_within_tolerance(R, t):
-        return None
-    cdef double *B = <double *> malloc(6 * n * sizeof(double))
-    cdef double *Mc = <double *> malloc(3 * n * sizeof(double))
-    cdef double *f = <double *> malloc(3 * n * sizeof(double))
-    if B == NULL or Mc == NULL or f == NULL:
-        free(B)
-        free(Mc)
-        free(f)
-        raise MemoryError()
-    R_out = np.empty((3, 3))
-    t_out = np.empty(3)
-    cdef double[:, ::1] R_view = R_out
-    cdef double[::1] t_view = t_out
-    with nogil:
-        for i in range(n):
-            norm = sqrt(f_in[i, 0] * f_in[i, 0] + f_in[i, 1] * f_in[i, 1] + f_in[i, 2] * f_in[i, 2])
-            if not (norm >= zero_direction and isfinite(norm)):
-                valid = False
-                break
-            for k in range(3):
-                if not (isfinite(v[i, k]) and isfinite(P[i, k])):
-                    valid = False
-                f[3 * i + k] = f_in[i, k] / norm
-        if valid:
-            nearest_rotation(R)
-            for k in range(3):
-                m[k] = 0.0
-                for i in range(n):
-                    m[k] += P[i, k]
-                m[k] /= n
-            for i in range(n):
-                for k in range(3):
-                    Mc[3 * i + k] = P[i, k] - m[k]
-            tangent_bases(f, n, B)
-            for k in range(3):
-                t[k] = t[k] + R[3 * k] * m[0] + R[3 * k + 1] * m[1] + R[3 * k + 2] * m[2]
-            iterations = levenberg_marquardt(&v[0, 0], B, Mc, n, R, t, max_iterations, step_tolerance,
-                                             cost_tolerance, JtJ, &cost, &converged)
-            for k in range(3):
-                Rm[k] = R[3 * k] * m[0] + R[3 * k + 1] * m[1] + R[3 * k + 2] * m[2]
-                t_view[k] = t[k] - Rm[k]
-            for i in range(3):
-                for j in range(3):
-                    R_view[i, j] = R[3 * i + j]
-    free(B)
-    free(Mc)
-    free(f)
-    if not valid:
-        return None
-    if not covariance:
-        return R_out, t_out, None, cost, iterations, converged
+    cdef double s
+    cdef int i, j, k, l
     inverse_normal_matrix(JtJ, inverse)
-    if isfinite(sigma):
-        variance = sigma * sigma
-    else:
-        variance = cost / (2 * n - 6) if n > 3 else NAN
-    # back to (omega, t): delta_t = delta_t' + [R m]x omega, i.e. T = [[I, 0], [[R m]x, I]]
     memset(T, 0, 36 * sizeof(double))
     for k in range(6):
         T[7 * k] = 1.0
     T[6 * 3 + 1], T[6 * 3 + 2] = -Rm[2], Rm[1]
     T[6 * 4 + 0], T[6 * 4 + 2] = Rm[2], -Rm[0]
     T[6 * 5 + 0], T[6 * 5 + 1] = -Rm[1], Rm[0]
-    cov = np.empty((6, 6))
-    cdef double[:, ::1] cov_view = cov
-    for i in range(6):  # cov = variance T inverse T^T
+    for i in range(6):
         for j in range(6):
             s = 0.0
             for k in range(6):
+                if T[6 * i + k] == 0.0:  # a zero term leaves the sum as it is
+                    continue
                 for l in range(6):
                     s += T[6 * i + k] * inverse[6 * k + l] * T[6 * j + l]
-            cov_view[i, j] = variance * s
-    return R_out, t_out, cov, cost, iterations, converged
+            cov[6 * i + j] = variance * s
 
 
-cdef bint _rows(x):
-    """A C-contiguous float64 (n, 3) array."""
-    return type(x) is np.ndarray and x.dtype == np.float64 and x.ndim == 2 and x.shape[1] == 3 and x.flags.c_contiguous
+cdef struct Refined:
+    double R[9]
+    double t[3]
+    double covariance[36]
+    double cost           # sum_i ||r_i||^2 at (R, t)
+    double objective      # eq. objfun at (R, t)
+    int iterations
+    bint converged
+
+
+cdef int refine_arrays(const double *v, const double *f_in, const double *P, int n, const double *R0,
+                       const double *t0, int max_iterations, double step_tolerance, double cost_tolerance,
+                       double sigma, double zero_direction, bint covariance, Refined *out) noexcept nogil:
+    """`refine`'s work on raw C-ordered arrays: v, f_in, P (n, 3), R0 (3, 3), t0 (3,); the result
+    in out. Returns 1 when refined, 0 when the input fails a check, -1 when memory runs out."""
+    cdef double m[3]
+    cdef double Rm[3]
+    cdef double JtJ[36]
+    cdef double variance
+    cdef int k
+    memcpy(out.R, R0, 9 * sizeof(double))
+    memcpy(out.t, t0, 3 * sizeof(double))
+    if not rotation_within_tolerance(out.R, out.t):
+        return 0
+    cdef double *work = <double *> malloc(12 * n * sizeof(double))  # f (n, 3), B (n, 6), Mc (n, 3)
+    if work == NULL:
+        return -1
+    cdef double *f = work
+    cdef double *B = work + 3 * n
+    cdef double *Mc = work + 9 * n
+    if not prepare(v, f_in, P, n, zero_direction, f, B, Mc, m):
+        free(work)
+        return 0
+    nearest_rotation(out.R)
+    for k in range(3):
+        out.t[k] = out.t[k] + out.R[3 * k] * m[0] + out.R[3 * k + 1] * m[1] + out.R[3 * k + 2] * m[2]
+    out.iterations = levenberg_marquardt(v, B, Mc, n, out.R, out.t, max_iterations, step_tolerance, cost_tolerance,
+                                         JtJ, &out.cost, &out.converged)
+    out.objective = objective(v, f, Mc, n, out.R, out.t)
+    free(work)
+    for k in range(3):
+        Rm[k] = out.R[3 * k] * m[0] + out.R[3 * k + 1] * m[1] + out.R[3 * k + 2] * m[2]
+        out.t[k] -= Rm[k]
+    if covariance:
+        if isfinite(sigma):
+            variance = sigma * sigma
+        else:
+            variance = out.cost / (2 * n - 6) if n > 3 else NAN
+        pose_covariance(JtJ, Rm, variance, out.covariance)
+    return 1
+
+
+cdef bint acquire(object x, Py_buffer *view, int flags, Py_ssize_t rows, Py_ssize_t columns):
+    """Hold x's buffer (PyObject_GetBuffer with flags) in view when x is a float64 array of shape
+    (rows, columns), rows -1 for any, or (rows,) for columns 0; else False, nothing held."""
+    if not PyObject_CheckBuffer(x):
+        return False
+    try:
+        PyObject_GetBuffer(x, view, flags | PyBUF_FORMAT)
+    except (BufferError, ValueError):  # e.g. not C-contiguous
+        return False
+    if (view.ndim == (2 if columns else 1) and view.itemsize == 8 and view.format[0] == b"d"
+            and view.format[1] == 0 and (rows < 0 or view.shape[0] == rows) and (not columns or view.shape[1] == columns)):
+        return True
+    PyBuffer_Release(view)
+    return False
+
+
+cdef bint read_doubles(object x, double *out, Py_ssize_t rows, Py_ssize_t columns):
+    """Copy x, a float64 array of shape (rows, columns) ((rows,) for columns 0) in any memory
+    layout, to out in C order; False if x is not one."""
+    cdef Py_buffer view
+    cdef Py_ssize_t i, j, width = max(columns, 1)
+    if not acquire(x, &view, PyBUF_STRIDES, rows, columns):
+        return False
+    for i in range(rows):
+        for j in range(width):
+            out[width * i + j] = (<double *> (<char *> view.buf + i * view.strides[0]
+                                               + (j * view.strides[1] if columns else 0)))[0]
+    PyBuffer_Release(&view)
+    return True
+
+
+cdef object new_array(const double *data, shape):
+    """A new float64 array of shape holding data (C order)."""
+    array = np.empty(shape)
+    cdef Py_buffer view
+    PyObject_GetBuffer(array, &view, PyBUF_C_CONTIGUOUS | PyBUF_WRITABLE)
+    memcpy(view.buf, data, view.len)
+    PyBuffer_Release(&view)
+    return array
+
+
+def refine(origins, directions, points, R0, t0, int max_iterations, double step_tolerance, double cost_tolerance,
+           double sigma, double zero_direction, bint covariance=True):
+    """refine.refine_pose compiled: (R, t, covariance or None, cost, n_iterations, converged,
+    objective), or None when the input fails a check (refine_pose's Python checks then name the
+    fault). objective: the paper's eq. objfun at (R, t).
+
+    origins, directions, points: float64 C-contiguous (n, 3), n >= 3, finite, no direction shorter
+    than zero_direction (they are normalized here); R0 (3, 3) a rotation within refine_pose's
+    tolerance (re-orthonormalized here), t0 (3,). The points are centred (t' = t + R m) while
+    iterating. covariance (6, 6) of (omega, t): sigma^2 (J^T J)^-1, with the a-posteriori
+    cost / (2 n - 6) for sigma NaN (NaN for n = 3 then, and where the pose is not observable).
+    The arrays are read in place through the buffer protocol; the work runs without the GIL."""
+    cdef Py_buffer views[3]  # points, origins, directions
+    cdef double R_start[9]
+    cdef double t_start[3]
+    cdef int held = 0, status = 0, n = 0, k
+    cdef Refined out
+    if not (read_doubles(R0, R_start, 3, 3) and read_doubles(t0, t_start, 3, 0)):
+        return None
+    try:
+        held += acquire(points, &views[0], PyBUF_C_CONTIGUOUS, -1, 3)
+        if held == 1:
+            n = <int> views[0].shape[0]
+            held += acquire(origins, &views[1], PyBUF_C_CONTIGUOUS, n, 3)
+        if held == 2:
+            held += acquire(directions, &views[2], PyBUF_C_CONTIGUOUS, n, 3)
+        if held < 3 or n < 3:
+            return None
+        with nogil:
+            status = refine_arrays(<double *> views[1].buf, <double *> views[2].buf, <double *> views[0].buf, n,
+                                   R_start, t_start, max_iterations, step_tolerance, cost_tolerance, sigma,
+                                   zero_direction, covariance, &out)
+    finally:
+        for k in range(held):
+            PyBuffer_Release(&views[k])
+    if status < 0:
+        raise MemoryError()
+    if status == 0:
+        return None
+    return (new_array(out.R, (3, 3)), new_array(out.t, 3), new_array(out.covariance, (6, 6)) if covariance else None,
+            out.cost, out.iterations, out.converged, out.objective)
 
 
 cdef bint rotation_within_tolerance(const double *R, const double *t) noexcept nogil:
