@@ -187,3 +187,16 @@ def test_bench_says_when_poselib_is_missing(tmp_path, monkeypatch, capsys):
     for column in ("ours_refine_ms", "ours_robust_ms", "pycolmap_robust_ms", "ours_robust_rot_err_arcmin",
                    "pycolmap_robust_rot_err_arcmin"):
         assert (table[column] > 0).all()
+
+
+def test_bench_sets_refine_beside_poselib(tmp_path, monkeypatch, capsys):
+    """With PoseLib installed, both refinements per point count (timed back to back per frame),
+    their ratio, and one line with the fewest and most points; both reach the same minimum."""
+    pytest.importorskip("poselib")
+    monkeypatch.setattr(bench, "POINT_COUNTS", (10, 20))
+    table = bench.bench_pose(tmp_path / "pose.csv", repeats=3, batch_frames=2, stage_frames=0)
+    out = capsys.readouterr().out
+    assert "refine vs PoseLib" in out and "10 points: ours" in out and "20 points: ours" in out
+    assert (table["poselib_refine_ms"] > 0).all() and (table["ours_refine_ms"] > 0).all()
+    np.testing.assert_allclose(table["refine_vs_poselib"], table["ours_refine_ms"] / table["poselib_refine_ms"])
+    np.testing.assert_allclose(table["ours_refine_rot_err_arcmin"], table["poselib_refine_rot_err_arcmin"], atol=0.02)

@@ -18,7 +18,9 @@ Refinement (`--refine`) and robust mode (`--robust`) on the same frames, each be
   squared sines of the ray angles (the tangent-plane residuals of `refine.py`), PoseLib's the sum
   of squared pixel reprojection errors. PoseLib is given the points centred on their mean (in map
   coordinates it needs ~15 iterations instead of 2) and its per-camera lists, built outside the
-  timing; ours centres inside it. PoseLib is optional (`pip install -e '.[bench]'`): without it
+  timing; ours centres inside it. The two are timed back to back on each frame, REFINE_ROUNDS
+  times over the frames (a busy machine then slows both alike), and their ratio is printed for the
+  fewest and most points. PoseLib is optional (`pip install -e '.[bench]'`): without it
   its columns are NaN and the bench says so.
 - robust: `solve_robust` (LO-RANSAC over gP3P, then the global solver on the inliers) against
   pycolmap's generalized LO-RANSAC with refinement (`estimate_and_refine_generalized_absolute_pose`)
@@ -61,6 +63,8 @@ PAPER_TABLE = Path(__file__).resolve().parents[1] / "report" / "paper_tables" / 
 FOCAL_PX, WIDTH, HEIGHT, NOISE_PX = 45000.0, 4096, 3000, 4.0
 #: Robust columns: the fraction of observations given a wrong id, and both methods' inlier threshold.
 WRONG_IDS, ROBUST_THRESHOLD_PX = 0.4, 12.0
+#: Refine columns: passes over the frames, each timing ours and PoseLib back to back per frame.
+REFINE_ROUNDS = 5
 COSTS_NOTE = ("refine costs: ours sum of squared sines of the ray angles (tangent-plane residuals), PoseLib sum of "
               "squared pixel reprojection errors (plain loss); robust: both LO-RANSAC, {threshold:g} px threshold, "
               "{wrong:.0%} wrong ids")
@@ -200,6 +204,23 @@ def _median_ms(solve, frames) -> tuple[float, float, int]:
         else:
             errors.append(rotation_error(found[0], R))
     return float(np.median(times) * 1e3), float(np.rad2deg(np.median(errors)) * 60), failed
+
+
+def _paired_median_ms(refine, reference, frames, rounds: int = REFINE_ROUNDS) -> tuple[float, float, float, float]:
+    """Median time per call (ms) and median rotation error (arc-min) of two refinements that time
+    themselves (each returns (R, t, seconds)), called back to back on every frame, `rounds` passes
+    over the frames: (refine ms, arc-min, reference ms, arc-min); NaN for a reference of None."""
+    times, errors = ([], []), ([], [])
+    for _ in range(rounds):
+        for cams, uv, points, (R_true, _) in frames:
+            for k, method in enumerate((refine, reference)):
+                if method is not None:
+                    R, _, seconds = method(cams, uv, points)
+                    times[k].append(seconds)
+                    errors[k].append(rotation_error(R, R_true))
+    ms = [float(np.median(x) * 1e3) if x else np.nan for x in times]
+    arcmin = [float(np.rad2deg(np.median(x)) * 60) if x else np.nan for x in errors]
+    return ms[0], arcmin[0], ms[1], arcmin[1]
 
 
 #: Stage throughput flight: frames per group (one hover site each), pixel noise per axis.
@@ -347,10 +368,8 @@ def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int
             for cams, uv, points, _ in frames:
                 pose = solve_generalized_pose(*_rays(cams, uv), points)
                 starts[id(points)] = (pose.R, pose.t)
-            refine_ms, refine_err, _ = _median_ms(ours_refine, frames)
-            poselib_ms, poselib_err = np.nan, np.nan
-            if poselib_refine is not None:
-                poselib_ms, poselib_err, _ = _median_ms(poselib, frames)
+            refine_ms, refine_err, poselib_ms, poselib_err = _paired_median_ms(
+                ours_refine, poselib if poselib_refine is not None else None, frames)
             starts.clear()
             wrong = [(cams, uv, with_wrong_ids(rng, points), truth) for cams, uv, points, truth in frames]
             robust_ms, robust_err, robust_failed = _median_ms(ours_robust, wrong)
@@ -359,6 +378,7 @@ def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int
                          "paper_ms": float(paper.get(n, np.nan)), "ours_rot_err_arcmin": ours_err,
                          "pycolmap_rot_err_arcmin": colmap_err, "ours_certified": float(np.mean(certified)),
                          "ours_refine_ms": refine_ms, "poselib_refine_ms": poselib_ms,
+                         "refine_vs_poselib": refine_ms / poselib_ms,
                          "ours_refine_rot_err_arcmin": refine_err, "poselib_refine_rot_err_arcmin": poselib_err,
                          "ours_robust_ms": robust_ms, "pycolmap_robust_ms": colmap_robust_ms,
                          "ours_robust_rot_err_arcmin": robust_err, "pycolmap_robust_rot_err_arcmin": colmap_robust_err,
@@ -376,6 +396,10 @@ def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int
     print(COSTS_NOTE.format(threshold=ROBUST_THRESHOLD_PX, wrong=WRONG_IDS))
     if poselib_refine is None:
         print("poselib_refine_ms: skipped: poselib not installed (pip install -e '.[bench]')")
+    else:
+        print("refine vs PoseLib (same start and points, back to back per frame): " + "; ".join(
+            f"{row.n_points} points: ours {row.ours_refine_ms:.4f} ms, PoseLib {row.poselib_refine_ms:.4f} ms "
+            f"({row.refine_vs_poselib:.2f}x)" for row in table.iloc[[0, -1]].itertuples()))
     for run in batch:
         print(f"batch: {run['frames_per_s']:.0f} frames/s in {run['workers']} thread(s) "
               f"(50 points per frame, rays precomputed, {batch_frames} frames)")
