@@ -1,6 +1,6 @@
 """Markers of one image: detect, refine and identify diagonal markers, then verify the ids.
 
-`process_image` returns one image's detections (u, v, score, sigma_px, fit_residual, point_id;
+`process_image` returns one image's detections (u, v, score, sigma_px, fit_residual, point_id, id_refusal;
 point_id '' when unidentified); `observation_table` turns the identified detections of a stage's
 images, with the dataset's own observations, into observation rows. Reading and writing results
 is the markers stage's (`stages.markers`).
@@ -35,7 +35,7 @@ from ..geometry import Rigid3
 from ..rig import Rig
 from ..calib.pnpf import solve_pnpf
 from .detect import detect
-from .identify import GATE_PX, MIN_INLIERS, identify
+from .identify import GATE_PX, MIN_INLIERS, identify_with_reasons
 
 log = logging.getLogger(__name__)
 
@@ -123,7 +123,8 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
                   margin_px: float = PREDICTION_MARGIN_PX, gate_px: float = VERIFY_GATE_PX,
                   identify_gate_px: float = GATE_PX, identify_min_inliers: int = MIN_INLIERS,
                   seconds: dict | None = None) -> pd.DataFrame:
-    """Detections of one image with ids: DataFrame of `detect`'s columns and point_id ('' when unidentified).
+    """Detections of one image with ids: DataFrame of `detect`'s columns, point_id ('' when unidentified)
+    and id_refusal (why a detection has no id, '' where it has one; not written to the markers file).
 
     rig, calibrated: as `predicted_projections`; margin_px: how far outside the image predictions
     are kept; gate_px: the pose verification's residual gate for calibration images;
@@ -137,19 +138,25 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
     found, rejected = detect(pixels, with_rejected=True)
     seconds["detect_s"] = time.perf_counter() - started - seconds["decode_s"]
     found["point_id"] = ""
+    found["id_refusal"] = ""
     prediction = predicted_projections(dataset, image, rig, calibrated, margin_px)
     if prediction is None and len(found):
+        found["id_refusal"] = identification_gap(dataset, image, rig, calibrated)
         log.warning("markers %s: %d detected, none can be identified: %s", image, len(found),
-                    identification_gap(dataset, image, rig, calibrated))
+                    found["id_refusal"].iloc[0])
     if prediction is not None and len(found):
         uv, ids = prediction
         height, width = pixels.shape
-        found["point_id"] = identify(found[["u", "v"]].to_numpy(), uv, ids, (width, height),
-                                     rejected=rejected[["u", "v"]].to_numpy(dtype=float), gate_px=identify_gate_px,
-                                     min_inliers=identify_min_inliers)
+        named = identify_with_reasons(found[["u", "v"]].to_numpy(), uv, ids, (width, height),
+                                      rejected=rejected[["u", "v"]].to_numpy(dtype=float), gate_px=identify_gate_px,
+                                      min_inliers=identify_min_inliers)
+        found["point_id"], found["id_refusal"] = named.ids, named.reasons
         if dataset.images.loc[dataset.images["image"] == image, "stage"].iloc[0] != "flight":
-            found["point_id"] = verify_with_pose(found[["u", "v"]].to_numpy(), found["point_id"].to_numpy(),
-                                                 dataset.points, image_centre(width, height), gate_px)
+            verified = verify_with_pose(found[["u", "v"]].to_numpy(), named.ids, dataset.points,
+                                        image_centre(width, height), gate_px)
+            found.loc[(verified == "") & (named.ids != ""), "id_refusal"] = (
+                f"the pose fitted to the image's ids misses it by more than {gate_px:g} px")
+            found["point_id"] = verified
         if not (found["point_id"] != "").any():
             log.warning("markers %s: %d detected, none identified: the priors predict %d known point(s) near the "
                         "image and none matches a detection (check the prior centre and attitude, and focal_px)",

@@ -8,14 +8,25 @@ predicted set with the detected set robustly:
    within `max_shift`, scored by how many detections have a prediction within a coarse gate;
 2. the best few are refined by iterated least squares of a 2D similarity, then of a similarity
    plus a radial cubic term about the image centre (unmodelled distortion, focal error), with a
-   gate shrinking to `gate_px`;
-3. accepted only with >= `min_inliers` one-to-one matches, a small residual, and no competing
+   gate shrinking to `gate_px`; a match's gate is also at most PERIOD_GATE_FRACTION of its
+   prediction's local period (the distance to the nearest other prediction);
+3. periodic patterns: the alignments shifted by one period of the pattern (every id moved to its
+   neighbouring point along a period vector: the two shortest independent offsets between the
+   aligned predictions nearest the image centre, their sum and difference, both signs) are refined
+   too; the best moves to a cheaper one while there is one, and is accepted only when each of them
+   costs at least SHIFT_COST_RATIO times as much (`_cost`: the points either leaves unexplained, so
+   a pattern whose ends are out of view is refused);
+4. accepted only with >= `min_inliers` one-to-one matches, a small residual, and no competing
    hypothesis (a different assignment) nearly as good; each match must also be unambiguous
-   (no second detection or prediction near it, and no X-corner the detector rejected nearer the
-   prediction than the detection). Anything else keeps an empty id: a wrong id is worse than none.
+   (no second detection or prediction near it, no X-corner the detector rejected nearer the
+   prediction than the detection, and no shift by one local period of the ids of its
+   neighbourhood that the alignment explains about as well). Anything else keeps an empty id, with
+   the reason: a wrong id is worse than none.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -25,6 +36,62 @@ GATE_PX = 12.0
 MAX_SHIFT_PX = 2500.0
 MIN_INLIERS = 4
 TOP_HYPOTHESES = 12
+#: Translation hypotheses start from every detection, each scored against every prediction: n m^2
+#: point queries. Beyond this many (a dense pattern of hundreds of points: minutes), only the
+#: detections nearest the image centre (least distorted) start them; a DMAIS field (tens of
+#: markers: the demo's images at most 16,000) and a 9 x 6 chessboard (~270,000) stay below it.
+MAX_HYPOTHESIS_WORK = 2_000_000
+#: A match's gate is at most this fraction of its prediction's local period: the gates of neighbouring
+#: points never overlap, and a detection one period away (a shifted id) always lies beyond the gate
+#: (costs a whole unexplained point in `_cost`), even where the alignment is off by a few pixels.
+PERIOD_GATE_FRACTION = 0.3
+#: An alignment (or a neighbourhood's ids) is accepted only when every alternative shifted by one
+#: period costs at least this many times as much, its own cost counted as at least one point (a
+#: missed detection is always possible). Whole alignments (`_cost`: points left unexplained): a shift
+#: towards an edge of the pattern in view leaves that edge's row of detections and a row of predicted
+#: points unexplained (6 or more), while the points entering or leaving at the image's border, a
+#: missed corner or a stray detection make one or two: refused as ambiguous. A neighbourhood
+#: (`_local_shift_reason`: each point's squared distance in gates, at most 1): its 9 ids are accepted
+#: while their RMS distance stays below 1/sqrt(3) of the gate, ~0.17 of the period.
+SHIFT_COST_RATIO = 3.0
+#: The ids a local shift moves: a detection and its nearest identified ones (a 3 x 3 block of a grid).
+NEIGHBOURHOOD = 9
+#: How often the alignment may move to a cheaper one-period shift of itself (the hypotheses of a dense
+#: pattern start within a period or two of the priors, which may be that far off).
+MAX_PERIOD_MOVES = 4
+
+TOO_FEW = "fewer detections or predicted points than the fewest matches"
+NO_ALIGNMENT = "no alignment of the predictions matches enough detections"
+POOR_FIT = "the alignment's residual is too large"
+COMPETING = "a different alignment matches nearly as many detections"
+UNMATCHED = "no predicted point within the gate"
+AMBIGUOUS = "a second detection or prediction near its prediction"
+REJECTED_NEARER = "an X-corner the detector rejected lies nearer its prediction"
+
+
+@dataclass(frozen=True)
+class Identification:
+    """Point ids (n,) of the detections ('' where not identified) and the reasons (n,) why ('' where named)."""
+
+    ids: np.ndarray
+    reasons: np.ndarray
+
+
+@dataclass(frozen=True)
+class _Alignment:
+    """Model parameters (4 or 5), matched prediction and detection indices (k,), and their distances (k,)."""
+
+    params: np.ndarray
+    pi: np.ndarray
+    di: np.ndarray
+    distance: np.ndarray
+
+    @property
+    def rms(self) -> float:
+        return float(np.sqrt(np.mean(self.distance**2)))
+
+    def pairs(self) -> set:
+        return set(zip(self.pi.tolist(), self.di.tolist()))
 
 
 def _design(p: np.ndarray, centre: np.ndarray, radial: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -52,21 +119,65 @@ def _apply(params: np.ndarray, pred: np.ndarray, centre: np.ndarray) -> np.ndarr
     return (a @ params).reshape(-1, 2)
 
 
-def _match(moved: np.ndarray, det: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mutual nearest neighbours within `gate`: (k,) prediction and (k,) detection indices."""
+def _match(moved: np.ndarray, det: np.ndarray, gate) -> tuple[np.ndarray, np.ndarray]:
+    """Mutual nearest neighbours within `gate` (a number, or (m,) per prediction): (k,) prediction
+    and (k,) detection indices."""
     if len(moved) == 0 or len(det) == 0:
         return np.zeros(0, int), np.zeros(0, int)
-    d_to_p, p_of_d = cKDTree(moved).query(det)
+    _, p_of_d = cKDTree(moved).query(det)
     p_to_d, d_of_p = cKDTree(det).query(moved)
     pi = np.nonzero((p_to_d <= gate) & (p_of_d[d_of_p] == np.arange(len(moved))))[0]
     return pi, d_of_p[pi]
 
 
-def _refine_hypothesis(pred, det, shift, centre, gate_px):
-    """Iterate fit/match from a translation; returns (params, pred idx, det idx, rms) or None."""
+def _local_periods(pred: np.ndarray) -> np.ndarray:
+    """(m,) distance from each prediction (m, 2) to the nearest other one (inf for a single one)."""
+    if len(pred) < 2:
+        return np.full(len(pred), np.inf)
+    return cKDTree(pred).query(pred, 2)[0][:, 1]
+
+
+def _scale_ok(params: np.ndarray) -> bool:
+    return 0.8 < np.hypot(params[0], params[1]) < 1.25
+
+
+@dataclass(frozen=True)
+class _Scene:
+    """One image: detections det (n, 2), predictions pred (m, 2) and their gates (m,), the centre (2,)
+    of the radial term, the view [lo, hi] (2,) where a predicted point should have been detected, and
+    the fewest matches of an alignment."""
+
+    det: np.ndarray
+    pred: np.ndarray
+    gates: np.ndarray
+    centre: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+    min_inliers: int
+
+    def in_view(self, uv: np.ndarray) -> np.ndarray:
+        """(k,) whether each of uv (k, 2) lies in the view."""
+        return np.all((uv >= self.lo) & (uv <= self.hi), axis=1)
+
+    def moved(self, params: np.ndarray) -> np.ndarray:
+        return _apply(params, self.pred, self.centre)
+
+
+def _aligned(scene: _Scene, params: np.ndarray) -> _Alignment | None:
+    """The matches of the predictions moved by `params` within the gates, or None without any."""
+    moved = scene.moved(params)
+    pi, di = _match(moved, scene.det, scene.gates)
+    if len(pi) == 0:
+        return None
+    return _Alignment(params, pi, di, np.hypot(*(moved[pi] - scene.det[di]).T))
+
+
+def _refine_hypothesis(scene: _Scene, shift: np.ndarray) -> _Alignment | None:
+    """Iterate fit/match from a translation, the last steps within the scene's gates."""
+    pred, det, centre = scene.pred, scene.det, scene.centre
     params = np.array([1.0, 0.0, shift[0], shift[1]])
     for gate, radial in ((COARSE_GATE_PX, False), (60.0, False), (30.0, False), (30.0, True),
-                         (gate_px, True), (gate_px, True)):
+                         (scene.gates, True), (scene.gates, True)):
         pi, di = _match(_apply(params, pred, centre), det, gate)
         need = 6 if radial else 2
         if len(pi) < need:
@@ -75,15 +186,109 @@ def _refine_hypothesis(pred, det, shift, centre, gate_px):
             else:
                 return None
         params = _fit(pred[pi], det[di], centre, radial)
-        scale = np.hypot(params[0], params[1])
-        if not 0.8 < scale < 1.25:
+        if not _scale_ok(params):
             return None
-    moved = _apply(params, pred, centre)
-    pi, di = _match(moved, det, gate_px)
-    if len(pi) == 0:
-        return None
-    rms = float(np.sqrt(np.mean(np.sum((moved[pi] - det[di]) ** 2, axis=1))))
-    return params, pi, di, rms
+    return _aligned(scene, params)
+
+
+def _polish(scene: _Scene, pi: np.ndarray, di: np.ndarray) -> _Alignment | None:
+    """The alignment fitted to the pairs (pi, di) (k,), then matched and refitted within the gates."""
+    alignment = None
+    for _ in range(3):
+        if len(pi) < max(scene.min_inliers, 2):
+            return None
+        params = _fit(scene.pred[pi], scene.det[di], scene.centre, len(pi) >= 6)
+        if not _scale_ok(params):
+            return None
+        alignment = _aligned(scene, params)
+        if alignment is None:
+            return None
+        pi, di = alignment.pi, alignment.di
+    return alignment
+
+
+def _cost(alignment: _Alignment, other: _Alignment, scene: _Scene) -> int:
+    """How many points `alignment` leaves unexplained of those either explains: the detections only
+    `other` matches, and the points only `other` matches that `alignment` predicts in view. (Matches
+    both make fit about equally well, so that their residuals would only dilute the difference.)"""
+    only_other = np.array(sorted(set(other.pi.tolist()) - set(alignment.pi.tolist())), dtype=int)
+    in_view = scene.in_view(_apply(alignment.params, scene.pred[only_other], scene.centre))
+    return len(set(other.di.tolist()) - set(alignment.di.tolist())) + int(np.count_nonzero(in_view))
+
+
+def _period_vectors(moved: np.ndarray, anchor: int) -> np.ndarray:
+    """(k, 2) one-period shifts of the pattern at prediction `anchor` of moved (m, 2): the shortest
+    offset a to another prediction, the shortest b not within 30 deg of its direction, a + b and
+    a - b, with both signs (k = 0 without a neighbour, 2 without an independent one)."""
+    offsets = moved - moved[anchor]
+    offsets = offsets[np.hypot(*offsets.T) > 0]
+    if len(offsets) == 0:
+        return np.zeros((0, 2))
+    offsets = offsets[np.argsort(np.hypot(*offsets.T))]
+    a = offsets[0]
+    sines = np.abs(a[0] * offsets[:, 1] - a[1] * offsets[:, 0]) / (np.hypot(*a) * np.hypot(*offsets.T))
+    independent = offsets[sines > 0.5]
+    basis = [a] if len(independent) == 0 else [a, independent[0], a + independent[0], a - independent[0]]
+    return np.vstack([v for b in basis for v in (b, -b)])
+
+
+def _neighbour_along(moved: np.ndarray, tree: cKDTree, points: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """(k,) index of the prediction one period `shift` (2,) from each of points (k,) of moved (m, 2),
+    -1 where none lies within half the shift of where it would be."""
+    distance, index = tree.query(moved[points] + shift)
+    return np.where(distance < 0.5 * np.hypot(*shift), index, -1)
+
+
+def _period_alternatives(scene: _Scene, best: _Alignment) -> list[tuple[np.ndarray, _Alignment]]:
+    """(shift (2,), alignment) for each period vector at the image centre: `best` with every id moved
+    one period along it, refitted."""
+    moved = scene.moved(best.params)
+    tree = cKDTree(moved)
+    anchor = int(best.pi[np.argmin(np.hypot(*(moved[best.pi] - scene.centre).T))])
+    out = []
+    for shift in _period_vectors(moved, anchor):
+        neighbour = _neighbour_along(moved, tree, best.pi, shift)
+        alternative = _polish(scene, neighbour[neighbour >= 0], best.di[neighbour >= 0])
+        if alternative is not None and alternative.pairs() != best.pairs():
+            out.append((shift, alternative))
+    return out
+
+
+def _settle_period(scene: _Scene, best: _Alignment) -> tuple[_Alignment, str]:
+    """The alignment among `best` and its one-period shifts that explains the detections best, moving
+    while a shift is cheaper; with the reason it is refused ('' when no shift costs nearly as much)."""
+    for moves in range(MAX_PERIOD_MOVES + 1):
+        alternatives = _period_alternatives(scene, best)
+        cheaper = [(_cost(a, best, scene) - _cost(best, a, scene), k) for k, (_, a) in enumerate(alternatives)]
+        cheaper = [c for c in cheaper if c[0] < 0]
+        if not cheaper or moves == MAX_PERIOD_MOVES:  # one still cheaper after the last move fails below
+            break
+        best = alternatives[min(cheaper)[1]][1]
+    for shift, alternative in alternatives:
+        ratio = _cost(alternative, best, scene) / max(_cost(best, alternative, scene), 1.0)
+        if ratio < SHIFT_COST_RATIO:
+            return best, (f"the alignment shifted by one period ({shift[0]:+.0f}, {shift[1]:+.0f}) px explains the "
+                          f"detections about as well (cost ratio {ratio:.2f} < {SHIFT_COST_RATIO:g})")
+    return best, ""
+
+
+def _local_shift_reason(scene: _Scene, best: _Alignment, k: int, matched_tree: cKDTree, moved: np.ndarray,
+                        moved_tree: cKDTree) -> str:
+    """Why match k of `best` is refused by its neighbourhood's one-period shifts ('' when none fits
+    about as well): the ids of its detection and its nearest identified ones (matched_tree: of the
+    matched detections), all moved one local period, against the same alignment (moved (m, 2))."""
+    near = np.atleast_1d(matched_tree.query(scene.det[best.di[k]], min(NEIGHBOURHOOD, len(best.pi)))[1])
+    points, dets = best.pi[near], best.di[near]
+    own = max(float(np.sum((best.distance[near] / scene.gates[points]) ** 2)), 1.0)
+    for shift in _period_vectors(moved, best.pi[k]):
+        neighbour = _neighbour_along(moved, moved_tree, points, shift)
+        found = neighbour >= 0
+        distance = np.hypot(*(moved[neighbour[found]] - scene.det[dets[found]]).T) / scene.gates[neighbour[found]]
+        ratio = (float(np.sum(np.minimum(distance**2, 1.0))) + np.count_nonzero(~found)) / own
+        if ratio < SHIFT_COST_RATIO:
+            return (f"its neighbourhood's ids shifted by one period ({shift[0]:+.0f}, {shift[1]:+.0f}) px fit about "
+                    f"as well (cost ratio {ratio:.2f} < {SHIFT_COST_RATIO:g})")
+    return ""
 
 
 def identify(detections, predicted, point_ids, image_size=None, *, rejected=None, gate_px: float = GATE_PX,
@@ -91,67 +296,123 @@ def identify(detections, predicted, point_ids, image_size=None, *, rejected=None
     """Point ids (n,) object array for detections (n, 2); '' where not identified.
 
     predicted: (m, 2) projections of the known points from the priors (NaN rows are ignored);
-    point_ids: (m,) their ids. image_size: (width, height), the centre of the radial term
-    (default: the detections' bounding box centre). rejected: (k, 2) X-corners the detector found
-    but did not return (`detect`'s rejections, e.g. a corner a shadow edge crosses): a detection
-    farther from its prediction than one of them is not named, for it is likely no marker but a
-    "virtual" X beside the rejected one (an outline crossed by the same shadow edge).
+    point_ids: (m,) their ids. image_size: (width, height), the centre of the radial term and the
+    view (default: the detections' bounding box and its centre). rejected: (k, 2) X-corners the
+    detector found but did not return (`detect`'s rejections, e.g. a corner a shadow edge crosses):
+    a detection farther from its prediction than one of them is not named, for it is likely no
+    marker but a "virtual" X beside the rejected one (an outline crossed by the same shadow edge).
+    `identify_with_reasons` gives the same ids with the reason for each one left empty.
     """
+    return identify_with_reasons(detections, predicted, point_ids, image_size, rejected=rejected, gate_px=gate_px,
+                                 max_shift=max_shift, min_inliers=min_inliers).ids
+
+
+def identify_with_reasons(detections, predicted, point_ids, image_size=None, *, rejected=None,
+                          gate_px: float = GATE_PX, max_shift: float = MAX_SHIFT_PX,
+                          min_inliers: int = MIN_INLIERS) -> Identification:
+    """`identify`'s ids (n,) and, for each detection left without one, the reason (n,)."""
     det = np.asarray(detections, dtype=float).reshape(-1, 2)
     pred = np.asarray(predicted, dtype=float).reshape(-1, 2)
     ids = np.asarray(point_ids, dtype=object).reshape(-1)
-    out = np.full(len(det), "", dtype=object)
     finite = np.all(np.isfinite(pred), axis=1)
     pred, ids = pred[finite], ids[finite]
+
+    def refused(reason: str) -> Identification:
+        return Identification(np.full(len(det), "", dtype=object), np.full(len(det), reason, dtype=object))
+
     if len(det) < min_inliers or len(pred) < min_inliers:
-        return out
+        return refused(TOO_FEW)
+    scene = _scene(det, pred, image_size, gate_px, min_inliers)
+    results = _hypotheses(scene, max_shift)
+    if not results:
+        return refused(NO_ALIGNMENT)
+    best = results[0]
+    if len(best.pi) >= min_inliers:
+        best, period_reason = _settle_period(scene, best)
+        if period_reason:
+            return refused(period_reason)
+    if len(best.pi) < min_inliers:
+        return refused(NO_ALIGNMENT)
+    if best.rms > 0.5 * gate_px:
+        return refused(POOR_FIT)
+    pairs = best.pairs()
+    for other in results:
+        other_pairs = other.pairs()
+        if other_pairs != pairs and not other_pairs <= pairs and len(other.pi) >= max(min_inliers, len(best.pi) - 2):
+            return refused(COMPETING)
+    return _name_matches(scene, best, ids, gate_px, rejected)
+
+
+def _scene(det: np.ndarray, pred: np.ndarray, image_size, gate_px: float, min_inliers: int) -> _Scene:
+    """The scene of detections det (n, 2) and predictions pred (m, 2): gates, centre and view."""
     if image_size is not None:
-        centre = 0.5 * (np.asarray(image_size, dtype=float) - 1.0)
+        lo, hi = np.full(2, -0.5), np.asarray(image_size, dtype=float) - 0.5
     else:
-        centre = 0.5 * (det.min(0) + det.max(0))
-    # 1. translation hypotheses, scored with the coarse gate
-    shifts = (det[:, None, :] - pred[None, :, :]).reshape(-1, 2)
+        lo, hi = det.min(0), det.max(0)
+    gates = np.minimum(gate_px, PERIOD_GATE_FRACTION * _local_periods(pred))
+    return _Scene(det, pred, gates, 0.5 * (lo + hi), lo, hi, min_inliers)
+
+
+def _hypotheses(scene: _Scene, max_shift: float) -> list[_Alignment]:
+    """The refined alignments of the best distinct translation hypotheses, best (most matches, then
+    smallest residual) first."""
+    det, pred = scene.det, scene.pred
+    anchors = det
+    if len(det) * len(pred) ** 2 > MAX_HYPOTHESIS_WORK:
+        anchors = det[np.argsort(np.hypot(*(det - scene.centre).T))[:max(MAX_HYPOTHESIS_WORK // len(pred) ** 2, 1)]]
+    shifts = (anchors[:, None, :] - pred[None, :, :]).reshape(-1, 2)
     shifts = shifts[np.hypot(*shifts.T) <= max_shift]
     if len(shifts) == 0:
-        return out
-    tree = cKDTree(det)
-    counts = np.array([np.count_nonzero(tree.query(pred + s, distance_upper_bound=COARSE_GATE_PX)[0]
-                                        <= COARSE_GATE_PX) for s in shifts])
-    order = np.argsort(-counts, kind="stable")
-    # 2. refine the best distinct hypotheses
-    results = []
-    tried: list[np.ndarray] = []
-    for k in order:
-        if len(tried) >= TOP_HYPOTHESES or counts[k] < min_inliers:
+        return []
+    counts = _coarse_counts(cKDTree(det), pred, shifts)
+    results, tried = [], []
+    for k in np.argsort(-counts, kind="stable"):
+        if len(tried) >= TOP_HYPOTHESES or counts[k] < scene.min_inliers:
             break
         if any(np.hypot(*(shifts[k] - s)) < 0.5 * COARSE_GATE_PX for s in tried):
             continue
         tried.append(shifts[k])
-        result = _refine_hypothesis(pred, det, shifts[k], centre, gate_px)
+        result = _refine_hypothesis(scene, shifts[k])
         if result is not None:
             results.append(result)
-    if not results:
-        return out
-    # 3. accept the best unless a different assignment is nearly as good
-    results.sort(key=lambda r: (-len(r[1]), r[3]))
-    params, pi, di, rms = results[0]
-    if len(pi) < min_inliers or rms > 0.5 * gate_px:
-        return out
-    best = set(zip(ids[pi], di))
-    for other in results[1:]:
-        other_pairs = set(zip(ids[other[1]], other[2]))
-        if other_pairs != best and not other_pairs <= best and len(other[1]) >= max(min_inliers, len(pi) - 2):
-            return out
-    # each match must be unambiguous: no second detection / prediction within 2 gates, no rejected
-    # X-corner nearer the prediction
-    moved = _apply(params, pred, centre)
+    results.sort(key=lambda r: (-len(r.pi), r.rms))
+    return results
+
+
+def _coarse_counts(tree: cKDTree, pred: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """(s,) how many of the predictions (m, 2) moved by each of shifts (s, 2) have a detection (tree)
+    within the coarse gate."""
+    per_chunk = max(200_000 // len(pred), 1)
+    counts = []
+    for start in range(0, len(shifts), per_chunk):
+        moved = (shifts[start:start + per_chunk, None, :] + pred[None, :, :]).reshape(-1, 2)
+        near = tree.query(moved, distance_upper_bound=COARSE_GATE_PX)[0] <= COARSE_GATE_PX
+        counts.append(near.reshape(-1, len(pred)).sum(axis=1))
+    return np.concatenate(counts)
+
+
+def _name_matches(scene: _Scene, best: _Alignment, ids: np.ndarray, gate_px: float, rejected) -> Identification:
+    """The ids of the matches of `best` that are unambiguous: no second detection or prediction near
+    (within 2.5 gates, at most half the local period), no rejected X-corner nearer the prediction,
+    and no one-period shift of its neighbourhood's ids that fits about as well."""
+    det = scene.det
+    out = np.full(len(det), "", dtype=object)
+    reasons = np.full(len(det), UNMATCHED, dtype=object)
+    moved = scene.moved(best.params)
+    moved_tree, det_tree, matched_tree = cKDTree(moved), cKDTree(det), cKDTree(det[best.di])
+    radius = np.minimum(2.5 * gate_px, 0.5 * _local_periods(scene.pred))
     nearest_rejected = _nearest(rejected, moved)
-    for p, d in zip(pi, di):
-        near_det = tree.query_ball_point(moved[p], 2.5 * gate_px)
-        near_pred = np.count_nonzero(np.hypot(*(moved - det[d]).T) <= 2.5 * gate_px)
-        if len(near_det) == 1 and near_pred == 1 and nearest_rejected[p] >= np.hypot(*(moved[p] - det[d])):
-            out[d] = ids[p]
-    return out
+    for k, (p, d) in enumerate(zip(best.pi, best.di)):
+        near_det = det_tree.query_ball_point(moved[p], radius[p])
+        near_pred = len(moved_tree.query_ball_point(det[d], radius[p]))
+        if len(near_det) != 1 or near_pred != 1:
+            reasons[d] = AMBIGUOUS
+        elif nearest_rejected[p] < np.hypot(*(moved[p] - det[d])):
+            reasons[d] = REJECTED_NEARER
+        else:
+            reasons[d] = _local_shift_reason(scene, best, k, matched_tree, moved, moved_tree)
+            out[d] = "" if reasons[d] else ids[p]
+    return Identification(out, reasons)
 
 
 def _nearest(points, queries: np.ndarray) -> np.ndarray:
