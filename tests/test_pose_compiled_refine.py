@@ -178,7 +178,7 @@ def test_robust_mode_finds_the_correct_rows_of_10_point_frames_with_40_percent_w
 def test_bench_says_when_poselib_is_missing(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(bench, "POINT_COUNTS", (10,))
     monkeypatch.setattr(bench, "_poselib_refiner", lambda: None)
-    table = bench.bench_pose(tmp_path / "pose.csv", repeats=2, batch_frames=2)
+    table = bench.bench_pose(tmp_path / "pose.csv", repeats=2, batch_frames=2, stage_frames=0)
     out = capsys.readouterr().out
     assert "skipped: poselib not installed" in out
     assert "ours sum of squared sines" in out and "squared pixel reprojection errors" in out
