@@ -190,6 +190,25 @@ def _cmd_bench_periodic(args) -> None:
     print_tables(images, calibration, args.csv)
 
 
+def _cmd_bench_sigma(args) -> None:
+    from .bench.sigma import bench_sigma, print_table, simulation_grid
+
+    simulations = simulation_grid(args.seeds, args.vibration, args.survey, pixel_px=args.pixel,
+                                  mount_arcmin=args.mount, groups=args.groups, frames_per_group=args.frames_per_group,
+                                  calib_images=args.calib_images, truth_rig=args.truth_rig) if args.simulate else []
+    print_table(bench_sigma(args.csv, args.results or [], simulations, work=args.work), args.csv)
+
+
+def _comma_separated(kind):
+    """An argparse type: 'a,b,c' -> [kind(a), kind(b), kind(c)]."""
+    def parse(text: str) -> list:
+        try:
+            return [kind(part) for part in text.split(",") if part.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a comma-separated list of {kind.__name__}s") from None
+    return parse
+
+
 def _parser() -> argparse.ArgumentParser:
     from .stages.intrinsics import Conf as IntrinsicsConf
 
@@ -343,6 +362,30 @@ def _parser() -> argparse.ArgumentParser:
     periodic.add_argument("--csv", type=Path, default=Path("reports/bench/periodic.csv"),
                           help="per-image table; the intrinsics beside it, <stem>_intrinsics.csv (default: %(default)s)")
     periodic.set_defaults(run=_cmd_bench_periodic)
+    sigma = benches.add_parser("sigma", help="poses.csv's 1-sigma columns against the simulator's truth: "
+                                             "RMS(error / sigma) and coverage per camera set and axis")
+    sigma.add_argument("--results", type=Path, nargs="+", metavar="DIR",
+                       help="results folders of workflow runs on simulated datasets (DIR/dataset), e.g. results/demo")
+    sigma.add_argument("--simulate", action="store_true",
+                       help="simulate observation-only flights (every vibration x survey x seed) and run the chain")
+    sigma.add_argument("--seeds", type=_comma_separated(int), default=[1001, 1002, 1003],
+                       help="simulation seeds, comma-separated (default: 1001,1002,1003)")
+    sigma.add_argument("--vibration", type=_comma_separated(float), default=[0.0, 0.3, 1.0],
+                       help="per-frame camera vibration, arc-min (default: 0,0.3,1)")
+    sigma.add_argument("--survey", type=_comma_separated(float), default=[0.01, 0.02, 0.03],
+                       help="ground-point survey sigma per axis, m (default: 0.01,0.02,0.03)")
+    sigma.add_argument("--pixel", type=float, default=0.25, help="flight marker noise, px (default: %(default)s)")
+    sigma.add_argument("--mount", type=float, default=0.15,
+                       help="per-group mounting change of C1..C4, arc-min (default: %(default)s)")
+    sigma.add_argument("--groups", type=_positive_int, default=6, help="flight groups (default: %(default)s)")
+    sigma.add_argument("--frames-per-group", type=_positive_int, default=10, help="(default: %(default)s)")
+    sigma.add_argument("--calib-images", type=_positive_int, default=6,
+                       help="calibration images per camera (default: %(default)s, the demo's)")
+    sigma.add_argument("--truth-rig", action="store_true", help="solve with the simulator's rig, no calibration")
+    sigma.add_argument("--work", type=Path, help="keep each simulation in WORK/<name> (default: a temporary folder)")
+    sigma.add_argument("--csv", type=Path, default=Path("reports/bench/sigma.csv"),
+                       help="output table, the per-frame rows beside it (default: %(default)s)")
+    sigma.set_defaults(run=_cmd_bench_sigma)
     return parser
 
 
