@@ -144,8 +144,8 @@ def _scale_ok(params: np.ndarray) -> bool:
 @dataclass(frozen=True)
 class _Scene:
     """One image: detections det (n, 2), predictions pred (m, 2) and their gates (m,), the centre (2,)
-    of the radial term, the view [lo, hi] (2,) where a predicted point should have been detected, and
-    the fewest matches of an alignment."""
+    of the radial term, the view [lo, hi] (2,) where a predicted point should have been detected, the
+    X-corners the detector rejected (k, 2), and the fewest matches of an alignment."""
 
     det: np.ndarray
     pred: np.ndarray
@@ -153,14 +153,19 @@ class _Scene:
     centre: np.ndarray
     lo: np.ndarray
     hi: np.ndarray
+    rejected: np.ndarray
     min_inliers: int
-
-    def in_view(self, uv: np.ndarray) -> np.ndarray:
-        """(k,) whether each of uv (k, 2) lies in the view."""
-        return np.all((uv >= self.lo) & (uv <= self.hi), axis=1)
 
     def moved(self, params: np.ndarray) -> np.ndarray:
         return _apply(params, self.pred, self.centre)
+
+    def unseen(self, params: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """(k,) whether each of points (k,) (prediction indices), moved by `params`, lies in the view
+        without a rejected X-corner within its gate (one the detector found but did not return, e.g.
+        a blurred or shadowed corner, is no evidence against the point)."""
+        uv = _apply(params, self.pred[points], self.centre)
+        in_view = np.all((uv >= self.lo) & (uv <= self.hi), axis=1)
+        return in_view & (_nearest(self.rejected, uv) > self.gates[points])
 
 
 def _aligned(scene: _Scene, params: np.ndarray) -> _Alignment | None:
@@ -209,11 +214,12 @@ def _polish(scene: _Scene, pi: np.ndarray, di: np.ndarray) -> _Alignment | None:
 
 def _cost(alignment: _Alignment, other: _Alignment, scene: _Scene) -> int:
     """How many points `alignment` leaves unexplained of those either explains: the detections only
-    `other` matches, and the points only `other` matches that `alignment` predicts in view. (Matches
-    both make fit about equally well, so that their residuals would only dilute the difference.)"""
+    `other` matches, and the points only `other` matches that `alignment` predicts unseen
+    (`_Scene.unseen`). Matches both make fit about equally well, so that their residuals would only
+    dilute the difference."""
     only_other = np.array(sorted(set(other.pi.tolist()) - set(alignment.pi.tolist())), dtype=int)
-    in_view = scene.in_view(_apply(alignment.params, scene.pred[only_other], scene.centre))
-    return len(set(other.di.tolist()) - set(alignment.di.tolist())) + int(np.count_nonzero(in_view))
+    unseen = scene.unseen(alignment.params, only_other)
+    return len(set(other.di.tolist()) - set(alignment.di.tolist())) + int(np.count_nonzero(unseen))
 
 
 def _period_vectors(moved: np.ndarray, anchor: int) -> np.ndarray:
@@ -322,7 +328,7 @@ def identify_with_reasons(detections, predicted, point_ids, image_size=None, *, 
 
     if len(det) < min_inliers or len(pred) < min_inliers:
         return refused(TOO_FEW)
-    scene = _scene(det, pred, image_size, gate_px, min_inliers)
+    scene = _scene(det, pred, image_size, gate_px, min_inliers, rejected)
     results = _hypotheses(scene, max_shift)
     if not results:
         return refused(NO_ALIGNMENT)
@@ -343,14 +349,16 @@ def identify_with_reasons(detections, predicted, point_ids, image_size=None, *, 
     return _name_matches(scene, best, ids, gate_px, rejected)
 
 
-def _scene(det: np.ndarray, pred: np.ndarray, image_size, gate_px: float, min_inliers: int) -> _Scene:
-    """The scene of detections det (n, 2) and predictions pred (m, 2): gates, centre and view."""
+def _scene(det: np.ndarray, pred: np.ndarray, image_size, gate_px: float, min_inliers: int, rejected) -> _Scene:
+    """The scene of detections det (n, 2), predictions pred (m, 2) and rejected X-corners (k, 2) (or None):
+    gates, centre and view."""
     if image_size is not None:
         lo, hi = np.full(2, -0.5), np.asarray(image_size, dtype=float) - 0.5
     else:
         lo, hi = det.min(0), det.max(0)
     gates = np.minimum(gate_px, PERIOD_GATE_FRACTION * _local_periods(pred))
-    return _Scene(det, pred, gates, 0.5 * (lo + hi), lo, hi, min_inliers)
+    rejected = np.zeros((0, 2)) if rejected is None else np.asarray(rejected, dtype=float).reshape(-1, 2)
+    return _Scene(det, pred, gates, 0.5 * (lo + hi), lo, hi, rejected, min_inliers)
 
 
 def _hypotheses(scene: _Scene, max_shift: float) -> list[_Alignment]:
