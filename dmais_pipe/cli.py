@@ -176,6 +176,12 @@ def _cmd_bench_pose(args) -> None:
     bench_pose(args.csv, repeats=args.repeats, batch_frames=args.batch_frames, stage_frames=args.stage_frames)
 
 
+def _cmd_bench_pose_hard(args) -> None:
+    from .bench.pose_hard import bench_pose_hard
+
+    bench_pose_hard(args.csv, cases=args.cases, seed=args.seed, kinds=args.kinds.split(",") if args.kinds else None)
+
+
 def _cmd_bench_campaign(args) -> None:
     from .bench.campaign import bench_campaign
 
@@ -335,6 +341,15 @@ def _parser() -> argparse.ArgumentParser:
                             help="frames of the generated flight in the pose-stage throughput run (0: skip it; "
                                  "default: %(default)s)")
     bench_pose.set_defaults(run=_cmd_bench_pose)
+    pose_hard = benches.add_parser(
+        "pose-hard", help="pose solver on hard narrow-field scenes against a multi-start reference, with and "
+                          "without its global fallback")
+    pose_hard.add_argument("--csv", type=Path, default=Path("reports/bench/pose_hard.csv"),
+                           help="output table, the per-case rows beside it (default: %(default)s)")
+    pose_hard.add_argument("--cases", type=_positive_int, default=200, help="scenes per kind (default: %(default)s)")
+    pose_hard.add_argument("--seed", type=int, default=31, help="seed of the scenes (default: %(default)s)")
+    pose_hard.add_argument("--kinds", help="comma-separated kinds (default: all of bench.pose_hard.KINDS)")
+    pose_hard.set_defaults(run=_cmd_bench_pose_hard)
     campaign = benches.add_parser("campaign", help="the workflow at flight-campaign scale: dry runs, one core, SLURM")
     campaign.add_argument("--source", type=Path, default=Path("results/demo/dataset"),
                           help="simulated dataset whose flight is repeated, with its run's results beside it "

@@ -28,6 +28,10 @@ Refinement (`--refine`) and robust mode (`--robust`) on the same frames, each be
   point of another one of them), both with a 12 px threshold; rotation errors against the truth
   and the count of frames where a method found no pose.
 
+Fallback rows (`bench_fallback`): how often the solver's global fallback (`pose/fallback.py`)
+ran on the DMAIS frames above and on hard frames of `bench.pose_hard` (one narrow camera over flat
+ground; C0 alone), with its median and largest time per fallback solve.
+
 Stage throughput (`bench_stage`): a generated observation-only flight (`stage_flight`: the
 simulator's paper rig hovering at 350 m over flat sites, 8 ground markers per camera footprint,
 every marker seen in every frame of its group, 3 px pixel noise; `--stage-frames`, 10,000 by
@@ -324,18 +328,54 @@ def bench_stage(n_frames: int, seed: int = 0) -> dict:
             "median_solve_ms": float(table["time_ms"].median()) if len(table) else np.nan}
 
 
+#: Frames of the fallback rows beside the DMAIS frames above: kinds of `bench.pose_hard` where the
+#: certificate often fails (one narrow camera over flat ground; the rig's C0 alone, subset #0).
+FALLBACK_KINDS = ("narrow_10pt", "subset0_8pt")
+
+
+def bench_fallback(dmais_fallback_ms: list[float], frames_per_kind: int, seed: int) -> pd.DataFrame:
+    """The solver's global fallback (`pose/fallback.py`), one row per kind of frames: how often it
+    ran (the certificate failed or the solution had most points behind) and its median and
+    largest wall time per fallback solve (ms), beside its budget. dmais_fallback_ms: per solve of
+    the DMAIS frames of the table, the fallback's time or NaN where it did not run; the hard
+    kinds are solved here (frames_per_kind each, single-threaded BLAS)."""
+    from ..pose.fallback import TIME_BUDGET_S
+    from .pose_hard import KINDS, hard_scene
+
+    runs = {"dmais (table above)": np.asarray(dmais_fallback_ms, dtype=float)}
+    rng = np.random.default_rng([seed, 31])
+    with single_threaded_blas():
+        for kind in (k for k in KINDS if k.name in FALLBACK_KINDS):
+            times = []
+            for _ in range(frames_per_kind):
+                scene = hard_scene(rng, kind)
+                pose = solve_generalized_pose(scene.origins, scene.directions, scene.points)
+                times.append(np.nan if pose.fallback_ms is None else pose.fallback_ms)
+            runs[kind.name] = np.array(times)
+    rows = []
+    for name, ms in runs.items():
+        ran = ms[np.isfinite(ms)]
+        rows.append({"fallback_frames": name, "frames": len(ms), "fallback_runs": len(ran),
+                     "fallback_share": len(ran) / max(len(ms), 1),
+                     "fallback_median_ms": float(np.median(ran)) if len(ran) else np.nan,
+                     "fallback_max_ms": float(ran.max()) if len(ran) else np.nan,
+                     "budget_ms": TIME_BUDGET_S * 1e3})
+    return pd.DataFrame(rows)
+
+
 def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int = 0,
                stage_frames: int = 10_000) -> pd.DataFrame:
     """Run the benchmark, print the table and write it (and the batch and stage throughput) as CSV."""
     rng = np.random.default_rng(seed)
     paper = pd.read_csv(PAPER_TABLE).set_index("n_points")["paper_ms"] if PAPER_TABLE.is_file() else {}
 
-    certified = []
+    certified, fallback_ms = [], []
 
     def ours(cams, uv, points):
         origins, directions = _rays(cams, uv)
         pose = solve_generalized_pose(origins, directions, points)
         certified.append(pose.certified)
+        fallback_ms.append(np.nan if pose.fallback_ms is None else pose.fallback_ms)
         return pose.R, pose.t
 
     starts = {}  # our solver's solution per frame: where both refinements start
@@ -403,8 +443,11 @@ def bench_pose(csv: Path, repeats: int = 200, batch_frames: int = 200, seed: int
     for run in batch:
         print(f"batch: {run['frames_per_s']:.0f} frames/s in {run['workers']} thread(s) "
               f"(50 points per frame, rays precomputed, {batch_frames} frames)")
+    fallback = bench_fallback(fallback_ms, repeats, seed)
+    print(fallback.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
     write_csv_atomic(csv, table)
     write_csv_atomic(Path(csv).with_name(Path(csv).stem + "_batch.csv"), pd.DataFrame(batch))
+    write_csv_atomic(Path(csv).with_name(Path(csv).stem + "_fallback.csv"), fallback)
     if stage_frames > 0:
         stage = bench_stage(stage_frames, seed)
         print(f"stage: {stage['frames_per_s']:.0f} frames/s through estimate_poses ({stage['frames']} frames, "

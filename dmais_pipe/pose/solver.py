@@ -29,6 +29,10 @@ a plane and its flip look alike, and the cost has minima a few degrees apart tha
 roots are too inaccurate to tell apart (issue 16: 2% of the 0.5 deg cases missed the minimum).
 Front-facing candidates within a thousand rounding levels of the least cost are then compared by
 their costs summed over the points, which the quadratic form cannot resolve at 0.5 deg.
+Where the dual does not certify the solution, or it puts most points behind their rays, the
+global fallback (`fallback.py`, issue 31) refines more starts within its time budget and returns
+its pose where that is cheaper and front-facing (`GeneralizedPose.fallback`); no pose with most
+points in front at all is a PoseError.
 Changing frame costs nothing in n: H' = K^T H K and g' = K^T g with r = K r',
 K = blockdiag(P^T, P^T, P^T).
 
@@ -48,6 +52,7 @@ substitution) run four at a time, each in its old order, so that speed changes n
 from __future__ import annotations
 
 import itertools
+import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
@@ -112,7 +117,10 @@ class GeneralizedPose:
     Lagrangian dual certifies the solver's solution as the global minimum of eq. objfun (beyond
     the paper; `_kernels.certified`); False says only that the check could not prove it (for
     instance when a cheaper pose puts the points behind the cameras). With refine, it refers to
-    the solution before refinement.
+    the solution before refinement. fallback: the pose comes from the global fallback
+    (`fallback.search`), which found a cheaper pose with most points in front than the template's
+    roots (it is then among the candidates too; certified refers to it); fallback_ms: the wall
+    time of that search, None where it did not run (a certified, front-facing solution).
     """
 
     R: np.ndarray
@@ -122,6 +130,8 @@ class GeneralizedPose:
     n_points: int
     covariance: np.ndarray | None = None
     certified: bool = False
+    fallback: bool = False
+    fallback_ms: float | None = None
 
 
 # ------------------------------------------------------------------------------ runtime template
@@ -202,7 +212,8 @@ def kernel() -> Kernel:
                   rt.reduced_rows, rt.reduced_index, rt.unit_index, np.array(ENTRIES), N_MONOMIALS, OCTAHEDRAL)
 
 
-def solve_generalized_pose(origins, directions, points, refine: bool = False, sigma: float | None = None) -> GeneralizedPose:
+def solve_generalized_pose(origins, directions, points, refine: bool = False, sigma: float | None = None,
+                           attitude_prior=None, fallback: bool = True) -> GeneralizedPose:
     """Globally optimal generalized absolute pose (see the module docstring).
 
     origins: (n, 3) ray origins v_i in the rig frame; directions: (n, 3) ray directions f_i in
@@ -210,7 +221,14 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
     refine: polish the solution on the angular reprojection error (`refine.refine_pose`) and
     return its (6, 6) covariance of (rotation increment, t); sigma: the angular noise (radians)
     for that covariance, else estimated from the residuals. Returns x_rig = R @ M + t.
+
+    Where the certificate fails or the solution puts most points behind their rays, the global
+    fallback (`fallback.search`, within its time budget) looks for a cheaper front-facing pose,
+    from attitude_prior (3, 3) too (rig_from_world, e.g. the INS attitude) when given. Raises
+    PoseError when no pose found puts at least half of the points in front. fallback=False: the
+    template's roots alone, as before issue 31, whatever their solution (for comparisons).
     """
+    prior = None if attitude_prior is None else _checked_prior(attitude_prior)
     found = None
     if _is_float_rows(origins) and _is_float_rows(directions) and _is_float_rows(points):
         found = kernel().solve_rays(origins, directions, points, COLLINEAR_TOLERANCE, ZERO_DIRECTION)
@@ -221,6 +239,8 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
     R, t, cost, front, best, certified = found
     pose = GeneralizedPose(R=R[best], t=t[best], cost=float(cost[best]), candidates=Candidates(R, t, cost, front),
                            n_points=len(points), certified=certified)
+    if fallback and not (certified and front[best] >= 0.5):
+        pose = _with_fallback(pose, best, origins, directions, points, prior)
     if not refine:
         return pose
     from .refine import refine_pose
@@ -229,6 +249,46 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
     refined = refine_pose(origins, directions, points, pose.R, pose.t, sigma=sigma)
     cost = float(np.sum(np.cross(directions, points @ refined.R.T + refined.t - origins) ** 2))
     return replace(pose, R=refined.R, t=refined.t, cost=cost, covariance=refined.covariance)
+
+
+def _with_fallback(pose: GeneralizedPose, best: int, origins, directions, points, prior) -> GeneralizedPose:
+    """pose, or the cheaper front-facing pose of the global fallback (`fallback.search`), which then
+    joins the candidates; best: the index of pose among them. Raises PoseError when neither puts
+    at least half of the points in front."""
+    from .fallback import IMPROVEMENT, centred_costs, search
+
+    begin = time.perf_counter()
+    v, f, M = validate_correspondences(origins, directions, points)
+    stats = statistics_of(v, f, M)
+    solver = kernel()
+    found = search(v, f, M, stats, pose.candidates.R, pose.candidates.in_front,
+                   certify=lambda R: solver.certify(stats.H, stats.g, stats.c, R), prior=prior)
+    front = pose.candidates.in_front[best] >= 0.5
+    better = found is not None and (
+        not front or found.cost < centred_costs(v, f, M, stats, pose.R[None])[0][0] * (1 - IMPROVEMENT))
+    ms = (time.perf_counter() - begin) * 1e3
+    if not better and not front:
+        raise PoseError(f"pose: no pose found puts most of the {len(M)} points in front of their rays (the least-cost "
+                        f"one puts {1 - pose.candidates.in_front[best]:.0%} behind them)")
+    if not better:
+        return replace(pose, fallback_ms=ms)
+    c = pose.candidates
+    costs = np.append(c.cost, found.cost)
+    order = np.argsort(costs, kind="stable")
+    candidates = Candidates(np.concatenate([c.R, found.R[None]])[order], np.concatenate([c.t, found.t[None]])[order],
+                            costs[order], np.append(c.in_front, found.front)[order])
+    return replace(pose, R=found.R, t=found.t, cost=found.cost, candidates=candidates, certified=found.certified,
+                   fallback=True, fallback_ms=ms)
+
+
+def _checked_prior(prior) -> np.ndarray:
+    """The attitude prior as the nearest rotation (3, 3); PoseError if it is not one."""
+    R = np.asarray(prior, dtype=float)
+    if R.shape != (3, 3) or not np.isfinite(R).all() or not np.allclose(R @ R.T, np.eye(3), atol=1e-3) \
+            or np.linalg.det(R) < 0:
+        raise PoseError(f"pose: attitude_prior must be a rotation matrix (3, 3), got {np.array2string(R)}")
+    U, _, Vt = np.linalg.svd(R)
+    return U @ Vt
 
 
 def _is_float_rows(x) -> bool:
