@@ -8,8 +8,7 @@ import pytest
 
 from dmais_pipe.bench.pose_hard import HardKind, hard_scene
 from dmais_pipe.geometry import rotation_error
-from dmais_pipe.pose import PoseError, pose_statistics
-from dmais_pipe.pose import fallback
+from dmais_pipe.pose import PoseError, fallback, pose_statistics
 from dmais_pipe.pose.solver import solve_generalized_pose
 
 from pose_scenes import (centred_cost, dmais_scene, generalized_scene, multistart_minimum, narrow_camera_scene,
@@ -118,7 +117,7 @@ def test_homography_starts_contain_the_true_rotation():
 
 
 def test_flip_mirrors_the_plane_normal_about_the_line_of_sight():
-    origins, directions, points, R, t = narrow_camera_scene(np.random.default_rng(2), 1.0, n=10)
+    origins, directions, points, R, _ = narrow_camera_scene(np.random.default_rng(2), 1.0, n=10)
     stats = pose_statistics(origins, directions, points)
     problem = fallback._Problem(origins, directions / np.linalg.norm(directions, axis=1)[:, None],
                                 points - stats.centroid, stats)
@@ -163,7 +162,7 @@ def test_sampled_starts_alone_reach_the_certified_minimum():
     origins, directions, points, _, _ = generalized_scene(np.random.default_rng(8), n=10, noise=1e-3, max_angle=np.pi)
     pose = solve_generalized_pose(origins, directions, points)
     assert pose.certified
-    problem, stats, unit = _problem(origins, directions, points)
+    _, stats, unit = _problem(origins, directions, points)
     found = fallback.search(origins, unit, points, stats, np.empty((0, 3, 3)), np.empty(0),
                             certify=lambda R: kernel().certify(stats.H, stats.g, stats.c, R))
     assert found is not None and found.certified

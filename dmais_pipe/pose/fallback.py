@@ -135,8 +135,13 @@ class _Problem:
         return self.stats.point_axes[:, 0]
 
     def centred_translation(self, R: np.ndarray) -> np.ndarray:
-        """Optimal t (..., 3) of rotations R (..., 3, 3) for the centred points (eq. t)."""
-        return R.reshape(-1, 9) @ self.stats.t_matrix.T + self.stats.t_offset
+        """Optimal t (m, 3) of rotations R (3, 3) or (m, 3, 3) for the centred points (eq. t)."""
+        return R.reshape(-1, 9) @ self.t_map + self.stats.t_offset
+
+    @cached_property
+    def t_map(self) -> np.ndarray:
+        """(9, 3) the transposed translation map of eq. t."""
+        return np.ascontiguousarray(self.stats.t_matrix.T)
 
     @cached_property
     def mean_origin(self) -> np.ndarray:
@@ -342,7 +347,7 @@ def _refine_starts(problem: _Problem, queue: list[np.ndarray], basins: list[np.n
     while queue and time.perf_counter() < deadline:
         start, mirrored = queue.pop(0)
         R = _refined(problem, start)
-        if R is None or (basins and np.min(np.sum((np.asarray(basins) - R) ** 2, axis=(1, 2))) < DUPLICATE_DISTANCE**2):
+        if R is None or _known(R, basins):
             continue
         basins.append(R)
         if problem.front(R) >= 0.5:
@@ -350,6 +355,11 @@ def _refine_starts(problem: _Problem, queue: list[np.ndarray], basins: list[np.n
         elif problem.planar and not mirrored:
             queue.insert(0, (mirror(R, problem.normal), True))
     return new
+
+
+def _known(R: np.ndarray, basins: list[np.ndarray]) -> bool:
+    """Whether R (3, 3) is within DUPLICATE_DISTANCE of one of basins (3, 3)."""
+    return any(float(np.dot(d, d)) < DUPLICATE_DISTANCE**2 for d in (R.ravel() - other.ravel() for other in basins))
 
 
 def _least_front_facing(problem: _Problem, R: np.ndarray, best: tuple | None) -> tuple | None:

@@ -67,6 +67,7 @@ from . import PoseError
 from ._equations import ENTRIES
 from ._kernels import Kernel
 from .equations import N_MONOMIALS
+from . import fallback as global_fallback
 from .statistics import COLLINEAR_TOLERANCE, ZERO_DIRECTION, statistics_of, validate_correspondences
 from .template import Template, template_entries
 
@@ -255,17 +256,16 @@ def _with_fallback(pose: GeneralizedPose, best: int, origins, directions, points
     """pose, or the cheaper front-facing pose of the global fallback (`fallback.search`), which then
     joins the candidates; best: the index of pose among them. Raises PoseError when neither puts
     at least half of the points in front."""
-    from .fallback import IMPROVEMENT, centred_costs, search
-
     begin = time.perf_counter()
     v, f, M = validate_correspondences(origins, directions, points)
     stats = statistics_of(v, f, M)
     solver = kernel()
-    found = search(v, f, M, stats, pose.candidates.R, pose.candidates.in_front,
-                   certify=lambda R: solver.certify(stats.H, stats.g, stats.c, R), prior=prior)
+    found = global_fallback.search(v, f, M, stats, pose.candidates.R, pose.candidates.in_front,
+                                   certify=lambda R: solver.certify(stats.H, stats.g, stats.c, R), prior=prior)
     front = pose.candidates.in_front[best] >= 0.5
-    better = found is not None and (
-        not front or found.cost < centred_costs(v, f, M, stats, pose.R[None])[0][0] * (1 - IMPROVEMENT))
+    if found is not None and front:
+        template_cost = global_fallback.centred_costs(v, f, M, stats, pose.R[None])[0][0]
+    better = found is not None and (not front or found.cost < template_cost * (1 - global_fallback.IMPROVEMENT))
     ms = (time.perf_counter() - begin) * 1e3
     if not better and not front:
         raise PoseError(f"pose: no pose found puts most of the {len(M)} points in front of their rays (the least-cost "
