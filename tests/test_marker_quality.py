@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 from scipy.special import ndtr
 
 from dmais_pipe.markers import detect
-from dmais_pipe.bench.marker_photos import PHOTOS, board_corners
+from dmais_pipe.bench.marker_photos import PHOTOS, SUITE_PHOTOS, board_corners
 from dmais_pipe.bench.marker_regimes import corner_sub_pix
 from dmais_pipe.markers.refine import refine_corners
 from dmais_pipe.bench.marker_scenes import marker_scene, regime_settings, starts
@@ -421,7 +421,7 @@ def test_shadow_edge_off_the_corner_does_not_shift_it(sharp_scene):
 
 @pytest.fixture(scope="module")
 def photos():
-    return [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in sorted(PHOTOS.glob("*.jpg"))]
+    return [cv2.imread(str(PHOTOS / name), cv2.IMREAD_GRAYSCALE) for name in SUITE_PHOTOS]
 
 
 def test_detection_recall_on_real_x_junctions(photos):
