@@ -168,3 +168,17 @@ def test_sampled_starts_alone_reach_the_certified_minimum():
     assert found is not None and found.certified
     assert rotation_error(found.R, pose.R) < 1e-8
     np.testing.assert_allclose(found.t, pose.t, atol=1e-7)
+
+
+def test_no_refinement_starts_beyond_the_budget(monkeypatch):
+    """A spent budget refines no start: the search finds nothing (the solver then keeps its pose)."""
+    from dmais_pipe.pose.solver import kernel
+
+    refined = []
+    monkeypatch.setattr(fallback, "refine_pose", lambda *args, **kwargs: refined.append(1))
+    origins, directions, points, _, _ = narrow_camera_scene(np.random.default_rng(4), 1.0, n=10)
+    _, stats, unit = _problem(origins, directions, points)
+    pose = solve_generalized_pose(origins, directions, points, fallback=False)
+    found = fallback.search(origins, unit, points, stats, pose.candidates.R, pose.candidates.in_front,
+                            certify=lambda R: kernel().certify(stats.H, stats.g, stats.c, R), budget_s=0.0)
+    assert found is None and not refined

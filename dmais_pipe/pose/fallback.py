@@ -28,12 +28,13 @@ objfun itself (`descend`: damped Newton on the residuals summed exactly, which t
 cannot resolve at 0.5 deg). The answer is the least cost among them with at least half of the
 points in front (the solver's rule), and whether the dual certifies it.
 
-Time budget: no LM refinement starts after TIME_BUDGET_S (30 ms) from the start of `search`; the
-refinement under way and the descent of the minima found finish (bounded by LM_ITERATIONS and
-DESCENT_ITERATIONS steps). The starts come in the order above, so a search cut short has tried
-the most promising. On the 2-core development machine one search of 4-10 points takes ~2-5 ms
-(`dmais bench pose`'s fallback rows, `dmais bench pose-hard`); the budget binds only under load
-or with many points.
+Time budget: no LM refinement starts after TIME_BUDGET_S (30 ms) of the calling thread's CPU time
+from the start of `search`; the refinement under way and the descent of the minima found finish
+(bounded by LM_ITERATIONS and DESCENT_ITERATIONS steps). CPU time, not wall time: a busy machine
+delays a search but does not change its result. The starts come in the order above, so a search
+cut short has tried the most promising. On the 2-core development machine one search of 4-10
+points takes ~3 ms (`dmais bench pose`'s fallback rows, `dmais bench pose-hard`); the budget
+binds with many points or many candidates.
 """
 
 from __future__ import annotations
@@ -51,7 +52,7 @@ from ..geometry import rotation_from_cayley, skew
 from .refine import refine_pose
 from .statistics import PoseStatistics
 
-#: Wall-clock budget of one `search` (seconds; module docstring).
+#: Budget of one `search`, seconds of the calling thread's CPU time (module docstring).
 TIME_BUDGET_S = 0.03
 #: Levenberg-Marquardt iterations per start.
 LM_ITERATIONS = 50
@@ -316,15 +317,16 @@ def search(v: np.ndarray, f: np.ndarray, M: np.ndarray, stats: PoseStatistics, c
 
     v, f (unit), M: checked correspondences (n, 3); stats: their statistics; candidates (k, 3, 3)
     and fronts (k,): the template's; certify(R (3, 3)) -> bool: the dual certificate for these
-    statistics; prior: (3, 3) rig_from_world or None; budget_s: no refinement starts after it.
+    statistics; prior: (3, 3) rig_from_world or None; budget_s: no refinement starts after this
+    much of the thread's CPU time.
     The sampled starts are tried only when the others end without a certified pose.
     """
-    begin = time.perf_counter()
+    begin, cpu_begin = time.perf_counter(), time.thread_time()
     problem = _Problem(v, f, M - stats.centroid, stats)
     basins: list[np.ndarray] = []
     best = None
     for phase in starts(problem, candidates, fronts, prior):
-        new = _refine_starts(problem, phase, basins, begin + budget_s)
+        new = _refine_starts(problem, phase, basins, cpu_begin + budget_s)
         if new:
             best = _least_front_facing(problem, descend(problem, np.array(new)), best)
         if best is not None and certify(np.ascontiguousarray(best[0])):
@@ -339,12 +341,12 @@ def search(v: np.ndarray, f: np.ndarray, M: np.ndarray, stats: PoseStatistics, c
 
 def _refine_starts(problem: _Problem, queue: list[np.ndarray], basins: list[np.ndarray],
                    deadline: float) -> list[np.ndarray]:
-    """LM from the starts of queue until it is empty or the deadline (perf_counter) has passed:
+    """LM from the starts of queue until it is empty or the deadline (thread_time) has passed:
     the new distinct minima (3, 3) with most points in front (every new minimum is appended to
     basins). A minimum with most points behind is followed by LM from its mirror (planar points),
     once: for a rig whose cameras are apart the mirror is no exact counterpart."""
     new, queue = [], [(R, False) for R in queue]
-    while queue and time.perf_counter() < deadline:
+    while queue and time.thread_time() < deadline:
         start, mirrored = queue.pop(0)
         R = _refined(problem, start)
         if R is None or _known(R, basins):
