@@ -5,18 +5,23 @@ renderer's textured ground), each of a given apparent size, foreshortened by a g
 random axis, randomly rolled, of random polarity; the truth is the projection of each marker's
 centre. Image formation (blur, noise, and the aerial effects of `RenderSettings`) is the
 simulator's own `render_image`.
+
+`textured_scene`: a 12 MP image (TEXTURE_CAMERA) of ten markers of 30-500 px on band-limited
+random ground (white noise blurred, as grass or gravel in sun), the boards painted by the
+renderer's `coverage_image`.
 """
 
 from __future__ import annotations
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..camera import Camera
 from ..geometry import Rigid3
-from ..sim.render import MarkerBoard, RenderSettings, render_image
+from ..sim.render import MarkerBoard, RenderSettings, coverage_image, render_image
 
 CAMERA = Camera(2000.0, 2000.0, 319.7, 239.4, 0.0, 640, 480)
 POSE = Rigid3.identity()
@@ -66,3 +71,49 @@ def starts(truth: np.ndarray, rng: np.random.Generator, low: float = 0.3, high: 
     angle = rng.uniform(0, 2 * np.pi, len(truth))
     radius = rng.uniform(low, high, len(truth))
     return truth + radius[:, None] * np.column_stack([np.cos(angle), np.sin(angle)])
+
+
+TEXTURE_CAMERA = Camera(8000.0, 8000.0, 1999.5, 1499.5, 0.0, 4000, 3000)
+GROUND_DN = 110.0  # mean of the textured ground
+TEXTURE_SLOTS = np.array([[400.0 + 800.0 * i, 750.0 + 1500.0 * j] for j in range(2) for i in range(5)])
+
+
+def ground_texture(shape: tuple[int, int], rng: np.random.Generator, std_dn: float, blur_px: float,
+                   optical_blur_px: float) -> np.ndarray:
+    """(h, w) float32 zero-mean ground texture to paint before the optical blur `optical_blur_px`:
+    white noise blurred so that the image shows it blurred by `blur_px` in all (>= the optical
+    blur) with standard deviation `std_dn`."""
+    texture = rng.standard_normal(shape, dtype=np.float32)
+    extra = np.sqrt(max(blur_px**2 - optical_blur_px**2, 0.0))
+    if extra > 0:
+        texture = cv2.GaussianBlur(texture, (0, 0), extra)
+    seen = cv2.GaussianBlur(texture, (0, 0), optical_blur_px) if optical_blur_px > 0 else texture
+    texture *= np.float32(std_dn / max(float(seen.std()), 1e-12))
+    return texture
+
+
+def textured_scene(rng: np.random.Generator, texture_dn: float, texture_blur_px: float, blur_px: float = 0.8,
+                   noise_dn: float = 2.0, sizes_px: tuple[float, float] = (30.0, 500.0), max_tilt_deg: float = 45.0,
+                   camera: Camera = TEXTURE_CAMERA, slots: np.ndarray = TEXTURE_SLOTS):
+    """(image (h, w) uint8, truth (n, 2)) of one marker per slot (n, 2) (jittered by up to 100 px;
+    size log-uniform in `sizes_px`, foreshortened by up to `max_tilt_deg`, random roll and
+    polarity, levels 35 / 205 DN scaled by 1 +- 0.1) on ground of mean GROUND_DN and texture
+    `texture_dn` std blurred by `texture_blur_px` (`ground_texture`), all under a Gaussian optical
+    blur `blur_px` and read noise `noise_dn`."""
+    boards = []
+    for slot in slots:
+        size = float(np.exp(rng.uniform(*np.log(sizes_px))))
+        boards.append(marker_board(slot + rng.uniform(-100, 100, 2), size, rng.uniform(0, max_tilt_deg),
+                                   rng.uniform(-np.pi, np.pi), rng.uniform(0, np.pi), int(rng.choice([-1, 1])),
+                                   camera))
+    factors = np.clip(1.0 + 0.1 * rng.standard_normal(len(boards)), 0.7, 1.3)
+    levels = np.column_stack([35.0 * factors, 205.0 * factors])
+    flat = RenderSettings(background_mean=0.0)
+    painted = coverage_image(camera, POSE, boards, flat, levels)
+    ground = coverage_image(camera, POSE, boards, replace(flat, background_mean=1.0), np.zeros((len(boards), 2)))
+    image = ground * (GROUND_DN + ground_texture(ground.shape, rng, texture_dn, texture_blur_px, blur_px)) + painted
+    if blur_px > 0:
+        image = cv2.GaussianBlur(image, (0, 0), blur_px, borderType=cv2.BORDER_REFLECT)
+    image += rng.normal(0.0, noise_dn, image.shape).astype(np.float32)
+    truth = np.concatenate([camera.project(POSE.apply(b.corners())) for b in boards] or [np.zeros((0, 2))])
+    return np.clip(image + 0.5, 0, 255).astype(np.uint8), truth

@@ -1,7 +1,7 @@
-"""`dmais bench markers --suite regimes|effects|photos|all`: print the tables and write their CSVs.
+"""`dmais bench markers --suite regimes|effects|photos|texture|all`: print the tables and write their CSVs.
 
-CSV paths: beside `csv` (e.g. reports/bench/markers.csv), markers_regimes.csv, markers_effects.csv
-and markers_photos.csv.
+CSV paths: beside `csv` (e.g. reports/bench/markers.csv), markers_regimes.csv, markers_effects.csv,
+markers_photos.csv and markers_texture.csv.
 """
 
 from __future__ import annotations
@@ -14,6 +14,7 @@ from ..files import write_csv_atomic
 from .marker_effects import bench_effects
 from .marker_photos import bench_photos
 from .marker_regimes import bench_regimes
+from .marker_texture import bench_texture
 
 
 def _print(title: str, frame: pd.DataFrame, path: Path) -> None:
@@ -25,7 +26,7 @@ def _print(title: str, frame: pd.DataFrame, path: Path) -> None:
 
 
 def run_suite(suite: str, csv, seed: int = 0, images: int | None = None) -> dict[str, pd.DataFrame]:
-    """Run one suite ('regimes', 'effects', 'photos') or 'all'; returns the tables by suite name."""
+    """Run one suite ('regimes', 'effects', 'photos', 'texture') or 'all'; returns the tables by suite name."""
     base = Path(csv)
     out = {}
     if suite in ("regimes", "all"):
@@ -43,4 +44,9 @@ def run_suite(suite: str, csv, seed: int = 0, images: int | None = None) -> dict
         out["photos"] = bench_photos()
         _print("real chessboard photographs: residual to a camera model fitted to each refiner's corners",
                out["photos"], base.with_name(base.stem + "_photos.csv"))
+    if suite in ("texture", "all"):
+        out["texture"] = bench_texture(images=images or 2, seed=seed)
+        _print("detection on textured ground (12 MP, 10 markers of 30-500 px each; last row: all cells)",
+               out["texture"], base.with_name(base.stem + "_texture.csv"))
+        print(f"cells meeting the target: {int(out['texture']['ok'].iloc[:-1].sum())} / {len(out['texture']) - 1}\n")
     return out
