@@ -21,6 +21,13 @@
    its fit poor, ASYMMETRIC_REASONS, a shadow edge near it is the likely cause, and the fit with
    the edge in the model has a second go), the rejection of detections less
    certain than MAX_SIGMA_PX (UNCERTAIN), and de-duplication.
+4. Textured ground (`ground_texture_like`): the contrast threshold stops at MIN_CONTRAST so that
+   markers in the shade are found on gravel and grass, but there the ground itself forms X's of
+   that contrast: saddles of its texture, clean over the first rings only (scores 0.25-0.58 on
+   texture of 25-40 DN blurred by 0.8-2.5 px, contrast up to 13 x the clutter). An X whose
+   contrast is below TEXTURE_FACTOR x the clutter must score at least TEXTURE_MIN_SCORE, stay a
+   clean X to 10 px (markers of 30 px and more seen at up to 45 deg score >= 0.87 there), else it
+   is rejected (TEXTURE).
 """
 
 from __future__ import annotations
@@ -49,6 +56,13 @@ DUPLICATE_PX = 2.0
 MAX_SIGMA_PX = 0.1  # px: detections less certain than this are rejected (UNCERTAIN)
 UNCERTAIN = "uncertain for a detection (sigma > 0.1 px)"
 ASYMMETRIC_REASONS = (ASYMMETRIC, "poor fit", NO_CLEAN_X)  # refinement failures a shadow edge can cause
+# Textured ground (`ground_texture_like`). Measured on white noise blurred by 0.8-2.5 px, 25-40 DN,
+# ~1400 false detections: their contrast reached 13.2 x the clutter, their score 0.58; the markers
+# of the effects benchmark stay >= 24 x the clutter (those of 20 px score down to 0.33 there), the
+# markers of >= 30 px on that texture score >= 0.87. Both limits lie between, ~1.35 x from either side.
+TEXTURE_FACTOR = 18.0  # an X's contrast below this x the clutter is within what the texture forms
+TEXTURE_MIN_SCORE = MIN_QUALITY  # ... and needs a score of a clean X (quality MIN_QUALITY) to 10 px
+TEXTURE = f"within the ground texture (contrast < {TEXTURE_FACTOR:g} x clutter, score < {TEXTURE_MIN_SCORE:g})"
 
 
 def _empty() -> pd.DataFrame:
@@ -86,7 +100,31 @@ def _tiles(level: np.ndarray, size: int = 80, count: int = 4) -> list[np.ndarray
 def contrast_threshold(level: np.ndarray, dn_scale: float) -> float:
     """The minimum contrast (image units) for the half-resolution level (h, w) of an image whose
     8-bit DN are `dn_scale` of its units: CLUTTER_FACTOR x its clutter within the bounds."""
-    return float(np.clip(CLUTTER_FACTOR * clutter(level), MIN_CONTRAST_FLOOR * dn_scale, MIN_CONTRAST * dn_scale))
+    return _threshold(clutter(level), dn_scale)
+
+
+def _threshold(texture: float, dn_scale: float) -> float:
+    """`contrast_threshold` of an image of clutter `texture` (image units)."""
+    return float(np.clip(CLUTTER_FACTOR * texture, MIN_CONTRAST_FLOOR * dn_scale, MIN_CONTRAST * dn_scale))
+
+
+def ground_texture_like(img: np.ndarray, uv: np.ndarray, radius: np.ndarray, score: np.ndarray,
+                        texture: float) -> np.ndarray:
+    """(n,) True where the X-corners at uv (n, 2) of clean radius (n,) px and score (n,) in an
+    image (h, w) of clutter `texture` (image units) could be a saddle of the ground's texture:
+    their contrast on the probe ring (`_probe_ring`) is below TEXTURE_FACTOR x the clutter and
+    their score below TEXTURE_MIN_SCORE."""
+    if len(uv) == 0:
+        return np.zeros(0, dtype=bool)
+    _, ring_contrast = _probe_ring(img, uv, radius)
+    return (np.abs(ring_contrast) < TEXTURE_FACTOR * texture) & (score < TEXTURE_MIN_SCORE)
+
+
+def _probe_ring(img: np.ndarray, uv: np.ndarray, radius: np.ndarray):
+    """`ring_quality` (quality (n,), contrast (n,)) of the ring about uv (n, 2) well inside the
+    clean area of radius (n,) px and away from the blurred centre: half the radius, 3-12 px."""
+    probe = np.clip(0.5 * radius, 3.0, 12.0)[:, None, None]
+    return ring_quality(sample(img, uv[:, None, :] + probe * ring_offsets(1.0)[None]))
 
 
 def candidates(img: np.ndarray, min_contrast: float, level: np.ndarray | None = None) -> np.ndarray:
@@ -124,17 +162,20 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
     Markers whose X-corner is nearer than ~5 px to the image border are not found. With
     `with_rejected`, also a DataFrame u, v, reason of the X-corners found but not returned: those
     the ring tests failed because a shadow edge crosses them near the centre and whose fit with the
-    shadow edge failed its checks (SHADOW_REASON, within ~1.5 px of the corner) and the
-    verified ones the refinement rejected (e.g. a poor fit); none within DUPLICATE_PX of a detection. The corners fitted with a shadow edge
-    have the ring quality MIN_QUALITY in their score (their rings pass only with the shade divided out).
+    shadow edge failed its checks (SHADOW_REASON, within ~1.5 px of the corner), the verified ones
+    the refinement rejected (e.g. a poor fit) and those the ground's texture could form (TEXTURE,
+    `ground_texture_like`); none within DUPLICATE_PX of a detection. The corners fitted with a
+    shadow edge have the ring quality MIN_QUALITY in their score (their rings pass only with the
+    shade divided out).
     """
     raw = np.asarray(image)
     img = as_float_image(raw)
     level = cv2.pyrDown(img) if min(img.shape) >= 8 else None
+    texture = clutter(level) if level is not None else 0.0
     if min_contrast is not None or level is None:
         contrast = (MIN_CONTRAST if min_contrast is None else min_contrast) * _dn_scale(raw)
     else:
-        contrast = contrast_threshold(level, _dn_scale(raw))
+        contrast = _threshold(texture, _dn_scale(raw))
     lit_contrast = MIN_CONTRAST * _dn_scale(raw) if min_contrast is None else contrast
     (cand, radius, quality), shadowed, shade = _verified(img, contrast, min_quality, level, lit_contrast)
     rejected = pd.DataFrame({"u": shadowed[:, 0], "v": shadowed[:, 1], "reason": SHADOW_REASON})
@@ -174,6 +215,11 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
         rejected = pd.concat([rejected, vague], ignore_index=True)
         cand, radius, quality, sigma, fit = cand[sure], radius[sure], quality[sure], sigma[sure], fit[sure]
     score = np.clip(quality * np.minimum(radius, 10.0) / 10.0, 0.0, 1.0)
+    ground = ground_texture_like(img, cand, radius, score, texture)
+    if ground.any():
+        textured = pd.DataFrame({"u": cand[ground, 0], "v": cand[ground, 1], "reason": TEXTURE})
+        rejected = pd.concat([rejected, textured], ignore_index=True)
+        cand, score, sigma, fit = cand[~ground], score[~ground], sigma[~ground], fit[~ground]
     keep = _dedupe(cand, score)
     frame = pd.DataFrame({"u": cand[keep, 0], "v": cand[keep, 1], "score": score[keep], "sigma_px": sigma[keep],
                           "fit_residual": fit[keep]}).sort_values(["v", "u"], ignore_index=True)
@@ -236,9 +282,7 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
     cand, radius = cand[good], radius[good]
     if len(cand) == 0:
         return none, shadowed, shade
-    # Contrast and quality on a ring well inside the clean area, away from the blurred centre.
-    probe = np.clip(0.5 * radius, 3.0, 12.0)[:, None, None]
-    quality, ring_contrast = ring_quality(sample(img, cand[:, None, :] + probe * ring_offsets(1.0)[None]))
+    quality, ring_contrast = _probe_ring(img, cand, radius)
     good = np.abs(ring_contrast) >= contrast
     return (cand[good], radius[good], quality[good]), shadowed, shade
 
