@@ -18,8 +18,11 @@ most points behind their rays; a certified front-facing solution is the global m
 3. for planar points, per camera (rays sharing an origin) with at least 4 of them, the rotations
    of the homography from the plane to that camera's image decomposed (OpenCV's
    `decomposeHomographyMat`);
-4. only if the best pose of those is not certified by the dual: the SAMPLED_STARTS least costly
-   (quadratic form) of SAMPLED_ROTATIONS, a fixed set spread over SO(3).
+4. only if the best pose of those is not certified by the dual, and no homography of all the
+   points (one camera) gave starts: the SAMPLED_STARTS least costly (quadratic form) of
+   SAMPLED_ROTATIONS, a fixed set spread over SO(3).
+
+Starts within DUPLICATE_DISTANCE of an earlier one are dropped.
 
 Each start is refined by Levenberg-Marquardt on the angular residuals (`refine.refine_pose`,
 compiled, which does not see the depths: a minimum it reaches with most points behind puts its
@@ -131,6 +134,11 @@ class _Problem:
         return bool(self.stats.point_spread[0] < PLANAR_SPREAD * self.stats.point_spread[1])
 
     @property
+    def central(self) -> bool:
+        """Whether every ray leaves the same origin (one camera)."""
+        return bool(np.all(self.v == self.v[0]))
+
+    @property
     def normal(self) -> np.ndarray:
         """(3,) the normal of the points' best-fitting plane, world frame."""
         return self.stats.point_axes[:, 0]
@@ -231,7 +239,7 @@ def flip(problem: _Problem, R: np.ndarray) -> np.ndarray | None:
     dot = float(n @ s)
     if abs(dot) < 1e-3 * float(np.sqrt(s @ s)):
         return None
-    return _cayley(np.array([n[1] * s[2] - n[2] * s[1], n[2] * s[0] - n[0] * s[2], n[0] * s[1] - n[1] * s[0]]) / dot) @ R
+    return _cayley(_cross(n, s) / dot) @ R
 
 
 def _cayley(q: np.ndarray) -> np.ndarray:
@@ -255,10 +263,8 @@ def homography_rotations(problem: _Problem) -> list[np.ndarray]:
     axes = problem.stats.point_axes * np.sign(np.linalg.det(problem.stats.point_axes))
     shift = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]])
     plane = problem.centred @ axes[:, 1:]
-    _, camera_of = np.unique(problem.v, axis=0, return_inverse=True)
     rotations = []
-    for camera in np.unique(camera_of):
-        rows = camera_of.reshape(-1) == camera
+    for rows in _cameras(problem):
         if rows.sum() < 4:
             continue
         C = _frame_along(problem.f[rows].mean(axis=0))
@@ -273,12 +279,25 @@ def homography_rotations(problem: _Problem) -> list[np.ndarray]:
     return rotations
 
 
+def _cameras(problem: _Problem) -> list[np.ndarray]:
+    """Masks (n,) of the rays of each camera (the rays sharing an origin)."""
+    if problem.central:
+        return [np.ones(len(problem.v), bool)]
+    _, camera_of = np.unique(problem.v, axis=0, return_inverse=True)
+    return [camera_of.reshape(-1) == camera for camera in range(camera_of.max() + 1)]
+
+
 def _frame_along(axis: np.ndarray) -> np.ndarray:
     """A rotation (3, 3) whose last row is the unit vector along axis (3,)."""
     z = axis / np.linalg.norm(axis)
-    x = np.cross(np.eye(3)[np.argmin(np.abs(z))], z)
+    x = _cross(np.eye(3)[np.argmin(np.abs(z))], z)
     x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z])
+    return np.stack([x, _cross(z, x), z])
+
+
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a x b of two vectors (3,) (numpy's cross costs more than the arithmetic here)."""
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
 def starts(problem: _Problem, candidates: np.ndarray, fronts: np.ndarray,
@@ -297,10 +316,41 @@ def starts(problem: _Problem, candidates: np.ndarray, fronts: np.ndarray,
             front = problem.front(prior)
             found.extend(_facing_and_flip(problem, prior if front >= 0.5 else mirror(prior, problem.normal),
                                           front >= 0.5))
-    if problem.planar:
-        found.extend(homography_rotations(problem))
+    homographies = homography_rotations(problem) if problem.planar else []
+    found = _distinct(found + homographies)
+    if homographies and problem.central:
+        return found, []  # the homography of all the points is a global (linear) estimate already
     sampled = SAMPLED_ROTATIONS[np.argsort(problem.stats.cost(SAMPLED_ROTATIONS), kind="stable")[:SAMPLED_STARTS]]
     return found, list(sampled)
+
+
+def _distinct(rotations: list[np.ndarray]) -> list[np.ndarray]:
+    """rotations (3, 3) without those within DUPLICATE_DISTANCE of an earlier one (a candidate and
+    the mirror of its twin behind the camera, for a central camera)."""
+    if not rotations:
+        return []
+    rows = np.reshape(rotations, (-1, 9))
+    near = np.sum((rows[:, None] - rows[None]) ** 2, axis=2) < DUPLICATE_DISTANCE**2
+    return [R for i, R in enumerate(rotations) if not near[i, :i].any()]
+
+
+class _RotationSet:
+    """Rotations (3, 3) stored as rows (k, 9), to tell a new one from those within
+    DUPLICATE_DISTANCE (Frobenius) of one stored."""
+
+    def __init__(self):
+        self.rows = np.empty((0, 9))
+
+    def __len__(self) -> int:
+        return len(self.rows)
+
+    def add(self, R: np.ndarray) -> bool:
+        """Store R unless it is near one stored; whether it was stored."""
+        row = R.reshape(1, 9)
+        if len(self.rows) and np.min(np.sum((self.rows - row) ** 2, axis=1)) < DUPLICATE_DISTANCE**2:
+            return False
+        self.rows = np.vstack([self.rows, row])
+        return True
 
 
 def _facing_and_flip(problem: _Problem, facing: np.ndarray, given: bool) -> list[np.ndarray]:
@@ -323,7 +373,7 @@ def search(v: np.ndarray, f: np.ndarray, M: np.ndarray, stats: PoseStatistics, c
     """
     begin, cpu_begin = time.perf_counter(), time.thread_time()
     problem = _Problem(v, f, M - stats.centroid, stats)
-    basins: list[np.ndarray] = []
+    basins = _RotationSet()
     best = None
     for phase in starts(problem, candidates, fronts, prior):
         new = _refine_starts(problem, phase, basins, cpu_begin + budget_s)
@@ -339,7 +389,7 @@ def search(v: np.ndarray, f: np.ndarray, M: np.ndarray, stats: PoseStatistics, c
                         minima=len(basins), seconds=time.perf_counter() - begin)
 
 
-def _refine_starts(problem: _Problem, queue: list[np.ndarray], basins: list[np.ndarray],
+def _refine_starts(problem: _Problem, queue: list[np.ndarray], basins: _RotationSet,
                    deadline: float) -> list[np.ndarray]:
     """LM from the starts of queue until it is empty or the deadline (thread_time) has passed:
     the new distinct minima (3, 3) with most points in front (every new minimum is appended to
@@ -349,19 +399,13 @@ def _refine_starts(problem: _Problem, queue: list[np.ndarray], basins: list[np.n
     while queue and time.thread_time() < deadline:
         start, mirrored = queue.pop(0)
         R = _refined(problem, start)
-        if R is None or _known(R, basins):
+        if R is None or not basins.add(R):
             continue
-        basins.append(R)
         if problem.front(R) >= 0.5:
             new.append(R)
         elif problem.planar and not mirrored:
             queue.insert(0, (mirror(R, problem.normal), True))
     return new
-
-
-def _known(R: np.ndarray, basins: list[np.ndarray]) -> bool:
-    """Whether R (3, 3) is within DUPLICATE_DISTANCE of one of basins (3, 3)."""
-    return any(float(np.dot(d, d)) < DUPLICATE_DISTANCE**2 for d in (R.ravel() - other.ravel() for other in basins))
 
 
 def _least_front_facing(problem: _Problem, R: np.ndarray, best: tuple | None) -> tuple | None:
