@@ -32,9 +32,12 @@ cannot resolve at 0.5 deg). The answer is the least cost among them with at leas
 points in front (the solver's rule), and whether the dual certifies it.
 
 Time budget: no LM refinement starts after TIME_BUDGET_S (30 ms) of the calling thread's CPU time
-from the start of `search`; the refinement under way and the descent of the minima found finish
-(bounded by LM_ITERATIONS and DESCENT_ITERATIONS steps). CPU time, not wall time: a busy machine
-delays a search but does not change its result. The starts come in the order above, so a search
+from the start of `search`, less Python's garbage collections meanwhile; the refinement under way
+and the descent of the minima found finish (bounded by LM_ITERATIONS and DESCENT_ITERATIONS
+steps). CPU time, not wall time, and without the collections (one of a large process took 44 ms
+in `dmais bench pose-hard`, and cut a 5 ms search short): other processes and the caller's
+allocations delay a search but do not change its result (a virtual machine's stolen time still
+counts as CPU time). The starts come in the order above, so a search
 cut short has tried the most promising. On the 2-core development machine one search of 4-10
 points takes ~3 ms (`dmais bench pose`'s fallback rows, `dmais bench pose-hard`); the budget
 binds with many points or many candidates.
@@ -42,6 +45,7 @@ binds with many points or many candidates.
 
 from __future__ import annotations
 
+import gc
 import time
 from dataclasses import dataclass
 from functools import cached_property
@@ -55,7 +59,8 @@ from ..geometry import rotation_from_cayley, skew
 from .refine import refine_pose
 from .statistics import PoseStatistics
 
-#: Budget of one `search`, seconds of the calling thread's CPU time (module docstring).
+#: Budget of one `search`, seconds of the calling thread's CPU time less garbage collections
+#: (module docstring).
 TIME_BUDGET_S = 0.03
 #: Levenberg-Marquardt iterations per start.
 LM_ITERATIONS = 50
@@ -83,6 +88,29 @@ MAX_DAMPING = 1e10
 #: by more than this fraction: the same minimum polished twice differs by the rounding of the
 #: quadratic form (~1e-4 of the cost at 0.5 deg, though mostly far less).
 IMPROVEMENT = 1e-6
+
+
+class _CollectionClock:
+    """Seconds of CPU time spent in Python's garbage collections since import (`gc.callbacks`), so
+    that they do not count against the budget."""
+
+    def __init__(self):
+        self.seconds, self._began = 0.0, 0.0
+        gc.callbacks.append(self._observe)
+
+    def _observe(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._began = time.thread_time()
+        else:
+            self.seconds += time.thread_time() - self._began
+
+
+_COLLECTIONS = _CollectionClock()
+
+
+def _search_time() -> float:
+    """The thread's CPU time less the garbage collections (seconds): the budget's clock."""
+    return time.thread_time() - _COLLECTIONS.seconds
 
 
 def _sampled_rotations() -> np.ndarray:
@@ -368,10 +396,10 @@ def search(v: np.ndarray, f: np.ndarray, M: np.ndarray, stats: PoseStatistics, c
     v, f (unit), M: checked correspondences (n, 3); stats: their statistics; candidates (k, 3, 3)
     and fronts (k,): the template's; certify(R (3, 3)) -> bool: the dual certificate for these
     statistics; prior: (3, 3) rig_from_world or None; budget_s: no refinement starts after this
-    much of the thread's CPU time.
+    much of the thread's CPU time (less garbage collections).
     The sampled starts are tried only when the others end without a certified pose.
     """
-    begin, cpu_begin = time.perf_counter(), time.thread_time()
+    begin, cpu_begin = time.perf_counter(), _search_time()
     problem = _Problem(v, f, M - stats.centroid, stats)
     basins = _RotationSet()
     best = None
@@ -391,12 +419,12 @@ def search(v: np.ndarray, f: np.ndarray, M: np.ndarray, stats: PoseStatistics, c
 
 def _refine_starts(problem: _Problem, queue: list[np.ndarray], basins: _RotationSet,
                    deadline: float) -> list[np.ndarray]:
-    """LM from the starts of queue until it is empty or the deadline (thread_time) has passed:
+    """LM from the starts of queue until it is empty or the deadline (`_search_time`) has passed:
     the new distinct minima (3, 3) with most points in front (every new minimum is appended to
     basins). A minimum with most points behind is followed by LM from its mirror (planar points),
     once: for a rig whose cameras are apart the mirror is no exact counterpart."""
     new, queue = [], [(R, False) for R in queue]
-    while queue and time.thread_time() < deadline:
+    while queue and _search_time() < deadline:
         start, mirrored = queue.pop(0)
         R = _refined(problem, start)
         if R is None or not basins.add(R):
