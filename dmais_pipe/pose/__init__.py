@@ -9,12 +9,13 @@ The public solvers:
 - `solve_robust(origins, directions, points, threshold_rad)`: LO-RANSAC over gP3P samples, then
   the global solver on the inliers.
 
-The modules: `statistics` (the O(n) statistics of eq. objfun3), `generate` -> `_equations.py`
-(the sympy derivation of eq. EF6), `template` -> `_template.json` (the elimination template),
+The modules: `statistics` (the O(n) statistics of eq. objfun3), `generate` -> `_equations.py` (the
+sympy derivation of eq. EF6), `template` -> `_template.json` (the elimination template),
 `_kernels.pyx` (the compiled core), `_refine.pyx` (refinement, MSAC scoring and gP3P compiled;
-`_small.pxd` holds the small matrix helpers both cimport), `solver` (the API), `gp3p` (minimal solver), `refine`
-(Levenberg-Marquardt on angular residuals, Cramer-Rao bound), `robust`, `build_cpu` (the CPU the
-cores were built for) and `flight` (every flight frame of a dataset, for the pose stage
+`_small.pxd` holds the small matrix helpers both cimport), `solver` (the API), `gp3p` (minimal
+solver), `refine` (Levenberg-Marquardt on angular residuals, Cramer-Rao bound), `fallback` (the
+global search where the certificate fails or most points are behind), `robust`, `build_cpu` (the CPU
+the cores were built for) and `flight` (every flight frame of a dataset, for the pose stage
 `stages.pose`). Its benchmark is `bench.pose` (`dmais bench pose`).
 """
 
