@@ -90,19 +90,24 @@ def _ranges(kind: str, rows: pd.DataFrame) -> dict:
 def bench_texture(images: int = 2, seed: int = 0, stds=STDS_DN, blurs=BLURS_PX) -> pd.DataFrame:
     """One row per (texture std, texture blur) cell and an 'all' row (texture_dn NaN) of their
     totals; `ok`: recall 1 and at most MAX_FALSE_PER_IMAGE false detections in every image."""
-    rows = [measure_cell(std, blur, images, cell_seed(seed, k)) for k, (std, blur) in enumerate(itertools.product(stds, blurs))]
-    frame = pd.DataFrame(rows)
-    found = frame["found"].sum()
-    total = {"texture_dn": np.nan, "texture_blur_px": np.nan, "images": int(frame["images"].sum()),
-             "n_true": int(frame["n_true"].sum()), "found": int(found), "recall": float(found / frame["n_true"].sum()),
-             "false_per_image": float((frame["false_per_image"] * frame["images"]).sum() / frame["images"].sum()),
-             "false_max": int(frame["false_max"].max()),
-             "rms_px": float(np.sqrt((frame["rms_px"] ** 2 * frame["found"]).sum() / max(found, 1))), "max_px": float(frame["max_px"].max()),
-             "true_score_min": frame["true_score_min"].min(), "true_score_max": frame["true_score_max"].max(),
-             "true_sigma_min": frame["true_sigma_min"].min(), "true_sigma_max": frame["true_sigma_max"].max(),
-             "false_score_min": frame["false_score_min"].min(), "false_score_max": frame["false_score_max"].max(),
-             "false_sigma_min": frame["false_sigma_min"].min(), "false_sigma_max": frame["false_sigma_max"].max(),
-             "detect_s": float((frame["detect_s"] * frame["images"]).sum() / frame["images"].sum())}
-    frame = pd.concat([frame, pd.DataFrame([total])], ignore_index=True)
+    cells = itertools.product(stds, blurs)
+    frame = pd.DataFrame([measure_cell(std, blur, images, cell_seed(seed, k)) for k, (std, blur) in enumerate(cells)])
+    frame = pd.concat([frame, pd.DataFrame([_total(frame)])], ignore_index=True)
     frame["ok"] = (frame["recall"] >= 1.0) & (frame["false_max"] <= MAX_FALSE_PER_IMAGE)
     return frame
+
+
+def _total(frame: pd.DataFrame) -> dict:
+    """The 'all' row of the cells' rows `frame`."""
+    found, images = frame["found"].sum(), frame["images"].sum()
+    total = {"texture_dn": np.nan, "texture_blur_px": np.nan, "images": int(images),
+             "n_true": int(frame["n_true"].sum()), "found": int(found), "recall": float(found / frame["n_true"].sum()),
+             "false_per_image": float((frame["false_per_image"] * frame["images"]).sum() / images),
+             "false_max": int(frame["false_max"].max()),
+             "rms_px": float(np.sqrt((frame["rms_px"] ** 2 * frame["found"]).sum() / max(found, 1))),
+             "max_px": float(frame["max_px"].max())}
+    for kind, name in itertools.product(("true", "false"), ("score", "sigma")):
+        total[f"{kind}_{name}_min"] = frame[f"{kind}_{name}_min"].min()
+        total[f"{kind}_{name}_max"] = frame[f"{kind}_{name}_max"].max()
+    total["detect_s"] = float((frame["detect_s"] * frame["images"]).sum() / images)
+    return total
