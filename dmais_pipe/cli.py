@@ -325,11 +325,13 @@ def _parser() -> argparse.ArgumentParser:
     bench_markers.add_argument("--rig", type=Path, help="rig.json used to identify flight markers (e.g. truth/rig.json)")
     bench_markers.add_argument("--csv", type=Path, default=Path("reports/bench/markers.csv"),
                                help="output table (default: %(default)s)")
-    bench_markers.add_argument("--suite", choices=["dataset", "regimes", "effects", "photos", "texture", "all"], default="dataset",
-                               help="dataset: the rendered dataset; regimes / effects / photos: the refinement grid, "
-                                    "the aerial-effects grid, the real chessboard photographs (CSV beside --csv)")
+    bench_markers.add_argument("--suite", choices=["dataset", "regimes", "effects", "photos", "texture", "all"],
+                               default="dataset",
+                               help="dataset: the rendered dataset; regimes / effects / photos / texture: the refinement "
+                                    "grid, the aerial-effects grid, the real chessboard photographs, false detections "
+                                    "on textured ground (CSV beside --csv)")
     bench_markers.add_argument("--seed", type=int, default=0, help="seed of the synthetic suites (default: %(default)s)")
-    bench_markers.add_argument("--images", type=int, help="images per cell (regimes: 4) or per effect (effects: 10)")
+    bench_markers.add_argument("--images", type=int, help="images per cell (regimes: 4, texture: 2) or per effect (effects: 10)")
     bench_markers.set_defaults(run=_cmd_bench_markers)
     bench_pose = benches.add_parser(
         "pose", help="pose solver time vs points (tab:time_points), batch and pose-stage throughput")
