@@ -374,6 +374,32 @@ def test_ransac_dmais_rig_with_40_percent_outliers(seed):
     assert result.n_iterations < 200
 
 
+
+def test_ransac_keeps_its_pose_when_a_later_round_has_none():
+    """The final solver raising PoseError on a re-selected set (the global solver does when no pose
+    puts most points in front) ends the re-selection with the set it had, instead of failing."""
+    rng = np.random.default_rng(31)
+    v, f, M, R, t, outliers = dmais_scene(rng, dmais_rig(), per_camera=30, noise_px=1.0, outlier_ratio=0.4)
+    calls = []
+
+    def fails_after_the_first(origins, directions, points):
+        calls.append(len(points))
+        if len(calls) > 1:
+            raise PoseError("no pose puts most points in front")
+        return refine_from_minimal_test_double(origins, directions, points)
+
+    # a threshold of 2 noise sigmas leaves true points just outside it: the widened set differs
+    result = ransac_generalized_pose(v, f, M, 2.0 / FOCAL_PX, final_solver=fails_after_the_first)
+    assert len(calls) >= 2  # the test reached a second round
+    assert rotation_error(result.R, R) < 1e-4
+    assert result.final is not None and result.n_inliers == int(result.inliers.sum())
+
+    def fails_at_once(origins, directions, points):
+        raise PoseError("no pose puts most points in front")
+
+    with pytest.raises(PoseError, match="most points in front"):
+        ransac_generalized_pose(v, f, M, 5.0 / FOCAL_PX, final_solver=fails_at_once)
+
 def test_ransac_generic_rig_with_40_percent_outliers():
     rng = np.random.default_rng(32)
     v, f, M, R, t = generalized_scene(rng, n=100, n_cameras=4, depth=(4.0, 20.0))

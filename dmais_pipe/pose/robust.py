@@ -239,7 +239,12 @@ def _final(v, f, M, best: _Hypothesis, threshold, final_solver, n_iterations) ->
     optimisation, for a correct point that the inlier-only solve leaves just outside)."""
     solved, kept = best.inliers, None
     for _ in range(FINAL_ROUNDS):
-        result = final_solver(v[solved], f[solved], M[solved])
+        try:
+            result = final_solver(v[solved], f[solved], M[solved])
+        except PoseError:
+            if kept is None:
+                raise
+            break  # a re-selected or widened set with no pose (e.g. most points behind) ends the search
         R, t = _pose_of(result)
         current = _score(v, f, M, R, t, threshold)
         if kept is not None and not current.cost < kept[1].cost:
