@@ -21,6 +21,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from dmais_pipe.bench.pose import FOCAL_PX, HEIGHT, WIDTH, dmais_cam_from_rig
+from dmais_pipe.bench.pose_hard import multistart_minimum as reference_minimum
 
 
 def random_rotation(rng, max_angle=np.deg2rad(180)) -> np.ndarray:
@@ -107,82 +108,18 @@ def narrow_camera_scene(rng, fov_deg, n=10, noise_px=0.3):
 # ---------------------------------------------------------------- reference global minimum (slow)
 
 
-def projected_residuals(origins, directions, points, R):
-    """Residuals [f]x (R M + t(R) - v), (S, 3n), and t(R) (S, 3), with t(R) solved directly per
-    rotation R (S, 3, 3) from the 3 x 3 normal equations; origins, directions (unit), points (n, 3)."""
-    Q = np.eye(3) - directions[:, :, None] * directions[:, None, :]  # (n, 3, 3)
-    X = np.einsum("sij,nj->sni", R, points)
-    rhs = np.einsum("nij,snj->si", Q, origins - X)
-    t = np.linalg.solve(Q.sum(axis=0), rhs.T).T  # (S, 3)
-    return np.cross(directions, X + t[:, None, :] - origins).reshape(len(R), -1), t
-
-
-def _cross_matrices(x):
-    """[x]x (..., 3, 3) of vectors x (..., 3)."""
-    out = np.zeros(x.shape + (3,))
-    out[..., 0, 1], out[..., 0, 2], out[..., 1, 2] = -x[..., 2], x[..., 1], -x[..., 0]
-    return out - np.swapaxes(out, -1, -2)
-
-
-def _projected_jacobian(directions, points, R):
-    """Jacobian (S, 3n, 3) of `projected_residuals` for R <- exp([w]x) R at w = 0, R (S, 3, 3).
-
-    With X_i = R M_i, dX_i = -[X_i]x w, and t(R) = S^-1 sum_j Q_j (v_j - X_j) (S = sum_j Q_j,
-    Q_j = I - f_j f_j^T) moves by T w, T = S^-1 sum_j Q_j [X_j]x; so r_i = [f_i]x (X_i + t - v_i)
-    moves by [f_i]x (T - [X_i]x) w.
-    """
-    Q = np.eye(3) - directions[:, :, None] * directions[:, None, :]  # (n, 3, 3)
-    X = _cross_matrices(np.einsum("sij,nj->sni", R, points))  # (S, n, 3, 3)
-    T = np.linalg.solve(Q.sum(axis=0), np.einsum("nij,snjk->sik", Q, X))  # (S, 3, 3)
-    J = np.einsum("nij,snjk->snik", _cross_matrices(directions), T[:, None] - X)
-    return J.reshape(len(R), -1, 3)
-
-
 def direct_cost(origins, directions, points, R, t):
     """Eq. objfun at (R (3, 3), t (3,)), summed over the rays; points (n, 3) as given."""
     return float(np.sum(np.cross(directions, points @ R.T + t - origins) ** 2))
 
 
 def multistart_minimum(origins, directions, points, n_random=16, iterations=60, seed=0, starts=()):
-    """Minimum of eq. objfun over SO(3) by LM from 24 axis-aligned + n_random random starts and the
-    rotations of starts (k, 3, 3) (e.g. a scene's true rotation), vectorized.
-
-    Independent of the solver: variable projection with t(R) from the 3x3 normal equations and its
-    exact Jacobian (`_projected_jacobian`), on the world points centred on their mean (t is free,
-    so the cost is unchanged, and UTM-sized coordinates do not drown the residuals of a narrow
-    camera in rounding). Returns (cost, R (3, 3), t (3,)) of the least direct cost found among the
-    minima that put at least half of the points in front of their rays, the solver's rule (eq.
-    objfun cannot tell a pose from its mirror behind the cameras, which over flat ground is often
-    a little cheaper); (inf, None, None) if no minimum does.
-    """
-    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
-    centroid = points.mean(axis=0)
-    centred = points - centroid
-    rng = np.random.default_rng(seed)
-    R = np.concatenate([Rotation.create_group("O").as_matrix(), Rotation.random(n_random, rng).as_matrix(),
-                        np.reshape(starts, (-1, 3, 3))])
-    residual, _ = projected_residuals(origins, directions, centred, R)
-    cost = np.sum(residual**2, axis=1)
-    damping = np.full(len(R), 1e-3)
-    for _ in range(iterations):
-        J = _projected_jacobian(directions, centred, R)
-        JtJ = np.einsum("sra,srb->sab", J, J)
-        g = np.einsum("sra,sr->sa", J, residual)
-        diag = np.einsum("saa->sa", JtJ)
-        step = -np.linalg.solve(JtJ + damping[:, None, None] * (diag[:, :, None] * np.eye(3) + 1e-30), g[:, :, None])[:, :, 0]
-        trial = Rotation.from_rotvec(step).as_matrix() @ R
-        trial_residual, _ = projected_residuals(origins, directions, centred, trial)
-        trial_cost = np.sum(trial_residual**2, axis=1)
-        better = trial_cost < cost
-        R[better], residual[better], cost[better] = trial[better], trial_residual[better], trial_cost[better]
-        damping = np.where(better, damping / 3, damping * 4)
-    _, t = projected_residuals(origins, directions, centred, R)
-    depth = np.einsum("snj,nj->sn", np.einsum("sij,nj->sni", R, centred) + t[:, None, :] - origins, directions)
-    in_front = np.mean(depth > 0, axis=1) >= 0.5
-    if not in_front.any():
-        return np.inf, None, None
-    best = np.flatnonzero(in_front)[np.argmin(cost[in_front])]
-    return float(cost[best]), R[best], t[best] - R[best] @ centroid
+    """Minimum of eq. objfun over SO(3) by LM from 24 axis-aligned + n_random random starts (seeded)
+    and the rotations of starts (k, 3, 3) (e.g. a scene's true rotation): `bench.pose_hard`'s
+    multi-start reference, independent of the solver. Returns (cost, R (3, 3), t (3,)) of the least
+    cost among the minima that put at least half of the points in front of their rays; (inf, None,
+    None) if no minimum does."""
+    return reference_minimum(origins, directions, points, np.random.default_rng(seed), n_random, iterations, starts)
 
 
 def centred_cost(origins, directions, points, R, t):

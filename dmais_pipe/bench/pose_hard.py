@@ -182,15 +182,29 @@ def _projected_jacobian(directions, centred, R) -> np.ndarray:
 
 def multistart_reference(scene: Scene, rng, n_random: int = REFERENCE_RANDOM_STARTS,
                          iterations: int = REFERENCE_ITERATIONS) -> tuple[float, np.ndarray | None, np.ndarray | None]:
+    """`multistart_minimum` of the scene, its true rotation among the starts (module docstring)."""
+    return multistart_minimum(scene.origins, scene.directions, scene.points, rng, n_random, iterations,
+                              starts=scene.R[None])
+
+
+def multistart_minimum(origins, directions, points, rng, n_random: int, iterations: int, starts=()
+                       ) -> tuple[float, np.ndarray | None, np.ndarray | None]:
     """The least cost of eq. objfun (cost, R (3, 3), t (3,)) among the local minima that LM reaches
-    from the axis-aligned, n_random random and the true rotation and that put at least half of the
-    points in front of their rays; (inf, None, None) if none does (module docstring)."""
-    directions = _unit(scene.directions)
-    centroid = scene.points.mean(axis=0)
-    centred = scene.points - centroid
+    from the 24 axis-aligned, n_random random (drawn from rng) and the `starts` (k, 3, 3) rotations
+    and that put at least half of the points in front of their rays (the solver's rule: eq. objfun
+    cannot tell a pose from its mirror behind the cameras); (inf, None, None) if none does.
+
+    Independent of the solver: variable projection with t(R) from the 3x3 normal equations and its
+    exact Jacobian (`_projected_jacobian`), vectorized over the starts, on the points (n, 3) centred
+    on their mean (t is free, so the cost is unchanged, and UTM-sized coordinates do not drown the
+    residuals of a narrow camera in rounding); origins, directions (n, 3).
+    """
+    directions = _unit(directions)
+    centroid = points.mean(axis=0)
+    centred = points - centroid
     R = np.concatenate([Rotation.create_group("O").as_matrix(), Rotation.random(n_random, rng).as_matrix(),
-                        scene.R[None]])
-    residual, _ = _projected(scene.origins, directions, centred, R)
+                        np.reshape(starts, (-1, 3, 3))])
+    residual, _ = _projected(origins, directions, centred, R)
     cost = np.sum(residual**2, axis=(1, 2))
     damping = np.full(len(R), 1e-3)
     for _ in range(iterations):
@@ -200,13 +214,13 @@ def multistart_reference(scene: Scene, rng, n_random: int = REFERENCE_RANDOM_STA
         damped = JtJ + damping[:, None, None] * (np.einsum("saa->sa", JtJ)[:, :, None] * np.eye(3) + 1e-30)
         step = -np.linalg.solve(damped, gradient[:, :, None])[:, :, 0]
         trial = Rotation.from_rotvec(step).as_matrix() @ R
-        trial_residual, _ = _projected(scene.origins, directions, centred, trial)
+        trial_residual, _ = _projected(origins, directions, centred, trial)
         trial_cost = np.sum(trial_residual**2, axis=(1, 2))
         better = trial_cost < cost
         R[better], residual[better], cost[better] = trial[better], trial_residual[better], trial_cost[better]
         damping = np.where(better, damping / 3, damping * 4)
-    _, t = _projected(scene.origins, directions, centred, R)
-    depth = np.einsum("snj,nj->sn", np.einsum("sij,nj->sni", R, centred) + t[:, None, :] - scene.origins, directions)
+    _, t = _projected(origins, directions, centred, R)
+    depth = np.einsum("snj,nj->sn", np.einsum("sij,nj->sni", R, centred) + t[:, None, :] - origins, directions)
     front = np.mean(depth > 0, axis=1) >= 0.5
     if not front.any():
         return np.inf, None, None
