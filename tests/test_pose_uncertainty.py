@@ -18,7 +18,7 @@ from dmais_pipe.camera import Camera
 from dmais_pipe.geometry import Rigid3, euler_zyx_rates, rotation_from_euler_zyx
 from dmais_pipe.bench.pose import HEIGHT, WIDTH, dmais_cam_from_rig, flight_dataset
 from dmais_pipe.pose.flight import COLUMNS, estimate_poses
-from dmais_pipe.pose.uncertainty import MIN_DEGREES_OF_FREEDOM, frame_noise_px, heading_pitch_roll
+from dmais_pipe.pose.uncertainty import heading_pitch_roll
 from dmais_pipe.rig import Rig
 from dmais_pipe.workspace import POSE_COLUMNS, POSE_UNCERTAINTY_COLUMNS, Workspace
 
@@ -101,7 +101,7 @@ def test_predicted_sigmas_match_the_spread_of_repeated_solves(refine):
         empirical = np.std(error[axis])
         assert abs(predicted / empirical - 1) < 0.15, (axis, predicted, empirical)
         assert abs(np.mean(error[axis])) < 0.25 * empirical  # unbiased to within the test's resolution
-    # the noise behind them is the frames' own: sum ||e||^2 / (2n - 6) estimates NOISE_PX^2
+    # the noise behind them is estimated from the frames' residuals (error_model.py)
     assert abs(np.sqrt(np.mean(poses["noise_px"] ** 2)) / NOISE_PX - 1) < 0.05
 
 
@@ -113,21 +113,6 @@ def test_the_sigmas_follow_the_frames_own_residuals():
                            calibrated_noise_px=0.1)[0]
     for column in POSE_UNCERTAINTY_COLUMNS[3:]:
         np.testing.assert_allclose(twice[column] / once[column], 2.0, rtol=0.03)
-
-
-def test_frames_too_small_for_their_own_noise_use_the_pooled_then_the_calibrated_noise():
-    rng = np.random.default_rng(3)
-    counts = np.array([10, 4, 7])  # 2n - 6 = 14, 2, 8
-    index = np.repeat(np.arange(3), counts)
-    residuals = rng.normal(size=(counts.sum(), 2)) * np.repeat([1.0, 5.0, 2.0], counts)[:, None]
-    sigma, own = frame_noise_px(residuals, index, 3, calibrated_px=0.3)
-    squares = np.array([np.sum(residuals[index == k] ** 2) for k in range(3)])
-    dof = 2 * counts - 6
-    assert list(own) == list(dof >= MIN_DEGREES_OF_FREEDOM) == [True, False, True]
-    np.testing.assert_allclose(sigma[[0, 2]], np.sqrt(squares[[0, 2]] / dof[[0, 2]]))
-    np.testing.assert_allclose(sigma[1], np.sqrt((squares[0] + squares[2]) / (dof[0] + dof[2])))
-    sigma, own = frame_noise_px(residuals[index == 1], np.zeros(4, int), 1, calibrated_px=0.3)
-    assert not own[0] and sigma[0] == 0.3
 
 
 def test_frames_csv_extras_are_carried_to_the_poses_file_unchanged(tmp_path):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -36,7 +37,8 @@ from ..rig import Rig
 from ..workspace import POSE_COLUMNS, POSE_OBSERVATION_COLUMNS, POSE_UNCERTAINTY_COLUMNS
 from .robust import solve_robust
 from .solver import solve_generalized_pose
-from .uncertainty import frame_noise_px, pose_uncertainty
+from .error_model import ErrorModel, estimate, linearised_solve
+from .uncertainty import pose_uncertainty
 
 log = logging.getLogger(__name__)
 
@@ -88,17 +90,88 @@ def solve_frame(origins: np.ndarray, directions: np.ndarray, points: np.ndarray,
     return R, t, elapsed, used, certified
 
 
+@dataclass(frozen=True)
+class FlightPoses:
+    """`solve_flight`'s result: the poses table, the per-observation table, the error model behind
+    the sigma columns of each group, and each component's variances per frame (`budget_table`)."""
+
+    table: pd.DataFrame
+    observations: pd.DataFrame
+    error_model: dict[str, ErrorModel]
+    budget: pd.DataFrame
+
+
 def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
                    robust: bool = False, refine: bool = False, groups: list[str] | None = None,
-                   threshold_px: float = ROBUST_THRESHOLD_PX, calibrated_noise_px: float = np.nan
+                   threshold_px: float = ROBUST_THRESHOLD_PX, calibrated_noise_px: float = np.nan,
+                   error_settings: dict | None = None, calibration_std: dict | None = None
                    ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """poses.csv rows (COLUMNS, then frames.csv's extra columns) for every flight frame (of `groups`,
     if given), and one row per observation of the solved frames (POSE_OBSERVATION_COLUMNS: whether
     the pose used it, with robust RANSAC's inliers at threshold_px, and its residual du, dv in px).
-
-    calibrated_noise_px: per-axis pixel noise for the uncertainty of frames too small for their
-    own estimate when no frame of the call has one (`uncertainty.frame_noise_px`).
+    The arguments as `solve_flight`'s.
     """
+    result = solve_flight(dataset, rig, observations, cameras, robust, refine, groups, threshold_px,
+                          calibrated_noise_px, error_settings, calibration_std)
+    return result.table, result.observations
+
+
+def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
+                 robust: bool = False, refine: bool = False, groups: list[str] | None = None,
+                 threshold_px: float = ROBUST_THRESHOLD_PX, calibrated_noise_px: float = np.nan,
+                 error_settings: dict | None = None, calibration_std: dict | None = None) -> FlightPoses:
+    """`estimate_poses`' tables and the error model of its sigmas (error_model.py), one per group.
+
+    Each group's model is estimated from the residuals of its frames solved with every camera of
+    the rig: its components belong to the sensor and the flight, and a subset of the cameras (one
+    alone above all) lets its solve absorb what would tell them. Per group, because a group's
+    frames share its mounting and its ground points, and so that the workflow's per-group jobs
+    give the sigmas of one run over all frames. calibrated_noise_px: the pixel noise
+    where the frames have too few observations to estimate it; error_settings {component: sigma}
+    (error_model.UNITS) fixes components; calibration_std {camera: {parameter: sigma}} the
+    calibration's standard deviations (error_model.linearised_solve).
+    """
+    solution = _solve(dataset, rig, observations, cameras, robust, refine, groups, threshold_px)
+    geometry = _geometry(dataset, rig, solution, not refine, calibration_std)
+    whole = solution if set(cameras) == set(rig.cameras) else \
+        _solve(dataset, rig, observations, list(rig.cameras), robust, refine, groups, threshold_px)
+    whole_geometry = geometry if whole is solution else _geometry(dataset, rig, whole, not refine, calibration_std)
+    table = solution.table.copy()
+    table[list(POSE_UNCERTAINTY_COLUMNS)] = np.nan
+    models, budgets = {}, []
+    for group in pd.unique(table["group"]):
+        frames = np.flatnonzero(table["group"].to_numpy() == group)
+        estimated_on = np.flatnonzero(whole.table["group"].to_numpy() == group)
+        source = whole_geometry.of_frames(estimated_on) if len(estimated_on) else geometry.of_frames(frames)
+        models[group] = estimate(source, error_settings, calibrated_noise_px)
+        uncertainty = pose_uncertainty(geometry.of_frames(frames), models[group], solution.R[frames],
+                                       solution.t[frames])
+        values = np.column_stack([uncertainty.attitude, uncertainty.sigma_position, uncertainty.sigma_attitude,
+                                  uncertainty.noise_px])
+        for name, column in zip(POSE_UNCERTAINTY_COLUMNS, values.T):
+            table.loc[frames, name] = column
+        budgets.append(budget_table(table["frame"].to_numpy()[frames], uncertainty))
+    budget = pd.concat(budgets, ignore_index=True) if budgets else pd.DataFrame()
+    return FlightPoses(_with_frame_extras(table, dataset), solution.observations, models, budget)
+
+
+@dataclass(frozen=True)
+class _Solution:
+    """The solved frames of one camera set: table (COLUMNS without the uncertainty ones), the
+    per-observation table, R (F, 3, 3), t (F, 3), and the used observations' rows of `flight`."""
+
+    table: pd.DataFrame
+    observations: pd.DataFrame
+    R: np.ndarray
+    t: np.ndarray
+    flight: FlightObservations
+    rows: np.ndarray
+    frame_of_row: np.ndarray
+
+
+def _solve(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str], robust: bool,
+           refine: bool, groups: list[str] | None, threshold_px: float) -> _Solution:
+    """Every frame (of `groups`) solved with `cameras`; frames that fail are left out with a warning."""
     flight = flight_observations_by_frame(dataset, rig, observations, cameras, groups)
     focal = _per_observation(flight.cameras, {name: rig.cameras[name].fx for name in cameras})
     R, t, ms, used, certified, failures = _solve_frames(flight, focal, robust, refine, threshold_px)
@@ -112,13 +185,23 @@ def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, camer
         log.warning("pose: %d frame(s) skipped: %s", int((~solved).sum()),
                     "; ".join(f"{flight.frames[k]} ({failures[k]})" for k in np.flatnonzero(~solved)))
     rows = solved[index]
-    table = _poses_table(dataset, rig, cameras, flight, solved, R, t, ms, certified, used, residuals, focal,
-                         not refine, calibrated_noise_px)
     per_observation = pd.DataFrame({
         "frame": flight.frames[index[rows]], "image": flight.images[rows], "camera": flight.cameras[rows],
         "point_id": flight.point_ids[rows], "u": flight.uv[rows, 0], "v": flight.uv[rows, 1], "used": used[rows],
         "du": residuals[rows, 0], "dv": residuals[rows, 1]}, columns=list(POSE_OBSERVATION_COLUMNS))
-    return table, per_observation
+    used_rows = used & rows
+    frame_of_row = (np.cumsum(solved) - 1)[index[used_rows]]
+    table = _poses_table(cameras, flight, solved, R, t, ms, certified, used_rows, frame_of_row, residuals)
+    return _Solution(table, per_observation, R[solved], t[solved], flight, used_rows, frame_of_row)
+
+
+def _geometry(dataset: Dataset, rig: Rig, solution: _Solution, object_space: bool, calibration_std):
+    """error_model.Geometry of a _Solution's used observations."""
+    flight, rows = solution.flight, solution.rows
+    return linearised_solve(rig, flight.cameras[rows], flight.uv[rows], flight.origins[rows],
+                            flight.directions[rows], flight.points[rows], solution.frame_of_row, solution.R,
+                            solution.t, solution.table["group"].to_numpy(), flight.point_ids[rows], object_space,
+                            survey_sigma(dataset, flight.point_ids[rows]), calibration_std)
 
 
 def _solve_frames(flight: FlightObservations, focal: np.ndarray, robust: bool, refine: bool,
@@ -147,21 +230,14 @@ def _solve_frames(flight: FlightObservations, focal: np.ndarray, robust: bool, r
     return R, t, ms, used, certified, failures
 
 
-def _poses_table(dataset: Dataset, rig: Rig, cameras: list[str], flight: FlightObservations, solved: np.ndarray,
-                 R, t, ms, certified, used, residuals, focal, object_space: bool, calibrated_noise_px: float
-                 ) -> pd.DataFrame:
-    """The COLUMNS of the solved frames (then frames.csv's extras), from the per-frame arrays."""
-    index = flight.frame_index
-    compact = np.cumsum(solved) - 1  # frame -> row of the solved frames
-    rows = used & solved[index]
-    frame_of_row = compact[index[rows]]
+def _poses_table(cameras: list[str], flight: FlightObservations, solved: np.ndarray, R, t, ms, certified,
+                 rows: np.ndarray, frame_of_row: np.ndarray, residuals: np.ndarray) -> pd.DataFrame:
+    """The COLUMNS of the solved frames but the uncertainty ones, from the per-frame arrays; rows
+    (N,) the used observations of solved frames, frame_of_row their row in the table."""
     R, t = R[solved], t[solved]
     n_frames = len(R)
     n_points = np.bincount(frame_of_row, minlength=n_frames)
     squares = np.bincount(frame_of_row, np.sum(residuals[rows] ** 2, axis=1), minlength=n_frames)
-    noise, own = frame_noise_px(residuals[rows], frame_of_row, n_frames, calibrated_noise_px)
-    uncertainty = pose_uncertainty(flight.origins[rows], flight.directions[rows], flight.points[rows], focal[rows],
-                                   frame_of_row, R, t, noise, own, object_space=object_space)
     q = quat_from_rotation(R)
     centre = -np.einsum("fji,fj->fi", R, t)
     columns = {"frame": flight.frames[solved], "group": flight.groups[solved],
@@ -170,10 +246,25 @@ def _poses_table(dataset: Dataset, rig: Rig, cameras: list[str], flight: FlightO
                "tx": t[:, 0], "ty": t[:, 1], "tz": t[:, 2], "x": centre[:, 0], "y": centre[:, 1], "z": centre[:, 2],
                "eps_proj_px": np.sqrt(squares / np.maximum(n_points, 1)), "time_ms": ms[solved],
                "certified": certified[solved]}
-    values = np.column_stack([uncertainty.attitude, uncertainty.sigma_position, uncertainty.sigma_attitude, noise])
-    columns.update(zip(POSE_UNCERTAINTY_COLUMNS, values.T))
-    table = pd.DataFrame(columns, columns=COLUMNS)
-    return _with_frame_extras(table, dataset)
+    return pd.DataFrame(columns, columns=COLUMNS)
+
+
+def survey_sigma(dataset: Dataset, point_ids: np.ndarray) -> np.ndarray:
+    """(N,) ground_points.csv's `sigma_m` of each point (m per axis), NaN where not given."""
+    if "sigma_m" not in dataset.ground_points.columns:
+        return np.full(len(point_ids), np.nan)
+    return pd.to_numeric(dataset.ground_points["sigma_m"], errors="coerce").reindex(point_ids).to_numpy(float)
+
+
+def budget_table(frames: np.ndarray, uncertainty) -> pd.DataFrame:
+    """One row per frame and component: its variance of x, y, z (m^2) and heading, pitch, roll (arcmin^2)."""
+    parts = []
+    for name, position in uncertainty.variance_position.items():
+        angles = uncertainty.variance_attitude[name]
+        parts.append(pd.DataFrame({"frame": frames, "component": name, **{f"var_{a}": position[:, k] for k, a in
+                                                                          enumerate("xyz")},
+                                   **{f"var_{a}": angles[:, k] for k, a in enumerate(("heading", "pitch", "roll"))}}))
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
 
 
 def _with_frame_extras(table: pd.DataFrame, dataset: Dataset) -> pd.DataFrame:

@@ -1,0 +1,536 @@
+"""The error model behind poses.csv's 1-sigma: variance components of the observations, estimated
+from the residuals of the frames solved together, and propagated to every frame's pose.
+
+Observation i (frame f, camera c, ground point p, flight group g) has the angular residual r_i
+(2,) of refine.py: the tangent-plane error, in the basis B_i (2, 3) of its observed unit ray f_i
+(rig frame), between f_i and the direction to its point. Its error at the true pose is the sum of
+independent zero-mean terms (F_i the camera's focal length in px, a_c its optical axis in the rig
+frame, R the frame's rig_from_world):
+
+    component    effect on r_i                         random variable                  one draw per
+    pixel        n_i / F_i                             n_i ~ N(0, s_px^2 I2) px         observation
+    survey       D_i dM_p, D_i = dr_i/dp R  (2, 3)     dM_p ~ N(0, s_p^2 I3) m          ground point
+    jitter       G_i w, G_i = B_i [f_i]x  (2, 3)       w ~ N(0, s_j^2 I3) rad           frame, non-reference camera
+    mounting     G_i m                                 m ~ N(0, s_m^2 I3) rad           group, non-reference camera
+    focal        h_i k, h_i = -(f_i . a_c) B_i a_c     k ~ N(0, s_k^2) (relative)       group, camera
+    calibration  C_i x  (2, 8)                         x ~ N(0, Sigma_c) (fx fy cx cy   camera, whole flight
+                                                        d, rotation) the calibration's
+
+Jitter is the camera's vibration within a frame (every point of that camera moves together),
+mounting its rotation against the calibrated rig during a group, focal its focal-length change
+(a thermal focus change, or the calibration's own focal error: both scale the image about the
+axis). The reference camera has no jitter or mounting term: the rig frame is its frame, so its
+rotation is the platform's attitude. The calibration term is fixed (rig.json's standard
+deviations); the survey term is fixed per point where ground_points.csv gives `sigma_m`, and any
+other component where the user sets it.
+
+Estimation (variance-component estimation, method of moments as Helmert's: quadratic forms of the
+residuals equated to their expectations). A frame's solve is linear in the errors e about the truth:
+its residuals are r = e - J A^-1 sum_i w_i J_i^T e_i per frame (J, w, A as uncertainty.py), so
+each statistic T_m below, a quadratic form in r, has expectation E T_m = sum_k s_k^2 D_mk. The D_mk
+are estimated by Monte Carlo trace estimation (Rademacher draws of each component through the same
+linear solve, Koch & Kusche 2002, J. Geodesy 76: 641-652), the calibration's exactly (its few
+parameters one at a time). The statistics, in pixels (s_i = F_i r_i):
+
+    T_total   sum_i ||s_i||^2
+    T_frame   per (frame, non-reference camera): the part of its residuals a rotation explains
+    T_group   per (group, non-reference camera): the part one rotation for the whole group explains
+    T_focal   per (group, camera): the part one focal change for the whole group explains
+    T_point   per (group, point) seen in 2 frames or more: the part a constant per point explains
+
+Pixel noise is what no structure explains; survey what repeats per point; jitter what moves a
+camera's points together in one frame only; mounting and focal what does so in every frame of the
+group. The system is solved for the free components with non-negative least squares; a component
+with no effect on the residuals (a rotation of a camera solved alone is absorbed by the pose) is
+not estimable and keeps its setting, or 0.
+
+Propagation: cov(omega, delta_t) of frame f = A^-1 (sum_k B_k) A^-1, B_k = the k-th component's
+covariance of sum_i w_i J_i^T e_i (correlated within a camera for jitter, mounting, focal and
+calibration, per point for survey). Correlations between frames (a point's survey error, a group's
+mounting) do not enter one frame's covariance; they make the frames' errors alike.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.optimize import nnls
+
+from ..geometry import skew
+from ..rig import Rig
+from .refine import _jacobian, inverse_normal_matrices, tangent_bases
+
+ARCMIN = np.radians(1.0 / 60.0)
+#: The components, in the order of every array here.
+COMPONENTS = ("pixel", "survey", "jitter", "mounting", "focal", "calibration")
+#: Units of ErrorModel.sigma per component (calibration: a factor on rig.json's covariance).
+UNITS = {"pixel": "px", "survey": "m", "jitter": "arcmin", "mounting": "arcmin", "focal": "ppm",
+         "calibration": "x"}
+_TO_SI = {"pixel": 1.0, "survey": 1.0, "jitter": ARCMIN, "mounting": ARCMIN, "focal": 1e-6, "calibration": 1.0}
+#: Fewest residual degrees of freedom (2n - 6 per frame, summed) to estimate any component.
+MIN_DEGREES_OF_FREEDOM = 4
+#: Monte Carlo draws of each component for the expectations (more for small problems).
+MIN_DRAWS, MAX_DRAWS, DRAW_OBSERVATIONS = 8, 64, 200_000
+#: A component is not estimable where the frames' solves absorb all but this share of its effect
+#: (E ||residual||^2 / E ||error||^2), as a single camera's solve absorbs a rotation of it.
+MIN_VISIBLE = 0.02
+#: A component estimated below this many of its standard errors is taken as absent (not significant).
+SIGNIFICANCE = 2.0
+#: Floor of a statistic in the estimation's relative weights, as a share of their total.
+MIN_EFFECT = 1e-6
+#: The calibration parameters of one camera, in the order of the columns of C_i.
+CALIBRATION_PARAMETERS = ("fx", "fy", "cx", "cy", "d", "rx", "ry", "rz")
+
+
+@dataclass(frozen=True)
+class ErrorModel:
+    """One standard deviation per component (COMPONENTS, in UNITS), and how each was obtained:
+    `source` 'estimated', 'set' (given by the user or fixed by the data, as the calibration's),
+    or 'not estimable' (0 or its setting: no effect on the residuals). dof: the residual degrees of
+    freedom the estimate used."""
+
+    sigma: dict[str, float]
+    source: dict[str, str]
+    dof: int = 0
+
+    def si(self, name: str) -> float:
+        """The component's sigma in SI units (px, m, rad, relative, factor)."""
+        return self.sigma[name] * _TO_SI[name]
+
+
+@dataclass
+class Geometry:
+    """The linearised solve of F frames from N observations (see the module docstring).
+
+    J (N, 2, 6), weight (N,): refine.py's Jacobian about each frame's point centroid and the
+    solve's weights; A_inverse (F, 6, 6); residual (N, 2) rad; focal (N,) px; frame (N,) ascending,
+    starts (F,) its first rows; camera (N,) int; reference (N,) bool; group (N,) int; point (N,)
+    int; survey (N, 2, 3) D_i; rotation (N, 2, 3) G_i; focal_effect (N, 2) h_i; calibration
+    (N, 2, 8) C_i (per CALIBRATION_PARAMETERS, zero where rig.json has no standard deviation);
+    calibration_sigma (n_cameras, 8); point_sigma (N,) m, NaN where not given."""
+
+    J: np.ndarray
+    weight: np.ndarray
+    A_inverse: np.ndarray
+    residual: np.ndarray
+    focal: np.ndarray
+    frame: np.ndarray
+    starts: np.ndarray
+    camera: np.ndarray
+    reference: np.ndarray
+    group: np.ndarray
+    point: np.ndarray
+    survey: np.ndarray
+    rotation: np.ndarray
+    focal_effect: np.ndarray
+    calibration: np.ndarray
+    calibration_sigma: np.ndarray
+    point_sigma: np.ndarray
+    t_centred: np.ndarray = field(repr=False, default=None)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.starts)
+
+    @property
+    def dof(self) -> int:
+        return int(2 * len(self.frame) - 6 * self.n_frames)
+
+    def of_frames(self, frames: np.ndarray) -> "Geometry":
+        """The Geometry of the frames (ascending indexes (k,)) alone, renumbered from 0."""
+        rows = np.isin(self.frame, frames)
+        renumber = np.full(self.n_frames, -1)
+        renumber[frames] = np.arange(len(frames))
+        per_row = {name: getattr(self, name)[rows] for name in (
+            "J", "weight", "residual", "focal", "camera", "reference", "group", "point", "survey", "rotation",
+            "focal_effect", "calibration", "point_sigma")}
+        per_row["point"], per_row["group"] = _dense(per_row["point"]), _dense(per_row["group"])
+        frame = renumber[self.frame[rows]]
+        return replace(self, **per_row, frame=frame, starts=np.searchsorted(frame, np.arange(len(frames))),
+                       A_inverse=self.A_inverse[frames], t_centred=self.t_centred[frames])
+
+
+def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, directions, points,
+                     frame_index, R, t, groups, point_ids, object_space: bool,
+                     point_sigma_m=None, calibration_std: dict | None = None) -> Geometry:
+    """The Geometry of F solved frames (module docstring).
+
+    cameras (N,) names, uv (N, 2) px, origins, directions (N, 3) rig frame, points (N, 3) world,
+    frame_index (N,) ascending with every frame present, R (F, 3, 3), t (F, 3) rig_from_world,
+    groups (F,) the frames' groups, point_ids (N,), object_space: the poses minimise the paper's
+    eq. objfun (True) or the angular residuals (False); point_sigma_m (N,) the survey sigma of each
+    observation's point (NaN where not given); calibration_std {camera: {name: sigma}} of
+    CALIBRATION_PARAMETERS (rotations rx, ry, rz in rad about the rig's axes, as rig.json's std;
+    missing ones count as 0).
+    """
+    n_frames = len(R)
+    counts = np.bincount(frame_index, minlength=n_frames)
+    centroid = np.stack([np.bincount(frame_index, points[:, k], minlength=n_frames) for k in range(3)], axis=1)
+    centroid = centroid / np.maximum(counts, 1)[:, None]
+    t_centred = t + np.einsum("fij,fj->fi", R, centroid)
+    R_rows = R[frame_index]
+    unit = directions / np.linalg.norm(directions, axis=1)[:, None]
+    bases = tangent_bases(unit)
+    residual, J = _jacobian(origins, bases, points - centroid[frame_index], R_rows, t_centred[frame_index])
+    J = J.reshape(-1, 2, 6)
+    p = np.einsum("nij,nj->ni", R_rows, points) + t[frame_index] - origins
+    if object_space:
+        weight = np.sum(p * p, axis=1)
+        weight /= np.bincount(frame_index, weight, minlength=n_frames)[frame_index] / counts[frame_index]
+    else:
+        weight = np.ones(len(points))
+    A = _sum_by(np.einsum("nki,nkj->nij", J * weight[:, None, None], J), frame_index, n_frames)
+    names = list(rig.cameras)
+    camera = np.array([names.index(str(c)) for c in cameras]) if len(cameras) else np.zeros(0, int)
+    norm = np.linalg.norm(p, axis=1)
+    u = p / norm[:, None]
+    r = np.einsum("nij,nj->ni", bases, u)
+    dr_dp = (bases - r[:, :, None] * u[:, None, :]) / norm[:, None, None]
+    axis = np.array([rig.cam_from_rig[name].R[2] for name in names])[camera]
+    focal_effect = -np.einsum("ni,ni->n", unit, axis)[:, None] * np.einsum("nki,ni->nk", bases, axis)
+    rotation = np.einsum("nki,nij->nkj", bases, skew(unit))
+    group_codes = np.unique(np.asarray(groups).astype(str), return_inverse=True)[1]
+    point_codes = np.unique(np.asarray(point_ids).astype(str), return_inverse=True)[1]
+    calibration, calibration_sigma = _calibration_effects(rig, names, cameras, uv, bases, unit, calibration_std)
+    point_sigma = np.full(len(points), np.nan) if point_sigma_m is None else np.asarray(point_sigma_m, float)
+    return Geometry(J=J, weight=weight, A_inverse=inverse_normal_matrices(A), residual=residual.reshape(-1, 2),
+                    focal=np.array([rig.cameras[n].fx for n in names])[camera], frame=np.asarray(frame_index),
+                    starts=np.searchsorted(frame_index, np.arange(n_frames)), camera=camera,
+                    reference=camera == names.index(rig.reference_camera), group=group_codes[frame_index],
+                    point=point_codes, survey=dr_dp @ R_rows, rotation=rotation, focal_effect=focal_effect,
+                    calibration=calibration, calibration_sigma=calibration_sigma, point_sigma=point_sigma,
+                    t_centred=t_centred)
+
+
+def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, calibration_std):
+    """C_i (N, 2, 8) and the sigmas (n_cameras, 8): the change of r_i per unit change of each of its
+    camera's CALIBRATION_PARAMETERS (intrinsics by central differences of the rays; a rotation w of
+    the camera about the rig's axes rotates its rays by w), and their standard deviations."""
+    effects = np.zeros((len(uv), 2, len(CALIBRATION_PARAMETERS)))
+    sigma = np.zeros((len(names), len(CALIBRATION_PARAMETERS)))
+    for c, name in enumerate(names):
+        rows = np.flatnonzero(np.asarray(cameras) == name)
+        given = (calibration_std or {}).get(name, {})
+        sigma[c] = [float(given.get(k, 0.0)) for k in CALIBRATION_PARAMETERS]
+        if not len(rows) or not sigma[c].any():
+            continue
+        camera, rig_from_cam = rig.cameras[name], rig.cam_from_rig[name].R.T
+        for k, parameter in enumerate(CALIBRATION_PARAMETERS[:5]):
+            if sigma[c, k] == 0:
+                continue
+            step = 1e-3 * sigma[c, k]
+            plus = replace(camera, **{parameter: getattr(camera, parameter) + step}).unproject(uv[rows])
+            minus = replace(camera, **{parameter: getattr(camera, parameter) - step}).unproject(uv[rows])
+            change = (_unit(plus) - _unit(minus)) @ rig_from_cam.T / (2 * step)
+            effects[rows, :, k] = -np.einsum("nki,ni->nk", bases[rows], change)
+        # d f / d w = -[f]x: r changes by -B df = B [f]x w
+        effects[rows, :, 5:] = np.einsum("nki,nij->nkj", bases[rows], skew(unit[rows]))
+    return effects, sigma
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=1)[:, None]
+
+
+def _sum_by(values: np.ndarray, key: np.ndarray, n_keys: int) -> np.ndarray:
+    """Sums (n_keys, ...) of values (N, ...) per key (N,) in [0, n_keys) (rows with key < 0 ignored)."""
+    keep = key >= 0
+    flat = values[keep].reshape(int(keep.sum()), int(np.prod(values.shape[1:])))
+    out = np.stack([np.bincount(key[keep], flat[:, j], minlength=n_keys) for j in range(flat.shape[1])], axis=1) \
+        if flat.shape[1] else np.zeros((n_keys, 0))
+    return out.reshape(n_keys, *values.shape[1:])
+
+
+def solve_response(geometry: Geometry, errors: np.ndarray) -> np.ndarray:
+    """Residuals (..., N, 2) of the frames' solves for observation errors (..., N, 2) (rad): e - J dtheta."""
+    g = geometry
+    right = np.einsum("nkj,...nk->...nj", g.J * g.weight[:, None, None], errors)
+    sums = np.add.reduceat(right, g.starts, axis=-2) if g.n_frames else right[..., :0, :]
+    step = np.einsum("fij,...fj->...fi", g.A_inverse, sums)
+    return errors - np.einsum("nkj,...nj->...nk", g.J, step[..., g.frame, :])
+
+
+def _dense(key: np.ndarray) -> np.ndarray:
+    """key (N,) renumbered 0, 1, ... in order of value, -1 kept."""
+    out = np.full(len(key), -1)
+    keep = key >= 0
+    out[keep] = np.unique(key[keep], return_inverse=True)[1]
+    return out
+
+
+class Statistics:
+    """The quadratic forms of residuals that the estimation equates to their expectations, in
+    pixels (s_i = F_i r_i), for one Geometry:
+
+        T_rotation  the part of each frame's residuals that its pose and one rotation per
+                    non-reference camera explain (least squares, frame by frame; jitter, mounting);
+        T_pixel     what remains (q), less T_point (pixel noise);
+        T_point     the part of q that a constant per (group, point) explains, points seen in 2
+                    frames or more (survey);
+        T_group     per (group, non-reference camera), the pixels that one rotation explains in
+                    the frames' fitted rotations (mounting);
+        T_focal     the part of q that one focal change per (group, camera) explains (focal).
+
+    Refitting the pose with the rotations keeps jitter out of q, so that the small pixel term is not
+    swamped by the sampling noise of the large ones.
+    """
+
+    NAMES = ("rotation", "pixel", "point", "group", "focal")
+
+    def __init__(self, geometry: Geometry):
+        g = self.geometry = geometry
+        cameras = int(g.camera.max()) + 1 if len(g.camera) else 1
+        moving = np.unique(g.camera[~g.reference])
+        self.slot = np.where(g.reference, -1, np.searchsorted(moving, g.camera))  # (N,) rotation block of a row
+        self.width = 6 + 3 * len(moving)
+        scale = g.focal[:, None, None]
+        self.pose_rows = g.J * scale  # (N, 2, 6)
+        self.rotation_rows = g.rotation * scale  # (N, 2, 3)
+        self.focal_rows = g.focal_effect * g.focal[:, None]  # (N, 2)
+        self.frame_camera = _dense(np.where(g.reference, -1, g.frame * cameras + g.camera))
+        normal = self._normal()
+        self.inverse = np.linalg.pinv(normal, rcond=1e-10, hermitian=True)
+        # per frame, the rotations' normal matrix with the pose eliminated, for T_group
+        self.pose_inverse = np.linalg.pinv(normal[:, :6, :6], rcond=1e-12, hermitian=True)
+        self.cross = normal[:, :6, 6:]
+        self.schur = normal[:, 6:, 6:] - np.swapaxes(self.cross, 1, 2) @ self.pose_inverse @ self.cross
+        self.frame_group = np.zeros(g.n_frames, int)
+        self.frame_group[g.frame] = g.group
+        group_point = _dense(g.group * (int(g.point.max()) + 1 if len(g.point) else 1) + g.point)
+        self.point = np.where(np.bincount(group_point)[group_point] >= 2, group_point, -1) if len(g.point) else group_point
+        self.group_camera = _dense(g.group * cameras + g.camera)
+
+    def _columns(self, rows: np.ndarray) -> np.ndarray:
+        """The frame-projection's right-hand sides (F, width) of per-row products (N, 6 + 3)."""
+        g = self.geometry
+        out = np.zeros((g.n_frames, self.width))
+        out[:, :6] = _sum_by(rows[:, :6], g.frame, g.n_frames)
+        moving = self.slot >= 0
+        for slot in np.unique(self.slot[moving]):
+            mask = self.slot == slot
+            out[:, 6 + 3 * slot:9 + 3 * slot] = _sum_by(rows[mask, 6:], g.frame[mask], g.n_frames)
+        return out
+
+    def _normal(self) -> np.ndarray:
+        """(F, width, width) per frame, X^T X of the pose and rotation columns."""
+        g = self.geometry
+        pose, rotation = self.pose_rows, self.rotation_rows
+        normal = np.zeros((g.n_frames, self.width, self.width))
+        normal[:, :6, :6] = _sum_by(np.einsum("nki,nkj->nij", pose, pose), g.frame, g.n_frames)
+        for slot in np.unique(self.slot[self.slot >= 0]):
+            mask = self.slot == slot
+            cols = slice(6 + 3 * slot, 9 + 3 * slot)
+            cross = _sum_by(np.einsum("nki,nkj->nij", pose[mask], rotation[mask]), g.frame[mask], g.n_frames)
+            normal[:, :6, cols], normal[:, cols, :6] = cross, np.swapaxes(cross, 1, 2)
+            normal[:, cols, cols] = _sum_by(np.einsum("nki,nkj->nij", rotation[mask], rotation[mask]),
+                                            g.frame[mask], g.n_frames)
+        return normal
+
+    def __call__(self, residuals: np.ndarray) -> np.ndarray:
+        """(5,) the statistics (NAMES) of residuals (N, 2) rad."""
+        g = self.geometry
+        s = residuals * g.focal[:, None]
+        products = np.concatenate([np.einsum("nki,nk->ni", self.pose_rows, s),
+                                   np.einsum("nki,nk->ni", self.rotation_rows, s)], axis=1)
+        columns = self._columns(products)
+        coefficients = np.einsum("fij,fj->fi", self.inverse, columns)  # (F, width)
+        own = np.zeros((len(s), 3))
+        moving = self.slot >= 0
+        for slot in np.unique(self.slot[moving]):
+            mask = self.slot == slot
+            own[mask] = coefficients[g.frame[mask], 6 + 3 * slot:9 + 3 * slot]
+        fitted = np.einsum("nki,ni->nk", self.pose_rows, coefficients[g.frame, :6]) + \
+            np.einsum("nki,ni->nk", self.rotation_rows, own)
+        rest = s - fitted
+        point = _constant_explained(rest, self.point)
+        within = float(np.sum(rest * rest))
+        return np.array([float(np.sum(s * s)) - within, within - point, point, self._group(columns),
+                         _focal_explained(rest, self.focal_rows, self.group_camera)])
+
+    def _group(self, columns: np.ndarray) -> float:
+        """T_group from the frames' right-hand sides (F, width): per group, the pixels that one
+        rotation per non-reference camera for all its frames explains beyond each frame's pose
+        (least squares with the poses eliminated: Schur complements summed over the frames)."""
+        if self.width == 6:
+            return 0.0
+        n_groups = int(self.frame_group.max()) + 1
+        pose_part = np.einsum("fij,fj->fi", self.pose_inverse, columns[:, :6])
+        reduced = columns[:, 6:] - np.einsum("fji,fj->fi", self.cross, pose_part)
+        right = _sum_by(reduced, self.frame_group, n_groups)
+        inverse = np.linalg.pinv(_sum_by(self.schur, self.frame_group, n_groups), rcond=1e-10, hermitian=True)
+        return float(np.einsum("gi,gij,gj->", right, inverse, right))
+
+
+def _constant_explained(values: np.ndarray, key: np.ndarray) -> float:
+    """sum over blocks of ||sum of the block's values||^2 / its rows: the part of values (N, k) that a
+    constant per block (key (N,), -1: none) explains."""
+    keep = key >= 0
+    if not keep.any():
+        return 0.0
+    sums = _sum_by(values[keep], key[keep], int(key.max()) + 1)
+    return float(np.sum(np.sum(sums * sums, axis=1) / np.maximum(np.bincount(key[keep]), 1)))
+
+
+def _focal_explained(values: np.ndarray, rows: np.ndarray, key: np.ndarray) -> float:
+    """The part of values (N, 2) that one multiple of rows (N, 2) per block (key (N,)) explains."""
+    n_keys = int(key.max()) + 1 if len(key) else 0
+    across = np.bincount(key, np.sum(rows * values, axis=1), minlength=n_keys)
+    norm = np.bincount(key, np.sum(rows * rows, axis=1), minlength=n_keys)
+    return float(np.sum(np.where(norm > 0, across**2 / np.where(norm > 0, norm, 1.0), 0.0)))
+
+
+# ------------------------------------------------------------------------------ estimation
+
+def unit_draw(geometry: Geometry, name: str, rng: np.random.Generator, gaussian: bool = False) -> np.ndarray:
+    """Errors (N, 2) rad of one draw of component `name` with unit variance (1 px, 1 m, 1 rad, 1
+    relative focal change), Rademacher (the least-variance trace estimate) or Gaussian; survey only
+    on the points whose sigma is not given."""
+    g = geometry
+    signs = (lambda *shape: rng.normal(size=shape)) if gaussian else \
+        (lambda *shape: rng.integers(0, 2, shape) * 2.0 - 1.0)
+    n = len(g.frame)
+    if name == "pixel":
+        return signs(n, 2) / g.focal[:, None]
+    if name == "survey":
+        moves = signs(int(g.point.max()) + 1 if n else 0, 3)[g.point] * np.isnan(g.point_sigma)[:, None]
+        return np.einsum("nkj,nj->nk", g.survey, moves)
+    n_cameras = int(g.camera.max()) + 1 if n else 1
+    if name in ("jitter", "mounting"):
+        key = _dense(np.where(g.reference, -1, (g.frame if name == "jitter" else g.group) * n_cameras + g.camera))
+        moves = np.vstack([signs(int(key.max()) + 1, 3), np.zeros((1, 3))])[key]  # key -1: the last, zero row
+        return np.einsum("nkj,nj->nk", g.rotation, moves)
+    if name == "focal":
+        key = _dense(g.group * n_cameras + g.camera)
+        return g.focal_effect * signs(int(key.max()) + 1)[key][:, None]
+    raise ValueError(f"no random draw for component {name!r}")
+
+
+def fixed_survey_draw(geometry: Geometry, rng: np.random.Generator) -> np.ndarray:
+    """Errors (N, 2) of one Rademacher draw of the survey errors of the points whose sigma is given."""
+    g = geometry
+    given = np.nan_to_num(g.point_sigma)
+    moves = (rng.integers(0, 2, (int(g.point.max()) + 1, 3)) * 2.0 - 1.0)[g.point] * given[:, None]
+    return np.einsum("nkj,nj->nk", g.survey, moves)
+
+
+def calibration_expectation(geometry: Geometry, statistics: Statistics) -> np.ndarray:
+    """(5,) E[statistics] of the calibration term with rig.json's covariance, exactly: the sum over
+    its parameters (independent) of the statistics of each one's one-sigma effect."""
+    g = geometry
+    total = np.zeros(5)
+    for c, k in zip(*np.nonzero(g.calibration_sigma)):
+        errors = np.where((g.camera == c)[:, None], g.calibration[:, :, k] * g.calibration_sigma[c, k], 0.0)
+        total += statistics(solve_response(g, errors))
+    return total
+
+
+def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallback_pixel_px: float = np.nan,
+             seed: int = 0) -> ErrorModel:
+    """The ErrorModel of these frames' residuals (module docstring). settings: {component: sigma}
+    in UNITS fixing those components (None or NaN entries are estimated); the calibration factor
+    is 1 unless set. With fewer than MIN_DEGREES_OF_FREEDOM the free components are not estimable:
+    0, the pixel noise fallback_pixel_px where finite (the calibration's)."""
+    g = geometry
+    settings = {k: v for k, v in (settings or {}).items() if v is not None and np.isfinite(v)}
+    settings.setdefault("calibration", 1.0)
+    free = [name for name in COMPONENTS[:5] if name not in settings]
+    source = {name: "set" for name in settings}
+    sigma = {name: float(settings.get(name, 0.0)) for name in COMPONENTS}
+    if g.dof < MIN_DEGREES_OF_FREEDOM:
+        source.update({name: "not estimable" for name in free})
+        if "pixel" in free and np.isfinite(fallback_pixel_px):
+            sigma["pixel"], source["pixel"] = float(fallback_pixel_px), "calibration"
+        return ErrorModel(sigma, source, g.dof)
+    statistics = Statistics(g)
+    rng = np.random.default_rng(seed)
+    draws = int(np.clip(DRAW_OBSERVATIONS // max(len(g.frame), 1), MIN_DRAWS, MAX_DRAWS))
+    expected, visible = {}, {}
+    for name in COMPONENTS[:5]:
+        errors = [unit_draw(g, name, rng) for _ in range(draws)]
+        expected[name] = np.mean([statistics(solve_response(g, e)) for e in errors], axis=0)
+        raw = np.mean([np.sum((e * g.focal[:, None]) ** 2) for e in errors])
+        visible[name] = expected[name].sum() / raw if raw > 0 else 0.0
+    known = calibration_expectation(g, statistics) * settings["calibration"] ** 2
+    if np.isfinite(g.point_sigma).any():
+        known += np.mean([statistics(solve_response(g, fixed_survey_draw(g, rng)))
+                          for _ in range(draws)], axis=0)
+    for name in COMPONENTS[:5]:
+        if name in settings:
+            known += expected[name] * (settings[name] * _TO_SI[name]) ** 2
+    observed = statistics(g.residual)
+    total = observed.sum()
+    estimable = [name for name in free if visible[name] > MIN_VISIBLE]
+    source.update({name: "not estimable" for name in free if name not in estimable})
+    scale = 1.0 / np.maximum(observed, MIN_EFFECT * total)
+    variances = []
+    while estimable:
+        design = np.column_stack([expected[name] for name in estimable])
+        variances = nnls(design * scale[:, None], (observed - known) * scale)[0]
+        # weighted by the statistics' spread under that model, solved again, with its standard errors
+        weight = 1.0 / np.maximum(_spread(g, statistics, dict(zip(estimable, variances)), draws, rng),
+                                  MIN_EFFECT * total)
+        variances = nnls(design * weight[:, None], (observed - known) * weight)[0]
+        errors = np.sqrt(np.diag(np.linalg.pinv((design * weight[:, None]).T @ (design * weight[:, None]))))
+        weak = [name for name, v, e in zip(estimable, variances, errors)
+                if name != "pixel" and v < SIGNIFICANCE * e]
+        if not weak:
+            break
+        # the least significant one is taken as absent, the others estimated again without it
+        drop = min(weak, key=lambda name: variances[estimable.index(name)] / errors[estimable.index(name)])
+        estimable.remove(drop)
+        source[drop] = "not significant"
+    for name, variance in zip(estimable, variances if estimable else []):
+        sigma[name], source[name] = float(np.sqrt(variance)) / _TO_SI[name], "estimated"
+    return ErrorModel(sigma, source, g.dof)
+
+
+def _spread(g: Geometry, statistics: Statistics, variances: dict[str, float], draws: int, rng) -> np.ndarray:
+    """(5,) the standard deviations of the statistics under the model `variances` (SI), by drawing
+    all its components together `draws` times (Gaussian, as the errors are taken to be)."""
+    samples = []
+    for _ in range(draws):
+        errors = sum(unit_draw(g, name, rng, gaussian=True) * np.sqrt(v) for name, v in variances.items())
+        samples.append(statistics(solve_response(g, errors)))
+    return np.std(samples, axis=0, ddof=1)
+
+
+# ------------------------------------------------------------------------------ propagation
+
+def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.ndarray]:
+    """{component: (F, 6, 6)} each component's covariance of a frame's (omega, delta_t) (the
+    parametrisation of uncertainty.py, about the frame's point centroid)."""
+    g = geometry
+    n_frames = g.n_frames
+    weighted = g.J * g.weight[:, None, None]  # (N, 2, 6) rows w_i J_i
+    n_cameras = int(g.camera.max()) + 1 if len(g.camera) else 1
+    frame_camera = _dense(g.frame * n_cameras + g.camera)
+    block_frame = np.zeros(int(frame_camera.max()) + 1 if len(frame_camera) else 0, int)
+    block_frame[frame_camera] = g.frame
+    block_camera = np.zeros_like(block_frame)
+    block_camera[frame_camera] = g.camera
+
+    def per_observation(effect, variance):  # sum_i (w J^T E_i) V_i (w J^T E_i)^T
+        K = np.einsum("nki,nkj->nij", weighted, effect)
+        return _sum_by(np.einsum("nij,n,nkj->nik", K, variance, K), g.frame, n_frames)
+
+    def per_block(effect, sigma):  # sum over blocks of L L^T, L = sum over the block's rows of w J^T E_i sigma
+        L = _sum_by(np.einsum("nki,nkj->nij", weighted, effect), frame_camera, len(block_frame)) * sigma[:, None, :]
+        return _sum_by(np.einsum("bij,bkj->bik", L, L), block_frame, n_frames)
+
+    pixel = per_observation(np.broadcast_to(np.eye(2), (len(g.frame), 2, 2)) / g.focal[:, None, None],
+                            np.full(len(g.frame), model.si("pixel") ** 2))
+    point_variance = np.where(np.isnan(g.point_sigma), model.si("survey") ** 2, np.nan_to_num(g.point_sigma) ** 2)
+    rotation_sigma = np.hypot(model.si("jitter"), model.si("mounting"))
+    moving = np.where(np.bincount(frame_camera, g.reference, minlength=len(block_frame)) > 0, 0.0, rotation_sigma)
+    covariances = {
+        "pixel": pixel,
+        "survey": per_observation(g.survey, point_variance),
+        "rotation": per_block(g.rotation, np.repeat(moving[:, None], 3, axis=1)),
+        "focal": per_block(g.focal_effect[:, :, None], np.full((len(block_frame), 1), model.si("focal"))),
+        "calibration": per_block(g.calibration, g.calibration_sigma[block_camera] * model.si("calibration")),
+    }
+    rotation = covariances.pop("rotation")
+    share = model.si("jitter") ** 2 / rotation_sigma**2 if rotation_sigma > 0 else 0.0
+    covariances["jitter"], covariances["mounting"] = rotation * share, rotation * (1.0 - share)
+    return {name: g.A_inverse @ covariances[name] @ g.A_inverse for name in COMPONENTS}

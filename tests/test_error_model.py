@@ -1,0 +1,181 @@
+"""The error model behind poses.csv's sigmas (pose/error_model.py): its propagation against a slow
+dense reference, its variance-component estimation on residuals drawn from known components, and
+what it refuses to estimate.
+
+The scenes: the paper's rig (test_pose_uncertainty.paper_rig) over 3 groups of 8 hovering frames,
+each group seeing the same 8 ground points per camera in every frame (as a hovering flight does).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from dmais_pipe.geometry import Rigid3, exp_so3
+from dmais_pipe.pose import error_model as em
+from dmais_pipe.pose.uncertainty import pose_uncertainty
+
+from pose_scenes import dmais_scene
+from test_pose_uncertainty import paper_rig
+
+GROUPS, FRAMES, POINTS = 3, 8, 8
+TRUE = {"pixel": 0.3, "survey": 0.02, "jitter": 0.3, "mounting": 0.2, "focal": 150.0}
+
+
+def hover_geometry(seed: int, cameras=range(5), object_space: bool = True) -> em.Geometry:
+    """The Geometry at the true poses of GROUPS x FRAMES frames (residuals zero)."""
+    rng = np.random.default_rng(seed)
+    rig = paper_rig()
+    names = [rig.camera_names[k] for k in cameras]
+    rows = {k: [] for k in ("cameras", "uv", "points", "frame", "ids")}
+    R_all, t_all, groups = [], [], []
+    for g in range(GROUPS):
+        _, _, points, R0, t0 = dmais_scene(rng, points_per_camera=POINTS, cameras=cameras)
+        for f in range(FRAMES):
+            R = exp_so3(rng.normal(0, 1e-4, 3)) @ R0  # a few pixels: every point stays in its image
+            t = -R @ (-R0.T @ t0 + rng.normal(0, 0.05, 3))
+            pose = Rigid3(R, t)
+            for c, name in enumerate(names):
+                part = points[c * POINTS:(c + 1) * POINTS]
+                rows["uv"].append(rig.project(name, pose, part))
+                rows["cameras"] += [name] * POINTS
+                rows["points"].append(part)
+                rows["ids"] += [f"G{g}P{c}_{k}" for k in range(POINTS)]
+            rows["frame"] += [len(R_all)] * (POINTS * len(names))
+            R_all.append(R), t_all.append(t), groups.append(f"g{g}")
+    cameras_, uv, points = np.array(rows["cameras"]), np.vstack(rows["uv"]), np.vstack(rows["points"])
+    assert np.isfinite(uv).all()
+    origins, directions = rig.rays_of(cameras_, uv)
+    std = {name: {"fx": 5.0, "fy": 5.0, "cx": 8.0, "cy": 8.0, "d": 0.03, "rx": 3e-5, "ry": 3e-5, "rz": 5e-5}
+           for name in names}
+    geometry = em.linearised_solve(rig, cameras_, uv, origins, directions, points, np.array(rows["frame"]),
+                               np.array(R_all), np.array(t_all), np.array(groups), np.array(rows["ids"]),
+                               object_space, calibration_std=std)
+    assert np.isfinite(geometry.A_inverse).all()
+    return geometry
+
+
+def model_of(sigmas: dict, calibration: float = 1.0) -> em.ErrorModel:
+    sigma = {**dict.fromkeys(em.COMPONENTS, 0.0), **sigmas, "calibration": calibration}
+    return em.ErrorModel(sigma, dict.fromkeys(em.COMPONENTS, "set"))
+
+
+def dense_covariance(g: em.Geometry, frame: int, model: em.ErrorModel) -> np.ndarray:
+    """The slow reference: frame's 6x6 covariance from the explicit 2n x 2n covariance of its errors."""
+    rows = np.flatnonzero(g.frame == frame)
+    n = len(rows)
+    cov = np.zeros((2 * n, 2 * n))
+    for a, i in enumerate(rows):
+        for b, j in enumerate(rows):
+            block = np.zeros((2, 2))
+            if i == j:
+                block += np.eye(2) * (model.si("pixel") / g.focal[i]) ** 2
+                block += g.survey[i] @ g.survey[i].T * model.si("survey") ** 2
+            if g.camera[i] == g.camera[j]:
+                if not g.reference[i]:
+                    rotation = model.si("jitter") ** 2 + model.si("mounting") ** 2
+                    block += g.rotation[i] @ g.rotation[j].T * rotation
+                block += np.outer(g.focal_effect[i], g.focal_effect[j]) * model.si("focal") ** 2
+                variances = g.calibration_sigma[g.camera[i]] ** 2 * model.si("calibration") ** 2
+                block += g.calibration[i] @ np.diag(variances) @ g.calibration[j].T
+            cov[2 * a:2 * a + 2, 2 * b:2 * b + 2] = block
+    K = g.A_inverse[frame] @ (g.J[rows] * g.weight[rows, None, None]).reshape(-1, 6).T
+    return K @ cov @ K.T
+
+
+@pytest.mark.parametrize("object_space", [True, False])
+def test_propagation_matches_the_dense_reference(object_space):
+    g = hover_geometry(1, object_space=object_space)
+    model = model_of({k: v for k, v in TRUE.items()})
+    parts = em.frame_covariances(g, model)
+    assert set(parts) == set(em.COMPONENTS)
+    total = sum(parts.values())
+    for frame in (0, 9, 23):
+        reference = dense_covariance(g, frame, model)
+        np.testing.assert_allclose(total[frame], reference, rtol=1e-9, atol=1e-12 * np.abs(reference).max())
+
+
+def test_propagation_matches_the_spread_of_drawn_errors_through_the_solve():
+    """Each random component, drawn many times and put through the frames' linearised solve,
+    spreads the poses as its propagated covariance says (Rademacher draws: the same second moments)."""
+    g = hover_geometry(2)
+    rng = np.random.default_rng(3)
+    for name in ("pixel", "survey", "jitter", "focal"):
+        model = model_of({name: TRUE[name]})
+        predicted = em.frame_covariances(g, model)[name][:, [0, 1, 3]][:, :, [0, 1, 3]]
+        steps = []
+        for _ in range(1500):
+            errors = em.unit_draw(g, name, rng) * model.si(name)
+            right = np.add.reduceat(np.einsum("nkj,nk->nj", g.J * g.weight[:, None, None], errors), g.starts)
+            steps.append(np.einsum("fij,fj->fi", g.A_inverse, right)[:, [0, 1, 3]])
+        steps = np.array(steps)
+        empirical = np.einsum("dfi,dfj->fij", steps, steps) / len(steps)
+        ratio = np.diagonal(empirical, axis1=1, axis2=2) / np.diagonal(predicted, axis1=1, axis2=2)
+        assert np.all(np.abs(ratio - 1) < 0.15), (name, ratio.min(), ratio.max())
+
+
+def test_estimation_recovers_known_components_from_drawn_residuals():
+    """Residuals drawn from the model with known sigmas: the estimates average to them."""
+    g = hover_geometry(4)
+    rng = np.random.default_rng(5)
+    estimates = []
+    for draw in range(12):
+        errors = sum(em.unit_draw(g, name, rng) * TRUE[name] * em._TO_SI[name] for name in TRUE)
+        drawn = dataclasses.replace(g, residual=em.solve_response(g, errors))
+        model = em.estimate(drawn, {"calibration": 0.0}, seed=draw)
+        assert model.source["pixel"] == model.source["survey"] == "estimated"
+        assert {model.source[name] for name in ("jitter", "mounting", "focal")} <= {"estimated", "not significant"}
+        estimates.append([model.sigma[name] ** 2 for name in TRUE])
+    rms = dict(zip(TRUE, np.sqrt(np.mean(estimates, axis=0))))
+    for name in ("pixel", "survey"):
+        assert abs(rms[name] / TRUE[name] - 1) < 0.1, (name, rms[name])
+    # a 150 ppm focal change moves the image edge by 0.3 px, under the 2.6 px survey errors: it is
+    # not significant, and must not come out inflated
+    assert rms["focal"] < 3 * TRUE["focal"]
+    # the per-frame rotation total, what the sigmas use, is well determined; its split into jitter
+    # and mounting (12 draws per group, 3 groups) is not, and is often called not significant
+    rotation = np.sqrt(np.array(estimates)[:, 2] + np.array(estimates)[:, 3])
+    assert abs(np.mean(rotation) / np.hypot(TRUE["jitter"], TRUE["mounting"]) - 1) < 0.15
+
+
+def test_zero_residuals_give_zero_components_and_the_set_ones_are_kept():
+    g = hover_geometry(6)
+    model = em.estimate(g, {"survey": 0.015, "calibration": 0.0})
+    assert model.source["survey"] == "set" and model.sigma["survey"] == 0.015
+    assert all(model.sigma[name] == pytest.approx(0.0, abs=1e-9) for name in ("pixel", "jitter", "mounting", "focal"))
+
+
+def test_a_reference_camera_alone_has_no_rotation_terms_and_its_focal_change_is_not_estimable():
+    g = hover_geometry(7, cameras=[0])
+    assert g.reference.all()
+    model = em.estimate(g, {"calibration": 0.0})
+    assert model.source["jitter"] == model.source["mounting"] == "not estimable"
+    assert model.source["focal"] == "not estimable"  # a scale of a narrow image is a change of range
+    parts = em.frame_covariances(g, model_of({"jitter": 1.0, "mounting": 1.0}))
+    assert np.all(parts["jitter"] == 0) and np.all(parts["mounting"] == 0)
+
+
+def test_too_few_observations_fall_back_to_the_calibrated_pixel_noise():
+    g = hover_geometry(8)
+    first = g.frame == 0
+    rows = np.flatnonzero(first)[:4]
+    small = dataclasses.replace(g, **{name: getattr(g, name)[rows] for name in (
+        "J", "weight", "residual", "focal", "frame", "camera", "reference", "group", "point", "survey", "rotation",
+        "focal_effect", "calibration", "point_sigma")}, starts=np.array([0]), A_inverse=g.A_inverse[:1])
+    assert small.dof < em.MIN_DEGREES_OF_FREEDOM
+    model = em.estimate(small, {"calibration": 0.0}, fallback_pixel_px=0.4)
+    assert model.sigma["pixel"] == 0.4 and model.source["pixel"] == "calibration"
+    assert model.source["survey"] == "not estimable"
+
+
+def test_sigmas_are_the_root_sum_of_the_components_shares():
+    g = hover_geometry(9)
+    rng = np.random.default_rng(1)
+    R = np.array([exp_so3(rng.normal(0, 0.5, 3)) for _ in range(g.n_frames)])
+    t = rng.normal(0, 100, (g.n_frames, 3))
+    result = pose_uncertainty(g, model_of(TRUE), R, t)
+    np.testing.assert_allclose(result.sigma_position ** 2, sum(result.variance_position.values()), rtol=1e-12)
+    np.testing.assert_allclose(result.sigma_attitude ** 2, sum(result.variance_attitude.values()), rtol=1e-12)
+    assert all((v >= 0).all() for v in result.variance_position.values())
