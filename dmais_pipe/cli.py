@@ -205,6 +205,14 @@ def _cmd_bench_sigma(args) -> None:
     print_table(bench_sigma(args.csv, args.results or [], simulations, work=args.work), args.csv)
 
 
+def _cmd_bench_mounting(args) -> None:
+    from .bench.mounting import bench_mounting, print_table, simulations
+
+    chosen = simulations(args.seeds, args.mount, args.vibration, args.survey, args.pixel, groups=args.groups,
+                         frames_per_group=args.frames_per_group, calibrated=args.calibrated)
+    print_table(bench_mounting(args.csv, chosen, pos=args.pos, work=args.work), args.csv)
+
+
 def _comma_separated(kind):
     """An argparse type: 'a,b,c' -> [kind(a), kind(b), kind(c)]."""
     def parse(text: str) -> list:
@@ -404,6 +412,28 @@ def _parser() -> argparse.ArgumentParser:
     sigma.add_argument("--csv", type=Path, default=Path("reports/bench/sigma.csv"),
                        help="output table, the per-frame rows beside it (default: %(default)s)")
     sigma.set_defaults(run=_cmd_bench_sigma)
+    mounting = benches.add_parser("mounting", help="the in-flight mounting of each camera per flight group "
+                                                   "(pose.mounting) against the simulator's truth")
+    mounting.add_argument("--seeds", type=_comma_separated(int), default=[1001, 1002, 1003],
+                          help="simulation seeds, comma-separated (default: 1001,1002,1003)")
+    mounting.add_argument("--mount", type=_comma_separated(float), default=[0.0, 2.0],
+                          help="per-group mounting change of C1..C4 per axis, arc-min, comma-separated "
+                               "(default: 0,2)")
+    mounting.add_argument("--vibration", type=float, default=0.3,
+                          help="per-frame vibration, arc-min (default: %(default)s)")
+    mounting.add_argument("--survey", type=float, default=0.025,
+                          help="ground-point survey sigma per axis, m (default: %(default)s)")
+    mounting.add_argument("--pixel", type=float, default=0.5, help="flight marker noise, px (default: %(default)s)")
+    mounting.add_argument("--groups", type=_positive_int, default=4, help="flight groups (default: %(default)s)")
+    mounting.add_argument("--frames-per-group", type=_positive_int, default=30, help="(default: %(default)s)")
+    mounting.add_argument("--calibrated", action="store_true",
+                          help="solve with the chain's calibrated rig (intrinsics, extrinsics), not the simulator's")
+    mounting.add_argument("--pos", action="store_true",
+                          help="also adjust with a prior on the rig centres from the POS (variant survey+pos)")
+    mounting.add_argument("--work", type=Path, help="keep each simulation in WORK/<name> (default: a temporary folder)")
+    mounting.add_argument("--csv", type=Path, default=Path("reports/bench/mounting.csv"),
+                          help="output table, the per-camera and per-frame rows beside it (default: %(default)s)")
+    mounting.set_defaults(run=_cmd_bench_mounting)
     return parser
 
 

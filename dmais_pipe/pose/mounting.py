@@ -1,0 +1,624 @@
+"""The rig watched in flight: each camera's in-flight mounting against the calibration, per flight group.
+
+A group rig adjustment (issue 29, item 2): all frames of one flight group (the rig hovering over
+one surveyed ground site) are adjusted at once, with the ground points as weighted control and
+the calibrated rig as prior; each non-reference camera's rotation change is estimated with its
+1-sigma.
+
+Model. Unknowns, for F frames, K non-reference cameras with observations and P ground points:
+
+- per frame f: rig_from_world (R_f, t_f), x_rig = R_f @ M + t_f, started from the per-frame solves
+  (pose.flight), moved by a left rotation increment about the frame's points' centroid m_f and a
+  translation: R_f <- exp([omega]) R_f, R_f m_f + t_f <- R_f m_f + t_f + dt (6; about the centroid
+  rather than the world origin, kilometres away, the normal matrix is well conditioned);
+- per camera c: delta_c (3), the rotation vector in the CAMERA frame of its mounting change,
+  in-flight cam_from_rig = Rigid3(exp([delta_c]), 0) * calibrated cam_from_rig: the camera turns
+  about its centre, whose place in the rig is unchanged (the simulator draws the change so). The
+  reference camera's delta is 0 by definition: the rig frame is its frame, so a rotation common
+  to all cameras is the platform's attitude;
+- per ground point p: its world position M_p, the surveyed coordinates a prior of per-axis sigma;
+- per frame f and camera c: a jitter rotation j_fc (3), that frame's cam_from_rig being
+  exp([j_fc]) exp([delta_c]) calibrated, prior N(0, sigma_jitter^2) per axis: the vibration,
+  which moves all points of one camera in one frame together. Without it the frames would look
+  independent and delta's sigma would shrink as 1/sqrt(F) below what the vibration allows;
+- a prior N(0, sigma_prior^2) per axis on delta_c (default 30 arc-min), a regulariser only;
+- optionally (not in the issue's model) a prior on the rig centres -R_f^T t_f, e.g. the POS
+  positions less the lever arm (`adjust_group_rig`'s center_prior_m): see the bound below.
+
+Observations: the markers' distorted pixels uv with a per-axis pixel sigma (per camera). The cost
+
+    sum_i |(project_c(exp([j_fc]) exp([delta_c]) (C_c (R_f M_p + t_f) + t_c)) - uv_i) / sigma_px|^2
+    + sum_p |(M_p - surveyed_p) / sigma_p|^2 + sum_fc |j_fc / sigma_jitter|^2 + sum_c |delta_c / sigma_prior|^2
+
+((C_c, t_c) the calibrated cam_from_rig) is minimised by Levenberg-Marquardt; delta and j are
+additive rotation vectors (exact Jacobians through geometry.left_jacobian_so3). Each frame's
+pose and jitters (6 + 3K unknowns) touch only that frame's observations, so they are eliminated
+by the Schur complement, leaving the 3K + 3P system of the deltas and points: the cost is linear
+in F (~0.1 s for 30 frames x 5 cameras x 8 points, ~0.3-0.5 s for 200 frames on a busy core).
+
+Covariance: the inverse normal matrix at the minimum; the deltas' block of it is the inverse of
+the Schur complement's (the frames and jitters marginalised). sigma: the square roots of its
+diagonal, in arc-min. chi2_c = delta_c^T cov_c^-1 delta_c; `significant` where chi2_c exceeds
+chi2.ppf(1 - SIGNIFICANCE, 3): with no change and honest noise values, a share SIGNIFICANCE (1%)
+of the (camera, group) rows is flagged.
+
+Fisher-information bound: the sigma reported with the true noise values is the Cramer-Rao bound
+of the geometry. For the simulator's groups (the paper's rig 350 m above ground, 8 markers in each
+camera's footprint, 30 frames, 0.5 px, 0.3 arc-min vibration, 2.5 cm survey per axis) it is about
+1.7, 2.2 and 3.4 arc-min about the tilted cameras' x, y and z (optical) axes (bench/mounting.py),
+nearly proportional to the survey sigma (0.2, 0.3, 0.46 at 3 mm; 0.08, 0.09, 0.14 at 0.1 mm): the
+same 8 points are seen in every frame, so their survey errors (2.5 cm at ~500 m: 0.17 arc-min a
+point) do not average over frames. Most of it lies in three kinds of direction that the reference
+camera's narrow view (5.4 x 4 deg) pins only weakly:
+
+- all tilted cameras turned together about the rig's z axis: the reference camera's roll about
+  its optical axis (~6 arc-min along that direction);
+- each camera's roll about its own optical axis: a point moves by its ~0.025 rad from the image
+  centre times the angle (~2.5 arc-min);
+- the cameras' common outward tilt, traded against the rig's height (~1.5 arc-min): frames
+  re-solved with such a rig move up or down by ~0.3 m. A rig-centre prior of POS quality (2-3 cm)
+  removes this one: rx then ~0.13 arc-min, the re-solved positions as good as with the true rig.
+
+The four best-determined combinations of the twelve deltas are known to ~0.1 arc-min.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+from scipy import sparse
+from scipy.stats import chi2 as chi2_distribution
+
+from ..blas import single_threaded_blas
+from ..camera import project_unmasked
+from ..errors import DmaisError
+from ..frames import FlightObservations
+from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
+from ..rig import Rig
+
+log = logging.getLogger(__name__)
+
+#: Test level of `significant`: with no change, this share of the (camera, group) rows is flagged.
+SIGNIFICANCE = 0.01
+#: Default per-axis prior sigma of delta (arc-min): generous, so that it only regularises.
+PRIOR_SIGMA_ARCMIN = 30.0
+RAD_PER_ARCMIN = np.pi / (180.0 * 60.0)
+#: Levenberg-Marquardt: iteration limit, and stop when an accepted step lowers the cost by less than this fraction.
+MAX_ITERATIONS = 50
+COST_TOLERANCE = 1e-12
+#: The mounting CSV's columns (`mounting_table`).
+TABLE_COLUMNS = ["group", "camera", "d_rx_arcmin", "d_ry_arcmin", "d_rz_arcmin", "sigma_rx_arcmin",
+                 "sigma_ry_arcmin", "sigma_rz_arcmin", "significant"]
+
+
+@dataclass(frozen=True)
+class GroupRig:
+    """The group adjustment of one flight group, C cameras in the rig's order.
+
+    cameras: (C,) names; delta_arcmin, sigma_arcmin: (C, 3) the mounting change (rotation vector in
+    the camera frame, module docstring) and its 1-sigma per axis, arc-min; covariance_arcmin2:
+    (C, 3, 3); chi2: (C,) delta^T cov^-1 delta; significant: (C,) chi2 beyond SIGNIFICANCE. The
+    reference camera's row is 0 (not significant); a camera without observations has NaN (not
+    significant). rig: the in-flight rig (the calibrated one with the deltas applied); R (F, 3, 3),
+    t (F, 3): the refined rig_from_world of the frames; n_frames F; iterations of LM; cost: the
+    final whitened cost (module docstring) and dof its degrees of freedom, 2N - 6F (each prior adds
+    as many residuals as unknowns).
+    """
+
+    cameras: tuple[str, ...]
+    delta_arcmin: np.ndarray
+    sigma_arcmin: np.ndarray
+    covariance_arcmin2: np.ndarray
+    chi2: np.ndarray
+    significant: np.ndarray
+    rig: Rig
+    R: np.ndarray
+    t: np.ndarray
+    n_frames: int
+    iterations: int
+    cost: float
+    dof: int
+
+
+@dataclass(frozen=True)
+class _Problem:
+    """The checked inputs. Per observation (N): frame (N,) in [0, F); camera (N,) index into rig
+    order; slot (N,) the camera's delta slot in [0, K) or -1 (reference); point (N,) in [0, P);
+    uv (N, 2); weight (N,) 1 / pixel sigma. surveyed, survey_sigma (P, 3); centroid (F, 3) each frame's
+    surveyed points' mean, about which its pose turns; free (K,) the cameras with a delta; jitter,
+    prior: sigmas in rad (jitter 0: no jitter unknowns)."""
+
+    rig: Rig
+    names: list[str]
+    free: list[str]
+    frame: np.ndarray
+    camera: np.ndarray
+    slot: np.ndarray
+    point: np.ndarray
+    uv: np.ndarray
+    weight: np.ndarray
+    surveyed: np.ndarray
+    survey_sigma: np.ndarray
+    centroid: np.ndarray
+    n_frames: int
+    center: np.ndarray | None
+    center_sigma: np.ndarray | None
+    jitter: float
+    prior: float
+
+    @property
+    def local_size(self) -> int:
+        """Unknowns per frame: its pose (6) and, with jitter, 3 per camera with a delta."""
+        return 6 + 3 * len(self.free) * (self.jitter > 0)
+
+    @property
+    def global_size(self) -> int:
+        """The deltas (3K) then the points (3P)."""
+        return 3 * len(self.free) + self.surveyed.size
+
+
+@dataclass
+class _State:
+    """R (F, 3, 3), t (F, 3), delta (K, 3), jitter (F, K, 3) (rad), points (P, 3)."""
+
+    R: np.ndarray
+    t: np.ndarray
+    delta: np.ndarray
+    jitter: np.ndarray
+    points: np.ndarray
+
+
+# ------------------------------------------------------------------------------ the adjustment
+
+
+def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t,
+                     pixel_sigma_px: float | Mapping[str, float], jitter_sigma_arcmin: float, survey_sigma_m,
+                     prior_sigma_arcmin: float = PRIOR_SIGMA_ARCMIN, center_prior_m=None,
+                     center_sigma_m=None) -> GroupRig:
+    """The group rig adjustment (module docstring) of the N observations of F frames of one group.
+
+    rig: the calibrated rig; cameras (N,) names; uv (N, 2) distorted pixels; point_ids (N,);
+    points (N, 3) the surveyed world points of the observations; frame_index (N,) in [0, F);
+    R (F, 3, 3), t (F, 3) the frames' rig_from_world from their own solves; pixel_sigma_px: per
+    axis, one value or one per camera; jitter_sigma_arcmin: per-frame vibration per axis (0: none);
+    survey_sigma_m: per-axis survey sigma, a float, (3,) or (N, 3) (per observation, of its point);
+    prior_sigma_arcmin: delta's prior. Optionally a prior on the rig centres -R_f^T t_f in the world,
+    center_prior_m (F, 3) (e.g. the POS positions less the lever arm) with per-axis sigma
+    center_sigma_m (float, (3,) or (F, 3)): not in the model above; it pins the common outward tilt
+    of the cameras, which the rig's height otherwise trades against (module docstring).
+    Raises DmaisError on inconsistent or degenerate input; a non-reference camera without
+    observations gets a NaN row, with a warning.
+    """
+    problem = _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px, jitter_sigma_arcmin,
+                       survey_sigma_m, prior_sigma_arcmin, center_prior_m, center_sigma_m)
+    R, t = _checked_poses(R, t, problem.n_frames)
+    K = len(problem.free)
+    state = _State(R.copy(), t.copy(), np.zeros((K, 3)), np.zeros((problem.n_frames, K, 3)),
+                   problem.surveyed.copy())
+    with single_threaded_blas():  # small matrices: threads only add hand-offs (2x slower on 2 busy cores)
+        state, iterations, cost = _levenberg_marquardt(problem, state)
+        covariance = _delta_covariance(problem, state)
+    return _result(problem, state, covariance, iterations, cost)
+
+
+def adjust_flight_groups(flight: FlightObservations, rig: Rig, R, t, pixel_sigma_px, jitter_sigma_arcmin: float,
+                         survey_sigma_m, prior_sigma_arcmin: float = PRIOR_SIGMA_ARCMIN, center_prior_m=None,
+                         center_sigma_m=None) -> dict[str, GroupRig]:
+    """`adjust_group_rig` of every group of `flight` (frames.flight_observations_by_frame).
+
+    R (F, 3, 3), t (F, 3): the rig_from_world of flight's F frames, NaN for a frame not solved (left
+    out); survey_sigma_m: a float or (3,); center_prior_m (F, 3), center_sigma_m: as in
+    `adjust_group_rig`, per frame of flight. Returns group -> GroupRig, whose R, t are of the
+    group's solved frames in flight's order.
+    """
+    R, t = np.asarray(R, dtype=float).reshape(-1, 3, 3), np.asarray(t, dtype=float).reshape(-1, 3)
+    if len(R) != len(flight) or len(t) != len(flight):
+        raise DmaisError(f"mounting: {len(R)} rotations and {len(t)} translations for {len(flight)} frames")
+    solved = np.isfinite(R).all(axis=(1, 2)) & np.isfinite(t).all(axis=1)
+    adjusted = {}
+    for group in pd.unique(flight.groups):
+        frames = np.flatnonzero((flight.groups == group) & solved)
+        if not len(frames):
+            log.warning("mounting: group %s has no solved frame; left out", group)
+            continue
+        rows = np.isin(flight.frame_index, frames)
+        centers = {} if center_prior_m is None else {
+            "center_prior_m": np.asarray(center_prior_m, dtype=float)[frames],
+            "center_sigma_m": np.broadcast_to(np.asarray(center_sigma_m, dtype=float), (len(flight), 3))[frames]}
+        adjusted[str(group)] = adjust_group_rig(
+            rig, flight.cameras[rows], flight.uv[rows], flight.point_ids[rows], flight.points[rows],
+            np.searchsorted(frames, flight.frame_index[rows]), R[frames], t[frames], pixel_sigma_px,
+            jitter_sigma_arcmin, survey_sigma_m, prior_sigma_arcmin, **centers)
+    return adjusted
+
+
+def mounting_table(adjusted: Mapping[str, GroupRig]) -> pd.DataFrame:
+    """The mounting CSV (TABLE_COLUMNS): a row per group (key of `adjusted`) and camera."""
+    rows = []
+    for group, result in adjusted.items():
+        for c, name in enumerate(result.cameras):
+            rows.append({"group": group, "camera": name,
+                         **dict(zip(TABLE_COLUMNS[2:5], result.delta_arcmin[c])),
+                         **dict(zip(TABLE_COLUMNS[5:8], result.sigma_arcmin[c])),
+                         "significant": bool(result.significant[c])})
+    return pd.DataFrame(rows, columns=TABLE_COLUMNS)
+
+
+# ------------------------------------------------------------------------------ the input
+
+
+def _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px, jitter_sigma_arcmin,
+             survey_sigma_m, prior_sigma_arcmin, center_prior_m, center_sigma_m) -> _Problem:
+    """The checked inputs of `adjust_group_rig` as a _Problem."""
+    cameras, uv, point_ids, points = _checked_observations(rig, cameras, uv, point_ids, points, frame_index)
+    n_frames = len(np.asarray(R).reshape(-1, 3, 3))
+    frame = _checked_frames(np.asarray(frame_index), n_frames)
+    free, camera, slot = _camera_slots(rig, cameras)
+    ids, point = np.unique(point_ids, return_inverse=True)
+    surveyed, survey_sigma = _points(ids, point, points, survey_sigma_m)
+    jitter = _non_negative(jitter_sigma_arcmin, "jitter_sigma_arcmin") * RAD_PER_ARCMIN
+    prior = _non_negative(prior_sigma_arcmin, "prior_sigma_arcmin") * RAD_PER_ARCMIN
+    if prior <= 0:
+        raise DmaisError("mounting: prior_sigma_arcmin must be above 0")
+    sums = np.column_stack([np.bincount(frame, points[:, k], minlength=n_frames) for k in range(3)])
+    centroid = sums / np.bincount(frame, minlength=n_frames)[:, None]
+    return _Problem(rig, rig.camera_names, free, frame, camera, slot, point, uv,
+                    1.0 / _pixel_sigmas(cameras, pixel_sigma_px), surveyed, survey_sigma, centroid, n_frames,
+                    *_centers(center_prior_m, center_sigma_m, n_frames), jitter, prior)
+
+
+def _checked_observations(rig: Rig, cameras, uv, point_ids, points, frame_index):
+    """cameras (N,) str, uv (N, 2), point_ids (N,) str, points (N, 3): one of each per observation,
+    finite, of the rig's cameras."""
+    cameras, point_ids = np.asarray(cameras).astype(str), np.asarray(point_ids).astype(str)
+    uv, points = np.asarray(uv, dtype=float).reshape(-1, 2), np.asarray(points, dtype=float).reshape(-1, 3)
+    n = len(cameras)
+    if n == 0:
+        raise DmaisError("mounting: a group without observations")
+    if not (len(uv) == len(point_ids) == len(points) == len(frame_index) == n):
+        raise DmaisError(f"mounting: {n} cameras, {len(uv)} pixels, {len(point_ids)} point ids, {len(points)} points "
+                         f"and {len(frame_index)} frame indices: one of each per observation")
+    if not (np.isfinite(uv).all() and np.isfinite(points).all()):
+        raise DmaisError("mounting: non-finite pixels or points")
+    unknown = sorted(set(cameras) - set(rig.cameras))
+    if unknown:
+        raise DmaisError(f"mounting: camera(s) {', '.join(unknown)} not in the rig ({', '.join(rig.cameras)})")
+    return cameras, uv, point_ids, points
+
+
+def _camera_slots(rig: Rig, cameras: np.ndarray) -> tuple[list[str], np.ndarray, np.ndarray]:
+    """The non-reference cameras observed (K, in rig order), each observation's camera (N,) index in
+    rig order and its delta slot (N,) in [0, K) (-1: the reference); a warning names the others."""
+    names, seen = rig.camera_names, set(cameras)
+    free = [c for c in names if c != rig.reference_camera and c in seen]
+    missing = [c for c in names if c != rig.reference_camera and c not in seen]
+    if missing:
+        log.warning("mounting: camera(s) %s have no observation in the group: no estimate (NaN)", ", ".join(missing))
+    slot_of = {name: k for k, name in enumerate(free)}
+    return free, np.array([names.index(c) for c in cameras]), np.array([slot_of.get(c, -1) for c in cameras])
+
+
+def _checked_frames(frame_index: np.ndarray, n_frames: int) -> np.ndarray:
+    """frame_index (N,) as ints, each in [0, n_frames) and every frame with at least 3 observations."""
+    if not np.issubdtype(frame_index.dtype, np.integer):
+        raise DmaisError(f"mounting: frame indices must be integers, got {frame_index.dtype}")
+    if frame_index.min() < 0 or frame_index.max() >= n_frames:
+        raise DmaisError(f"mounting: frame indices must be in [0, {n_frames}) for {n_frames} poses")
+    counts = np.bincount(frame_index, minlength=n_frames)
+    few = np.flatnonzero(counts < 3)
+    if len(few):
+        raise DmaisError(f"mounting: frame(s) {', '.join(map(str, few[:5]))} have fewer than 3 observations; "
+                         "a frame's pose needs at least 3")
+    return frame_index.astype(int)
+
+
+def _checked_poses(R, t, n_frames: int) -> tuple[np.ndarray, np.ndarray]:
+    R, t = np.asarray(R, dtype=float).reshape(-1, 3, 3), np.asarray(t, dtype=float).reshape(-1, 3)
+    if len(t) != n_frames:
+        raise DmaisError(f"mounting: {n_frames} rotations and {len(t)} translations")
+    if not (np.isfinite(R).all() and np.isfinite(t).all()):
+        raise DmaisError("mounting: a frame's starting pose is not finite (leave unsolved frames out)")
+    return R, t
+
+
+def _points(ids: np.ndarray, point: np.ndarray, points: np.ndarray, survey_sigma_m) -> tuple[np.ndarray, np.ndarray]:
+    """Surveyed coordinates and per-axis sigmas (P, 3) of the P distinct points, from the per-observation
+    points (N, 3) and sigmas (float, (3,) or (N, 3)); point (N,) each observation's point."""
+    try:
+        sigma = np.broadcast_to(np.asarray(survey_sigma_m, dtype=float), points.shape)
+    except ValueError:
+        raise DmaisError(f"mounting: survey_sigma_m must be a float, (3,) or (N, 3), got {np.shape(survey_sigma_m)}"
+                         ) from None
+    if not (np.isfinite(sigma).all() and (sigma > 0).all()):
+        raise DmaisError("mounting: every survey sigma must be finite and above 0")
+    first = np.zeros(len(ids), int)
+    first[point[::-1]] = np.arange(len(point))[::-1]
+    surveyed = points[first]
+    if not (np.allclose(points, surveyed[point], rtol=0, atol=1e-9)
+            and np.allclose(sigma, sigma[first][point], rtol=0, atol=1e-12)):
+        raise DmaisError("mounting: one point id with different coordinates or survey sigmas")
+    return surveyed, sigma[first].copy()
+
+
+def _centers(center_prior_m, center_sigma_m, n_frames: int) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The rig centres' prior (F, 3) and its per-axis sigma (F, 3), or (None, None) without one."""
+    if center_prior_m is None:
+        return None, None
+    center = np.asarray(center_prior_m, dtype=float)
+    try:
+        sigma = np.broadcast_to(np.asarray(center_sigma_m, dtype=float), (n_frames, 3)).copy()
+    except ValueError:
+        raise DmaisError(f"mounting: center_sigma_m must be a float, (3,) or (F, 3), got {np.shape(center_sigma_m)}"
+                         ) from None
+    if center.shape != (n_frames, 3) or not np.isfinite(center).all():
+        raise DmaisError(f"mounting: center_prior_m must be finite, (F, 3) = ({n_frames}, 3), got {center.shape}")
+    if not (np.isfinite(sigma).all() and (sigma > 0).all()):
+        raise DmaisError("mounting: every center sigma must be finite and above 0")
+    return center, sigma
+
+
+def _pixel_sigmas(cameras: np.ndarray, pixel_sigma_px) -> np.ndarray:
+    """(N,) per-axis pixel sigma of each observation, from one value or a per-camera mapping."""
+    if isinstance(pixel_sigma_px, Mapping):
+        absent = sorted(set(cameras) - set(pixel_sigma_px))
+        if absent:
+            raise DmaisError(f"mounting: no pixel sigma for camera(s) {', '.join(absent)}")
+        sigma = np.array([float(pixel_sigma_px[c]) for c in cameras])
+    else:
+        sigma = np.full(len(cameras), float(pixel_sigma_px))
+    if not (np.isfinite(sigma).all() and (sigma > 0).all()):
+        raise DmaisError("mounting: pixel sigmas must be finite and above 0")
+    return sigma
+
+
+def _non_negative(value, name: str) -> float:
+    value = float(value)
+    if not (np.isfinite(value) and value >= 0):
+        raise DmaisError(f"mounting: {name} must be finite and at least 0, got {value}")
+    return value
+
+
+# ------------------------------------------------------------------------------ residuals and Jacobians
+
+
+def _left_jacobians(phi: np.ndarray) -> np.ndarray:
+    """(n, 3, 3) left Jacobians of rotation vectors phi (n, 3)."""
+    return np.array([left_jacobian_so3(v) for v in phi.reshape(-1, 3)]).reshape(-1, 3, 3)
+
+
+@dataclass(frozen=True)
+class _Forward:
+    """The model at a state, per observation: e (N, 2) whitened pixel residuals; J_e (N, 2, 3) d e /
+    d x; x (N, 3) the point in the (jittered) camera frame, z (N, 3) before the jitter, q (N, 3) the
+    point less its frame's centroid, turned into the rig frame; D, J (N, 3, 3) exp of delta and
+    jitter; deltas (K + 1, 3) and jitters (F, K + 1, 3) with a zero row for the slot -1."""
+
+    e: np.ndarray
+    J_e: np.ndarray
+    x: np.ndarray
+    z: np.ndarray
+    q: np.ndarray
+    D: np.ndarray
+    J: np.ndarray
+    deltas: np.ndarray
+    jitters: np.ndarray
+
+
+def _forward(problem: _Problem, state: _State) -> _Forward:
+    p, rig = problem, problem.rig
+    cal_R = np.array([rig.cam_from_rig[c].R for c in p.names])[p.camera]
+    cal_t = np.array([rig.cam_from_rig[c].t for c in p.names])[p.camera]
+    deltas = np.vstack([state.delta, np.zeros((1, 3))])
+    jitters = np.concatenate([state.jitter, np.zeros((p.n_frames, 1, 3))], axis=1)
+    D, J = exp_so3(deltas[p.slot]), exp_so3(jitters[p.frame, p.slot])
+    R, X = state.R[p.frame], state.points[p.point]
+    q = np.einsum("nij,nj->ni", R, X - p.centroid[p.frame])
+    y = np.einsum("nij,nj->ni", cal_R, np.einsum("nij,nj->ni", R, X) + state.t[p.frame]) + cal_t
+    z = np.einsum("nij,nj->ni", D, y)
+    x = np.einsum("nij,nj->ni", J, z)
+    predicted, J_pixel = np.empty((len(x), 2)), np.empty((len(x), 2, 3))
+    for c in np.unique(p.camera):
+        rows = p.camera == c
+        cam = rig.cameras[p.names[c]]
+        predicted[rows], J_pixel[rows], _ = project_unmasked(x[rows], cam.fx, cam.fy, cam.cx, cam.cy, cam.d, True)
+    w = p.weight[:, None]
+    return _Forward((predicted - p.uv) * w, J_pixel * w[:, :, None], x, z, q, D, J, deltas, jitters)
+
+
+def _jacobians(problem: _Problem, state: _State, f: _Forward):
+    """The compact Jacobians of e: local (N, 2, L) with its columns (N, L) in the frame's block (pose
+    0:6, then the camera's jitter) and global (N, 2, 6) with its columns (N, 6) in the vector of the
+    deltas and points; an observation of the reference camera has zeros for delta and jitter."""
+    p, K = problem, len(problem.free)
+    has, slot = (problem.slot >= 0)[:, None, None], np.maximum(problem.slot, 0)
+    cal_R = np.array([p.rig.cam_from_rig[c].R for c in p.names])[p.camera]
+    d_rig = f.J_e @ f.J @ f.D @ cal_R  # d e / d x_rig
+    pose = np.concatenate([-d_rig @ skew(f.q), d_rig], axis=2)
+    d_delta = np.where(has, -(f.J_e @ f.J) @ skew(f.z) @ _left_jacobians(f.deltas)[p.slot], 0.0)
+    global_J = np.concatenate([d_delta, d_rig @ state.R[p.frame]], axis=2)
+    global_cols = np.concatenate([3 * slot[:, None] + np.arange(3), 3 * K + 3 * p.point[:, None] + np.arange(3)],
+                                 axis=1)
+    pose_cols = np.broadcast_to(np.arange(6), (len(slot), 6))
+    if p.local_size == 6:
+        return pose, pose_cols, global_J, global_cols
+    jitter_J_l = _left_jacobians(f.jitters).reshape(f.jitters.shape + (3,))[p.frame, p.slot]
+    d_jitter = np.where(has, -f.J_e @ skew(f.x) @ jitter_J_l, 0.0)
+    local_cols = np.concatenate([pose_cols, 6 + 3 * slot[:, None] + np.arange(3)], axis=1)
+    return np.concatenate([pose, d_jitter], axis=2), local_cols, global_J, global_cols
+
+
+def _center_residuals(problem: _Problem, state: _State) -> tuple[np.ndarray, np.ndarray]:
+    """The whitened rig-centre prior's residuals (F, 3) and their Jacobian (F, 3, 6) in a frame's
+    (omega, dt): c = -R^T t = m - R^T s with s = R m + t, so dc = -R^T [s]x omega - R^T dt."""
+    p = problem
+    Rt = np.swapaxes(state.R, 1, 2)
+    s = np.einsum("fij,fj->fi", state.R, p.centroid) + state.t
+    residuals = (p.centroid - np.einsum("fij,fj->fi", Rt, s) - p.center) / p.center_sigma
+    J = -np.concatenate([Rt @ skew(s), Rt], axis=2) / p.center_sigma[:, :, None]
+    return residuals, J
+
+
+def _cost(problem: _Problem, state: _State) -> float:
+    """The whitened cost (module docstring)."""
+    p = problem
+    e = _forward(p, state).e
+    priors = [((state.points - p.surveyed) / p.survey_sigma).ravel(), state.delta.ravel() / p.prior]
+    if p.jitter > 0:
+        priors.append(state.jitter.ravel() / p.jitter)
+    if p.center is not None:
+        priors.append(_center_residuals(p, state)[0])
+    return float(np.sum(e**2) + sum(np.sum(r**2) for r in priors))
+
+
+# ------------------------------------------------------------------------------ normal equations
+
+
+@dataclass(frozen=True)
+class _Normal:
+    """The normal equations in blocks: A (F, L, L) per frame, W (F, L, G) frame x global, H (G, G),
+    gradients b_local (F, L), b_global (G,) (J^T e with the priors')."""
+
+    A: np.ndarray
+    W: np.ndarray
+    H: np.ndarray
+    b_local: np.ndarray
+    b_global: np.ndarray
+
+
+def _scatter(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The dense (shape) sum of values at (rows, cols), all broadcast to one shape."""
+    values, rows, cols = np.broadcast_arrays(values, rows, cols)
+    return sparse.coo_array((values.ravel(), (rows.ravel(), cols.ravel())), shape=shape).toarray()
+
+
+def _normal_equations(problem: _Problem, state: _State) -> _Normal:
+    """J^T J and J^T e of the pixel residuals, accumulated per frame and globally, then the priors'."""
+    p = problem
+    F, L, G = p.n_frames, p.local_size, p.global_size
+    forward = _forward(p, state)
+    local_J, local_cols, global_J, global_cols = _jacobians(p, state, forward)
+    rows = p.frame[:, None] * L + local_cols  # (N, l) rows of the stacked frame blocks
+    local_T, global_T = np.swapaxes(local_J, 1, 2), np.swapaxes(global_J, 1, 2)
+    A = _scatter(local_T @ local_J, rows[:, :, None], local_cols[:, None, :], (F * L, L)).reshape(F, L, L)
+    W = _scatter(local_T @ global_J, rows[:, :, None], global_cols[:, None, :], (F * L, G)).reshape(F, L, G)
+    H = _scatter(global_T @ global_J, global_cols[:, :, None], global_cols[:, None, :], (G, G))
+    b_local = _scatter((local_T @ forward.e[:, :, None])[..., 0], rows, 0, (F * L, 1)).reshape(F, L)
+    b_global = _scatter((global_T @ forward.e[:, :, None])[..., 0], global_cols, 0, (G, 1)).ravel()
+    _add_priors(p, state, A, H, b_local, b_global)
+    return _Normal(A, W, H, b_local, b_global)
+
+
+def _add_priors(problem: _Problem, state: _State, A, H, b_local, b_global) -> None:
+    """Add the priors' terms to the normal equations' blocks (in place): the deltas' and points' to H
+    and b_global, the jitters' and rig centres' to A and b_local."""
+    p, K = problem, len(problem.free)
+    weights = np.concatenate([np.full(3 * K, p.prior**-2), (p.survey_sigma**-2).ravel()])
+    H[np.diag_indices(len(H))] += weights
+    b_global += weights * np.concatenate([state.delta.ravel(), (state.points - p.surveyed).ravel()])
+    if p.center is not None:
+        residuals, J = _center_residuals(p, state)
+        A[:, :6, :6] += np.swapaxes(J, 1, 2) @ J
+        b_local[:, :6] += (np.swapaxes(J, 1, 2) @ residuals[:, :, None])[..., 0]
+    if p.local_size > 6:
+        jitter = np.arange(6, p.local_size)
+        A[:, jitter, jitter] += p.jitter**-2
+        b_local[:, 6:] += state.jitter.reshape(p.n_frames, -1) / p.jitter**2
+
+
+def _reduced(normal: _Normal, damping: float = 0.0):
+    """The Schur complement of the frame blocks: (S (G, G), its right side (G,), A^-1 (F, L, L)), the
+    diagonals raised by damping x themselves (Levenberg-Marquardt)."""
+    A, H = normal.A.copy(), normal.H.copy()
+    if damping:
+        L, G = A.shape[1], H.shape[0]
+        A[:, np.arange(L), np.arange(L)] *= 1.0 + damping
+        H[np.arange(G), np.arange(G)] *= 1.0 + damping
+    try:
+        A_inv = np.linalg.inv(A)
+    except np.linalg.LinAlgError:
+        raise DmaisError("mounting: a frame's pose is not determined by its observations (too few or collinear "
+                         "points)") from None
+    F, L, G = normal.W.shape
+    WA = np.swapaxes(normal.W, 1, 2) @ A_inv  # W_f^T A_f^-1: (F, G, L)
+    WA = np.swapaxes(WA, 0, 1).reshape(G, F * L)  # all frames side by side: one product each below
+    S = H - WA @ normal.W.reshape(F * L, G)
+    rhs = normal.b_global - WA @ normal.b_local.ravel()
+    return S, rhs, A_inv
+
+
+def _step(normal: _Normal, damping: float) -> tuple[np.ndarray, np.ndarray]:
+    """The (damped) Gauss-Newton step: local (F, L), global (G,)."""
+    S, rhs, A_inv = _reduced(normal, damping)
+    try:
+        d_global = -np.linalg.solve(S, rhs)
+    except np.linalg.LinAlgError:
+        raise DmaisError("mounting: the group's normal equations are singular") from None
+    d_local = -np.einsum("flm,fm->fl", A_inv, normal.b_local + normal.W @ d_global)
+    return d_local, d_global
+
+
+def _moved(problem: _Problem, state: _State, d_local: np.ndarray, d_global: np.ndarray) -> _State:
+    """`state` moved by a step: R <- exp(omega) R about the frame's centroid m (R m + t moves by dt)."""
+    K, m = len(problem.free), problem.centroid
+    R = exp_so3(d_local[:, :3]) @ state.R
+    t = np.einsum("fij,fj->fi", state.R - R, m) + state.t + d_local[:, 3:6]
+    jitter = state.jitter + d_local[:, 6:].reshape(problem.n_frames, -1, 3) if problem.local_size > 6 else state.jitter
+    return _State(R, t, state.delta + d_global[:3 * K].reshape(K, 3), jitter,
+                  state.points + d_global[3 * K:].reshape(-1, 3))
+
+
+def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int, float]:
+    """The minimum of the cost from `state`: (state, iterations, cost)."""
+    cost, damping = _cost(problem, state), 1e-6
+    for iteration in range(1, MAX_ITERATIONS + 1):
+        normal = _normal_equations(problem, state)
+        while True:
+            trial = _moved(problem, state, *_step(normal, damping))
+            trial_cost = _cost(problem, trial)
+            if np.isfinite(trial_cost) and trial_cost <= cost:
+                break
+            damping *= 10.0
+            if damping > 1e8:
+                return state, iteration, cost
+        state, decrease, cost = trial, cost - trial_cost, trial_cost
+        damping = max(damping / 10.0, 1e-9)
+        if decrease <= COST_TOLERANCE * max(cost, 1.0):
+            return state, iteration, cost
+    log.warning("mounting: the group adjustment stopped at %d iterations before converging", MAX_ITERATIONS)
+    return state, MAX_ITERATIONS, cost
+
+
+# ------------------------------------------------------------------------------ the result
+
+
+def _delta_covariance(problem: _Problem, state: _State) -> np.ndarray:
+    """(K, 3, 3) covariance of the deltas (rad^2): blocks of the inverse Schur complement, whose
+    first 3K rows and columns are the deltas'."""
+    K = len(problem.free)
+    S, _, _ = _reduced(_normal_equations(problem, state))
+    covariance = np.linalg.inv(S)
+    return np.array([covariance[3 * k:3 * k + 3, 3 * k:3 * k + 3] for k in range(K)]).reshape(K, 3, 3)
+
+
+def _result(problem: _Problem, state: _State, covariance: np.ndarray, iterations: int, cost: float) -> GroupRig:
+    """The GroupRig of the minimum: rows in rig order, the reference's 0, unobserved cameras' NaN."""
+    rig, names = problem.rig, problem.names
+    C = len(names)
+    delta, cov, chi2 = np.full((C, 3), np.nan), np.full((C, 3, 3), np.nan), np.full(C, np.nan)
+    reference = names.index(rig.reference_camera)
+    delta[reference], cov[reference], chi2[reference] = 0.0, 0.0, 0.0
+    cam_from_rig = dict(rig.cam_from_rig)
+    for k, name in enumerate(problem.free):
+        c = names.index(name)
+        delta[c], cov[c] = state.delta[k], covariance[k]
+        chi2[c] = state.delta[k] @ np.linalg.solve(covariance[k], state.delta[k])
+        cam_from_rig[name] = Rigid3(exp_so3(state.delta[k]), np.zeros(3)) * rig.cam_from_rig[name]
+    significant = np.nan_to_num(chi2, nan=0.0) > chi2_distribution.ppf(1.0 - SIGNIFICANCE, 3)
+    sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2)) / RAD_PER_ARCMIN
+    return GroupRig(tuple(names), delta / RAD_PER_ARCMIN, sigma, cov / RAD_PER_ARCMIN**2, chi2, significant,
+                    Rig(dict(rig.cameras), cam_from_rig, rig.reference_camera), state.R, state.t, problem.n_frames,
+                    iterations, cost, 2 * len(problem.uv) - 6 * problem.n_frames)

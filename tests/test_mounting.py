@@ -1,0 +1,349 @@
+"""pose.mounting: the group rig adjustment on seeded groups built with the simulator's rig, site and
+markers, and a known mounting change per camera (drawn here, so that the truth is exact)."""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy.optimize import least_squares
+
+from dmais_pipe.errors import DmaisError
+from dmais_pipe.geometry import Rigid3, exp_so3, rotation_error
+from dmais_pipe.pose.mounting import RAD_PER_ARCMIN, TABLE_COLUMNS, adjust_group_rig, mounting_table
+from dmais_pipe.pose.solver import solve_generalized_pose
+from dmais_pipe.rig import Rig
+from dmais_pipe.sim.config import DEFAULTS, merge
+from dmais_pipe.sim.scene import build_rig, ground_markers_for, nominal_rig_pose, visible_points
+
+SITE = np.array([1500.0, -800.0, 45.0])
+
+
+@dataclass(frozen=True)
+class Group:
+    """Observations of one simulated group (arguments of adjust_group_rig) and its truth."""
+
+    rig: Rig
+    cameras: np.ndarray
+    uv: np.ndarray
+    point_ids: np.ndarray
+    points: np.ndarray
+    frame_index: np.ndarray
+    R: np.ndarray
+    t: np.ndarray
+    mount_arcmin: dict  # camera -> true delta (3,), arc-min
+    true_R: np.ndarray
+    true_t: np.ndarray
+
+    def adjust(self, **noise):
+        return adjust_group_rig(self.rig, self.cameras, self.uv, self.point_ids, self.points, self.frame_index, self.R,
+                                self.t, **noise)
+
+
+def make_group(seed: int, frames: int = 30, mount_arcmin: float = 0.0, vibration_arcmin: float = 0.3,
+               survey_m: float = 0.025, pixel_px: float = 0.5, markers_per_camera: int = 8) -> Group:
+    """A hovering group over the simulator's site A (scene helpers), every non-reference camera
+    turned by mount_arcmin per axis with seeded signs, each frame's cameras by N(0, vibration^2); the
+    frames' poses from the project's solver with the calibrated rig."""
+    config = merge(DEFAULTS, {"seed": seed, "flight": {"markers_per_camera": markers_per_camera}})
+    rng = np.random.default_rng(seed)
+    rig = build_rig(config["rig"])
+    nominal = nominal_rig_pose(config, SITE, rng)
+    markers = ground_markers_for(config, rig, nominal, "A", SITE, rng, [])
+    true_points = {pid: xyz for m in markers for pid, xyz in zip(m.point_ids, m.board.corners())}
+    surveyed = {pid: xyz + rng.normal(0.0, survey_m, 3) for pid, xyz in true_points.items()}
+    tilted = [c for c in rig.camera_names if c != rig.reference_camera]
+    mount = {c: mount_arcmin * rng.choice([-1.0, 1.0], 3) for c in tilted}
+    rows, true_R, true_t, R, t = [], [], [], [], []
+    for f in range(frames):
+        world_from_nominal = nominal.inverse()
+        rig_from_world = Rigid3(exp_so3(rng.normal(0.0, np.radians(0.2), 3)) @ world_from_nominal.R,
+                                world_from_nominal.t + rng.normal(0.0, 1.0, 3)).inverse()
+        frame_rows = []
+        for name in rig.camera_names:
+            turn = np.zeros(3) if name == rig.reference_camera else (
+                mount[name] + rng.normal(0.0, vibration_arcmin, 3)) * RAD_PER_ARCMIN
+            cam_from_world = Rigid3(exp_so3(turn), np.zeros(3)) * rig.cam_from_rig[name] * rig_from_world
+            for pid, uv, _ in visible_points(rig.cameras[name], cam_from_world, markers, 20.0):
+                frame_rows.append((name, uv + rng.normal(0.0, pixel_px, 2), pid, surveyed[pid], f))
+        cameras = np.array([r[0] for r in frame_rows])
+        uv, points = np.array([r[1] for r in frame_rows]), np.array([r[3] for r in frame_rows])
+        origins, directions = rig.rays_of(cameras, uv)
+        pose = solve_generalized_pose(origins, directions, points)
+        rows += frame_rows
+        true_R.append(rig_from_world.R), true_t.append(rig_from_world.t), R.append(pose.R), t.append(pose.t)
+    return Group(rig, np.array([r[0] for r in rows]), np.array([r[1] for r in rows]), np.array([r[2] for r in rows]),
+                 np.array([r[3] for r in rows]), np.array([r[4] for r in rows]), np.array(R), np.array(t),
+                 {c: np.asarray(v) for c, v in mount.items()}, np.array(true_R), np.array(true_t))
+
+
+def noise(survey_m=0.025, pixel_px=0.5, vibration_arcmin=0.3) -> dict:
+    return {"pixel_sigma_px": pixel_px, "jitter_sigma_arcmin": vibration_arcmin, "survey_sigma_m": survey_m}
+
+
+def centres(R, t) -> np.ndarray:
+    """(F, 3) rig centres in the world of rig_from_world R (F, 3, 3), t (F, 3)."""
+    return -np.einsum("fji,fj->fi", R, t)
+
+
+def others(group: Group, result) -> list[int]:
+    """Rows of result's non-reference cameras."""
+    return [k for k, c in enumerate(result.cameras) if c != group.rig.reference_camera]
+
+
+def errors_in_sigmas(group: Group, result) -> np.ndarray:
+    """(K, 3) (estimate - truth) / sigma of the non-reference cameras."""
+    names = list(result.cameras)
+    return np.array([(result.delta_arcmin[names.index(c)] - truth) / result.sigma_arcmin[names.index(c)]
+                     for c, truth in group.mount_arcmin.items()])
+
+
+@pytest.fixture(scope="module")
+def changed():
+    group = make_group(11, mount_arcmin=2.0)
+    return group, group.adjust(**noise())
+
+
+@pytest.fixture(scope="module")
+def unchanged():
+    group = make_group(12, mount_arcmin=0.0)
+    return group, group.adjust(**noise())
+
+
+def test_a_mount_change_of_2_arcmin_is_found_within_3_sigma(changed):
+    group, result = changed
+    assert np.all(np.abs(errors_in_sigmas(group, result)) < 3.0)
+
+
+def test_no_change_gives_deltas_within_3_sigma_of_zero(unchanged):
+    group, result = unchanged
+    assert np.all(np.abs(errors_in_sigmas(group, result)) < 3.0)
+    assert not result.significant.any()
+
+
+def test_sigma_with_a_2_5_cm_survey_is_the_bound_of_the_geometry(changed, unchanged):
+    """30 frames, 0.5 px, 0.3' jitter, 2.5 cm survey: the Fisher bound of the module docstring,
+    ~1.6', 2.1', 3.3' about x, y, z, is what is reported (not the issue's hoped-for 0.5'): the 8
+    points per camera and their survey errors are common to every frame, and the reference camera's
+    narrow view pins the cameras' common turns only weakly. A 2' change is then not flagged."""
+    for group, result in (changed, unchanged):
+        sigma = result.sigma_arcmin[others(group, result)]
+        assert np.all((sigma > [1.2, 1.7, 2.7]) & (sigma < [2.0, 2.6, 4.0]))
+
+
+def test_a_precise_survey_gives_sigma_under_half_an_arcmin_and_flags_2_arcmin():
+    group = make_group(13, mount_arcmin=2.0, survey_m=0.002)
+    result = group.adjust(**noise(survey_m=0.002))
+    assert np.all(result.sigma_arcmin[others(group, result)] <= 0.5)
+    assert np.all(np.abs(errors_in_sigmas(group, result)) < 3.0)
+    assert result.significant[others(group, result)].all()
+
+
+def test_a_rig_centre_prior_pins_the_outward_tilt_and_flags_2_arcmin(changed):
+    """A POS-like prior (2 cm) on the rig centres: rx (the tilt, traded against the rig's height)
+    drops to ~0.13'; the frames' positions come to the prior's level."""
+    group, without = changed
+    true = centres(group.true_R, group.true_t)
+    prior = true + np.random.default_rng(0).normal(0.0, 0.02, true.shape)
+    result = group.adjust(**noise(), center_prior_m=prior, center_sigma_m=0.02)
+    chosen = others(group, result)
+    assert np.all(result.sigma_arcmin[chosen, 0] < 0.2)
+    assert np.all(result.sigma_arcmin[chosen, 1:] <= without.sigma_arcmin[chosen, 1:] + 1e-9)
+    assert np.all(np.abs(errors_in_sigmas(group, result)) < 3.0)
+    assert result.significant[chosen].all()
+    error = np.linalg.norm(centres(result.R, result.t) - true, axis=1)
+    assert np.sqrt(np.mean(error**2)) < 0.05
+
+
+def test_reference_row_is_zero_and_the_rig_applies_the_deltas(changed):
+    group, result = changed
+    reference = result.cameras.index(group.rig.reference_camera)
+    assert np.all(result.delta_arcmin[reference] == 0) and np.all(result.sigma_arcmin[reference] == 0)
+    assert not result.significant[reference]
+    for c, name in enumerate(result.cameras):
+        turn = exp_so3(result.delta_arcmin[c] * RAD_PER_ARCMIN)
+        np.testing.assert_allclose(result.rig.cam_from_rig[name].R, turn @ group.rig.cam_from_rig[name].R, atol=1e-12)
+        np.testing.assert_allclose(result.rig.camera_center(name), group.rig.camera_center(name), atol=1e-12)
+    table = mounting_table({"g1": result})
+    assert list(table.columns) == TABLE_COLUMNS and len(table) == len(result.cameras)
+    row = table[table["camera"] == group.rig.reference_camera].iloc[0]
+    assert (row[TABLE_COLUMNS[2:8]] == 0).all() and not row["significant"]
+
+
+def test_refined_poses_are_closer_to_the_truth_than_the_per_frame_solves(changed):
+    group, result = changed
+    true = centres(group.true_R, group.true_t)
+    before = np.linalg.norm(centres(group.R, group.t) - true, axis=1)
+    after = np.linalg.norm(centres(result.R, result.t) - true, axis=1)
+    assert np.sqrt(np.mean(after**2)) < np.sqrt(np.mean(before**2))
+    assert np.median(rotation_error(result.R, group.true_R)) < np.median(rotation_error(group.R, group.true_R))
+
+
+def test_without_change_about_1_percent_is_flagged_and_chi2_is_honest():
+    """Pooled over groups: the share flagged at SIGNIFICANCE and the mean chi2 (3 for honest sigmas)."""
+    chi2 = []
+    for seed in range(20, 26):
+        group = make_group(seed, frames=6, mount_arcmin=0.0)
+        result = group.adjust(**noise())
+        chi2 += list(result.chi2[others(group, result)])
+    assert 1.5 < np.mean(chi2) < 4.5
+    assert np.mean(np.array(chi2) > 11.34) <= 2 / len(chi2)
+
+
+@pytest.mark.parametrize("with_centres", [False, True])
+def test_agrees_with_scipy_least_squares_on_the_same_whitened_residuals(with_centres):
+    """An independent dense reference: every unknown in one vector (poses as rotation vectors and
+    centre moves from the starting ones), scipy's least_squares with central differences,
+    covariance (J^T J)^-1; with and without the rig-centre prior."""
+    group = make_group(5, frames=3, mount_arcmin=1.0, markers_per_camera=4)
+    sigmas = {"pixel_sigma_px": 0.5, "jitter_sigma_arcmin": 0.3, "survey_sigma_m": 0.025, "prior_sigma_arcmin": 30.0}
+    if with_centres:
+        true = centres(group.true_R, group.true_t)
+        sigmas |= {"center_prior_m": true + np.random.default_rng(1).normal(0.0, 0.02, true.shape),
+                   "center_sigma_m": [0.02, 0.02, 0.03]}
+    result = group.adjust(**sigmas)
+    delta, sigma = reference_solution(group, **sigmas)
+    chosen = others(group, result)
+    np.testing.assert_allclose(result.delta_arcmin[chosen], delta, atol=1e-5 * np.max(sigma))
+    np.testing.assert_allclose(result.sigma_arcmin[chosen], sigma, rtol=1e-4)
+
+
+def reference_solution(group: Group, pixel_sigma_px, jitter_sigma_arcmin, survey_sigma_m, prior_sigma_arcmin,
+                       center_prior_m=None, center_sigma_m=None):
+    """delta (K, 3) and sigma (K, 3) in arc-min of the model, written from its definition: every
+    unknown an offset from its start (poses as a rotation vector and the rig centre's move)."""
+    rig = group.rig
+    moving = [c for c in rig.camera_names if c != rig.reference_camera]
+    ids, point = np.unique(group.point_ids, return_inverse=True)
+    surveyed = np.array([group.points[np.flatnonzero(point == p)[0]] for p in range(len(ids))])
+    F, K, P = len(group.R), len(moving), len(ids)
+    jitter_rad, prior_rad = jitter_sigma_arcmin * RAD_PER_ARCMIN, prior_sigma_arcmin * RAD_PER_ARCMIN
+
+    def unpack(x):
+        omega, dc = x[:3 * F].reshape(F, 3), x[3 * F:6 * F].reshape(F, 3)
+        delta = x[6 * F:6 * F + 3 * K].reshape(K, 3)
+        jitter = x[6 * F + 3 * K:6 * F + 3 * K + 3 * F * K].reshape(F, K, 3)
+        return omega, dc, delta, jitter, surveyed + x[6 * F + 3 * K + 3 * F * K:].reshape(P, 3)
+
+    def residuals(x):
+        omega, dc, delta, jitter, points = unpack(x)
+        R, centers = exp_so3(omega) @ group.R, start_centers + dc
+        x_rig = np.einsum("nij,nj->ni", R[group.frame_index], points[point] - centers[group.frame_index])
+        pixels = np.empty_like(group.uv)
+        for name in rig.camera_names:
+            rows = np.flatnonzero(group.cameras == name)
+            turn = np.broadcast_to(np.eye(3), (len(rows), 3, 3))
+            if name != rig.reference_camera:
+                k = moving.index(name)
+                turn = exp_so3(jitter[group.frame_index[rows], k]) @ exp_so3(delta[k])
+            x_cam = np.einsum("nij,nj->ni", turn, rig.cam_from_rig[name].apply(x_rig[rows]))
+            pixels[rows] = rig.cameras[name].project(x_cam)
+        centre_prior = [] if center_prior_m is None else [((centers - center_prior_m) / center_sigma_m).ravel()]
+        return np.concatenate([((pixels - group.uv) / pixel_sigma_px).ravel(),
+                               ((points - surveyed) / survey_sigma_m).ravel(), delta.ravel() / prior_rad,
+                               jitter.ravel() / jitter_rad, *centre_prior])
+
+    start_centers = centres(group.R, group.t)
+    x0 = np.zeros(6 * F + 3 * K + 3 * F * K + 3 * P)
+    solution = least_squares(residuals, x0, jac="3-point", x_scale="jac", method="lm", xtol=1e-15, ftol=1e-15,
+                             gtol=1e-15)
+    J = solution.jac  # at solution.x
+    covariance = np.linalg.inv(J.T @ J)[6 * F:6 * F + 3 * K, 6 * F:6 * F + 3 * K]
+    delta = unpack(solution.x)[2] / RAD_PER_ARCMIN
+    sigma = np.sqrt(np.diag(covariance)).reshape(K, 3) / RAD_PER_ARCMIN
+    return delta, sigma
+
+
+def test_a_camera_without_observations_gets_a_nan_row_with_a_warning(caplog):
+    group = make_group(7, frames=4, mount_arcmin=2.0)
+    kept = group.cameras != "C2"
+    with caplog.at_level(logging.WARNING, logger="dmais_pipe.pose.mounting"):
+        result = adjust_group_rig(group.rig, group.cameras[kept], group.uv[kept], group.point_ids[kept],
+                                  group.points[kept], group.frame_index[kept], group.R, group.t, **noise())
+    assert "C2" in caplog.text
+    c2 = result.cameras.index("C2")
+    assert np.isnan(result.delta_arcmin[c2]).all() and np.isnan(result.sigma_arcmin[c2]).all()
+    assert not result.significant[c2]
+    np.testing.assert_array_equal(result.rig.cam_from_rig["C2"].R, group.rig.cam_from_rig["C2"].R)
+    assert np.isfinite(result.delta_arcmin[result.cameras.index("C1")]).all()
+
+
+def test_one_frame_and_no_jitter_work_less_precisely():
+    group = make_group(8, frames=30, mount_arcmin=2.0)
+    one = group.frame_index == 0
+    single = adjust_group_rig(group.rig, group.cameras[one], group.uv[one], group.point_ids[one], group.points[one],
+                              group.frame_index[one], group.R[:1], group.t[:1], **noise())
+    full = group.adjust(**noise())
+    assert single.n_frames == 1 and full.n_frames == 30
+    chosen = others(group, full)
+    assert np.all(single.sigma_arcmin[chosen] > full.sigma_arcmin[chosen])
+    assert np.all(np.abs(errors_in_sigmas(group, single)) < 3.0)
+    still = make_group(9, frames=10, mount_arcmin=2.0, vibration_arcmin=0.0)
+    assert np.all(np.abs(errors_in_sigmas(still, still.adjust(**noise(vibration_arcmin=0.0)))) < 3.0)
+
+
+def test_pixel_sigma_per_camera_is_used():
+    group = make_group(10, frames=5)
+    same = group.adjust(**noise())
+    per_camera = group.adjust(**{**noise(), "pixel_sigma_px": dict.fromkeys(group.rig.camera_names, 0.5)})
+    np.testing.assert_allclose(per_camera.delta_arcmin, same.delta_arcmin, atol=1e-9)
+    worse = group.adjust(**{**noise(), "pixel_sigma_px": {**dict.fromkeys(group.rig.camera_names, 0.5), "C3": 5.0}})
+    c3 = worse.cameras.index("C3")
+    assert np.all(worse.sigma_arcmin[c3] > same.sigma_arcmin[c3])
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda g: {"frame_index": g.frame_index + 100}, "frame indices"),
+    (lambda g: {"cameras": np.where(g.cameras == "C1", "C9", g.cameras)}, "C9"),
+    (lambda g: {"uv": g.uv[:-1]}, "one of each per observation"),
+    (lambda g: {"pixel_sigma_px": {"C0": 0.5}}, "no pixel sigma"),
+    (lambda g: {"survey_sigma_m": 0.0}, "survey sigma"),
+    (lambda g: {"jitter_sigma_arcmin": -1.0}, "jitter_sigma_arcmin"),
+    (lambda g: {"R": np.full_like(g.R, np.nan)}, "not finite"),
+    (lambda g: {"cameras": g.cameras[:0], "uv": g.uv[:0], "point_ids": g.point_ids[:0], "points": g.points[:0],
+                "frame_index": g.frame_index[:0]}, "without observations"),
+])
+def test_degenerate_input_is_refused(change, message):
+    group = make_group(3, frames=2)
+    arguments = {"rig": group.rig, "cameras": group.cameras, "uv": group.uv, "point_ids": group.point_ids,
+                 "points": group.points, "frame_index": group.frame_index, "R": group.R, "t": group.t, **noise()}
+    with pytest.raises(DmaisError, match=message):
+        adjust_group_rig(**{**arguments, **change(group)})
+
+
+def test_a_frame_with_fewer_than_3_observations_is_refused():
+    group = make_group(4, frames=2)
+    rows = np.flatnonzero(group.frame_index == 0)[:2].tolist() + np.flatnonzero(group.frame_index == 1).tolist()
+    with pytest.raises(DmaisError, match="fewer than 3"):
+        adjust_group_rig(group.rig, group.cameras[rows], group.uv[rows], group.point_ids[rows], group.points[rows],
+                         group.frame_index[rows], group.R, group.t, **noise())
+
+
+def test_200_frames_take_under_a_second():
+    """A 40-frame group's observations repeated 5 times as 200 frames (the same cost as 200 distinct)."""
+    group = make_group(6, frames=40, mount_arcmin=2.0)
+    repeat = lambda a: np.concatenate([a] * 5)  # noqa: E731
+    frame_index = np.concatenate([group.frame_index + 40 * k for k in range(5)])
+    start = time.perf_counter()
+    result = adjust_group_rig(group.rig, repeat(group.cameras), repeat(group.uv), repeat(group.point_ids),
+                              repeat(group.points), frame_index, repeat(group.R), repeat(group.t), **noise())
+    elapsed = time.perf_counter() - start
+    assert result.n_frames == 200 and elapsed < 1.0
+
+
+def test_bench_runs_one_small_simulation_and_writes_its_tables(tmp_path):
+    from dmais_pipe.bench.mounting import TABLE_COLUMNS as BENCH_COLUMNS, bench_mounting, simulations
+
+    csv = tmp_path / "mounting.csv"
+    table = bench_mounting(csv, simulations(seeds=[3], mounts=[2.0], groups=1, frames_per_group=4), pos=True)
+    assert list(table.columns) == BENCH_COLUMNS
+    assert set(table["variant"]) == {"survey", "survey+pos"} and set(table["seed"]) == {"3", "pooled"}
+    assert (table["n"] == 4).all() and (table["within_3sigma"] > 0.5).all()
+    assert (table["pos_true_m"] < table["pos_calibrated_m"]).all()
+    cameras = pd.read_csv(tmp_path / "mounting_cameras.csv")
+    assert set(TABLE_COLUMNS) <= set(cameras.columns) and len(cameras) == 2 * 5
+    assert len(pd.read_csv(tmp_path / "mounting_frames.csv")) == 2 * 4
