@@ -62,16 +62,14 @@ import pandas as pd
 import yaml
 
 from ..errors import DmaisError
-from ..files import copy_atomic, write_csv_atomic, write_yaml_atomic
+from ..files import write_csv_atomic
 from ..frames import flight_observations_by_frame
 from ..geometry import Rigid3, average_rotations, log_so3, rotation_from_quat
 from ..pose.flight import estimate_poses
 from ..pose.mounting import RAD_PER_ARCMIN, adjust_flight_groups, mounting_table
 from ..rig import Rig
-from ..sim.simulate import simulate
-from ..stages import extrinsics, intrinsics
 from ..workspace import CENTER, QUAT, TRANSLATION, Workspace
-from .sigma import Simulation, _stages_quiet
+from .sigma import Simulation, _stages_quiet, calibrated_workspace
 
 log = logging.getLogger(__name__)
 
@@ -91,20 +89,6 @@ def simulations(seeds=DEFAULT_SEEDS, mounts=DEFAULT_MOUNT_ARCMIN, vibration_arcm
     return [Simulation(vibration_arcmin, survey_m, seed, pixel_px=pixel_px, mount_arcmin=mount, groups=groups,
                        frames_per_group=frames_per_group, truth_rig=not calibrated)
             for mount in mounts for seed in seeds]
-
-
-def prepare(simulation: Simulation, folder: Path) -> Workspace:
-    """Simulate into folder/dataset and calibrate the rig into `folder` (the simulator's with truth_rig)."""
-    folder.mkdir(parents=True, exist_ok=True)
-    write_yaml_atomic(folder / "simulation.yaml", simulation.config())
-    dataset = simulate(folder / "simulation.yaml", folder / "dataset")
-    workspace = Workspace.open(dataset, folder)
-    if simulation.truth_rig:
-        copy_atomic(dataset / "truth" / "rig.json", workspace.rig_path)
-    else:
-        intrinsics.run(workspace, intrinsics.CONFS["ours"])
-        extrinsics.run(workspace)
-    return workspace
 
 
 def true_mounts(workspace: Workspace) -> dict[str, dict[str, np.ndarray]]:
@@ -135,7 +119,7 @@ def solved_centres(workspace: Workspace, rig: Rig, groups: list[str] | None = No
 def run_simulation(simulation: Simulation, folder: Path, pos: bool) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Per-camera rows (<stem>_cameras.csv) and per-frame rows (<stem>_frames.csv) of one simulation."""
     with _stages_quiet():
-        workspace = prepare(simulation, folder)
+        workspace = calibrated_workspace(simulation, folder)
         rig, truth_rig = workspace.load_rig(), Rig.load(workspace.dataset.truth_dir / "rig.json")
         config = yaml.safe_load((workspace.dataset.truth_dir / "simulation.yaml").read_text())["flight"]
         observations = workspace.load_observations()

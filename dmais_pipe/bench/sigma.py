@@ -279,8 +279,8 @@ def simulation_grid(seeds=DEFAULT_SEEDS, vibrations=DEFAULT_VIBRATION_ARCMIN, su
     return [Simulation(v, s, seed, **options) for v in vibrations for s in surveys for seed in seeds]
 
 
-def run_simulation(simulation: Simulation, folder: Path) -> Path:
-    """Simulate into folder/dataset and run the chain into `folder` (module docstring); the folder."""
+def calibrated_workspace(simulation: Simulation, folder: Path) -> Workspace:
+    """Simulate into folder/dataset and calibrate the rig into `folder` (the simulator's with truth_rig)."""
     folder.mkdir(parents=True, exist_ok=True)
     write_yaml_atomic(folder / "simulation.yaml", simulation.config())
     dataset = simulate(folder / "simulation.yaml", folder / "dataset")
@@ -290,6 +290,12 @@ def run_simulation(simulation: Simulation, folder: Path) -> Path:
     else:
         intrinsics.run(workspace, intrinsics.CONFS["ours"])
         extrinsics.run(workspace)
+    return workspace
+
+
+def run_simulation(simulation: Simulation, folder: Path) -> Path:
+    """Simulate into folder/dataset and run the chain into `folder` (module docstring); the folder."""
+    workspace = calibrated_workspace(simulation, folder)
     rig = workspace.load_rig()
     for label in CAMERA_SETS:
         pose.run(workspace, cameras=subset_cameras(label, rig))
