@@ -25,24 +25,22 @@ deviations); the survey term is fixed per point where ground_points.csv gives `s
 other component where the user sets it.
 
 Estimation (variance-component estimation, method of moments as Helmert's: quadratic forms of the
-residuals equated to their expectations). A frame's solve is linear in the errors e about the truth:
-its residuals are r = e - J A^-1 sum_i w_i J_i^T e_i per frame (J, w, A as uncertainty.py), so
-each statistic T_m below, a quadratic form in r, has expectation E T_m = sum_k s_k^2 D_mk. The D_mk
-are estimated by Monte Carlo trace estimation (Rademacher draws of each component through the same
+residuals equated to their expectations), per flight group, on at most ESTIMATION_FRAMES of its
+frames. A frame's solve is linear in the errors e about the truth: its residuals are
+r = e - J A^-1 sum_i w_i J_i^T e_i per frame (J, w, A as uncertainty.py), so each statistic T_m of
+`Statistics`, a quadratic form in r, has expectation E T_m = sum_k s_k^2 D_mk. The D_mk are
+estimated by Monte Carlo trace estimation (Rademacher draws of each component through the same
 linear solve, Koch & Kusche 2002, J. Geodesy 76: 641-652), the calibration's exactly (its few
-parameters one at a time). The statistics, in pixels (s_i = F_i r_i):
+parameters one at a time). The statistics separate the components by their structure: pixel
+noise is what no structure explains; survey what repeats per point; jitter what moves a camera's
+points together in one frame only; mounting and focal what does so in every frame of the group.
 
-    T_total   sum_i ||s_i||^2
-    T_frame   per (frame, non-reference camera): the part of its residuals a rotation explains
-    T_group   per (group, non-reference camera): the part one rotation for the whole group explains
-    T_focal   per (group, camera): the part one focal change for the whole group explains
-    T_point   per (group, point) seen in 2 frames or more: the part a constant per point explains
-
-Pixel noise is what no structure explains; survey what repeats per point; jitter what moves a
-camera's points together in one frame only; mounting and focal what does so in every frame of the
-group. The system is solved for the free components with non-negative least squares; a component
-with no effect on the residuals (a rotation of a camera solved alone is absorbed by the pose) is
-not estimable and keeps its setting, or 0.
+The system is solved for the free components by non-negative least squares, each statistic
+weighted by its spread under a first fit (drawn, `_spread`). A component that the solves absorb
+(a rotation of a camera solved alone) is not estimable; one estimated below SIGNIFICANCE of its
+standard errors is not significant (the least significant is dropped and the rest estimated
+again); both are then 0. Jitter and mounting act alike on one frame, so their sum is
+far better determined than their split; the sigmas use the sum.
 
 Propagation: cov(omega, delta_t) of frame f = A^-1 (sum_k B_k) A^-1, B_k = the k-th component's
 covariance of sum_i w_i J_i^T e_i (correlated within a camera for jitter, mounting, focal and
@@ -70,8 +68,12 @@ UNITS = {"pixel": "px", "survey": "m", "jitter": "arcmin", "mounting": "arcmin",
 _TO_SI = {"pixel": 1.0, "survey": 1.0, "jitter": ARCMIN, "mounting": ARCMIN, "focal": 1e-6, "calibration": 1.0}
 #: Fewest residual degrees of freedom (2n - 6 per frame, summed) to estimate any component.
 MIN_DEGREES_OF_FREEDOM = 4
-#: Monte Carlo draws of each component for the expectations (more for small problems).
-MIN_DRAWS, MAX_DRAWS, DRAW_OBSERVATIONS = 8, 64, 200_000
+#: Monte Carlo draws of each component for the expectations, and of the fitted model for the
+#: statistics' spread: their precision depends on the draws, not on the number of observations.
+DRAWS = 16
+#: The most frames of a group the estimation uses, evenly spread over it (`estimation_frames`): the
+#: components belong to the group, and 64 frames of 40 observations give them to a few percent.
+ESTIMATION_FRAMES = 64
 #: A component is not estimable where the frames' solves absorb all but this share of its effect
 #: (E ||residual||^2 / E ||error||^2), as a single camera's solve absorbs a rotation of it.
 MIN_VISIBLE = 0.02
@@ -86,9 +88,10 @@ CALIBRATION_PARAMETERS = ("fx", "fy", "cx", "cy", "d", "rx", "ry", "rz")
 @dataclass(frozen=True)
 class ErrorModel:
     """One standard deviation per component (COMPONENTS, in UNITS), and how each was obtained:
-    `source` 'estimated', 'set' (given by the user or fixed by the data, as the calibration's),
-    or 'not estimable' (0 or its setting: no effect on the residuals). dof: the residual degrees of
-    freedom the estimate used."""
+    `source` 'estimated', 'set' (given by the user, or the calibration's factor 1), 'calibration'
+    (the pixel noise of the calibration, where the frames have too few observations), 'not
+    estimable' (no effect on the residuals) or 'not significant' (both 0). dof: the
+    residual degrees of freedom the estimate used."""
 
     sigma: dict[str, float]
     source: dict[str, str]
@@ -137,19 +140,6 @@ class Geometry:
     def dof(self) -> int:
         return int(2 * len(self.frame) - 6 * self.n_frames)
 
-    def of_frames(self, frames: np.ndarray) -> "Geometry":
-        """The Geometry of the frames (ascending indexes (k,)) alone, renumbered from 0."""
-        rows = np.isin(self.frame, frames)
-        renumber = np.full(self.n_frames, -1)
-        renumber[frames] = np.arange(len(frames))
-        per_row = {name: getattr(self, name)[rows] for name in (
-            "J", "weight", "residual", "focal", "camera", "reference", "group", "point", "survey", "rotation",
-            "focal_effect", "calibration", "point_sigma")}
-        per_row["point"], per_row["group"] = _dense(per_row["point"]), _dense(per_row["group"])
-        frame = renumber[self.frame[rows]]
-        return replace(self, **per_row, frame=frame, starts=np.searchsorted(frame, np.arange(len(frames))),
-                       A_inverse=self.A_inverse[frames], t_centred=self.t_centred[frames])
-
 
 def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, directions, points,
                      frame_index, R, t, groups, point_ids, object_space: bool,
@@ -183,10 +173,9 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     A = _sum_by(np.einsum("nki,nkj->nij", J * weight[:, None, None], J), frame_index, n_frames)
     names = list(rig.cameras)
     camera = np.array([names.index(str(c)) for c in cameras]) if len(cameras) else np.zeros(0, int)
+    residual = residual.reshape(-1, 2)
     norm = np.linalg.norm(p, axis=1)
-    u = p / norm[:, None]
-    r = np.einsum("nij,nj->ni", bases, u)
-    dr_dp = (bases - r[:, :, None] * u[:, None, :]) / norm[:, None, None]
+    dr_dp = (bases - residual[:, :, None] * (p / norm[:, None])[:, None, :]) / norm[:, None, None]
     axis = np.array([rig.cam_from_rig[name].R[2] for name in names])[camera]
     focal_effect = -np.einsum("ni,ni->n", unit, axis)[:, None] * np.einsum("nki,ni->nk", bases, axis)
     rotation = np.einsum("nki,nij->nkj", bases, skew(unit))
@@ -194,7 +183,7 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     point_codes = np.unique(np.asarray(point_ids).astype(str), return_inverse=True)[1]
     calibration, calibration_sigma = _calibration_effects(rig, names, cameras, uv, bases, unit, calibration_std)
     point_sigma = np.full(len(points), np.nan) if point_sigma_m is None else np.asarray(point_sigma_m, float)
-    return Geometry(J=J, weight=weight, A_inverse=inverse_normal_matrices(A), residual=residual.reshape(-1, 2),
+    return Geometry(J=J, weight=weight, A_inverse=inverse_normal_matrices(A), residual=residual,
                     focal=np.array([rig.cameras[n].fx for n in names])[camera], frame=np.asarray(frame_index),
                     starts=np.searchsorted(frame_index, np.arange(n_frames)), camera=camera,
                     reference=camera == names.index(rig.reference_camera), group=group_codes[frame_index],
@@ -268,8 +257,8 @@ class Statistics:
         T_pixel     what remains (q), less T_point (pixel noise);
         T_point     the part of q that a constant per (group, point) explains, points seen in 2
                     frames or more (survey);
-        T_group     per (group, non-reference camera), the pixels that one rotation explains in
-                    the frames' fitted rotations (mounting);
+        T_group     per group, the part that one rotation per non-reference camera for all its
+                    frames explains beyond each frame's pose (mounting);
         T_focal     the part of q that one focal change per (group, camera) explains (focal).
 
     Refitting the pose with the rotations keeps jitter out of q, so that the small pixel term is not
@@ -288,15 +277,16 @@ class Statistics:
         self.pose_rows = g.J * scale  # (N, 2, 6)
         self.rotation_rows = g.rotation * scale  # (N, 2, 3)
         self.focal_rows = g.focal_effect * g.focal[:, None]  # (N, 2)
-        self.frame_camera = _dense(np.where(g.reference, -1, g.frame * cameras + g.camera))
         normal = self._normal()
         self.inverse = np.linalg.pinv(normal, rcond=1e-10, hermitian=True)
         # per frame, the rotations' normal matrix with the pose eliminated, for T_group
         self.pose_inverse = np.linalg.pinv(normal[:, :6, :6], rcond=1e-12, hermitian=True)
         self.cross = normal[:, :6, 6:]
-        self.schur = normal[:, 6:, 6:] - np.swapaxes(self.cross, 1, 2) @ self.pose_inverse @ self.cross
+        schur = normal[:, 6:, 6:] - np.swapaxes(self.cross, 1, 2) @ self.pose_inverse @ self.cross
         self.frame_group = np.zeros(g.n_frames, int)
         self.frame_group[g.frame] = g.group
+        n_groups = int(self.frame_group.max()) + 1 if g.n_frames else 0
+        self.group_inverse = np.linalg.pinv(_sum_by(schur, self.frame_group, n_groups), rcond=1e-10, hermitian=True)
         group_point = _dense(g.group * (int(g.point.max()) + 1 if len(g.point) else 1) + g.point)
         self.point = np.where(np.bincount(group_point)[group_point] >= 2, group_point, -1) if len(g.point) else group_point
         self.group_camera = _dense(g.group * cameras + g.camera)
@@ -354,12 +344,10 @@ class Statistics:
         (least squares with the poses eliminated: Schur complements summed over the frames)."""
         if self.width == 6:
             return 0.0
-        n_groups = int(self.frame_group.max()) + 1
         pose_part = np.einsum("fij,fj->fi", self.pose_inverse, columns[:, :6])
         reduced = columns[:, 6:] - np.einsum("fji,fj->fi", self.cross, pose_part)
-        right = _sum_by(reduced, self.frame_group, n_groups)
-        inverse = np.linalg.pinv(_sum_by(self.schur, self.frame_group, n_groups), rcond=1e-10, hermitian=True)
-        return float(np.einsum("gi,gij,gj->", right, inverse, right))
+        right = _sum_by(reduced, self.frame_group, len(self.group_inverse))
+        return float(np.einsum("gi,gij,gj->", right, self.group_inverse, right))
 
 
 def _constant_explained(values: np.ndarray, key: np.ndarray) -> float:
@@ -382,6 +370,14 @@ def _focal_explained(values: np.ndarray, rows: np.ndarray, key: np.ndarray) -> f
 
 # ------------------------------------------------------------------------------ estimation
 
+def estimation_frames(n_frames: int) -> np.ndarray:
+    """Indexes (k,) of the frames, of n_frames, that the estimation uses: all, or ESTIMATION_FRAMES
+    evenly spread."""
+    if n_frames <= ESTIMATION_FRAMES:
+        return np.arange(n_frames)
+    return np.unique(np.linspace(0, n_frames - 1, ESTIMATION_FRAMES).round().astype(int))
+
+
 def unit_draw(geometry: Geometry, name: str, rng: np.random.Generator, gaussian: bool = False) -> np.ndarray:
     """Errors (N, 2) rad of one draw of component `name` with unit variance (1 px, 1 m, 1 rad, 1
     relative focal change), Rademacher (the least-variance trace estimate) or Gaussian; survey only
@@ -393,8 +389,7 @@ def unit_draw(geometry: Geometry, name: str, rng: np.random.Generator, gaussian:
     if name == "pixel":
         return signs(n, 2) / g.focal[:, None]
     if name == "survey":
-        moves = signs(int(g.point.max()) + 1 if n else 0, 3)[g.point] * np.isnan(g.point_sigma)[:, None]
-        return np.einsum("nkj,nj->nk", g.survey, moves)
+        return _survey_draw(g, signs, np.isnan(g.point_sigma).astype(float))
     n_cameras = int(g.camera.max()) + 1 if n else 1
     if name in ("jitter", "mounting"):
         key = _dense(np.where(g.reference, -1, (g.frame if name == "jitter" else g.group) * n_cameras + g.camera))
@@ -408,9 +403,13 @@ def unit_draw(geometry: Geometry, name: str, rng: np.random.Generator, gaussian:
 
 def fixed_survey_draw(geometry: Geometry, rng: np.random.Generator) -> np.ndarray:
     """Errors (N, 2) of one Rademacher draw of the survey errors of the points whose sigma is given."""
-    g = geometry
-    given = np.nan_to_num(g.point_sigma)
-    moves = (rng.integers(0, 2, (int(g.point.max()) + 1, 3)) * 2.0 - 1.0)[g.point] * given[:, None]
+    return _survey_draw(geometry, lambda *shape: rng.integers(0, 2, shape) * 2.0 - 1.0,
+                        np.nan_to_num(geometry.point_sigma))
+
+
+def _survey_draw(g: Geometry, signs, scale: np.ndarray) -> np.ndarray:
+    """Errors (N, 2) of one draw `signs(P, 3)` of the points' moves, scaled per row by scale (N,)."""
+    moves = signs(int(g.point.max()) + 1 if len(g.point) else 0, 3)[g.point] * scale[:, None]
     return np.einsum("nkj,nj->nk", g.survey, moves)
 
 
@@ -444,17 +443,16 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
         return ErrorModel(sigma, source, g.dof)
     statistics = Statistics(g)
     rng = np.random.default_rng(seed)
-    draws = int(np.clip(DRAW_OBSERVATIONS // max(len(g.frame), 1), MIN_DRAWS, MAX_DRAWS))
     expected, visible = {}, {}
     for name in COMPONENTS[:5]:
-        errors = [unit_draw(g, name, rng) for _ in range(draws)]
+        errors = [unit_draw(g, name, rng) for _ in range(DRAWS)]
         expected[name] = np.mean([statistics(solve_response(g, e)) for e in errors], axis=0)
         raw = np.mean([np.sum((e * g.focal[:, None]) ** 2) for e in errors])
         visible[name] = expected[name].sum() / raw if raw > 0 else 0.0
     known = calibration_expectation(g, statistics) * settings["calibration"] ** 2
     if np.isfinite(g.point_sigma).any():
         known += np.mean([statistics(solve_response(g, fixed_survey_draw(g, rng)))
-                          for _ in range(draws)], axis=0)
+                          for _ in range(DRAWS)], axis=0)
     for name in COMPONENTS[:5]:
         if name in settings:
             known += expected[name] * (settings[name] * _TO_SI[name]) ** 2
@@ -462,16 +460,16 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     total = observed.sum()
     estimable = [name for name in free if visible[name] > MIN_VISIBLE]
     source.update({name: "not estimable" for name in free if name not in estimable})
-    scale = 1.0 / np.maximum(observed, MIN_EFFECT * total)
-    variances = []
+    variances, weight = [], None
     while estimable:
         design = np.column_stack([expected[name] for name in estimable])
-        variances = nnls(design * scale[:, None], (observed - known) * scale)[0]
-        # weighted by the statistics' spread under that model, solved again, with its standard errors
-        weight = 1.0 / np.maximum(_spread(g, statistics, dict(zip(estimable, variances)), draws, rng),
-                                  MIN_EFFECT * total)
+        if weight is None:  # each statistic weighted by its spread under the first fit of every component
+            scale = 1.0 / np.maximum(observed, MIN_EFFECT * total)
+            first = nnls(design * scale[:, None], (observed - known) * scale)[0]
+            weight = 1.0 / np.maximum(_spread(g, statistics, dict(zip(estimable, first)), rng), MIN_EFFECT * total)
         variances = nnls(design * weight[:, None], (observed - known) * weight)[0]
-        errors = np.sqrt(np.diag(np.linalg.pinv((design * weight[:, None]).T @ (design * weight[:, None]))))
+        information = (design * weight[:, None]).T @ (design * weight[:, None])
+        errors = np.sqrt(np.clip(np.diag(np.linalg.pinv(information)), 0.0, None))
         weak = [name for name, v, e in zip(estimable, variances, errors)
                 if name != "pixel" and v < SIGNIFICANCE * e]
         if not weak:
@@ -485,11 +483,11 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     return ErrorModel(sigma, source, g.dof)
 
 
-def _spread(g: Geometry, statistics: Statistics, variances: dict[str, float], draws: int, rng) -> np.ndarray:
+def _spread(g: Geometry, statistics: Statistics, variances: dict[str, float], rng) -> np.ndarray:
     """(5,) the standard deviations of the statistics under the model `variances` (SI), by drawing
-    all its components together `draws` times (Gaussian, as the errors are taken to be)."""
+    all its components together DRAWS times (Gaussian, as the errors are taken to be)."""
     samples = []
-    for _ in range(draws):
+    for _ in range(DRAWS):
         errors = sum(unit_draw(g, name, rng, gaussian=True) * np.sqrt(v) for name, v in variances.items())
         samples.append(statistics(solve_response(g, errors)))
     return np.std(samples, axis=0, ddof=1)

@@ -37,7 +37,7 @@ from ..rig import Rig
 from ..workspace import POSE_COLUMNS, POSE_OBSERVATION_COLUMNS, POSE_UNCERTAINTY_COLUMNS
 from .robust import solve_robust
 from .solver import solve_generalized_pose
-from .error_model import ErrorModel, estimate, linearised_solve
+from .error_model import ErrorModel, Geometry, estimate, estimation_frames, linearised_solve
 from .uncertainty import pose_uncertainty
 
 log = logging.getLogger(__name__)
@@ -132,20 +132,20 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
     calibration's standard deviations (error_model.linearised_solve).
     """
     solution = _solve(dataset, rig, observations, cameras, robust, refine, groups, threshold_px)
-    geometry = _geometry(dataset, rig, solution, not refine, calibration_std)
     whole = solution if set(cameras) == set(rig.cameras) else \
         _solve(dataset, rig, observations, list(rig.cameras), robust, refine, groups, threshold_px)
-    whole_geometry = geometry if whole is solution else _geometry(dataset, rig, whole, not refine, calibration_std)
     table = solution.table.copy()
     table[list(POSE_UNCERTAINTY_COLUMNS)] = np.nan
     models, budgets = {}, []
     for group in pd.unique(table["group"]):
         frames = np.flatnonzero(table["group"].to_numpy() == group)
         estimated_on = np.flatnonzero(whole.table["group"].to_numpy() == group)
-        source = whole_geometry.of_frames(estimated_on) if len(estimated_on) else geometry.of_frames(frames)
-        models[group] = estimate(source, error_settings, calibrated_noise_px)
-        uncertainty = pose_uncertainty(geometry.of_frames(frames), models[group], solution.R[frames],
-                                       solution.t[frames])
+        source, sample = (whole, estimated_on) if len(estimated_on) else (solution, frames)
+        sample = sample[estimation_frames(len(sample))]
+        models[group] = estimate(_geometry(dataset, rig, source, sample, not refine, calibration_std),
+                                 error_settings, calibrated_noise_px)
+        uncertainty = pose_uncertainty(_geometry(dataset, rig, solution, frames, not refine, calibration_std),
+                                       models[group], solution.R[frames], solution.t[frames])
         values = np.column_stack([uncertainty.attitude, uncertainty.sigma_position, uncertainty.sigma_attitude,
                                   uncertainty.noise_px])
         for name, column in zip(POSE_UNCERTAINTY_COLUMNS, values.T):
@@ -195,13 +195,20 @@ def _solve(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list
     return _Solution(table, per_observation, R[solved], t[solved], flight, used_rows, frame_of_row)
 
 
-def _geometry(dataset: Dataset, rig: Rig, solution: _Solution, object_space: bool, calibration_std):
-    """error_model.Geometry of a _Solution's used observations."""
-    flight, rows = solution.flight, solution.rows
+def _geometry(dataset: Dataset, rig: Rig, solution: _Solution, frames: np.ndarray, object_space: bool,
+              calibration_std) -> Geometry:
+    """error_model.Geometry of the used observations of a _Solution's frames (ascending rows (k,) of
+    its table), numbered 0 ... k - 1."""
+    renumber = np.full(len(solution.table), -1)
+    renumber[frames] = np.arange(len(frames))
+    frame_of_row = renumber[solution.frame_of_row]
+    rows = np.flatnonzero(solution.rows)[frame_of_row >= 0]
+    flight = solution.flight
     return linearised_solve(rig, flight.cameras[rows], flight.uv[rows], flight.origins[rows],
-                            flight.directions[rows], flight.points[rows], solution.frame_of_row, solution.R,
-                            solution.t, solution.table["group"].to_numpy(), flight.point_ids[rows], object_space,
-                            survey_sigma(dataset, flight.point_ids[rows]), calibration_std)
+                            flight.directions[rows], flight.points[rows], frame_of_row[frame_of_row >= 0],
+                            solution.R[frames], solution.t[frames], solution.table["group"].to_numpy()[frames],
+                            flight.point_ids[rows], object_space, survey_sigma(dataset, flight.point_ids[rows]),
+                            calibration_std)
 
 
 def _solve_frames(flight: FlightObservations, focal: np.ndarray, robust: bool, refine: bool,
