@@ -44,6 +44,8 @@ SPLITS = ("calib", "eval")
 DEFAULT_MARKER_SIZE_M = 2.0
 
 POINT_COLUMNS = ("point_id", "x", "y", "z")
+#: Optional column of control_points.csv and ground_points.csv: the point's survey sigma per axis (m).
+POINT_SIGMA = "sigma_m"
 PRIOR_CENTER = ("prior_x", "prior_y", "prior_z")
 PRIOR_QUAT = ("prior_qw", "prior_qx", "prior_qy", "prior_qz")
 IMAGE_COLUMNS = ("image", "camera", "stage", "split", "placement", "path")
@@ -338,12 +340,19 @@ def _strings(values) -> pd.Series:
 
 
 def _read_points(path: Path) -> tuple[pd.DataFrame, Table]:
-    """Points indexed by point_id (str) with float columns x, y, z (+ extras), and the table read."""
-    table = read_table(path, POINT_COLUMNS)
+    """Points indexed by point_id (str) with float columns x, y, z, sigma_m when the file has it
+    (NaN in its empty cells) (+ extras), and the table read."""
+    table = read_table(path, POINT_COLUMNS, (POINT_SIGMA,))
     ids = table.required_text("point_id")
     table.first_rows(["point_id"], "point id")
     columns = {"point_id": _strings(ids), **{axis: table.floats(axis) for axis in "xyz"}}
-    return _frame(table, columns, POINT_COLUMNS).set_index("point_id"), table
+    known = POINT_COLUMNS
+    if POINT_SIGMA in table.cells:
+        sigma = table.floats(POINT_SIGMA, optional=True)
+        table.check(sigma < 0, lambda row: f"column {POINT_SIGMA}: {sigma[row]} is negative; expected a survey "
+                    "sigma per axis in metres (or an empty cell)")
+        columns[POINT_SIGMA], known = sigma, (*POINT_COLUMNS, POINT_SIGMA)
+    return _frame(table, columns, known).set_index("point_id"), table
 
 
 def _check_disjoint(control: Table, ground: Table) -> None:
@@ -761,7 +770,7 @@ def write_dataset(
 def _points_out(points: pd.DataFrame) -> pd.DataFrame:
     if "point_id" not in points.columns:
         points = points.rename_axis("point_id").reset_index()
-    return _table_out(points, POINT_COLUMNS, (), texts=("point_id",))
+    return _table_out(points, POINT_COLUMNS, ((POINT_SIGMA,),), texts=("point_id",))
 
 
 def _table_out(frame: pd.DataFrame, columns: Sequence[str], groups: Sequence[Sequence[str]],

@@ -355,3 +355,30 @@ def test_simulator_config_with_a_yaml_error_is_one_line(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert err.splitlines() == [err] and "sim.yaml, line 3: invalid YAML: expected ',' or ']'" in err
     assert not (tmp_path / "out").exists()
+
+
+# ------------------------------------------------------------------------------ survey sigma of the points
+
+
+def test_points_survey_sigma_is_read_and_written_and_optional(tmp_path):
+    inputs = _inputs()
+    inputs["control_points"]["sigma_m"] = [0.001, np.nan, 0.002, 0.0]
+    root = _write(tmp_path / "ds", inputs)
+    assert _rows(root, "control_points.csv")[0] == ["point_id", "x", "y", "z", "sigma_m"]
+    assert _rows(root, "control_points.csv")[2][4] == ""  # the point without one
+    ds = Dataset.load(root)
+    np.testing.assert_array_equal(ds.control_points["sigma_m"].to_numpy(), [0.001, np.nan, 0.002, 0.0])
+    assert "sigma_m" not in ds.ground_points.columns  # a file without the column has none
+    assert np.isnan(ds.points.loc["G1", "sigma_m"])
+
+
+@pytest.mark.parametrize("cell, message", [("-0.01", "column sigma_m: -0.01 is negative"),
+                                           ("abc", "column sigma_m: 'abc' is not a finite number"),
+                                           ("inf", "column sigma_m: 'inf' is not a finite number")])
+def test_points_survey_sigma_that_is_not_a_sigma_is_refused_naming_the_line(tmp_path, cell, message):
+    inputs = _inputs()
+    inputs["ground_points"]["sigma_m"] = [0.02, 0.03]
+    root = _write(tmp_path / "ds", inputs)
+    _set_cells(root, "ground_points.csv", 1, sigma_m=cell)
+    with pytest.raises(DatasetError, match=rf"ground_points\.csv, line 3: {message}"):
+        Dataset.load(root)

@@ -419,3 +419,49 @@ def test_a_focal_far_from_the_manifest_is_refused(simulated, tmp_path):
                                          r"30000; fy .*\(worst images: intr_C2_"):
         intrinsics.run_cameras(Workspace.open(copy, tmp_path / "results"), ["C2"])
     assert not (tmp_path / "results" / "intrinsics" / "C2.json").exists()
+
+
+# ------------------------------------------------------------------------------ survey errors of the field
+
+
+def surveyed_field_views(camera: Camera, n_views: int, rng):
+    """A 3D field of 60 points seen from 2.5-4 m, noise-free: its points (P, 3), and per view the
+    rows of the field it sees and its cam_from_world."""
+    field = rng.uniform([-1.5, -1.0, -0.75], [1.5, 1.0, 0.75], size=(60, 3))
+    rows, poses = {}, {}
+    while len(rows) < n_views:
+        pose = Rigid3(Rotation.from_euler("xyz", rng.uniform(-0.4, 0.4, 3)).as_matrix(),
+                      np.array([rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(2.5, 4.0)]))
+        uv = camera.project(pose.apply(field))
+        seen = np.flatnonzero(np.isfinite(uv).all(axis=1) & camera.in_image(np.nan_to_num(uv, nan=-1e9), margin=2))
+        if len(seen) >= 30:
+            name = f"view{len(rows)}"
+            rows[name], poses[name] = seen, pose
+    return field, rows, poses
+
+
+def test_intrinsics_sigma_carries_the_fields_survey_error():
+    """The same field surveyed with 3 mm errors and imaged with 0.05 px noise, 150 times: the spread
+    of the calibrated focal length is the covariance's with the survey sigma given, and several
+    times the pixel-only covariance's (what the intrinsics reported before)."""
+    from dmais_pipe.calib.intrinsics import bundle_adjust
+
+    rng = np.random.default_rng(21)
+    field, rows, poses = surveyed_field_views(WIDE, 8, rng)
+    survey, noise = 0.003, 0.05
+    focal, predicted, pixel_only = [], [], []
+    for _ in range(150):
+        surveyed = field + rng.normal(scale=survey, size=field.shape)
+        data = {k: (surveyed[r], WIDE.project(poses[k].apply(field[r])) + rng.normal(scale=noise, size=(len(r), 2)))
+                for k, r in rows.items()}
+        sigmas = {k: (r.astype(str), np.full(len(r), survey)) for k, r in rows.items()}
+        camera, _, _, cov, effect = bundle_adjust(WIDE, poses, data, sigmas)
+        assert sorted(effect) == sorted({str(k) for r in rows.values() for k in r})
+        stacked = np.hstack(list(effect.values()))  # (5, 3P): the survey's share of the covariance
+        assert np.all(np.diag(stacked @ stacked.T) <= np.diag(cov) * (1 + 1e-12))
+        focal.append(camera.fx)
+        predicted.append(np.sqrt(cov[0, 0]))
+        pixel_only.append(np.sqrt(bundle_adjust(WIDE, poses, data)[3][0, 0]))
+    spread = np.std(focal)
+    assert abs(np.mean(predicted) / spread - 1) < 0.2, (np.mean(predicted), spread)
+    assert np.mean(pixel_only) < 0.5 * spread

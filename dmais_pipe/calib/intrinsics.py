@@ -70,6 +70,9 @@ class IntrinsicsResult:
     #: image -> (n, 2) residuals projected minus observed (px) of its usable observations, in input
     #: order: the calibration images' from the final LM, the held-out images' from their pose-only fit.
     image_residuals_px: dict[str, np.ndarray] = field(default_factory=dict)
+    #: point id -> (5, 3) the change of (fx, fy, cx, cy, d) per one-sigma survey error of the control
+    #: point along x, y, z (its share of the covariance behind `std`; empty where no sigma is given).
+    survey_effect: dict[str, np.ndarray] = field(default_factory=dict)
 
     def worst_images(self, count: int = 3) -> list[tuple[str, float]]:
         """The `count` calibration images of largest RMS reprojection distance, worst first."""
@@ -82,6 +85,7 @@ class IntrinsicsResult:
             "camera": self.name, "width": cam.width, "height": cam.height,
             "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "d": cam.d,
             "std": {k: float(v) for k, v in self.std.items()},
+            "survey_effect": {k: np.asarray(v, dtype=float).tolist() for k, v in self.survey_effect.items()},
             "eps_calib_px": float(self.eps_calib_px),
             "eps_eval_px": None if self.eps_eval_px is None else float(self.eps_eval_px),
             "n_images": int(self.n_images), "n_observations": int(self.n_observations),
@@ -195,10 +199,14 @@ def estimate_pose(camera: Camera, X: np.ndarray, uv: np.ndarray, guess: Rigid3 |
     return best
 
 
-def bundle_adjust(camera: Camera, poses: dict[str, Rigid3], data: dict[str, tuple[np.ndarray, np.ndarray]]):
+def bundle_adjust(camera: Camera, poses: dict[str, Rigid3], data: dict[str, tuple[np.ndarray, np.ndarray]],
+                  survey: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None):
     """LM over (fx, fy, cx, cy, d) and every pose (eq. `refine`).
 
-    Returns (camera, poses, residuals (N, 2), covariance of the intrinsics (5, 5)).
+    survey: {image: (point ids (n,), survey sigma per axis (n,) m)} of each image's points, for the
+    covariance (`_covariance`); None or sigma 0: exact points. Returns (camera, poses, residuals
+    (N, 2), covariance of the intrinsics (5, 5), survey effect {point id: (5, 3)}: the change of
+    the intrinsics per one-sigma survey error of the point along x, y, z).
     """
     names = list(data)
     R0 = [poses[k].R for k in names]
@@ -235,17 +243,61 @@ def bundle_adjust(camera: Camera, poses: dict[str, Rigid3], data: dict[str, tupl
     new_poses = {k: Rigid3(exp_so3(p[5 + 6 * i: 8 + 6 * i]) @ R0[i], p[8 + 6 * i: 11 + 6 * i])
                  for i, k in enumerate(names)}
     J = jac(p)
-    dof = max(rows[-1] - n_params, 1)
-    sigma2 = float(sol.fun @ sol.fun) / dof
+    ids, S = _survey_jacobian(p, names, R0, data, survey or {})
+    cov, effect = _covariance(J, sol.fun, S)
+    return (fitted, new_poses, sol.fun.reshape(-1, 2), cov[:5, :5],
+            {str(point): effect[:5, 3 * k:3 * k + 3] for k, point in enumerate(ids) if point})  # "": exact points
+
+
+def _survey_jacobian(p: np.ndarray, names: list[str], R0: list[np.ndarray], data, survey
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """The surveyed points' ids (P,) and (2N, 3P) the residuals' change per one-sigma survey error of
+    each along x, y, z (the same point in every image that sees it); no columns where no point has
+    a survey sigma."""
+    n = sum(len(data[k][0]) for k in names)
+    if not survey:
+        return np.zeros(0, dtype=object), np.zeros((2 * n, 0))
+    given = [survey.get(k, (np.full(len(data[k][0]), ""), np.zeros(len(data[k][0])))) for k in names]
+    point_ids = np.concatenate([np.asarray(ids, dtype=str) for ids, _ in given])
+    sigma = np.concatenate([np.asarray(sigma, dtype=float) for _, sigma in given])
+    if not np.any(sigma > 0):
+        return np.zeros(0, dtype=object), np.zeros((2 * n, 0))
+    ids, point = np.unique(np.where(sigma > 0, point_ids, ""), return_inverse=True)
+    blocks = []
+    for i, k in enumerate(names):
+        q = p[5 + 6 * i: 11 + 6 * i]
+        R = exp_so3(q[:3]) @ R0[i]
+        _, J_cam, _ = project_unmasked(data[k][0] @ R.T + q[3:], *p[:5], jacobian=True)
+        blocks.append(J_cam @ R)  # (n, 2, 3): d pixel / d world point
+    S = np.zeros((2 * n, 3 * len(ids)))
+    for row, (block, k) in enumerate(zip(np.concatenate(blocks), point)):
+        S[2 * row:2 * row + 2, 3 * k:3 * k + 3] = block * sigma[row]
+    return ids, S
+
+
+def _covariance(J: np.ndarray, residuals: np.ndarray, survey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Covariance (n, n) of the parameters of a least-squares fit with Jacobian J (2N, n) at its
+    residuals (2N,): pixel noise of variance s^2 on every residual, plus the control points' survey
+    errors `survey` (2N, 3P) (`_survey_jacobian`), the same in every image:
+
+        cov = N^-1 s^2 + N^-1 J^T S S^T J N^-1,  N = J^T J,
+        s^2 = (SSR - ||(I - H) S||_F^2) / (2N - n),  H = J N^-1 J^T,
+
+    i.e. the residuals' sum of squares less what the survey errors are expected to put in it; and
+    (n, 3P) N^-1 J^T S, the parameters' change per one-sigma survey error of each point and axis."""
+    n_params = J.shape[1]
     # Scale columns before inverting: fx ~ 1e4 and rotations ~ 1e-3 differ by many orders.
     scale = np.linalg.norm(J, axis=0)
     scale[scale == 0] = 1.0
     Js = J / scale
     try:
-        cov = np.linalg.pinv(Js.T @ Js) / np.outer(scale, scale) * sigma2
+        inverse = np.linalg.pinv(Js.T @ Js) / np.outer(scale, scale)
     except np.linalg.LinAlgError:
-        cov = np.full((n_params, n_params), np.nan)
-    return fitted, new_poses, sol.fun.reshape(-1, 2), cov[:5, :5]
+        return np.full((n_params, n_params), np.nan), np.full((n_params, survey.shape[1]), np.nan)
+    effect = inverse @ (J.T @ survey)  # (n, 3P)
+    expected = float(np.sum((survey - J @ effect) ** 2))
+    sigma2 = max(float(residuals @ residuals) - expected, 0.0) / max(len(residuals) - n_params, 1)
+    return inverse * sigma2 + effect @ effect.T, effect
 
 
 # ------------------------------------------------------------------------------ the procedure
@@ -296,7 +348,8 @@ def _load_inputs(points_world_per_image, uv_per_image, eval_points_world_per_ima
     return _shift(calib, centre), _shift(evals, centre), centre, skipped
 
 
-def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, skipped, pnpf_focal=None):
+def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, skipped, pnpf_focal=None,
+            survey_effect=None):
     eps_eval, eval_poses, eval_residuals = _evaluate(camera, evals, name)
     std = dict(zip(INTRINSIC_NAMES, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()))
     ends = np.cumsum([len(X) for X, _ in calib.values()])[:-1]  # residuals are stacked in calib's order
@@ -308,16 +361,18 @@ def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, s
         pnpf_focal_px=pnpf_focal or {}, skipped_images=skipped, method=method,
         image_eps_px={k: _rms(r) for k, r in calib_residuals.items()},
         eval_image_eps_px={k: _rms(r) for k, r in eval_residuals.items()},
-        image_residuals_px={**calib_residuals, **eval_residuals})
+        image_residuals_px={**calib_residuals, **eval_residuals}, survey_effect=survey_effect or {})
 
 
 def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: int, *,
                      eval_points_world_per_image=None, eval_uv_per_image=None, name: str = "camera",
-                     min_images: int = MIN_CALIB_IMAGES) -> IntrinsicsResult:
+                     min_images: int = MIN_CALIB_IMAGES, survey=None) -> IntrinsicsResult:
     """The paper's intrinsic calibration of one camera (priors, PnPf, mean f, PnP, LM over everything).
 
     points_world_per_image / uv_per_image: {image: (n, 3)} and {image: (n, 2)} (or lists) of the
-    calibration images; the eval_* pair likewise for held-out images (eps_eval; optional).
+    calibration images; the eval_* pair likewise for held-out images (eps_eval; optional);
+    survey {image: (point ids (n,), survey sigma (n,) m)} of the calibration images' points, for
+    the intrinsics' covariance (`bundle_adjust`; None: exact).
     Images with fewer than 5 observations are skipped with one warning. Raises DmaisError naming
     the camera when fewer than `min_images` calibration images are usable.
     """
@@ -342,8 +397,8 @@ def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: i
             poses[image], _ = estimate_pose(camera0, X, uv, guess=pnpf.get(image))
         except DmaisError:
             raise DmaisError(f"camera {name}, image {image}: PnP failed") from None
-    camera, poses, residuals, cov = bundle_adjust(camera0, poses, calib)
-    result = _finish(name, "ours", camera, poses, residuals, cov, calib, evals, centre, skipped, focal)
+    camera, poses, residuals, cov, effect = bundle_adjust(camera0, poses, calib, survey)
+    result = _finish(name, "ours", camera, poses, residuals, cov, calib, evals, centre, skipped, focal, effect)
     log.info("camera %s: fx %.1f fy %.1f cx %.1f cy %.1f d %.4f, eps_calib %.4f px, eps_eval %s px", name,
              camera.fx, camera.fy, camera.cx, camera.cy, camera.d, result.eps_calib_px,
              "n/a" if result.eps_eval_px is None else f"{result.eps_eval_px:.4f}")
@@ -461,8 +516,10 @@ def _dlt_intrinsics(X: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
 
 def calibrate_camera_dlt_lm(points_world_per_image, uv_per_image, width: int, height: int, *,
                             eval_points_world_per_image=None, eval_uv_per_image=None, name: str = "camera",
-                            min_images: int = MIN_CALIB_IMAGES, warn_skipped: bool = True) -> IntrinsicsResult:
-    """Bouguet/Tsai-style baseline: full K from per-image DLT (median over images), PnP, then the same LM."""
+                            min_images: int = MIN_CALIB_IMAGES, warn_skipped: bool = True,
+                            survey=None) -> IntrinsicsResult:
+    """Bouguet/Tsai-style baseline: full K from per-image DLT (median over images), PnP, then the same
+    LM (survey as `calibrate_camera`'s)."""
     calib, evals, centre, skipped = _load_inputs(points_world_per_image, uv_per_image,
                                                  eval_points_world_per_image, eval_uv_per_image, name, min_images,
                                                  warn_skipped)
@@ -472,5 +529,5 @@ def calibrate_camera_dlt_lm(points_world_per_image, uv_per_image, width: int, he
     K = np.median(np.array(Ks), axis=0)
     camera0 = Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], d=0.0, width=width, height=height)
     poses = {k: estimate_pose(camera0, X, uv)[0] for k, (X, uv) in calib.items()}
-    camera, poses, residuals, cov = bundle_adjust(camera0, poses, calib)
-    return _finish(name, "dlt_lm", camera, poses, residuals, cov, calib, evals, centre, skipped)
+    camera, poses, residuals, cov, effect = bundle_adjust(camera0, poses, calib, survey)
+    return _finish(name, "dlt_lm", camera, poses, residuals, cov, calib, evals, centre, skipped, survey_effect=effect)

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..dataset import write_dataset
+from ..dataset import POINT_SIGMA, write_dataset
 from ..errors import ConfigError, DmaisError
 from ..files import write_csv_atomic, write_png_atomic, write_yaml_atomic
 from ..geometry import Rigid3, exp_so3
@@ -146,6 +146,8 @@ def write_world(config: dict, world: dict, root: Path, jobs: int) -> None:
     control_truth = _points_frame(world["field"])
     ground_truth = _points_frame(world["ground"])
     control = _survey(control_truth, config["field"]["survey_sigma_m"], stream(seed, "survey-field"))
+    # the survey report's sigma per axis (the largest, where the axes differ), as a surveyor gives it
+    control[POINT_SIGMA] = float(np.max(config["field"]["survey_sigma_m"]))
     ground = _survey(ground_truth, config["flight"]["survey_sigma_m"], stream(seed, "survey-ground"))
     observations = _measured(config, truth, shots, rendered, stream(seed, "pixels"))
     images = _images_frame(config, shots, rendered, stream(seed, "priors"))

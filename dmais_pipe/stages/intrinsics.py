@@ -24,6 +24,7 @@ from ..calib.intrinsics import (METHODS, TABLE_COLUMNS, IntrinsicsResult, Plausi
                                 calibrate_camera_dlt_lm, calibrate_camera_opencv, check_plausible)
 from ..calib.import_intrinsics import (DEFAULT_MAX_RESIDUAL_PX, ForeignCamera, imported_record, one_coefficient_camera,
                                        read_colmap_cameras, read_opencv_file)
+from ..dataset import POINT_SIGMA
 from ..errors import DmaisError
 from ..workspace import CALIBRATION_RESIDUAL_COLUMNS, Workspace
 from . import setting
@@ -108,16 +109,17 @@ def _calibrate(workspace: Workspace, name: str, conf: Conf, observations: pd.Dat
                          "observation; `dmais markers` identifies markers from each image's prior centre and "
                          "attitude and the camera's focal_px (see its warnings, and docs/dataset.md, "
                          "'What each stage needs')")
-    X, uv = _per_image(observations, dataset.points, calib_images)
-    eX, euv = _per_image(observations, dataset.points, eval_images)
+    X, uv, survey = _per_image(observations, dataset.points, calib_images)
+    eX, euv, _ = _per_image(observations, dataset.points, eval_images)
     spec = dataset.cameras[name]
     common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name)
-    ours = calibrate_camera(X, uv, spec.width, spec.height, **common)
+    ours = calibrate_camera(X, uv, spec.width, spec.height, survey=survey, **common)
     check_plausible(ours, spec.focal_px, Plausibility(conf.max_eps_calib_px, conf.max_focal_deviation))
     focal_guess = spec.focal_px or float(np.mean(list(ours.pnpf_focal_px.values())))
     baselines = {"opencv": lambda: calibrate_camera_opencv(X, uv, spec.width, spec.height, focal_guess,
                                                            warn_skipped=False, **common),
-                 "dlt_lm": lambda: calibrate_camera_dlt_lm(X, uv, spec.width, spec.height, warn_skipped=False, **common)}
+                 "dlt_lm": lambda: calibrate_camera_dlt_lm(X, uv, spec.width, spec.height, warn_skipped=False,
+                                                           survey=survey, **common)}
     rows = [ours.table_row()]
     for method in [m for m in METHODS if m in conf.methods and m != "ours"]:
         try:
@@ -195,11 +197,15 @@ def residual_table(dataset, result: IntrinsicsResult, observations: pd.DataFrame
     return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=list(CALIBRATION_RESIDUAL_COLUMNS))
 
 
-def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tuple[dict, dict]:
-    """Per image: world points (n, 3) and pixels (n, 2) of its observations."""
-    X, uv = {}, {}
+def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tuple[dict, dict, dict]:
+    """Per image: world points (n, 3), pixels (n, 2) and (point ids (n,), survey sigmas (n,)) (the
+    points' `sigma_m`, 0 where not given) of its observations."""
+    X, uv, survey = {}, {}, {}
     for image in images:
         obs = observations[observations["image"] == image]
         X[image] = points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
         uv[image] = obs[["u", "v"]].to_numpy(dtype=float)
-    return X, uv
+        sigma = points.loc[obs["point_id"], POINT_SIGMA].to_numpy(dtype=float) if POINT_SIGMA in points.columns \
+            else np.zeros(len(obs))
+        survey[image] = (obs["point_id"].to_numpy(dtype=str), np.nan_to_num(sigma))
+    return X, uv, survey
