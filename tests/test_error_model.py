@@ -48,11 +48,14 @@ def hover_geometry(seed: int, cameras=range(5), object_space: bool = True) -> em
     cameras_, uv, points = np.array(rows["cameras"]), np.vstack(rows["uv"]), np.vstack(rows["points"])
     assert np.isfinite(uv).all()
     origins, directions = rig.rays_of(cameras_, uv)
-    std = {name: {"fx": 5.0, "fy": 5.0, "cx": 8.0, "cy": 8.0, "d": 0.03, "rx": 3e-5, "ry": 3e-5, "rz": 5e-5}
-           for name in names}
+    # the cameras' focal lengths share an error (as cameras calibrated on one field do)
+    sigma = np.tile([5.0, 5.0, 8.0, 8.0, 0.03, 3e-5, 3e-5, 5e-5], 5)
+    common = np.zeros(40)
+    common[0::8], common[1::8] = 4.0, 4.0
+    covariance = np.diag(sigma**2) + np.outer(common, common)
     geometry = em.linearised_solve(rig, cameras_, uv, origins, directions, points, np.array(rows["frame"]),
                                np.array(R_all), np.array(t_all), np.array(groups), np.array(rows["ids"]),
-                               object_space, calibration_std=std)
+                               object_space, calibration_covariance=covariance)
     assert np.isfinite(geometry.A_inverse).all()
     return geometry
 
@@ -78,8 +81,9 @@ def dense_covariance(g: em.Geometry, frame: int, model: em.ErrorModel) -> np.nda
                     rotation = model.si("jitter") ** 2 + model.si("mounting") ** 2
                     block += g.rotation[i] @ g.rotation[j].T * rotation
                 block += np.outer(g.focal_effect[i], g.focal_effect[j]) * model.si("focal") ** 2
-                variances = g.calibration_sigma[g.camera[i]] ** 2 * model.si("calibration") ** 2
-                block += g.calibration[i] @ np.diag(variances) @ g.calibration[j].T
+            ci, cj = slice(8 * g.camera[i], 8 * g.camera[i] + 8), slice(8 * g.camera[j], 8 * g.camera[j] + 8)
+            block += g.calibration[i] @ g.calibration_covariance[ci, cj] @ g.calibration[j].T * \
+                model.si("calibration") ** 2
             cov[2 * a:2 * a + 2, 2 * b:2 * b + 2] = block
     K = g.A_inverse[frame] @ (g.J[rows] * g.weight[rows, None, None]).reshape(-1, 6).T
     return K @ cov @ K.T
@@ -179,3 +183,28 @@ def test_sigmas_are_the_root_sum_of_the_components_shares():
     np.testing.assert_allclose(result.sigma_position ** 2, sum(result.variance_position.values()), rtol=1e-12)
     np.testing.assert_allclose(result.sigma_attitude ** 2, sum(result.variance_attitude.values()), rtol=1e-12)
     assert all((v >= 0).all() for v in result.variance_position.values())
+
+
+def test_the_pose_stage_takes_the_calibrations_joint_covariance_from_rig_json():
+    from dmais_pipe.stages.pose import FLIGHT_INTRINSICS, calibration_covariance
+
+    effect_c1 = np.arange(15.0).reshape(5, 3) / 1000  # (fx, fy, cx, cy, d) x (x, y, z), one point
+    effect_c2 = -np.ones((5, 3)) / 1000
+    record = {"intrinsics_std": {"C1": {"fx": 6.0, "fy": 7.0, "cx": 10.0, "cy": 11.0, "d": 0.04},
+                                 "C2": {"fx": 5.0, "fy": 5.0, "d": 0.5}},
+              "intrinsics_survey_effect": {"C1": {"P1": effect_c1.tolist()}, "C2": {"P1": effect_c2.tolist()}},
+              "std": {"C0": {"rotation_deg": [0.0, 0.0, 0.0]}, "C1": {"rotation_deg": [0.001, 0.002, 0.003]}}}
+    K = calibration_covariance(record, ["C0", "C1", "C2"])
+    assert FLIGHT_INTRINSICS == ("fx", "fy", "d")  # the principal point's error is the rig rotation's
+    block = lambda a, b: K[8 * a:8 * a + 8, 8 * b:8 * b + 8]  # noqa: E731
+    np.testing.assert_allclose(np.sqrt(np.diag(block(1, 1))),
+                               [6.0, 7.0, 0, 0, 0.04, *np.radians([0.001, 0.002, 0.003])], rtol=1e-12)
+    np.testing.assert_allclose(np.diag(block(2, 2))[[0, 1, 4]], [25.0, 25.0, 0.25], rtol=1e-12)
+    # the shared point correlates C1's and C2's intrinsics: sum over its axes of the two effects
+    rows = [0, 1, 4]
+    np.testing.assert_allclose(block(1, 2)[np.ix_(rows, rows)], effect_c1[rows] @ effect_c2[rows].T, rtol=1e-12)
+    assert not block(0, 0).any() and not block(0, 1).any()
+    np.testing.assert_allclose(K, K.T)
+    assert np.linalg.eigvalsh(K).min() > -1e-12
+    assert not calibration_covariance({}, ["C0"]).any()
+    assert not calibration_covariance({"std": {"C0": {"rotation_deg": "x"}}}, ["C0"]).any()

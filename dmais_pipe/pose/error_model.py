@@ -13,15 +13,16 @@ frame, R the frame's rig_from_world):
     jitter       G_i w, G_i = B_i [f_i]x  (2, 3)       w ~ N(0, s_j^2 I3) rad           frame, non-reference camera
     mounting     G_i m                                 m ~ N(0, s_m^2 I3) rad           group, non-reference camera
     focal        h_i k, h_i = -(f_i . a_c) B_i a_c     k ~ N(0, s_k^2) (relative)       group, camera
-    calibration  C_i x  (2, 8)                         x ~ N(0, Sigma_c) (fx fy cx cy   camera, whole flight
-                                                        d, rotation) the calibration's
+    calibration  C_i x  (2, 8)                         x ~ N(0, Sigma_c) (fx fy cx cy   whole flight
+                                                        d, rotation) of all cameras
 
 Jitter is the camera's vibration within a frame (every point of that camera moves together),
 mounting its rotation against the calibrated rig during a group, focal its focal-length change
 (a thermal focus change, or the calibration's own focal error: both scale the image about the
 axis). The reference camera has no jitter or mounting term: the rig frame is its frame, so its
-rotation is the platform's attitude. The calibration term is fixed (rig.json's standard
-deviations); the survey term is fixed per point where ground_points.csv gives `sigma_m`, and any
+rotation is the platform's attitude. The calibration term is fixed: the calibration's joint
+covariance of every camera's parameters (cameras calibrated on the same control points share their
+survey errors, so their errors are correlated: stages.pose.calibration_covariance); the survey term is fixed per point where ground_points.csv gives `sigma_m`, and any
 other component where the user sets it.
 
 Estimation (variance-component estimation, method of moments as Helmert's: quadratic forms of the
@@ -110,8 +111,9 @@ class Geometry:
     solve's weights; A_inverse (F, 6, 6); residual (N, 2) rad; focal (N,) px; frame (N,) ascending,
     starts (F,) its first rows; camera (N,) int; reference (N,) bool; group (N,) int; point (N,)
     int; survey (N, 2, 3) D_i; rotation (N, 2, 3) G_i; focal_effect (N, 2) h_i; calibration
-    (N, 2, 8) C_i (per CALIBRATION_PARAMETERS, zero where rig.json has no standard deviation);
-    calibration_sigma (n_cameras, 8); point_sigma (N,) m, NaN where not given."""
+    (N, 2, 8) C_i (per CALIBRATION_PARAMETERS, zero where the calibration gives no variance);
+    calibration_covariance (8 C, 8 C) of the C rig cameras' CALIBRATION_PARAMETERS, camera by camera
+    in the rig's order; point_sigma (N,) m, NaN where not given."""
 
     J: np.ndarray
     weight: np.ndarray
@@ -128,7 +130,7 @@ class Geometry:
     rotation: np.ndarray
     focal_effect: np.ndarray
     calibration: np.ndarray
-    calibration_sigma: np.ndarray
+    calibration_covariance: np.ndarray
     point_sigma: np.ndarray
     t_centred: np.ndarray = field(repr=False, default=None)
 
@@ -143,16 +145,15 @@ class Geometry:
 
 def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, directions, points,
                      frame_index, R, t, groups, point_ids, object_space: bool,
-                     point_sigma_m=None, calibration_std: dict | None = None) -> Geometry:
+                     point_sigma_m=None, calibration_covariance: np.ndarray | None = None) -> Geometry:
     """The Geometry of F solved frames (module docstring).
 
     cameras (N,) names, uv (N, 2) px, origins, directions (N, 3) rig frame, points (N, 3) world,
     frame_index (N,) ascending with every frame present, R (F, 3, 3), t (F, 3) rig_from_world,
     groups (F,) the frames' groups, point_ids (N,), object_space: the poses minimise the paper's
     eq. objfun (True) or the angular residuals (False); point_sigma_m (N,) the survey sigma of each
-    observation's point (NaN where not given); calibration_std {camera: {name: sigma}} of
-    CALIBRATION_PARAMETERS (rotations rx, ry, rz in rad about the rig's axes, as rig.json's std;
-    missing ones count as 0).
+    observation's point (NaN where not given); calibration_covariance (8 C, 8 C) of the rig cameras'
+    CALIBRATION_PARAMETERS (Geometry; rotations rx, ry, rz in rad about the rig's axes), None: 0.
     """
     n_frames = len(R)
     counts = np.bincount(frame_index, minlength=n_frames)
@@ -181,41 +182,43 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     rotation = np.einsum("nki,nij->nkj", bases, skew(unit))
     group_codes = np.unique(np.asarray(groups).astype(str), return_inverse=True)[1]
     point_codes = np.unique(np.asarray(point_ids).astype(str), return_inverse=True)[1]
-    calibration, calibration_sigma = _calibration_effects(rig, names, cameras, uv, bases, unit, calibration_std)
+    n_parameters = len(CALIBRATION_PARAMETERS) * len(names)
+    calibration_covariance = np.zeros((n_parameters, n_parameters)) if calibration_covariance is None \
+        else np.asarray(calibration_covariance, dtype=float)
+    calibration = _calibration_effects(rig, names, cameras, uv, bases, unit, np.diag(calibration_covariance))
     point_sigma = np.full(len(points), np.nan) if point_sigma_m is None else np.asarray(point_sigma_m, float)
     return Geometry(J=J, weight=weight, A_inverse=inverse_normal_matrices(A), residual=residual,
                     focal=np.array([rig.cameras[n].fx for n in names])[camera], frame=np.asarray(frame_index),
                     starts=np.searchsorted(frame_index, np.arange(n_frames)), camera=camera,
                     reference=camera == names.index(rig.reference_camera), group=group_codes[frame_index],
                     point=point_codes, survey=dr_dp @ R_rows, rotation=rotation, focal_effect=focal_effect,
-                    calibration=calibration, calibration_sigma=calibration_sigma, point_sigma=point_sigma,
+                    calibration=calibration, calibration_covariance=calibration_covariance, point_sigma=point_sigma,
                     t_centred=t_centred)
 
 
-def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, calibration_std):
-    """C_i (N, 2, 8) and the sigmas (n_cameras, 8): the change of r_i per unit change of each of its
-    camera's CALIBRATION_PARAMETERS (intrinsics by central differences of the rays; a rotation w of
-    the camera about the rig's axes rotates its rays by w), and their standard deviations."""
-    effects = np.zeros((len(uv), 2, len(CALIBRATION_PARAMETERS)))
-    sigma = np.zeros((len(names), len(CALIBRATION_PARAMETERS)))
+def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, variances) -> np.ndarray:
+    """C_i (N, 2, 8): the change of r_i per unit change of each of its camera's
+    CALIBRATION_PARAMETERS (intrinsics by central differences of the rays; a rotation w of the camera
+    about the rig's axes rotates its rays by w), where its variance (variances (8 C,)) is not 0."""
+    k_all = len(CALIBRATION_PARAMETERS)
+    effects = np.zeros((len(uv), 2, k_all))
     for c, name in enumerate(names):
         rows = np.flatnonzero(np.asarray(cameras) == name)
-        given = (calibration_std or {}).get(name, {})
-        sigma[c] = [float(given.get(k, 0.0)) for k in CALIBRATION_PARAMETERS]
-        if not len(rows) or not sigma[c].any():
+        sigma = np.sqrt(np.clip(variances[k_all * c:k_all * (c + 1)], 0.0, None))
+        if not len(rows) or not sigma.any():
             continue
         camera, rig_from_cam = rig.cameras[name], rig.cam_from_rig[name].R.T
         for k, parameter in enumerate(CALIBRATION_PARAMETERS[:5]):
-            if sigma[c, k] == 0:
+            if sigma[k] == 0:
                 continue
-            step = 1e-3 * sigma[c, k]
+            step = 1e-3 * sigma[k]
             plus = replace(camera, **{parameter: getattr(camera, parameter) + step}).unproject(uv[rows])
             minus = replace(camera, **{parameter: getattr(camera, parameter) - step}).unproject(uv[rows])
             change = (_unit(plus) - _unit(minus)) @ rig_from_cam.T / (2 * step)
             effects[rows, :, k] = -np.einsum("nki,ni->nk", bases[rows], change)
         # d f / d w = -[f]x: r changes by -B df = B [f]x w
         effects[rows, :, 5:] = np.einsum("nki,nij->nkj", bases[rows], skew(unit[rows]))
-    return effects, sigma
+    return effects
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -413,15 +416,18 @@ def _survey_draw(g: Geometry, signs, scale: np.ndarray) -> np.ndarray:
     return np.einsum("nkj,nj->nk", g.survey, moves)
 
 
-def calibration_expectation(geometry: Geometry, statistics: Statistics) -> np.ndarray:
-    """(5,) E[statistics] of the calibration term with rig.json's covariance, exactly: the sum over
-    its parameters (independent) of the statistics of each one's one-sigma effect."""
+def calibration_errors(geometry: Geometry) -> list[np.ndarray]:
+    """Errors (N, 2) rad of the calibration along each principal axis of its covariance, scaled by its
+    standard deviation: their statistics sum to the term's expectation (the axes are independent)."""
     g = geometry
-    total = np.zeros(5)
-    for c, k in zip(*np.nonzero(g.calibration_sigma)):
-        errors = np.where((g.camera == c)[:, None], g.calibration[:, :, k] * g.calibration_sigma[c, k], 0.0)
-        total += statistics(solve_response(g, errors))
-    return total
+    k_all = len(CALIBRATION_PARAMETERS)
+    values, vectors = np.linalg.eigh(g.calibration_covariance)
+    out = []
+    for value, vector in zip(values, vectors.T):
+        if value > 1e-12 * max(values.max(), 0.0) and value > 0:
+            per_camera = (vector * np.sqrt(value)).reshape(-1, k_all)  # (C, 8)
+            out.append(np.einsum("nkj,nj->nk", g.calibration, per_camera[g.camera]))
+    return out
 
 
 def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallback_pixel_px: float = np.nan,
@@ -449,7 +455,8 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
         expected[name] = np.mean([statistics(solve_response(g, e)) for e in errors], axis=0)
         raw = np.mean([np.sum((e * g.focal[:, None]) ** 2) for e in errors])
         visible[name] = expected[name].sum() / raw if raw > 0 else 0.0
-    known = calibration_expectation(g, statistics) * settings["calibration"] ** 2
+    known = sum((statistics(solve_response(g, e)) for e in calibration_errors(g)), np.zeros(5)) \
+        * settings["calibration"] ** 2
     if np.isfinite(g.point_sigma).any():
         known += np.mean([statistics(solve_response(g, fixed_survey_draw(g, rng)))
                           for _ in range(DRAWS)], axis=0)
@@ -507,10 +514,19 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
     block_frame[frame_camera] = g.frame
     block_camera = np.zeros_like(block_frame)
     block_camera[frame_camera] = g.camera
+    k_all = len(CALIBRATION_PARAMETERS)
 
     def per_observation(effect, variance):  # sum_i (w J^T E_i) V_i (w J^T E_i)^T
         K = np.einsum("nki,nkj->nij", weighted, effect)
         return _sum_by(np.einsum("nij,n,nkj->nik", K, variance, K), g.frame, n_frames)
+
+    def calibration():  # L K L^T, L (F, 6, 8 C) the frame's sums of w J^T C_i in its camera's columns
+        blocks = _sum_by(np.einsum("nki,nkj->nij", weighted, g.calibration), frame_camera, len(block_frame))
+        L = np.zeros((n_frames, 6, g.calibration_covariance.shape[0]))
+        for c in np.unique(block_camera):
+            mine = block_camera == c
+            L[:, :, k_all * c:k_all * (c + 1)] += _sum_by(blocks[mine], block_frame[mine], n_frames)
+        return L @ g.calibration_covariance @ np.swapaxes(L, 1, 2) * model.si("calibration") ** 2
 
     def per_block(effect, sigma):  # sum over blocks of L L^T, L = sum over the block's rows of w J^T E_i sigma
         L = _sum_by(np.einsum("nki,nkj->nij", weighted, effect), frame_camera, len(block_frame)) * sigma[:, None, :]
@@ -526,7 +542,7 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
         "survey": per_observation(g.survey, point_variance),
         "rotation": per_block(g.rotation, np.repeat(moving[:, None], 3, axis=1)),
         "focal": per_block(g.focal_effect[:, :, None], np.full((len(block_frame), 1), model.si("focal"))),
-        "calibration": per_block(g.calibration, g.calibration_sigma[block_camera] * model.si("calibration")),
+        "calibration": calibration(),
     }
     rotation = covariances.pop("rotation")
     share = model.si("jitter") ** 2 / rotation_sigma**2 if rotation_sigma > 0 else 0.0

@@ -29,15 +29,15 @@ import numpy as np
 import pandas as pd
 
 from ..blas import single_threaded_blas
-from ..dataset import FRAME_COLUMNS, PRIOR_QUAT, Dataset
+from ..dataset import FRAME_COLUMNS, POINT_SIGMA, PRIOR_QUAT, Dataset
 from ..errors import PoseError
 from ..frames import FlightObservations, flight_observations_by_frame
 from ..geometry import Rigid3, quat_from_rotation
 from ..rig import Rig
 from ..workspace import POSE_COLUMNS, POSE_OBSERVATION_COLUMNS, POSE_UNCERTAINTY_COLUMNS
+from .error_model import ErrorModel, Geometry, estimate, estimation_frames, linearised_solve
 from .robust import solve_robust
 from .solver import solve_generalized_pose
-from .error_model import ErrorModel, Geometry, estimate, estimation_frames, linearised_solve
 from .uncertainty import pose_uncertainty
 
 log = logging.getLogger(__name__)
@@ -104,7 +104,7 @@ class FlightPoses:
 def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
                    robust: bool = False, refine: bool = False, groups: list[str] | None = None,
                    threshold_px: float = ROBUST_THRESHOLD_PX, calibrated_noise_px: float = np.nan,
-                   error_settings: dict | None = None, calibration_std: dict | None = None
+                   error_settings: dict | None = None, calibration_covariance: np.ndarray | None = None
                    ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """poses.csv rows (COLUMNS, then frames.csv's extra columns) for every flight frame (of `groups`,
     if given), and one row per observation of the solved frames (POSE_OBSERVATION_COLUMNS: whether
@@ -112,14 +112,14 @@ def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, camer
     The arguments as `solve_flight`'s.
     """
     result = solve_flight(dataset, rig, observations, cameras, robust, refine, groups, threshold_px,
-                          calibrated_noise_px, error_settings, calibration_std)
+                          calibrated_noise_px, error_settings, calibration_covariance)
     return result.table, result.observations
 
 
 def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
                  robust: bool = False, refine: bool = False, groups: list[str] | None = None,
                  threshold_px: float = ROBUST_THRESHOLD_PX, calibrated_noise_px: float = np.nan,
-                 error_settings: dict | None = None, calibration_std: dict | None = None) -> FlightPoses:
+                 error_settings: dict | None = None, calibration_covariance: np.ndarray | None = None) -> FlightPoses:
     """`estimate_poses`' tables and the error model of its sigmas (error_model.py), one per group.
 
     Each group's model is estimated from the residuals of its frames solved with every camera of
@@ -128,8 +128,8 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
     frames share its mounting and its ground points, and so that the workflow's per-group jobs
     give the sigmas of one run over all frames. calibrated_noise_px: the pixel noise
     where the frames have too few observations to estimate it; error_settings {component: sigma}
-    (error_model.UNITS) fixes components; calibration_std {camera: {parameter: sigma}} the
-    calibration's standard deviations (error_model.linearised_solve).
+    (error_model.UNITS) fixes components; calibration_covariance the calibration's joint
+    covariance (error_model.linearised_solve).
     """
     solution = _solve(dataset, rig, observations, cameras, robust, refine, groups, threshold_px)
     whole = solution if set(cameras) == set(rig.cameras) else \
@@ -142,9 +142,9 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
         estimated_on = np.flatnonzero(whole.table["group"].to_numpy() == group)
         source, sample = (whole, estimated_on) if len(estimated_on) else (solution, frames)
         sample = sample[estimation_frames(len(sample))]
-        models[group] = estimate(_geometry(dataset, rig, source, sample, not refine, calibration_std),
+        models[group] = estimate(_geometry(dataset, rig, source, sample, not refine, calibration_covariance),
                                  error_settings, calibrated_noise_px)
-        uncertainty = pose_uncertainty(_geometry(dataset, rig, solution, frames, not refine, calibration_std),
+        uncertainty = pose_uncertainty(_geometry(dataset, rig, solution, frames, not refine, calibration_covariance),
                                        models[group], solution.R[frames], solution.t[frames])
         values = np.column_stack([uncertainty.attitude, uncertainty.sigma_position, uncertainty.sigma_attitude,
                                   uncertainty.noise_px])
@@ -196,7 +196,7 @@ def _solve(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list
 
 
 def _geometry(dataset: Dataset, rig: Rig, solution: _Solution, frames: np.ndarray, object_space: bool,
-              calibration_std) -> Geometry:
+              calibration_covariance) -> Geometry:
     """error_model.Geometry of the used observations of a _Solution's frames (ascending rows (k,) of
     its table), numbered 0 ... k - 1."""
     renumber = np.full(len(solution.table), -1)
@@ -208,7 +208,7 @@ def _geometry(dataset: Dataset, rig: Rig, solution: _Solution, frames: np.ndarra
                             flight.directions[rows], flight.points[rows], frame_of_row[frame_of_row >= 0],
                             solution.R[frames], solution.t[frames], solution.table["group"].to_numpy()[frames],
                             flight.point_ids[rows], object_space, survey_sigma(dataset, flight.point_ids[rows]),
-                            calibration_std)
+                            calibration_covariance)
 
 
 def _solve_frames(flight: FlightObservations, focal: np.ndarray, robust: bool, refine: bool,
@@ -258,9 +258,9 @@ def _poses_table(cameras: list[str], flight: FlightObservations, solved: np.ndar
 
 def survey_sigma(dataset: Dataset, point_ids: np.ndarray) -> np.ndarray:
     """(N,) ground_points.csv's `sigma_m` of each point (m per axis), NaN where not given."""
-    if "sigma_m" not in dataset.ground_points.columns:
+    if POINT_SIGMA not in dataset.ground_points.columns:
         return np.full(len(point_ids), np.nan)
-    return pd.to_numeric(dataset.ground_points["sigma_m"], errors="coerce").reindex(point_ids).to_numpy(float)
+    return dataset.ground_points[POINT_SIGMA].reindex(point_ids).to_numpy(float)
 
 
 def budget_table(frames: np.ndarray, uncertainty) -> pd.DataFrame:

@@ -60,10 +60,11 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     has_priors = bool(images[list(PRIOR_CENTER)].notna().all(axis=1).any())
     if conf.use_priors and not has_priors:
         log.warning("extrinsics: no camera-centre priors in %s; calibrating without", dataset.root / "images.csv")
-    inputs = _inputs(workspace, conf.pixel_sigma_px)
+    *inputs, intrinsics_std, survey_effect = _inputs(workspace, conf.pixel_sigma_px)
     results = {case: _calibrate(workspace, conf, case, *inputs) for case in ([True, False] if has_priors else [False])}
     chosen = results[conf.use_priors and has_priors]
-    written = [workspace.save_rig(chosen.rig, **chosen.extra()),
+    written = [workspace.save_rig(chosen.rig, **chosen.extra(), intrinsics_std=intrinsics_std,
+                                  intrinsics_survey_effect=survey_effect),
                workspace.save_rig_config(colmap_rig_config(chosen.rig,
                                                            image_prefixes(dataset.images, chosen.rig.camera_names)))]
     written += [workspace.save_rig(result.rig, case="known" if case else "unknown", **result.extra())
@@ -73,17 +74,22 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     return written
 
 
-def _inputs(workspace: Workspace, pixel_sigma_px: float) -> tuple[pd.DataFrame, dict[str, Camera], dict[str, float]]:
-    """The extrinsics images' observations, the calibrated cameras and each camera's pixel sigma
-    (pixel_sigma_px when positive, else from the camera's calibration)."""
+def _inputs(workspace: Workspace, pixel_sigma_px: float
+            ) -> tuple[pd.DataFrame, dict[str, Camera], dict[str, float], dict[str, dict], dict[str, dict]]:
+    """The extrinsics images' observations, the calibrated cameras, each camera's pixel sigma
+    (pixel_sigma_px when positive, else from the camera's calibration), and its intrinsics' standard
+    deviations and control-point survey effects (its record's `std` and `survey_effect`, empty where
+    it has none: rig.json's `intrinsics_std` and `intrinsics_survey_effect`)."""
     dataset = workspace.dataset
     images = dataset.images_of("extrinsics")
     observations = workspace.load_observations()
     observations = observations[observations["image"].isin(set(images["image"]))]
     names = [c for c in dataset.cameras if c in set(images["camera"]) or c == dataset.reference_camera]
-    cameras, pixel_sigma = {}, {}
+    cameras, pixel_sigma, std, survey_effect = {}, {}, {}, {}
     for name in names:
         cameras[name], record = workspace.load_intrinsics(name)
+        std[name] = record.get("std") or {}
+        survey_effect[name] = record.get("survey_effect") or {}
         # per-axis pixel sigma from the intrinsic calibration's RMS point distance (eps / sqrt 2)
         eps = record.get("eps_calib_px")
         if pixel_sigma_px > 0:
@@ -92,7 +98,7 @@ def _inputs(workspace: Workspace, pixel_sigma_px: float) -> tuple[pd.DataFrame, 
             pixel_sigma[name] = float(eps) / np.sqrt(2.0)
         else:
             pixel_sigma[name] = DEFAULT_PIXEL_SIGMA_PX
-    return observations, cameras, pixel_sigma
+    return observations, cameras, pixel_sigma, std, survey_effect
 
 
 def _calibrate(workspace: Workspace, conf: Conf, use_priors: bool, observations: pd.DataFrame,

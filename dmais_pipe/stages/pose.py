@@ -23,6 +23,8 @@ import pandas as pd
 
 from ..blas import single_threaded_blas
 from ..errors import DmaisError
+from ..calib.intrinsics import INTRINSIC_NAMES
+from ..pose.error_model import CALIBRATION_PARAMETERS
 from ..pose.flight import ROBUST_THRESHOLD_PX, estimate_poses
 from ..rig import Rig
 from ..workspace import ResultsError, Workspace
@@ -52,10 +54,12 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
     poses.csv or poses_<label>.csv) and its per-observation file."""
     rig = workspace.load_rig()
     chosen = _cameras(rig, cameras)
+    record = _rig_record(workspace)
     with single_threaded_blas():  # small matrices: threads only add hand-offs to time_ms
         table, per_observation = estimate_poses(workspace.dataset, rig, workspace.load_observations(), chosen,
                                                 conf.robust, conf.refine, groups, conf.robust_threshold_px,
-                                                calibrated_noise_px(workspace, chosen))
+                                                calibrated_noise_px(record, chosen),
+                                                calibration_covariance=calibration_covariance(record, rig.camera_names))
     if table.empty and not groups:
         raise DmaisError(f"pose: no flight frame of {workspace.dataset.root} could be solved with cameras {chosen}")
     if table.empty:
@@ -92,17 +96,68 @@ def merge(workspace: Workspace, parts: list[Path], cameras: list[str] | None = N
                                 pd.concat(observations, ignore_index=True).sort_values("frame", kind="stable"), path)
 
 
-def calibrated_noise_px(workspace: Workspace, cameras: list[str]) -> float:
+def _rig_record(workspace: Workspace) -> dict:
+    """rig.json as written (its extra keys: rms_px, std, intrinsics_std), {} where unreadable
+    (load_rig has read it already, and says what is wrong)."""
+    try:
+        record = json.loads(workspace.rig_path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return record if isinstance(record, dict) else {}
+
+
+def calibrated_noise_px(record: dict, cameras: list[str]) -> float:
     """Per-axis pixel noise of the calibration (rig.json's largest per-camera RMS reprojection
     distance `rms_px` of `cameras`, over sqrt 2), NaN when rig.json has none: the uncertainty's
     noise when no frame has enough observations for its own estimate."""
     try:
-        rms = json.loads(workspace.rig_path.read_text()).get("rms_px") or {}
+        rms = record.get("rms_px") or {}
         values = [float(rms[c]) for c in cameras if c in rms]
-    except (OSError, ValueError, TypeError, AttributeError):
+    except (ValueError, TypeError, AttributeError):
         return np.nan
     values = [v for v in values if np.isfinite(v) and v > 0]
     return max(values) / np.sqrt(2.0) if values else np.nan
+
+
+#: The intrinsics whose calibration error reaches the flight: the principal point's does not, for
+#: the rig adjustment turns each camera to fit the control points with it (for a narrow camera a
+#: shift of (cx, cy) is a rotation), and that rotation's error is rig.json's rotation std.
+FLIGHT_INTRINSICS = ("fx", "fy", "d")
+INTRINSIC_ROWS = {name: k for k, name in enumerate(INTRINSIC_NAMES)}
+
+
+def calibration_covariance(record: dict, cameras: list[str]) -> np.ndarray:
+    """(8 C, 8 C) the joint covariance of error_model.CALIBRATION_PARAMETERS of the rig's `cameras`
+    from rig.json: FLIGHT_INTRINSICS from `intrinsics_std`, correlated between cameras through the
+    control points' survey errors they share (`intrinsics_survey_effect`, each point's one-sigma
+    effect on each camera's intrinsics); the rig adjustment's rotations (`std` rotation_deg, about
+    the rig's axes) independent. What rig.json lacks counts as 0; unreadable values warn and give 0."""
+    k_all, parameters = len(CALIBRATION_PARAMETERS), list(CALIBRATION_PARAMETERS)
+    covariance = np.zeros((k_all * len(cameras), k_all * len(cameras)))
+    try:
+        effects = record.get("intrinsics_survey_effect") or {}
+        points = sorted({p for effect in effects.values() for p in effect})
+        shared = np.zeros((len(covariance), 3 * len(points)))  # one-sigma effects of the points' errors
+        for c, camera in enumerate(cameras):
+            rows = [k_all * c + parameters.index(k) for k in FLIGHT_INTRINSICS]
+            for point, effect in (effects.get(camera) or {}).items():
+                k = points.index(point)
+                shared[rows, 3 * k:3 * k + 3] = np.asarray(effect, dtype=float)[[INTRINSIC_ROWS[n] for n in
+                                                                                 FLIGHT_INTRINSICS]]
+            std = (record.get("intrinsics_std") or {}).get(camera) or {}
+            own = np.array([float(std.get(k, 0.0)) ** 2 for k in FLIGHT_INTRINSICS])
+            covariance[rows, rows] = np.clip(own - np.sum(shared[rows] ** 2, axis=1), 0.0, None)
+            rotation = ((record.get("std") or {}).get(camera) or {}).get("rotation_deg", [0.0] * 3)
+            covariance[range(k_all * c + 5, k_all * c + 8), range(k_all * c + 5, k_all * c + 8)] = \
+                np.radians(np.asarray(rotation, dtype=float)) ** 2
+        covariance += shared @ shared.T
+    except (ValueError, TypeError, AttributeError, IndexError):
+        log.warning("pose: rig.json's calibration uncertainty is not readable; the calibration's error is left out")
+        return np.zeros_like(covariance)
+    if not np.isfinite(covariance).all():
+        log.warning("pose: rig.json's calibration uncertainty is not finite; the calibration's error is left out")
+        return np.zeros_like(covariance)
+    return covariance
 
 
 def subset_label(rig: Rig, cameras: list[str]) -> str:
