@@ -124,3 +124,22 @@ def test_robust_pose_with_40_percent_swapped_ids_is_as_good_as_without_them(data
     robust = errors(robust)
     assert list(robust.index) == list(clean.index)
     assert (robust <= np.maximum(2 * clean, clean + 0.05)).all(), pd.DataFrame({"robust": robust, "clean": clean})
+
+
+def test_error_sigmas_fix_components_of_the_sigmas_and_bad_ones_are_refused(dataset, tmp_path):
+    from dmais_pipe.stages import configure
+
+    shutil.copy(dataset / "truth" / "rig.json", tmp_path / "rig.json")
+    workspace = Workspace.open(dataset, tmp_path)
+    estimated = pd.read_csv(pose.run(workspace)[0])
+    conf = configure(pose.CONFS, "paper", ["error_sigmas=pixel=2,jitter=0,mounting=0,survey=0,focal=0"], "pose")
+    fixed = pd.read_csv(pose.run(workspace, conf)[0])
+    assert (fixed["noise_px"] == 2.0).all() and not np.allclose(fixed["sigma_x_m"], estimated["sigma_x_m"])
+    # with every component fixed at twice the pixel noise and no other, the sigmas are twice
+    double = pd.read_csv(pose.run(workspace, configure(
+        pose.CONFS, "paper", ["error_sigmas=pixel=4,jitter=0,mounting=0,survey=0,focal=0"], "pose"))[0])
+    np.testing.assert_allclose(double["sigma_x_m"], 2 * fixed["sigma_x_m"], rtol=1e-9)
+    for items, message in [(("speed=1",), "not NAME=VALUE"), (("pixel=-1",), "not a non-negative number"),
+                           (("pixel=1", "pixel=2"), "given twice"), (("survey=abc",), "not a non-negative")]:
+        with pytest.raises(DmaisError, match=message):
+            pose.run(workspace, pose.Conf(error_sigmas=items))

@@ -24,7 +24,7 @@ import pandas as pd
 from ..blas import single_threaded_blas
 from ..errors import DmaisError
 from ..calib.intrinsics import INTRINSIC_NAMES
-from ..pose.error_model import CALIBRATION_PARAMETERS
+from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS
 from ..pose.flight import ROBUST_THRESHOLD_PX, estimate_poses
 from ..rig import Rig
 from ..workspace import ResultsError, Workspace
@@ -42,6 +42,9 @@ class Conf:
     robust_threshold_px: float = setting(
         ROBUST_THRESHOLD_PX, "RANSAC's inlier threshold (px; an angle per observation: this over its camera's fx)",
         above=0)
+    error_sigmas: tuple = setting((), "components of the sigmas' error model fixed at a known 1-sigma, "
+                                  "NAME=VALUE: pixel (px), survey (m), jitter, mounting (arc-min), focal (ppm), "
+                                  "calibration (a factor on rig.json's covariance); the others are estimated")
 
 
 #: "paper": the paper's solver alone; "robust": RANSAC first and a polished pose, for wrong ids.
@@ -59,7 +62,8 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
         table, per_observation = estimate_poses(workspace.dataset, rig, workspace.load_observations(), chosen,
                                                 conf.robust, conf.refine, groups, conf.robust_threshold_px,
                                                 calibrated_noise_px(record, chosen),
-                                                calibration_covariance=calibration_covariance(record, rig.camera_names))
+                                                error_settings(conf.error_sigmas),
+                                                calibration_covariance(record, rig.camera_names))
     if table.empty and not groups:
         raise DmaisError(f"pose: no flight frame of {workspace.dataset.root} could be solved with cameras {chosen}")
     if table.empty:
@@ -117,6 +121,29 @@ def calibrated_noise_px(record: dict, cameras: list[str]) -> float:
         return np.nan
     values = [v for v in values if np.isfinite(v) and v > 0]
     return max(values) / np.sqrt(2.0) if values else np.nan
+
+
+def error_settings(items: tuple) -> dict[str, float]:
+    """{component: sigma} of the error_sigmas setting's NAME=VALUE items; a name that is not a
+    component, a repeated one, or a value that is not a finite non-negative number is a DmaisError."""
+    settings: dict[str, float] = {}
+    for item in items:
+        name, _, text = str(item).partition("=")
+        name = name.strip()
+        if name not in COMPONENTS:
+            raise DmaisError(f"pose: setting error_sigmas: {item!r} is not NAME=VALUE with NAME one of "
+                             f"{', '.join(COMPONENTS)}")
+        if name in settings:
+            raise DmaisError(f"pose: setting error_sigmas: {name} is given twice")
+        try:
+            value = float(text)
+        except ValueError:
+            value = np.nan
+        if not np.isfinite(value) or value < 0:
+            raise DmaisError(f"pose: setting error_sigmas: {name}={text.strip()!r} is not a non-negative number "
+                             f"({UNITS[name]})")
+        settings[name] = value
+    return settings
 
 
 #: The intrinsics whose calibration error reaches the flight: the principal point's does not, for
