@@ -49,9 +49,9 @@ def hover_geometry(seed: int, cameras=range(5), object_space: bool = True) -> em
     assert np.isfinite(uv).all()
     origins, directions = rig.rays_of(cameras_, uv)
     # the cameras' focal lengths share an error (as cameras calibrated on one field do)
-    sigma = np.tile([5.0, 5.0, 8.0, 8.0, 0.03, 3e-5, 3e-5, 5e-5], 5)
-    common = np.zeros(40)
-    common[0::8], common[1::8] = 4.0, 4.0
+    sigma = np.tile([5.0, 5.0, 8.0, 8.0, 0.03, 3e-5, 3e-5, 5e-5, 0.01, 0.01, 0.02], 5)
+    common = np.zeros(55)
+    common[0::11], common[1::11] = 4.0, 4.0
     covariance = np.diag(sigma**2) + np.outer(common, common)
     geometry = em.linearised_solve(rig, cameras_, uv, origins, directions, points, np.array(rows["frame"]),
                                np.array(R_all), np.array(t_all), np.array(groups), np.array(rows["ids"]),
@@ -81,7 +81,7 @@ def dense_covariance(g: em.Geometry, frame: int, model: em.ErrorModel) -> np.nda
                     rotation = model.si("jitter") ** 2 + model.si("mounting") ** 2
                     block += g.rotation[i] @ g.rotation[j].T * rotation
                 block += np.outer(g.focal_effect[i], g.focal_effect[j]) * model.si("focal") ** 2
-            ci, cj = slice(8 * g.camera[i], 8 * g.camera[i] + 8), slice(8 * g.camera[j], 8 * g.camera[j] + 8)
+            ci, cj = slice(11 * g.camera[i], 11 * g.camera[i] + 11), slice(11 * g.camera[j], 11 * g.camera[j] + 11)
             block += g.calibration[i] @ g.calibration_covariance[ci, cj] @ g.calibration[j].T * \
                 model.si("calibration") ** 2
             cov[2 * a:2 * a + 2, 2 * b:2 * b + 2] = block
@@ -186,25 +186,18 @@ def test_sigmas_are_the_root_sum_of_the_components_shares():
 
 
 def test_the_pose_stage_takes_the_calibrations_joint_covariance_from_rig_json():
-    from dmais_pipe.stages.pose import FLIGHT_INTRINSICS, calibration_covariance
+    from dmais_pipe.stages.pose import calibration_covariance
 
-    effect_c1 = np.arange(15.0).reshape(5, 3) / 1000  # (fx, fy, cx, cy, d) x (x, y, z), one point
-    effect_c2 = -np.ones((5, 3)) / 1000
-    record = {"intrinsics_std": {"C1": {"fx": 6.0, "fy": 7.0, "cx": 10.0, "cy": 11.0, "d": 0.04},
-                                 "C2": {"fx": 5.0, "fy": 5.0, "d": 0.5}},
-              "intrinsics_survey_effect": {"C1": {"P1": effect_c1.tolist()}, "C2": {"P1": effect_c2.tolist()}},
-              "std": {"C0": {"rotation_deg": [0.0, 0.0, 0.0]}, "C1": {"rotation_deg": [0.001, 0.002, 0.003]}}}
-    K = calibration_covariance(record, ["C0", "C1", "C2"])
-    assert FLIGHT_INTRINSICS == ("fx", "fy", "d")  # the principal point's error is the rig rotation's
-    block = lambda a, b: K[8 * a:8 * a + 8, 8 * b:8 * b + 8]  # noqa: E731
-    np.testing.assert_allclose(np.sqrt(np.diag(block(1, 1))),
-                               [6.0, 7.0, 0, 0, 0.04, *np.radians([0.001, 0.002, 0.003])], rtol=1e-12)
-    np.testing.assert_allclose(np.diag(block(2, 2))[[0, 1, 4]], [25.0, 25.0, 0.25], rtol=1e-12)
-    # the shared point correlates C1's and C2's intrinsics: sum over its axes of the two effects
-    rows = [0, 1, 4]
-    np.testing.assert_allclose(block(1, 2)[np.ix_(rows, rows)], effect_c1[rows] @ effect_c2[rows].T, rtol=1e-12)
-    assert not block(0, 0).any() and not block(0, 1).any()
-    np.testing.assert_allclose(K, K.T)
-    assert np.linalg.eigvalsh(K).min() > -1e-12
+    labels = ["C0.fx", "C0.cx", "C1.fx", "C1.rx", "C1.vz", "C9.fx"]
+    matrix = np.diag([4.0, 9.0, 16.0, 1e-8, 1e-4, 1.0])
+    matrix[0, 3] = matrix[3, 0] = 1e-4  # C0's focal and C1's rotation, as the rig adjustment couples them
+    K = calibration_covariance({"calibration_covariance": {"parameters": labels, "matrix": matrix.tolist()}},
+                               ["C0", "C1"])
+    at = {label: 11 * int(label[1]) + em.CALIBRATION_PARAMETERS.index(label[3:]) for label in labels[:5]}
+    for a, la in enumerate(labels[:5]):
+        for b, lb in enumerate(labels[:5]):
+            assert K[at[la], at[lb]] == matrix[a, b]
+    assert np.count_nonzero(K) == 7  # a camera not in the rig (C9) is left out, the rest is 0
     assert not calibration_covariance({}, ["C0"]).any()
-    assert not calibration_covariance({"std": {"C0": {"rotation_deg": "x"}}}, ["C0"]).any()
+    bad = {"calibration_covariance": {"parameters": ["C0.fx"], "matrix": [["x"]]}}
+    assert not calibration_covariance(bad, ["C0"]).any()

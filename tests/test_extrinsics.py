@@ -466,3 +466,42 @@ def test_two_camera_rig_matches_cv2_stereo_calibrate():
     assert np.linalg.norm(ours.center - truth_centre) < 4 * np.linalg.norm(std["center_m"])
     assert np.linalg.norm(-R_cv.T @ t_cv - truth_centre) < 4 * np.linalg.norm(std["center_m"])
     assert 0 < np.linalg.norm(std["center_m"]) < 2e-3
+
+
+def test_calibration_covariance_carries_the_intrinsics_errors_into_the_rig(calibrated):
+    """rig.json's joint covariance: the rig adjustment's sensitivity to each camera's intrinsics is
+    its response when it is solved again with one intrinsic moved (finite differences), and the
+    rig's covariance grows by S K S^T over the intrinsics-held one."""
+    from dmais_pipe.calib.extrinsics import calibration_covariance
+    from dmais_pipe.geometry import log_so3
+
+    dataset, results, _ = calibrated
+    workspace = Workspace.open(dataset, results)
+    observations, cameras, sigma, std, survey = extrinsics._inputs(workspace, 0.0)
+    ds = workspace.dataset
+
+    def solve(cams):
+        return calibrate_extrinsics(cams, ds.reference_camera, ds.images_of("extrinsics"), observations, ds.points,
+                                    use_priors=True, pixel_sigma=sigma, backend="scipy").ba
+
+    base = solve(cameras)
+    for camera, name, step in [("C0", "cx", 2.0), ("C0", "d", 0.01), ("C3", "fy", 5.0)]:
+        moved = solve({**cameras, camera: dataclasses.replace(cameras[camera],
+                                                              **{name: getattr(cameras[camera], name) + step})})
+        column = 5 * base.intrinsics_cameras.index(camera) + ("fx", "fy", "cx", "cy", "d").index(name)
+        for other in ("C2", "C3"):
+            k = base.camera_parameters.index(f"{other}.rx")
+            change = np.r_[log_so3(moved.rig_from_cam[other].R @ base.rig_from_cam[other].R.T),
+                           moved.rig_from_cam[other].t - base.rig_from_cam[other].t]
+            predicted = base.intrinsics_sensitivity[k:k + 6, column] * step
+            for part, share in ((slice(0, 3), 0.02), (slice(3, 6), 0.05)):  # rotations (rad), centres (m)
+                np.testing.assert_allclose(change[part], predicted[part],
+                                           atol=share * np.abs(predicted[part]).max() + 1e-12)
+    labels, matrix = calibration_covariance(base, std, survey)
+    assert labels[:5] == [f"{base.intrinsics_cameras[0]}.{k}" for k in ("fx", "fy", "cx", "cy", "d")]
+    rig = slice(5 * len(base.intrinsics_cameras), None)
+    assert labels[rig] == base.camera_parameters
+    assert np.all(np.diag(matrix[rig, rig]) >= np.diag(base.camera_covariance))
+    assert np.linalg.eigvalsh(matrix).min() > -1e-9 * np.abs(matrix).max()
+    written = json.loads((results / "rig.json").read_text())["calibration_covariance"]
+    assert written["parameters"] == labels

@@ -73,6 +73,43 @@ class ExtrinsicsResult:
         }
 
 
+#: The intrinsics of one camera, in the order of the calibration covariance's rows.
+INTRINSICS = ("fx", "fy", "cx", "cy", "d")
+
+
+def intrinsics_covariance(cameras: list[str], std: dict[str, dict], survey_effect: dict[str, dict]) -> np.ndarray:
+    """(5 C, 5 C) the joint covariance of the cameras' INTRINSICS from their calibrations: each
+    camera's `std` (<camera>.json), of which the share of the control points' survey errors,
+    `survey_effect` ({point: (5, 3)} one-sigma effects), is common to every camera that saw the
+    same points; what a camera lacks counts as 0."""
+    points = sorted({p for c in cameras for p in (survey_effect.get(c) or {})})
+    shared = np.zeros((5 * len(cameras), 3 * len(points)))
+    own = np.zeros(5 * len(cameras))
+    for c, camera in enumerate(cameras):
+        rows = slice(5 * c, 5 * c + 5)
+        for point, effect in (survey_effect.get(camera) or {}).items():
+            k = points.index(point)
+            shared[rows, 3 * k:3 * k + 3] = np.asarray(effect, dtype=float)
+        given = std.get(camera) or {}
+        own[rows] = [float(given.get(name, 0.0)) ** 2 for name in INTRINSICS]
+    return np.diag(np.clip(own - np.sum(shared**2, axis=1), 0.0, None)) + shared @ shared.T
+
+
+def calibration_covariance(ba: RigBAResult, std: dict[str, dict], survey_effect: dict[str, dict]
+                           ) -> tuple[list[str], np.ndarray]:
+    """The calibration's parameters ("<camera>.fx" ... ".d" for every camera, then the rig
+    adjustment's "<camera>.rx" ... ".vz", rig_ba.RigBAResult.camera_parameters) and their joint
+    covariance: the intrinsics' (`intrinsics_covariance`), carried into the rig's rotations and
+    centres by the adjustment's sensitivity S (the rig is fitted with the intrinsics as they are):
+    cov(rig) = cov(rig | intrinsics) + S K S^T, cov(rig, intrinsics) = S K."""
+    K = intrinsics_covariance(ba.intrinsics_cameras, std, survey_effect)
+    S = ba.intrinsics_sensitivity
+    cross = S @ K
+    matrix = np.block([[K, cross.T], [cross, ba.camera_covariance + cross @ S.T]])
+    labels = [f"{c}.{k}" for c in ba.intrinsics_cameras for k in INTRINSICS] + list(ba.camera_parameters)
+    return labels, 0.5 * (matrix + matrix.T)
+
+
 def initial_extrinsics(poses: dict[str, dict[str, Rigid3]], reference: str) -> dict[str, Rigid3]:
     """rig_from_cam per camera from cam_from_world poses {placement: {camera: pose}} (eq. avg_T).
 

@@ -72,6 +72,15 @@ class RigBAResult:
     prior_residuals_m: dict[str, np.ndarray] = field(default_factory=dict)
     sigma0: float = float("nan")  # a posteriori standard deviation of unit weight
     backend: str = "scipy"
+    #: the non-reference cameras' parameters "<camera>.rx|ry|rz|vx|vy|vz" (rig-frame rotation of
+    #: rig_from_cam, R = exp(r) R_estimate, and the centre v in the rig), the order of the two below
+    camera_parameters: list[str] = field(default_factory=list)
+    #: (6 C', 6 C') their covariance with the intrinsics held at their values (the std above)
+    camera_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    #: (6 C', 5 C) their change per unit change of each camera's (fx, fy, cx, cy, d) (the optimum's
+    #: first-order response, intrinsics_cameras' order), to carry the intrinsics' errors into them
+    intrinsics_sensitivity: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    intrinsics_cameras: list[str] = field(default_factory=list)
 
 
 def _camera_sigmas(cameras, pixel_sigma: float | dict[str, float]) -> dict[str, float]:
@@ -211,8 +220,11 @@ class _RigProblem:
         scale = np.linalg.norm(J, axis=0)
         scale[scale == 0] = 1.0
         Js = J / scale
-        cov = np.linalg.pinv(Js.T @ Js) / np.outer(scale, scale) * sigma0_sq
+        inverse = np.linalg.pinv(Js.T @ Js) / np.outer(scale, scale)
+        cov = inverse * sigma0_sq
         std_all = np.sqrt(np.clip(np.diag(cov), 0, None))
+        camera_rows = np.arange(6 * len(self.names))  # the cameras' parameters come first
+        sensitivity = -inverse @ J.T @ self.intrinsics_jacobian(p)
         std = {self.reference: {"rotation_deg": [0.0, 0.0, 0.0], "center_m": [0.0, 0.0, 0.0]}}
         for c in self.names:
             k = self.cam_index[c]
@@ -231,7 +243,25 @@ class _RigProblem:
         n_obs = {c: int(sum(len(x) for x in v)) for c, v in per_camera.items()}
         return RigBAResult(rig_from_cam=out_cam, rig_from_world=out_pl, residuals=residuals, rms_px=rms,
                            n_observations=n_obs, std=std, prior_residuals_m=prior_res,
-                           sigma0=float(np.sqrt(sigma0_sq)), backend=backend)
+                           sigma0=float(np.sqrt(sigma0_sq)), backend=backend,
+                           camera_parameters=[f"{c}.{k}" for c in self.names for k in ("rx", "ry", "rz", "vx", "vy", "vz")],
+                           camera_covariance=cov[np.ix_(camera_rows, camera_rows)],
+                           intrinsics_sensitivity=sensitivity[camera_rows], intrinsics_cameras=list(self.cameras))
+
+    def intrinsics_jacobian(self, p: np.ndarray) -> np.ndarray:
+        """(n_res, 5 C) the whitened residuals' derivatives with respect to every camera's (fx, fy,
+        cx, cy, d), the cameras in self.cameras' order."""
+        order = list(self.cameras)
+        J = np.zeros((self.n_res, 5 * len(order)))
+        for b, (r0, _) in zip(self.blocks, self.rows):
+            cam = self.cameras[b.camera]
+            _, Rc, c = self.camera_params(p, b.camera)
+            _, Rj, Cj = self.placement_params(p, b.placement)
+            X_cam = ((b.X - Cj) @ Rj.T - c) @ Rc
+            J_intrinsics = project_unmasked(X_cam, cam.fx, cam.fy, cam.cx, cam.cy, cam.d, jacobian=True)[2]
+            k = 5 * order.index(b.camera)
+            J[r0:r0 + 2 * len(b.X), k:k + 5] = J_intrinsics.reshape(-1, 5) / self.sig[b.camera]
+        return J
 
 
 def refine_rig(cameras: dict[str, Camera], reference: str, blocks: list[ImageBlock],

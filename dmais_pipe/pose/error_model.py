@@ -13,16 +13,17 @@ frame, R the frame's rig_from_world):
     jitter       G_i w, G_i = B_i [f_i]x  (2, 3)       w ~ N(0, s_j^2 I3) rad           frame, non-reference camera
     mounting     G_i m                                 m ~ N(0, s_m^2 I3) rad           group, non-reference camera
     focal        h_i k, h_i = -(f_i . a_c) B_i a_c     k ~ N(0, s_k^2) (relative)       group, camera
-    calibration  C_i x  (2, 8)                         x ~ N(0, Sigma_c) (fx fy cx cy   whole flight
-                                                        d, rotation) of all cameras
+    calibration  C_i x  (2, 11)                        x ~ N(0, Sigma_c) (fx fy cx cy   whole flight
+                                                        d, rotation, centre) of all cameras
 
 Jitter is the camera's vibration within a frame (every point of that camera moves together),
 mounting its rotation against the calibrated rig during a group, focal its focal-length change
 (a thermal focus change, or the calibration's own focal error: both scale the image about the
 axis). The reference camera has no jitter or mounting term: the rig frame is its frame, so its
 rotation is the platform's attitude. The calibration term is fixed: the calibration's joint
-covariance of every camera's parameters (cameras calibrated on the same control points share their
-survey errors, so their errors are correlated: stages.pose.calibration_covariance); the survey term is fixed per point where ground_points.csv gives `sigma_m`, and any
+covariance of every camera's parameters (rig.json's calibration_covariance: cameras calibrated on
+the same control points share their survey errors, and the rig is fitted with the intrinsics as
+they are, so their errors are correlated); the survey term is fixed per point where ground_points.csv gives `sigma_m`, and any
 other component where the user sets it.
 
 Estimation (variance-component estimation, method of moments as Helmert's: quadratic forms of the
@@ -83,7 +84,7 @@ SIGNIFICANCE = 2.0
 #: Floor of a statistic in the estimation's relative weights, as a share of their total.
 MIN_EFFECT = 1e-6
 #: The calibration parameters of one camera, in the order of the columns of C_i.
-CALIBRATION_PARAMETERS = ("fx", "fy", "cx", "cy", "d", "rx", "ry", "rz")
+CALIBRATION_PARAMETERS = ("fx", "fy", "cx", "cy", "d", "rx", "ry", "rz", "vx", "vy", "vz")
 
 
 @dataclass(frozen=True)
@@ -111,9 +112,9 @@ class Geometry:
     solve's weights; A_inverse (F, 6, 6); residual (N, 2) rad; focal (N,) px; frame (N,) ascending,
     starts (F,) its first rows; camera (N,) int; reference (N,) bool; group (N,) int; point (N,)
     int; survey (N, 2, 3) D_i; rotation (N, 2, 3) G_i; focal_effect (N, 2) h_i; calibration
-    (N, 2, 8) C_i (per CALIBRATION_PARAMETERS, zero where the calibration gives no variance);
-    calibration_covariance (8 C, 8 C) of the C rig cameras' CALIBRATION_PARAMETERS, camera by camera
-    in the rig's order; point_sigma (N,) m, NaN where not given."""
+    (N, 2, 11) C_i (per CALIBRATION_PARAMETERS, zero where the calibration gives no variance);
+    calibration_covariance (11 C, 11 C) of the C rig cameras' CALIBRATION_PARAMETERS, camera by
+    camera in the rig's order; point_sigma (N,) m, NaN where not given."""
 
     J: np.ndarray
     weight: np.ndarray
@@ -152,8 +153,9 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     frame_index (N,) ascending with every frame present, R (F, 3, 3), t (F, 3) rig_from_world,
     groups (F,) the frames' groups, point_ids (N,), object_space: the poses minimise the paper's
     eq. objfun (True) or the angular residuals (False); point_sigma_m (N,) the survey sigma of each
-    observation's point (NaN where not given); calibration_covariance (8 C, 8 C) of the rig cameras'
-    CALIBRATION_PARAMETERS (Geometry; rotations rx, ry, rz in rad about the rig's axes), None: 0.
+    observation's point (NaN where not given); calibration_covariance (11 C, 11 C) of the rig cameras'
+    CALIBRATION_PARAMETERS (Geometry; rotations rx, ry, rz in rad about the rig's axes, the camera
+    centre vx, vy, vz in the rig, m), None: 0.
     """
     n_frames = len(R)
     counts = np.bincount(frame_index, minlength=n_frames)
@@ -185,7 +187,7 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     n_parameters = len(CALIBRATION_PARAMETERS) * len(names)
     calibration_covariance = np.zeros((n_parameters, n_parameters)) if calibration_covariance is None \
         else np.asarray(calibration_covariance, dtype=float)
-    calibration = _calibration_effects(rig, names, cameras, uv, bases, unit, np.diag(calibration_covariance))
+    calibration = _calibration_effects(rig, names, cameras, uv, bases, unit, dr_dp, np.diag(calibration_covariance))
     point_sigma = np.full(len(points), np.nan) if point_sigma_m is None else np.asarray(point_sigma_m, float)
     return Geometry(J=J, weight=weight, A_inverse=inverse_normal_matrices(A), residual=residual,
                     focal=np.array([rig.cameras[n].fx for n in names])[camera], frame=np.asarray(frame_index),
@@ -196,10 +198,12 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
                     t_centred=t_centred)
 
 
-def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, variances) -> np.ndarray:
-    """C_i (N, 2, 8): the change of r_i per unit change of each of its camera's
+def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, dr_dp, variances) -> np.ndarray:
+    """C_i (N, 2, 11): the change of r_i per unit change of each of its camera's
     CALIBRATION_PARAMETERS (intrinsics by central differences of the rays; a rotation w of the camera
-    about the rig's axes rotates its rays by w), where its variance (variances (8 C,)) is not 0."""
+    about the rig's axes rotates its rays by w; a move of its centre moves their origin), where its
+    variance (variances (11 C,)) is not 0; dr_dp (N, 2, 3) the residuals' change with the ray-to-point
+    vector."""
     k_all = len(CALIBRATION_PARAMETERS)
     effects = np.zeros((len(uv), 2, k_all))
     for c, name in enumerate(names):
@@ -216,8 +220,9 @@ def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, v
             minus = replace(camera, **{parameter: getattr(camera, parameter) - step}).unproject(uv[rows])
             change = (_unit(plus) - _unit(minus)) @ rig_from_cam.T / (2 * step)
             effects[rows, :, k] = -np.einsum("nki,ni->nk", bases[rows], change)
-        # d f / d w = -[f]x: r changes by -B df = B [f]x w
-        effects[rows, :, 5:] = np.einsum("nki,nij->nkj", bases[rows], skew(unit[rows]))
+        # d f / d w = -[f]x: r changes by -B df = B [f]x w; the origin by dv: p by -dv
+        effects[rows, :, 5:8] = np.einsum("nki,nij->nkj", bases[rows], skew(unit[rows]))
+        effects[rows, :, 8:] = -dr_dp[rows]
     return effects
 
 
@@ -425,7 +430,7 @@ def calibration_errors(geometry: Geometry) -> list[np.ndarray]:
     out = []
     for value, vector in zip(values, vectors.T):
         if value > 1e-12 * max(values.max(), 0.0) and value > 0:
-            per_camera = (vector * np.sqrt(value)).reshape(-1, k_all)  # (C, 8)
+            per_camera = (vector * np.sqrt(value)).reshape(-1, k_all)  # (C, 11)
             out.append(np.einsum("nkj,nj->nk", g.calibration, per_camera[g.camera]))
     return out
 
@@ -520,7 +525,7 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
         K = np.einsum("nki,nkj->nij", weighted, effect)
         return _sum_by(np.einsum("nij,n,nkj->nik", K, variance, K), g.frame, n_frames)
 
-    def calibration():  # L K L^T, L (F, 6, 8 C) the frame's sums of w J^T C_i in its camera's columns
+    def calibration():  # L K L^T, L (F, 6, 11 C) the frame's sums of w J^T C_i in its camera's columns
         blocks = _sum_by(np.einsum("nki,nkj->nij", weighted, g.calibration), frame_camera, len(block_frame))
         L = np.zeros((n_frames, 6, g.calibration_covariance.shape[0]))
         for c in np.unique(block_camera):

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from ..calib.extrinsics import (DEFAULT_BACKEND, PRIOR_CENTER, ExtrinsicsResult, annotate_tables, calibrate_extrinsics,
-                                colmap_rig_config, extrinsics_tables, image_prefixes)
+                                calibration_covariance, colmap_rig_config, extrinsics_tables, image_prefixes)
 from ..calib.localize import DEFAULT_CENTER_SIGMA_M, DEFAULT_PIXEL_SIGMA_PX
 from ..calib.rig_ba import BACKENDS
 from ..camera import Camera
@@ -63,8 +63,9 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     *inputs, intrinsics_std, survey_effect = _inputs(workspace, conf.pixel_sigma_px)
     results = {case: _calibrate(workspace, conf, case, *inputs) for case in ([True, False] if has_priors else [False])}
     chosen = results[conf.use_priors and has_priors]
-    written = [workspace.save_rig(chosen.rig, **chosen.extra(), intrinsics_std=intrinsics_std,
-                                  intrinsics_survey_effect=survey_effect),
+    parameters, covariance = calibration_covariance(chosen.ba, intrinsics_std, survey_effect)
+    written = [workspace.save_rig(chosen.rig, **chosen.extra(), calibration_covariance={
+                   "parameters": parameters, "matrix": covariance.tolist()}),
                workspace.save_rig_config(colmap_rig_config(chosen.rig,
                                                            image_prefixes(dataset.images, chosen.rig.camera_names)))]
     written += [workspace.save_rig(result.rig, case="known" if case else "unknown", **result.extra())
@@ -79,7 +80,7 @@ def _inputs(workspace: Workspace, pixel_sigma_px: float
     """The extrinsics images' observations, the calibrated cameras, each camera's pixel sigma
     (pixel_sigma_px when positive, else from the camera's calibration), and its intrinsics' standard
     deviations and control-point survey effects (its record's `std` and `survey_effect`, empty where
-    it has none: rig.json's `intrinsics_std` and `intrinsics_survey_effect`)."""
+    it has none: for rig.json's `calibration_covariance`)."""
     dataset = workspace.dataset
     images = dataset.images_of("extrinsics")
     observations = workspace.load_observations()

@@ -23,7 +23,6 @@ import pandas as pd
 
 from ..blas import single_threaded_blas
 from ..errors import DmaisError
-from ..calib.intrinsics import INTRINSIC_NAMES
 from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS
 from ..pose.flight import ROBUST_THRESHOLD_PX, estimate_poses
 from ..rig import Rig
@@ -146,44 +145,30 @@ def error_settings(items: tuple) -> dict[str, float]:
     return settings
 
 
-#: The intrinsics whose calibration error reaches the flight: the principal point's does not, for
-#: the rig adjustment turns each camera to fit the control points with it (for a narrow camera a
-#: shift of (cx, cy) is a rotation), and that rotation's error is rig.json's rotation std.
-FLIGHT_INTRINSICS = ("fx", "fy", "d")
-INTRINSIC_ROWS = {name: k for k, name in enumerate(INTRINSIC_NAMES)}
-
-
 def calibration_covariance(record: dict, cameras: list[str]) -> np.ndarray:
-    """(8 C, 8 C) the joint covariance of error_model.CALIBRATION_PARAMETERS of the rig's `cameras`
-    from rig.json: FLIGHT_INTRINSICS from `intrinsics_std`, correlated between cameras through the
-    control points' survey errors they share (`intrinsics_survey_effect`, each point's one-sigma
-    effect on each camera's intrinsics); the rig adjustment's rotations (`std` rotation_deg, about
-    the rig's axes) independent. What rig.json lacks counts as 0; unreadable values warn and give 0."""
-    k_all, parameters = len(CALIBRATION_PARAMETERS), list(CALIBRATION_PARAMETERS)
+    """(11 C, 11 C) the joint covariance of error_model.CALIBRATION_PARAMETERS of the rig's `cameras`
+    (in that order) from rig.json's `calibration_covariance` (calib.extrinsics.calibration_covariance:
+    parameters "<camera>.<name>" and their matrix); a parameter it lacks counts as 0, and one that is
+    not readable gives a warning and no calibration term."""
+    k_all = len(CALIBRATION_PARAMETERS)
+    index = {f"{camera}.{name}": k_all * c + k for c, camera in enumerate(cameras)
+             for k, name in enumerate(CALIBRATION_PARAMETERS)}
     covariance = np.zeros((k_all * len(cameras), k_all * len(cameras)))
+    given = record.get("calibration_covariance")
+    if not given:
+        return covariance
     try:
-        effects = record.get("intrinsics_survey_effect") or {}
-        points = sorted({p for effect in effects.values() for p in effect})
-        shared = np.zeros((len(covariance), 3 * len(points)))  # one-sigma effects of the points' errors
-        for c, camera in enumerate(cameras):
-            rows = [k_all * c + parameters.index(k) for k in FLIGHT_INTRINSICS]
-            for point, effect in (effects.get(camera) or {}).items():
-                k = points.index(point)
-                shared[rows, 3 * k:3 * k + 3] = np.asarray(effect, dtype=float)[[INTRINSIC_ROWS[n] for n in
-                                                                                 FLIGHT_INTRINSICS]]
-            std = (record.get("intrinsics_std") or {}).get(camera) or {}
-            own = np.array([float(std.get(k, 0.0)) ** 2 for k in FLIGHT_INTRINSICS])
-            covariance[rows, rows] = np.clip(own - np.sum(shared[rows] ** 2, axis=1), 0.0, None)
-            rotation = ((record.get("std") or {}).get(camera) or {}).get("rotation_deg", [0.0] * 3)
-            covariance[range(k_all * c + 5, k_all * c + 8), range(k_all * c + 5, k_all * c + 8)] = \
-                np.radians(np.asarray(rotation, dtype=float)) ** 2
-        covariance += shared @ shared.T
-    except (ValueError, TypeError, AttributeError, IndexError):
-        log.warning("pose: rig.json's calibration uncertainty is not readable; the calibration's error is left out")
-        return np.zeros_like(covariance)
-    if not np.isfinite(covariance).all():
-        log.warning("pose: rig.json's calibration uncertainty is not finite; the calibration's error is left out")
-        return np.zeros_like(covariance)
+        labels = [str(label) for label in given["parameters"]]
+        matrix = np.asarray(given["matrix"], dtype=float).reshape(len(labels), len(labels))
+        if not np.isfinite(matrix).all():
+            raise ValueError("not finite")
+    except (KeyError, ValueError, TypeError) as error:
+        log.warning("pose: rig.json's calibration_covariance is not readable (%s); the calibration's error is "
+                    "left out", error)
+        return covariance
+    known = [k for k, label in enumerate(labels) if label in index]
+    rows = [index[labels[k]] for k in known]
+    covariance[np.ix_(rows, rows)] = matrix[np.ix_(known, known)]
     return covariance
 
 
