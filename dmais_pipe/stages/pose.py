@@ -100,7 +100,7 @@ def merge(workspace: Workspace, parts: list[Path], cameras: list[str] | None = N
 
 
 def _rig_record(workspace: Workspace) -> dict:
-    """rig.json as written (its extra keys: rms_px, std, intrinsics_std), {} where unreadable
+    """rig.json as written (its extra keys: rms_px, calibration_covariance), {} where unreadable
     (load_rig has read it already, and says what is wrong)."""
     try:
         record = json.loads(workspace.rig_path.read_text())
