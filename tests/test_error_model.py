@@ -201,3 +201,24 @@ def test_the_pose_stage_takes_the_calibrations_joint_covariance_from_rig_json():
     assert not calibration_covariance({}, ["C0"]).any()
     bad = {"calibration_covariance": {"parameters": ["C0.fx"], "matrix": [["x"]]}}
     assert not calibration_covariance(bad, ["C0"]).any()
+
+
+def test_a_prior_stands_in_for_a_component_the_residuals_cannot_tell():
+    g = hover_geometry(10)
+    rng = np.random.default_rng(11)
+    errors = em.unit_draw(g, "pixel", rng) * 0.3  # pixel noise alone
+    drawn = dataclasses.replace(g, residual=em.solve_response(g, errors))
+    model = em.estimate(drawn, {"calibration": 0.0}, priors={"mounting": 0.15, "focal": 50.0})
+    assert model.source["pixel"] == "estimated" and abs(model.sigma["pixel"] / 0.3 - 1) < 0.05
+    # not significant here: the prior, bounded by what the data allows (estimate + 2 standard errors)
+    assert model.source["mounting"] == model.source["focal"] == "prior"
+    assert 0 < model.sigma["mounting"] <= 0.15 and 0 < model.sigma["focal"] <= 50.0
+    assert model.sigma["jitter"] == 0.0 and model.source["jitter"] == "not significant"
+    # a component set by the user is not replaced by its prior
+    assert em.estimate(drawn, {"calibration": 0.0, "mounting": 0.0}, priors={"mounting": 0.15}).sigma["mounting"] == 0
+    # the mounting prior enters the frames' covariance: wider sigmas than without it
+    with_prior = em.frame_covariances(g, model)["mounting"]
+    assert np.all(np.trace(with_prior[:, 3:, 3:], axis1=1, axis2=2) > 0)
+    # not estimable (a single camera's focal change is a change of range): the prior whole
+    alone = em.estimate(hover_geometry(7, cameras=[0]), {"calibration": 0.0}, priors={"focal": 50.0})
+    assert (alone.sigma["focal"], alone.source["focal"]) == (50.0, "prior")

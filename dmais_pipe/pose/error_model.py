@@ -41,8 +41,14 @@ The system is solved for the free components by non-negative least squares, each
 weighted by its spread under a first fit (drawn, `_spread`). A component that the solves absorb
 (a rotation of a camera solved alone) is not estimable; one estimated below SIGNIFICANCE of its
 standard errors is not significant (the least significant is dropped and the rest estimated
-again); both are then 0. Jitter and mounting act alike on one frame, so their sum is
-far better determined than their split; the sigmas use the sum.
+again); both are 0 for the others' estimation, and in the sigmas their prior where one is given
+(`estimate`'s priors; for a not significant one at most its estimate plus SIGNIFICANCE standard
+errors), else 0. Jitter and
+mounting act alike on one frame, so their sum is far better determined than their split; the
+sigmas use the sum. A mounting change hardly shows in one group's residuals (the pose and the
+same points' survey errors absorb it) yet moves the whole rig's position: 0.45' of it moved a
+simulated group by 14 cm, unseen. It needs a prior (the pose stage's error_priors, mounting 0.15'
+by default, the simulator's rooftop-to-flight change).
 
 Propagation: cov(omega, delta_t) of frame f = A^-1 (sum_k B_k) A^-1, B_k = the k-th component's
 covariance of sum_i w_i J_i^T e_i (correlated within a camera for jitter, mounting, focal and
@@ -91,8 +97,9 @@ CALIBRATION_PARAMETERS = ("fx", "fy", "cx", "cy", "d", "rx", "ry", "rz", "vx", "
 class ErrorModel:
     """One standard deviation per component (COMPONENTS, in UNITS), and how each was obtained:
     `source` 'estimated', 'set' (given by the user, or the calibration's factor 1), 'calibration'
-    (the pixel noise of the calibration, where the frames have too few observations), 'not
-    estimable' (no effect on the residuals) or 'not significant' (both 0). dof: the
+    (the pixel noise of the calibration, where the frames have too few observations), 'prior' (the
+    residuals could not tell it: the user's prior), 'not estimable' (no effect on the residuals) or
+    'not significant' (both 0). dof: the
     residual degrees of freedom the estimate used."""
 
     sigma: dict[str, float]
@@ -436,19 +443,24 @@ def calibration_errors(geometry: Geometry) -> list[np.ndarray]:
 
 
 def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallback_pixel_px: float = np.nan,
-             seed: int = 0) -> ErrorModel:
+             seed: int = 0, priors: dict[str, float] | None = None) -> ErrorModel:
     """The ErrorModel of these frames' residuals (module docstring). settings: {component: sigma}
     in UNITS fixing those components (None or NaN entries are estimated); the calibration factor
-    is 1 unless set. With fewer than MIN_DEGREES_OF_FREEDOM the free components are not estimable:
-    0, the pixel noise fallback_pixel_px where finite (the calibration's)."""
+    is 1 unless set. priors: {component: sigma} in UNITS for the free components the residuals
+    cannot tell (not estimable, not significant): that sigma (at most the data's bound) instead of
+    0 in the model, source 'prior'. With
+    fewer than MIN_DEGREES_OF_FREEDOM the free components are not estimable: their prior or 0, the
+    pixel noise fallback_pixel_px where finite (the calibration's)."""
     g = geometry
     settings = {k: v for k, v in (settings or {}).items() if v is not None and np.isfinite(v)}
     settings.setdefault("calibration", 1.0)
+    priors = {k: float(v) for k, v in (priors or {}).items() if k not in settings}
     free = [name for name in COMPONENTS[:5] if name not in settings]
     source = {name: "set" for name in settings}
     sigma = {name: float(settings.get(name, 0.0)) for name in COMPONENTS}
     if g.dof < MIN_DEGREES_OF_FREEDOM:
-        source.update({name: "not estimable" for name in free})
+        for name in free:
+            sigma[name], source[name] = (priors[name], "prior") if name in priors else (0.0, "not estimable")
         if "pixel" in free and np.isfinite(fallback_pixel_px):
             sigma["pixel"], source["pixel"] = float(fallback_pixel_px), "calibration"
         return ErrorModel(sigma, source, g.dof)
@@ -471,7 +483,14 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     observed = statistics(g.residual)
     total = observed.sum()
     estimable = [name for name in free if visible[name] > MIN_VISIBLE]
-    source.update({name: "not estimable" for name in free if name not in estimable})
+
+    def untold(name: str, why: str, upper: float = np.inf) -> None:
+        """0 for the estimation; its prior, at most the data's bound `upper` (UNITS), for the sigmas."""
+        sigma[name], source[name] = (min(priors[name], upper), "prior") if name in priors else (0.0, why)
+
+    for name in free:
+        if name not in estimable:
+            untold(name, "not estimable")
     variances, weight = [], None
     while estimable:
         design = np.column_stack([expected[name] for name in estimable])
@@ -487,9 +506,9 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
         if not weak:
             break
         # the least significant one is taken as absent, the others estimated again without it
-        drop = min(weak, key=lambda name: variances[estimable.index(name)] / errors[estimable.index(name)])
-        estimable.remove(drop)
-        source[drop] = "not significant"
+        k = min((estimable.index(name) for name in weak), key=lambda k: variances[k] / errors[k])
+        name = estimable.pop(k)  # its data bound: the estimate plus SIGNIFICANCE standard errors
+        untold(name, "not significant", np.sqrt(variances[k] + SIGNIFICANCE * errors[k]) / _TO_SI[name])
     for name, variance in zip(estimable, variances if estimable else []):
         sigma[name], source[name] = float(np.sqrt(variance)) / _TO_SI[name], "estimated"
     return ErrorModel(sigma, source, g.dof)

@@ -104,22 +104,23 @@ class FlightPoses:
 def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
                    robust: bool = False, refine: bool = False, groups: list[str] | None = None,
                    threshold_px: float = ROBUST_THRESHOLD_PX, calibrated_noise_px: float = np.nan,
-                   error_settings: dict | None = None, calibration_covariance: np.ndarray | None = None
-                   ) -> tuple[pd.DataFrame, pd.DataFrame]:
+                   error_settings: dict | None = None, calibration_covariance: np.ndarray | None = None,
+                   error_priors: dict | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
     """poses.csv rows (COLUMNS, then frames.csv's extra columns) for every flight frame (of `groups`,
     if given), and one row per observation of the solved frames (POSE_OBSERVATION_COLUMNS: whether
     the pose used it, with robust RANSAC's inliers at threshold_px, and its residual du, dv in px).
     The arguments as `solve_flight`'s.
     """
     result = solve_flight(dataset, rig, observations, cameras, robust, refine, groups, threshold_px,
-                          calibrated_noise_px, error_settings, calibration_covariance)
+                          calibrated_noise_px, error_settings, calibration_covariance, error_priors)
     return result.table, result.observations
 
 
 def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
                  robust: bool = False, refine: bool = False, groups: list[str] | None = None,
                  threshold_px: float = ROBUST_THRESHOLD_PX, calibrated_noise_px: float = np.nan,
-                 error_settings: dict | None = None, calibration_covariance: np.ndarray | None = None) -> FlightPoses:
+                 error_settings: dict | None = None, calibration_covariance: np.ndarray | None = None,
+                 error_priors: dict | None = None) -> FlightPoses:
     """`estimate_poses`' tables and the error model of its sigmas (error_model.py), one per group.
 
     Each group's model is estimated from the residuals of its frames solved with every camera of
@@ -128,7 +129,8 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
     frames share its mounting and its ground points, and so that the workflow's per-group jobs
     give the sigmas of one run over all frames. calibrated_noise_px: the pixel noise
     where the frames have too few observations to estimate it; error_settings {component: sigma}
-    (error_model.UNITS) fixes components; calibration_covariance the calibration's joint
+    (error_model.UNITS) fixes components, error_priors {component: sigma} stands in for those the
+    residuals cannot tell (error_model.estimate); calibration_covariance the calibration's joint
     covariance (error_model.linearised_solve).
     """
     solution = _solve(dataset, rig, observations, cameras, robust, refine, groups, threshold_px)
@@ -143,7 +145,7 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
         source, sample = (whole, estimated_on) if len(estimated_on) else (solution, frames)
         sample = sample[estimation_frames(len(sample))]
         models[group] = estimate(_geometry(dataset, rig, source, sample, not refine, calibration_covariance),
-                                 error_settings, calibrated_noise_px)
+                                 error_settings, calibrated_noise_px, priors=error_priors)
         uncertainty = pose_uncertainty(_geometry(dataset, rig, solution, frames, not refine, calibration_covariance),
                                        models[group], solution.R[frames], solution.t[frames])
         values = np.column_stack([uncertainty.attitude, uncertainty.sigma_position, uncertainty.sigma_attitude,

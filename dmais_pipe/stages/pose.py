@@ -44,6 +44,9 @@ class Conf:
     error_sigmas: tuple = setting((), "components of the sigmas' error model fixed at a known 1-sigma, "
                                   "NAME=VALUE: pixel (px), survey (m), jitter, mounting (arc-min), focal (ppm), "
                                   "calibration (a factor on rig.json's covariance); the others are estimated")
+    error_priors: tuple = setting(("mounting=0.15",), "the 1-sigma, NAME=VALUE as error_sigmas, of components "
+                                  "the flight's residuals cannot tell (not estimable or not significant), used "
+                                  "instead of 0")
 
 
 #: "paper": the paper's solver alone; "robust": RANSAC first and a polished pose, for wrong ids.
@@ -61,8 +64,9 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
         table, per_observation = estimate_poses(workspace.dataset, rig, workspace.load_observations(), chosen,
                                                 conf.robust, conf.refine, groups, conf.robust_threshold_px,
                                                 calibrated_noise_px(record, chosen),
-                                                error_settings(conf.error_sigmas),
-                                                calibration_covariance(record, rig.camera_names))
+                                                error_settings=error_settings(conf.error_sigmas, "error_sigmas"),
+                                                error_priors=error_settings(conf.error_priors, "error_priors"),
+                                                calibration_covariance=calibration_covariance(record, rig.camera_names))
     if table.empty and not groups:
         raise DmaisError(f"pose: no flight frame of {workspace.dataset.root} could be solved with cameras {chosen}")
     if table.empty:
@@ -122,24 +126,24 @@ def calibrated_noise_px(record: dict, cameras: list[str]) -> float:
     return max(values) / np.sqrt(2.0) if values else np.nan
 
 
-def error_settings(items: tuple) -> dict[str, float]:
-    """{component: sigma} of the error_sigmas setting's NAME=VALUE items; a name that is not a
+def error_settings(items: tuple, key: str) -> dict[str, float]:
+    """{component: sigma} of the NAME=VALUE items of the setting `key`; a name that is not a
     component, a repeated one, or a value that is not a finite non-negative number is a DmaisError."""
     settings: dict[str, float] = {}
     for item in items:
         name, _, text = str(item).partition("=")
         name = name.strip()
         if name not in COMPONENTS:
-            raise DmaisError(f"pose: setting error_sigmas: {item!r} is not NAME=VALUE with NAME one of "
+            raise DmaisError(f"pose: setting {key}: {item!r} is not NAME=VALUE with NAME one of "
                              f"{', '.join(COMPONENTS)}")
         if name in settings:
-            raise DmaisError(f"pose: setting error_sigmas: {name} is given twice")
+            raise DmaisError(f"pose: setting {key}: {name} is given twice")
         try:
             value = float(text)
         except ValueError:
             value = np.nan
         if not np.isfinite(value) or value < 0:
-            raise DmaisError(f"pose: setting error_sigmas: {name}={text.strip()!r} is not a non-negative number "
+            raise DmaisError(f"pose: setting {key}: {name}={text.strip()!r} is not a non-negative number "
                              f"({UNITS[name]})")
         settings[name] = value
     return settings
