@@ -9,14 +9,16 @@ table, with the columns of docs/design.md
 
 (rig_from_world, rig centre x, y, z in the world, eps_proj_px the RMS reprojection distance over the
 observations used, time_ms the wall time of the solve alone, certified the solver's certificate of
-global optimality, the attitude and 1-sigma uncertainties of `uncertainty.py`, then the extra
+global optimality, the attitude and the 1-sigma uncertainties of `uncertainty.py` under each
+group's error model (`error_model.py`, `solve_flight`), then the extra
 columns of frames.csv as they are), and one row per observation of the solved frames with whether
 the pose used it and its residual. Frames with fewer than 3 usable observations, that the solver
 rejects, or whose pose puts an observed point behind its camera, are left out with a warning
 naming them.
 
-Only the solves run frame by frame; rays, residuals, statistics and covariances are computed for
-all frames at once, so that the stage runs at nearly the solver's speed.
+Only the solves run frame by frame; rays, residuals and statistics are computed for all frames at
+once, the error model and the covariances group by group (on at most 64 frames for the model), so
+that the stage runs at nearly the solver's speed.
 """
 
 from __future__ import annotations
