@@ -203,6 +203,43 @@ def conf_table(evaluations: dict[str, pd.DataFrame], rig: Rig) -> pd.DataFrame:
                              s.map({label: k for k, label in enumerate(labels)}), kind="stable").reset_index(drop=True)
 
 
+def error_budget_table(evaluations: dict[str, pd.DataFrame], budgets: dict[str, pd.DataFrame]) -> pd.DataFrame:
+    """The error budget of each camera set (label, as conf_table's) with a budget (<poses>.budget.csv).
+
+    One row per component of the error model (pose/error_model.py): its sigma (median over the
+    frames' groups, in its unit) and source (the most frequent), and its share of the predicted
+    variance of the position (x + y + z) and of the attitude (heading + pitch + roll) over the
+    set's frames (%); then a row `total`: the RMS over the frames of the predicted 3-D sigma of the
+    position (m) and attitude (arc-min), beside the RMS of the error they describe, the simulator's
+    true error where there is one (error_measure 'truth'), else eps_pos and eps_ang ('eps_pos').
+    """
+    rows = []
+    for label in sorted(budgets, key=lambda label: (len(label), label)):
+        budget, evaluation = budgets[label], evaluations.get(label)
+        if budget is None or not len(budget):
+            continue
+        position = budget[["var_x_m2", "var_y_m2", "var_z_m2"]].sum(axis=1)
+        attitude = budget[["var_heading_arcmin2", "var_pitch_arcmin2", "var_roll_arcmin2"]].sum(axis=1)
+        parts = budget.assign(position=position, attitude=attitude).groupby("component", sort=False)
+        totals = {"position": position.groupby(budget["frame"]).sum(), "attitude": attitude.groupby(budget["frame"]).sum()}
+        for component, part in parts:
+            rows.append({"subset": label, "component": component, "sigma": part["sigma"].median(),
+                         "unit": part["unit"].iloc[0], "source": part["source"].mode().iloc[0],
+                         "position_share_pct": 100 * part["position"].sum() / max(totals["position"].sum(), 1e-300),
+                         "attitude_share_pct": 100 * part["attitude"].sum() / max(totals["attitude"].sum(), 1e-300)})
+        total = {"subset": label, "component": "total",
+                 "rms_sigma_position_m": float(np.sqrt(totals["position"].mean())),
+                 "rms_sigma_attitude_arcmin": float(np.sqrt(totals["attitude"].mean()))}
+        if evaluation is not None and len(evaluation):
+            truth = TRUE_ERROR_COLUMNS[0] in evaluation
+            columns = TRUE_ERROR_COLUMNS if truth else ("eps_pos_m", "eps_ang_arcmin")
+            total.update(rms_error_position_m=float(np.sqrt(np.mean(evaluation[columns[0]] ** 2))),
+                         rms_error_attitude_arcmin=float(np.sqrt(np.mean(evaluation[columns[1]] ** 2))),
+                         error_measure="truth" if truth else "eps_pos")
+        rows.append(total)
+    return pd.DataFrame(rows)
+
+
 def _groups_and_all(evaluation: pd.DataFrame):
     """(group, rows) per group in natural order, then ('all', every row)."""
     groups = _ordered(evaluation["group"].astype(str).unique())

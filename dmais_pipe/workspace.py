@@ -40,6 +40,11 @@ POSE_UNCERTAINTY_COLUMNS = ("heading_deg", "pitch_deg", "roll_deg", "sigma_x_m",
                             "sigma_heading_arcmin", "sigma_pitch_arcmin", "sigma_roll_arcmin", "noise_px")
 #: One row per observation of a solved frame: whether the pose used it, and its residual (px).
 POSE_OBSERVATION_COLUMNS = ("frame", "image", "camera", "point_id", "u", "v", "used", "du", "dv")
+#: <poses>.budget.csv: one row per solved frame and error-model component (pose/error_model.py):
+#: the group's sigma of the component (unit, and how it was obtained), and its share of the frame's
+#: variances of x, y, z (m^2) and heading, pitch, roll (arcmin^2); their sums are the sigmas squared.
+POSE_BUDGET_COLUMNS = ("frame", "component", "sigma", "unit", "source", "var_x_m2", "var_y_m2", "var_z_m2",
+                       "var_heading_arcmin2", "var_pitch_arcmin2", "var_roll_arcmin2")
 TRUTH_COLUMNS = ("frame", "group", *QUAT, *TRANSLATION, *CENTER)
 #: markers/<image>.csv: every detection, its sub-pixel standard deviation per axis and the fit's
 #: residual (fraction of the marker's contrast), and its point id ('' when unidentified).
@@ -253,11 +258,16 @@ class Workspace:
 
     # -------------------------------------------------------------- poses
 
-    def save_poses(self, poses: pd.DataFrame, observations: pd.DataFrame, path: Path) -> list[Path]:
-        """A poses file (POSE_COLUMNS, then any extra columns) and, beside it, its per-observation file."""
+    def save_poses(self, poses: pd.DataFrame, observations: pd.DataFrame, path: Path,
+                   budget: pd.DataFrame | None = None) -> list[Path]:
+        """A poses file (POSE_COLUMNS, then any extra columns) and, beside it, its per-observation file
+        and, when given, its error budget (POSE_BUDGET_COLUMNS)."""
         extras = [c for c in poses.columns if c not in POSE_COLUMNS]
-        return [write_text_atomic(path, csv_text(poses[[*POSE_COLUMNS, *extras]])),
-                write_text_atomic(pose_observations_path(path), csv_text(observations[list(POSE_OBSERVATION_COLUMNS)]))]
+        written = [write_text_atomic(path, csv_text(poses[[*POSE_COLUMNS, *extras]])),
+                   write_text_atomic(pose_observations_path(path), csv_text(observations[list(POSE_OBSERVATION_COLUMNS)]))]
+        if budget is not None:
+            written.append(write_text_atomic(pose_budget_path(path), csv_text(budget[list(POSE_BUDGET_COLUMNS)])))
+        return written
 
     def load_poses(self, path: Path | None = None, allowed_cameras: Sequence[str] | None = None,
                    empty_ok: bool = False) -> pd.DataFrame:
@@ -302,6 +312,18 @@ class Workspace:
                                  **{c: table.floats(c, optional=c in ("du", "dv")) for c in ("u", "v", "du", "dv")},
                                  "used": used == "True"})
 
+    def load_pose_budget(self, path: Path | None = None) -> pd.DataFrame | None:
+        """The error budget beside a poses file (default poses.csv), POSE_BUDGET_COLUMNS typed (frame,
+        component, unit, source as text); None when the poses file has none."""
+        path = pose_budget_path(self.poses_path() if path is None else Path(path))
+        if not path.is_file():
+            return None
+        with results_errors():
+            table = read_table(path, POSE_BUDGET_COLUMNS)
+            text = ("frame", "component", "unit", "source")
+            return pd.DataFrame({c: table.floats(c, optional=True) if c not in text else table.text(c)
+                                 for c in POSE_BUDGET_COLUMNS})
+
     def load_truth_frames(self) -> pd.DataFrame | None:
         """truth/frames.csv of a simulated dataset indexed by frame (TRUTH_COLUMNS as floats), None
         without truth."""
@@ -334,6 +356,12 @@ class Workspace:
     def table_paths(self) -> list[Path]:
         """Every tables/*.csv written so far, by name."""
         return sorted((self.root / "tables").glob("*.csv"))
+
+
+def pose_budget_path(poses_path: str | Path) -> Path:
+    """The error budget beside a poses file: poses.csv -> poses.budget.csv."""
+    poses_path = Path(poses_path)
+    return poses_path.with_name(f"{poses_path.stem}.budget.csv")
 
 
 def pose_observations_path(poses_path: str | Path) -> Path:

@@ -550,3 +550,30 @@ def test_robust_outliers_leave_the_errors_and_the_bound(dataset, tmp_path):
     assert set(conf.index.get_level_values("subset")) == {"012", "01234"}
     assert (evaluation["cameras"] == ALL).all()
     assert conf.loc[("all", "01234"), "eps_proj_mean_px"] == pytest.approx(evaluation["eps_proj_px"].mean(), rel=1e-6)
+
+
+def test_error_budget_table_shares_and_totals():
+    from dmais_pipe.evaluate import error_budget_table
+
+    frames = ["f1", "f2"]
+    rows = []
+    for frame, scale in zip(frames, (1.0, 3.0)):
+        for component, position, attitude in (("pixel", 1e-4, 0.5), ("jitter", 3e-4, 1.5)):
+            rows.append({"frame": frame, "component": component, "sigma": 0.3, "unit": "px", "source": "estimated",
+                         "var_x_m2": position * scale, "var_y_m2": 0.0, "var_z_m2": 0.0,
+                         "var_heading_arcmin2": attitude * scale, "var_pitch_arcmin2": 0.0, "var_roll_arcmin2": 0.0})
+    budget = pd.DataFrame(rows)
+    evaluation = pd.DataFrame({"frame": frames, "true_pos_err_m": [0.02, 0.04], "true_ang_err_arcmin": [1.0, 2.0],
+                               "eps_pos_m": [9.0, 9.0], "eps_ang_arcmin": [9.0, 9.0]})
+    table = error_budget_table({"01": evaluation}, {"01": budget, "0": None})
+    shares = table[table["component"] != "total"].set_index("component")
+    assert shares.loc["pixel", "position_share_pct"] == pytest.approx(25.0)
+    assert shares.loc["jitter", "attitude_share_pct"] == pytest.approx(75.0)
+    total = table[table["component"] == "total"].iloc[0]
+    assert total["rms_sigma_position_m"] == pytest.approx(np.sqrt((4e-4 + 12e-4) / 2))
+    assert total["rms_error_position_m"] == pytest.approx(np.sqrt((0.02**2 + 0.04**2) / 2))
+    assert total["error_measure"] == "truth"
+    # without the simulator's truth the error beside the sigmas is eps_pos
+    real = error_budget_table({"01": evaluation.drop(columns=["true_pos_err_m", "true_ang_err_arcmin"])},
+                              {"01": budget})
+    assert real.iloc[-1]["error_measure"] == "eps_pos" and real.iloc[-1]["rms_error_position_m"] == 9.0

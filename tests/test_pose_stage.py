@@ -9,9 +9,10 @@ import pandas as pd
 import pytest
 
 from dmais_pipe.errors import DmaisError
+from dmais_pipe.pose.error_model import COMPONENTS
 from dmais_pipe.pose.flight import COLUMNS
 from dmais_pipe.stages import pose
-from dmais_pipe.workspace import Workspace
+from dmais_pipe.workspace import POSE_BUDGET_COLUMNS, Workspace
 
 from conftest import observation_only
 
@@ -143,3 +144,22 @@ def test_error_sigmas_fix_components_of_the_sigmas_and_bad_ones_are_refused(data
                            (("pixel=1", "pixel=2"), "given twice"), (("survey=abc",), "not a non-negative")]:
         with pytest.raises(DmaisError, match=message):
             pose.run(workspace, pose.Conf(error_sigmas=items))
+
+
+def test_the_error_budget_beside_the_poses_sums_to_their_sigmas_and_merges(dataset, tmp_path):
+    shutil.copy(dataset / "truth" / "rig.json", tmp_path / "rig.json")
+    workspace = Workspace.open(dataset, tmp_path)
+    poses = pd.read_csv(pose.run(workspace)[0], dtype={"frame": str})
+    budget = workspace.load_pose_budget()
+    assert list(budget.columns) == list(POSE_BUDGET_COLUMNS)
+    assert set(budget["component"]) == set(COMPONENTS) and len(budget) == len(COMPONENTS) * len(poses)
+    summed = budget.groupby("frame")[["var_x_m2", "var_roll_arcmin2"]].sum().loc[poses["frame"]]
+    np.testing.assert_allclose(summed["var_x_m2"], poses["sigma_x_m"] ** 2, rtol=1e-9)
+    np.testing.assert_allclose(summed["var_roll_arcmin2"], poses["sigma_roll_arcmin"] ** 2, rtol=1e-9)
+    groups = sorted(set(poses["group"].astype(str)))
+    parts = [pose.run(workspace, groups=[g], out=tmp_path / "parts" / f"{g}.csv")[0] for g in groups]
+    (tmp_path / "poses.budget.csv").unlink()
+    pose.merge(workspace, parts)
+    merged = workspace.load_pose_budget()
+    pd.testing.assert_frame_equal(merged.reset_index(drop=True),
+                                  budget.sort_values("frame", kind="stable").reset_index(drop=True))

@@ -36,8 +36,8 @@ from ..errors import PoseError
 from ..frames import FlightObservations, flight_observations_by_frame
 from ..geometry import Rigid3, quat_from_rotation
 from ..rig import Rig
-from ..workspace import POSE_COLUMNS, POSE_OBSERVATION_COLUMNS, POSE_UNCERTAINTY_COLUMNS
-from .error_model import ErrorModel, Geometry, estimate, estimation_frames, linearised_solve
+from ..workspace import POSE_BUDGET_COLUMNS, POSE_COLUMNS, POSE_OBSERVATION_COLUMNS, POSE_UNCERTAINTY_COLUMNS
+from .error_model import UNITS, ErrorModel, Geometry, estimate, estimation_frames, linearised_solve
 from .robust import solve_robust
 from .solver import solve_generalized_pose
 from .uncertainty import pose_uncertainty
@@ -154,8 +154,8 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
                                   uncertainty.noise_px])
         for name, column in zip(POSE_UNCERTAINTY_COLUMNS, values.T):
             table.loc[frames, name] = column
-        budgets.append(budget_table(table["frame"].to_numpy()[frames], uncertainty))
-    budget = pd.concat(budgets, ignore_index=True) if budgets else pd.DataFrame()
+        budgets.append(budget_table(table["frame"].to_numpy()[frames], uncertainty, models[group]))
+    budget = pd.concat(budgets, ignore_index=True) if budgets else pd.DataFrame(columns=list(POSE_BUDGET_COLUMNS))
     return FlightPoses(_with_frame_extras(table, dataset), solution.observations, models, budget)
 
 
@@ -267,15 +267,17 @@ def survey_sigma(dataset: Dataset, point_ids: np.ndarray) -> np.ndarray:
     return dataset.ground_points[POINT_SIGMA].reindex(point_ids).to_numpy(float)
 
 
-def budget_table(frames: np.ndarray, uncertainty) -> pd.DataFrame:
-    """One row per frame and component: its variance of x, y, z (m^2) and heading, pitch, roll (arcmin^2)."""
+def budget_table(frames: np.ndarray, uncertainty, model: ErrorModel) -> pd.DataFrame:
+    """POSE_BUDGET_COLUMNS of frames (F,): per component, the model's sigma and its variances of each
+    frame (`uncertainty.PoseUncertainty`)."""
     parts = []
     for name, position in uncertainty.variance_position.items():
         angles = uncertainty.variance_attitude[name]
-        parts.append(pd.DataFrame({"frame": frames, "component": name, **{f"var_{a}": position[:, k] for k, a in
-                                                                          enumerate("xyz")},
-                                   **{f"var_{a}": angles[:, k] for k, a in enumerate(("heading", "pitch", "roll"))}}))
-    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+        parts.append(pd.DataFrame({
+            "frame": frames, "component": name, "sigma": model.sigma[name], "unit": UNITS[name],
+            "source": model.source[name], **{f"var_{a}_m2": position[:, k] for k, a in enumerate("xyz")},
+            **{f"var_{a}_arcmin2": angles[:, k] for k, a in enumerate(("heading", "pitch", "roll"))}}))
+    return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame(columns=list(POSE_BUDGET_COLUMNS))
 
 
 def _with_frame_extras(table: pd.DataFrame, dataset: Dataset) -> pd.DataFrame:

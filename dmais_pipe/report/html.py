@@ -51,6 +51,7 @@ SECTIONS = (
     ("frames", "Per-frame pose errors"),
     ("attitude", "Attitude error: the paper's proxy and the truth"),
     ("subsets", "Camera subsets"),
+    ("budget", "Error budget of the sigmas"),
     ("runtime", "Runtime versus number of points"),
     ("stages", "Processing time per stage"),
     ("paper", "Comparison with the paper"),
@@ -83,7 +84,8 @@ def write_report(workspace: Workspace, out_html: str | Path, benchmarks_dir: str
     builders = {"dataset": _dataset_section, "markers": _markers_section, "extraction": _extraction_section,
                 "intrinsics": _intrinsics_section, "rig": _rig_section, "fov": _fov_section,
                 "residuals": _residuals_section, "frames": _frames_section, "attitude": _attitude_section,
-                "subsets": _subsets_section, "runtime": _runtime_section, "stages": _stages_section,
+                "subsets": _subsets_section, "budget": _budget_section, "runtime": _runtime_section,
+                "stages": _stages_section,
                 "paper": _paper_section}
     sections = [_section(key, title, builders[key], context) for key, title in SECTIONS]
     page = render("report.html.j2", dataset_name=context.name, dataset_root=str(context.dataset.root),
@@ -446,6 +448,43 @@ def _lever_arm(ctx: _Context) -> dict:
 def _subsets_section(ctx: _Context) -> dict:
     conf = ctx.table("conf", "run `dmais pose --cameras ...` per subset, then `dmais evaluate`")
     return {"subset_figure": Image.inline(_svg(subset_figure(conf))), "conf": table_of(conf_wide(conf))}
+
+
+def _budget_section(ctx: _Context) -> dict:
+    budget = ctx.workspace.load_table("error_budget", ("subset", "component", "unit", "source", "error_measure"))
+    if budget is None:
+        raise MissingInput(f"{ctx.workspace.table_path('error_budget')} is missing (run `dmais pose`, which writes "
+                           "each poses file's budget, then `dmais evaluate`).")
+    components = budget[budget["component"] != "total"]
+    totals = budget[budget["component"] == "total"].dropna(axis=1, how="all")
+    measure = totals["error_measure"].iloc[0] if "error_measure" in totals and len(totals) else None
+    return {"shares": Image.inline(_svg(budget_figure(components))),
+            "components": table_of(components.drop(columns=[c for c in components if c.startswith("rms_")
+                                                             or c == "error_measure"])),
+            "totals": table_of(totals.drop(columns=["sigma", "unit", "source", "position_share_pct",
+                                                    "attitude_share_pct"], errors="ignore")),
+            "truth": measure == "truth"}
+
+
+def budget_figure(components: pd.DataFrame):
+    """Stacked bars per camera set: each component's share of the predicted position and attitude variance."""
+    fig = Figure(figsize=(7.2, 3.0))
+    axes = fig.subplots(1, 2, sharey=True)
+    labels = list(dict.fromkeys(components["subset"].astype(str)))
+    names = list(dict.fromkeys(components["component"]))
+    for ax, column, title in zip(axes, ("position_share_pct", "attitude_share_pct"), ("position", "attitude")):
+        bottom = np.zeros(len(labels))
+        for name in names:
+            rows = components[components["component"] == name]
+            share = rows.set_index(rows["subset"].astype(str))[column].reindex(labels).fillna(0.0).to_numpy(float)
+            ax.bar(labels, share, bottom=bottom, label=name)
+            bottom += share
+        ax.set_title(f"share of the {title} variance")
+        ax.set_xlabel("camera set")
+    axes[0].set_ylabel("%")
+    axes[1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    fig.tight_layout()
+    return fig
 
 
 def conf_wide(conf: pd.DataFrame) -> pd.DataFrame:

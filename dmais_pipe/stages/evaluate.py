@@ -2,7 +2,8 @@
 
 Writes evaluation.csv, evaluation_<label>.csv per camera subset, tables/lever_arm.csv (the POS
 lever arm and the INS boresight, pos_calibration), tables/pose_methods.csv, tables/conf.csv (when
-subsets were solved; the full rig is the label of all its cameras), tables/residuals.csv (flight
+subsets were solved; the full rig is the label of all its cameras), tables/error_budget.csv (each
+camera set's error budget from the poses files' budgets, evaluate.error_budget_table), tables/residuals.csv (flight
 residuals per camera of the observations each pose used) and, when markers were extracted,
 tables/marker_cameras.csv and tables/marker_images.csv (marker quality, markers.quality). The
 report renders these files and computes nothing of its own.
@@ -19,9 +20,9 @@ import pandas as pd
 import yaml
 
 from ..dataset import PRIOR_QUAT, Dataset
-from ..evaluate import (ARCMIN_PER_RAD, angular_errors, conf_table, evaluate_poses, every_camera_eps_proj,
-                        fit_pos_lever_arm, group_offsets, mean_focal_px, pos_positions, pose_methods_table,
-                        residual_table, subset_cameras, used_observations)
+from ..evaluate import (ARCMIN_PER_RAD, angular_errors, conf_table, error_budget_table, evaluate_poses,
+                        every_camera_eps_proj, fit_pos_lever_arm, group_offsets, mean_focal_px, pos_positions,
+                        pose_methods_table, residual_table, subset_cameras, used_observations)
 from ..geometry import rotation_from_quat
 from ..markers.quality import FLAG_FACTOR, FLAG_MIN_SIGMA_PX, camera_quality, image_quality
 from ..pos_calibration import Boresight, LeverArm, calibration_table, fit_boresight
@@ -88,6 +89,10 @@ def _poses(workspace: Workspace, rig: Rig, whole_rig: pd.DataFrame | None, conf:
     if subsets and full_rig not in subsets:
         subsets[full_rig] = _with_every_camera(evaluation, dataset, rig, used_by_rig)
     written += _replace_table(workspace, "conf", conf_table(subsets, rig) if subsets else None)
+    budgets = {label: workspace.load_pose_budget(path) for label, path in workspace.subset_labels().items()}
+    budgets[full_rig] = workspace.load_pose_budget()
+    budget = error_budget_table({**subsets, full_rig: subsets.get(full_rig, evaluation)}, budgets)
+    written += _replace_table(workspace, "error_budget", budget if len(budget) else None)
     for row in table.itertuples(index=False):
         log.info("group %s: %d frames, eps_pos %.3f m (per-group offset: %.3f m), eps_ang %.3f', eps_proj %.3f px, "
                  "%.2f ms", row.group, row.n_frames, row.eps_pos_mean_m, row.eps_pos_group_mean_m,

@@ -2,7 +2,8 @@
 
 Reads rig.json and the identified observations; writes poses.csv (every camera) or
 poses_<label>.csv for a camera subset (label = the digits of the cameras' positions in the rig,
-e.g. 012), each with its per-observation file beside it (Workspace.save_poses).
+e.g. 012), each with its per-observation file and its error budget (each frame's variances per
+component of the error model) beside it (Workspace.save_poses).
 
 - `run`: every frame (of `groups`, when given). A per-group job with no solvable frame writes an
   empty part with a warning, so that one group seen badly by a camera subset does not stop the
@@ -24,7 +25,7 @@ import pandas as pd
 from ..blas import single_threaded_blas
 from ..errors import DmaisError
 from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS
-from ..pose.flight import ROBUST_THRESHOLD_PX, estimate_poses
+from ..pose.flight import ROBUST_THRESHOLD_PX, solve_flight
 from ..rig import Rig
 from ..workspace import ResultsError, Workspace
 from . import setting
@@ -61,18 +62,18 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
     chosen = _cameras(rig, cameras)
     record = _rig_record(workspace)
     with single_threaded_blas():  # small matrices: threads only add hand-offs to time_ms
-        table, per_observation = estimate_poses(workspace.dataset, rig, workspace.load_observations(), chosen,
-                                                conf.robust, conf.refine, groups, conf.robust_threshold_px,
-                                                calibrated_noise_px(record, chosen),
-                                                error_settings=error_settings(conf.error_sigmas, "error_sigmas"),
-                                                error_priors=error_settings(conf.error_priors, "error_priors"),
-                                                calibration_covariance=calibration_covariance(record, rig.camera_names))
+        solved = solve_flight(workspace.dataset, rig, workspace.load_observations(), chosen, conf.robust, conf.refine,
+                              groups, conf.robust_threshold_px, calibrated_noise_px(record, chosen),
+                              error_settings=error_settings(conf.error_sigmas, "error_sigmas"),
+                              error_priors=error_settings(conf.error_priors, "error_priors"),
+                              calibration_covariance=calibration_covariance(record, rig.camera_names))
+    table = solved.table
     if table.empty and not groups:
         raise DmaisError(f"pose: no flight frame of {workspace.dataset.root} could be solved with cameras {chosen}")
     if table.empty:
         log.warning("pose: no flight frame of group(s) %s could be solved with cameras %s", groups, chosen)
     path = out or poses_path(workspace, rig, chosen)
-    written = workspace.save_poses(table, per_observation, path)
+    written = workspace.save_poses(table, solved.observations, path, solved.budget)
     if len(table):
         log.info("pose: %d frames -> %s (median %.2f ms per solve)", len(table), path, table["time_ms"].median())
     return written
@@ -81,15 +82,16 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
 def merge(workspace: Workspace, parts: list[Path], cameras: list[str] | None = None,
           out: Path | None = None) -> list[Path]:
     """Concatenate per-group pose files (`run(groups=[g], out=part)`) of one camera set, with their
-    per-observation files, into `out` (default poses.csv or poses_<label>.csv)."""
+    per-observation files and error budgets, into `out` (default poses.csv or poses_<label>.csv)."""
     if not parts:
         raise DmaisError("pose: no per-group pose file to merge")
     rig = workspace.load_rig()
     chosen = _cameras(rig, cameras)
-    tables, observations = [], []
+    tables, observations, budgets = [], [], []
     for part in parts:
         tables.append(workspace.load_poses(part, chosen, empty_ok=True))
         observations.append(workspace.load_pose_observations(part))
+        budgets.append(workspace.load_pose_budget(part))
         if observations[-1] is None:
             raise ResultsError(part, "has no per-observation file beside it; the per-group pose job writes one")
     merged = pd.concat(tables, ignore_index=True)
@@ -99,8 +101,12 @@ def merge(workspace: Workspace, parts: list[Path], cameras: list[str] | None = N
     if len(repeated):
         raise DmaisError(f"pose: frame {repeated.iloc[0]!r} appears in more than one of {[str(p) for p in parts]}")
     path = out or poses_path(workspace, rig, chosen)
+    # the budget when every part has one (parts written before it have none)
+    budget = None if any(b is None for b in budgets) else \
+        pd.concat(budgets, ignore_index=True).sort_values("frame", kind="stable")
     return workspace.save_poses(merged.sort_values("frame", kind="stable"),
-                                pd.concat(observations, ignore_index=True).sort_values("frame", kind="stable"), path)
+                                pd.concat(observations, ignore_index=True).sort_values("frame", kind="stable"), path,
+                                budget)
 
 
 def _rig_record(workspace: Workspace) -> dict:

@@ -6,6 +6,7 @@ rule pose_group:
     output:
         csv=f"{RESULTS}/poses/{{subset}}/{{group}}.csv",
         observations=f"{RESULTS}/poses/{{subset}}/{{group}}.observations.csv",
+        budget=f"{RESULTS}/poses/{{subset}}/{{group}}.budget.csv",
     wildcard_constraints:
         subset=r"all|\d+",
     params:
@@ -32,6 +33,7 @@ rule poses:
     output:
         csv=f"{RESULTS}/poses.csv",
         observations=f"{RESULTS}/poses.observations.csv",
+        budget=f"{RESULTS}/poses.budget.csv",
     params:
         dataset_dir=DATASET_DIR,
         results=RESULTS,
@@ -53,6 +55,7 @@ rule poses_subset:
     output:
         csv=f"{RESULTS}/poses_{{subset}}.csv",
         observations=f"{RESULTS}/poses_{{subset}}.observations.csv",
+        budget=f"{RESULTS}/poses_{{subset}}.budget.csv",
     wildcard_constraints:
         subset=r"\d+",
     params:
