@@ -108,6 +108,12 @@ def write_results(dataset, results) -> None:
     for label in ("0", "012", "01234"):
         names = "+".join(truth.camera_names[int(d)] for d in label)
         poses_from_truth(dataset, names).to_csv(results / f"poses_{label}.csv", index=False)
+    budget = [{"frame": frame, "component": component, "sigma": sigma, "unit": unit, "source": "estimated",
+               "var_x_m2": var, "var_y_m2": var, "var_z_m2": var, "var_heading_arcmin2": 100 * var,
+               "var_pitch_arcmin2": 100 * var, "var_roll_arcmin2": 100 * var}
+              for frame in poses["frame"] for component, sigma, unit, var in (("pixel", 0.3, "px", 1e-4),
+                                                                              ("survey", 0.02, "m", 3e-4))]
+    pd.DataFrame(budget).to_csv(results / "poses.budget.csv", index=False)
     evaluate.run(Workspace.open(dataset, results))
     rows = []
     for name, camera in truth.cameras.items():
@@ -171,8 +177,8 @@ def test_report_has_every_section_and_is_self_contained(dataset, results, tmp_pa
     assert page.ids == SECTION_IDS
     assert list(page.missing) == ["markers", "extraction"] and "observations given" in page.missing["markers"]
     assert "No image with a file" in page.missing["extraction"]  # observation-only: no image files
-    assert set(page.figures) == {"intrinsics", "rig", "fov", "residuals", "frames", "attitude", "subsets", "runtime",
-                                 "stages"}
+    assert set(page.figures) == {"intrinsics", "rig", "fov", "residuals", "frames", "attitude", "subsets", "budget",
+                                 "runtime", "stages"}
     assert page.figures["intrinsics"] == 2  # residual vectors and eps per image
     assert {p.name for p in (out.parent / "figures").iterdir()} == set(FIGURE_FILES) - {
         "markers_calibration.jpg", "markers_flight.jpg"}
@@ -180,7 +186,8 @@ def test_report_has_every_section_and_is_self_contained(dataset, results, tmp_pa
     assert "script" not in page.tags and "link" not in page.tags
     text = out.read_text()
     for expected in ("C4", "eps_pos_mean_m", "true_ang_err_arcmin", "#012", "extrinsics_R",
-                     "markers", "± 2.5", "Total angular extent of the 5 cameras", "eps_ang is not a measured"):
+                     "markers", "± 2.5", "Total angular extent of the 5 cameras", "eps_ang is not a measured",
+                     "rms_sigma_position_m"):
         assert expected in text, expected
 
 
@@ -196,6 +203,7 @@ def test_missing_inputs_make_sections_say_so(dataset, tmp_path):
     assert "rig.json is missing" in page.missing["rig"]
     assert "evaluation.csv is missing" in page.missing["frames"]
     assert "conf.csv is missing" in page.missing["subsets"]
+    assert "error_budget.csv is missing" in page.missing["budget"]
     assert "no benchmark folder" in page.missing["stages"]
     assert "poses.csv is missing" in page.missing["residuals"]
     # A malformed table costs its section only.

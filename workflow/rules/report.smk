@@ -3,7 +3,9 @@ rule evaluate:
         manifest=lambda wildcards: dataset_ready(),
         rig=f"{RESULTS}/rig.json",
         poses=f"{RESULTS}/poses.csv",
+        budget=f"{RESULTS}/poses.budget.csv",
         subsets=lambda wildcards: expand(f"{RESULTS}/poses_{{subset}}.csv", subset=subset_labels()),
+        subset_budgets=lambda wildcards: expand(f"{RESULTS}/poses_{{subset}}.budget.csv", subset=subset_labels()),
     output:
         evaluation=report(f"{RESULTS}/evaluation.csv", caption="../report/evaluation.rst", category="Tables",
                           subcategory="Pose"),
@@ -15,6 +17,8 @@ rule evaluate:
                          category="Tables", subcategory="Pose"),
         **({"conf": report(f"{RESULTS}/tables/conf.csv", caption="../report/conf.rst", category="Tables",
                            subcategory="Pose")} if SUBSETS else {}),
+        error_budget=report(f"{RESULTS}/tables/error_budget.csv", caption="../report/error_budget.rst",
+                            category="Tables", subcategory="Pose"),
     params:
         dataset_dir=DATASET_DIR,
         results=RESULTS,
