@@ -45,6 +45,11 @@ POSE_OBSERVATION_COLUMNS = ("frame", "image", "camera", "point_id", "u", "v", "u
 #: variances of x, y, z (m^2) and heading, pitch, roll (arcmin^2); their sums are the sigmas squared.
 POSE_BUDGET_COLUMNS = ("frame", "component", "sigma", "unit", "source", "var_x_m2", "var_y_m2", "var_z_m2",
                        "var_heading_arcmin2", "var_pitch_arcmin2", "var_roll_arcmin2")
+#: <poses>.mounting.csv and tables/mounting.csv: per flight group and camera, the rotation of its
+#: in-flight cam_from_rig times the calibrated one's inverse (rotation vector in the camera frame,
+#: arc-min), its 1-sigma, and whether it is significant (pose/mounting.py).
+MOUNTING_COLUMNS = ("group", "camera", "d_rx_arcmin", "d_ry_arcmin", "d_rz_arcmin", "sigma_rx_arcmin",
+                    "sigma_ry_arcmin", "sigma_rz_arcmin", "significant")
 TRUTH_COLUMNS = ("frame", "group", *QUAT, *TRANSLATION, *CENTER)
 #: markers/<image>.csv: every detection, its sub-pixel standard deviation per axis and the fit's
 #: residual (fraction of the marker's contrast), and its point id ('' when unidentified).
@@ -259,14 +264,17 @@ class Workspace:
     # -------------------------------------------------------------- poses
 
     def save_poses(self, poses: pd.DataFrame, observations: pd.DataFrame, path: Path,
-                   budget: pd.DataFrame | None = None) -> list[Path]:
+                   budget: pd.DataFrame | None = None, mounting: pd.DataFrame | None = None) -> list[Path]:
         """A poses file (POSE_COLUMNS, then any extra columns) and, beside it, its per-observation file
-        and, when given, its error budget (POSE_BUDGET_COLUMNS)."""
+        and, when given, its error budget (POSE_BUDGET_COLUMNS) and its rig watched in flight
+        (MOUNTING_COLUMNS)."""
         extras = [c for c in poses.columns if c not in POSE_COLUMNS]
         written = [write_text_atomic(path, csv_text(poses[[*POSE_COLUMNS, *extras]])),
                    write_text_atomic(pose_observations_path(path), csv_text(observations[list(POSE_OBSERVATION_COLUMNS)]))]
         if budget is not None:
             written.append(write_text_atomic(pose_budget_path(path), csv_text(budget[list(POSE_BUDGET_COLUMNS)])))
+        if mounting is not None:
+            written.append(write_text_atomic(pose_mounting_path(path), csv_text(mounting[list(MOUNTING_COLUMNS)])))
         return written
 
     def load_poses(self, path: Path | None = None, allowed_cameras: Sequence[str] | None = None,
@@ -324,6 +332,21 @@ class Workspace:
             return pd.DataFrame({c: table.floats(c, optional=True) if c not in text else table.text(c)
                                  for c in POSE_BUDGET_COLUMNS})
 
+    def load_pose_mounting(self, path: Path | None = None) -> pd.DataFrame | None:
+        """The rig watched in flight beside a poses file (default poses.csv), MOUNTING_COLUMNS (group,
+        camera as text, significant as bool); None when the poses file has none."""
+        path = pose_mounting_path(self.poses_path() if path is None else Path(path))
+        if not path.is_file():
+            return None
+        with results_errors():
+            table = read_table(path, MOUNTING_COLUMNS)
+            flags = table.text("significant")
+            table.check(~np.isin(flags, ("True", "False")), lambda row: f"column significant: {flags[row]!r} is not "
+                        "True/False")
+            return pd.DataFrame({"group": table.text("group"), "camera": table.text("camera"),
+                                 **{c: table.floats(c, optional=True) for c in MOUNTING_COLUMNS[2:8]},
+                                 "significant": flags == "True"})
+
     def load_truth_frames(self) -> pd.DataFrame | None:
         """truth/frames.csv of a simulated dataset indexed by frame (TRUTH_COLUMNS as floats), None
         without truth."""
@@ -356,6 +379,12 @@ class Workspace:
     def table_paths(self) -> list[Path]:
         """Every tables/*.csv written so far, by name."""
         return sorted((self.root / "tables").glob("*.csv"))
+
+
+def pose_mounting_path(poses_path: str | Path) -> Path:
+    """The rig watched in flight beside a poses file: poses.csv -> poses.mounting.csv."""
+    poses_path = Path(poses_path)
+    return poses_path.with_name(f"{poses_path.stem}.mounting.csv")
 
 
 def pose_budget_path(poses_path: str | Path) -> Path:

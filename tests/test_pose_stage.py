@@ -12,7 +12,7 @@ from dmais_pipe.errors import DmaisError
 from dmais_pipe.pose.error_model import COMPONENTS
 from dmais_pipe.pose.flight import COLUMNS
 from dmais_pipe.stages import pose
-from dmais_pipe.workspace import POSE_BUDGET_COLUMNS, Workspace
+from dmais_pipe.workspace import MOUNTING_COLUMNS, POSE_BUDGET_COLUMNS, Workspace
 
 from conftest import observation_only
 
@@ -163,3 +163,31 @@ def test_the_error_budget_beside_the_poses_sums_to_their_sigmas_and_merges(datas
     merged = workspace.load_pose_budget()
     pd.testing.assert_frame_equal(merged.reset_index(drop=True),
                                   budget.sort_values("frame", kind="stable").reset_index(drop=True))
+
+
+def test_the_rig_is_watched_in_flight_beside_the_whole_rigs_poses(dataset, tmp_path):
+    shutil.copy(dataset / "truth" / "rig.json", tmp_path / "rig.json")
+    workspace = Workspace.open(dataset, tmp_path)
+    poses = pd.read_csv(pose.run(workspace)[0], dtype={"frame": str, "group": str})
+    mounting = workspace.load_pose_mounting()
+    groups = sorted(set(poses["group"]))
+    assert list(mounting.columns) == list(MOUNTING_COLUMNS)
+    assert sorted(set(mounting["group"])) == groups and len(mounting) == 5 * len(groups)
+    reference = mounting[mounting["camera"] == "C0"]
+    assert (reference[list(MOUNTING_COLUMNS[2:8])].to_numpy() == 0).all() and not reference["significant"].any()
+    others = mounting[mounting["camera"] != "C0"]
+    assert (others[list(MOUNTING_COLUMNS[5:8])].to_numpy() > 0).all()
+    # the simulator's in-flight mounting change (0.15' a group) is within 3 sigma of each estimate
+    assert (np.abs(others[list(MOUNTING_COLUMNS[2:5])].to_numpy()) < 3 * others[list(MOUNTING_COLUMNS[5:8])].to_numpy()
+            + 0.5).all()
+    # a camera subset's file has none (the rig is watched through the whole rig's solves)
+    pose.run(workspace, cameras=["C0", "C1"])
+    assert workspace.load_pose_mounting(tmp_path / "poses_01.csv").empty
+    # per-group jobs merge into the same file
+    parts = [pose.run(workspace, groups=[g], out=tmp_path / "parts" / f"{g}.csv")[0] for g in groups]
+    pose.merge(workspace, parts)
+    pd.testing.assert_frame_equal(workspace.load_pose_mounting(), mounting)
+    # in_flight_rig: every frame solved again with its group's watched rig
+    again = pd.read_csv(pose.run(workspace, pose.Conf(in_flight_rig=True))[0], dtype={"frame": str, "group": str})
+    assert list(again["frame"]) == list(poses["frame"]) and np.isfinite(again["sigma_x_m"]).all()
+    assert not np.allclose(again[["x", "y", "z"]].to_numpy(), poses[["x", "y", "z"]].to_numpy())

@@ -114,6 +114,11 @@ def write_results(dataset, results) -> None:
               for frame in poses["frame"] for component, sigma, unit, var in (("pixel", 0.3, "px", 1e-4),
                                                                               ("survey", 0.02, "m", 3e-4))]
     pd.DataFrame(budget).to_csv(results / "poses.budget.csv", index=False)
+    pd.DataFrame([{"group": g, "camera": c, "d_rx_arcmin": 0.0 if c == "C0" else 0.4, "d_ry_arcmin": 0.0,
+                   "d_rz_arcmin": 0.0 if c == "C0" else -1.0, "sigma_rx_arcmin": 0.0 if c == "C0" else 1.7,
+                   "sigma_ry_arcmin": 0.0 if c == "C0" else 2.2, "sigma_rz_arcmin": 0.0 if c == "C0" else 3.4,
+                   "significant": False} for g in ("1", "2") for c in truth.camera_names]).to_csv(
+        results / "poses.mounting.csv", index=False)
     evaluate.run(Workspace.open(dataset, results))
     rows = []
     for name, camera in truth.cameras.items():
@@ -178,7 +183,7 @@ def test_report_has_every_section_and_is_self_contained(dataset, results, tmp_pa
     assert list(page.missing) == ["markers", "extraction"] and "observations given" in page.missing["markers"]
     assert "No image with a file" in page.missing["extraction"]  # observation-only: no image files
     assert set(page.figures) == {"intrinsics", "rig", "fov", "residuals", "frames", "attitude", "subsets", "budget",
-                                 "runtime", "stages"}
+                                 "mounting", "runtime", "stages"}
     assert page.figures["intrinsics"] == 2  # residual vectors and eps per image
     assert {p.name for p in (out.parent / "figures").iterdir()} == set(FIGURE_FILES) - {
         "markers_calibration.jpg", "markers_flight.jpg"}
@@ -204,6 +209,7 @@ def test_missing_inputs_make_sections_say_so(dataset, tmp_path):
     assert "evaluation.csv is missing" in page.missing["frames"]
     assert "conf.csv is missing" in page.missing["subsets"]
     assert "error_budget.csv is missing" in page.missing["budget"]
+    assert "mounting.csv is missing" in page.missing["mounting"]
     assert "no benchmark folder" in page.missing["stages"]
     assert "poses.csv is missing" in page.missing["residuals"]
     # A malformed table costs its section only.

@@ -101,7 +101,8 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
                                "Intrinsics per camera", "Rig layout", "Fields of view on the ground",
                                "Reprojection residuals per camera", "Per-frame pose errors",
                                "Attitude error: the paper's proxy and the truth", "Camera subsets",
-                               "Error budget of the sigmas", "Runtime versus number of points", "Processing time per stage", "Comparison with the paper"]
+                               "Error budget of the sigmas", "The rig watched in flight",
+                               "Runtime versus number of points", "Processing time per stage", "Comparison with the paper"]
     assert "Not available" not in (tmp_path / "reports/tiny/report.html").read_text()
 
     # `snakemake --report` carries the tables and the report's figures (report() in the rules)
@@ -110,7 +111,7 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
     with zipfile.ZipFile(tmp_path / "report.zip") as archive:
         names = {Path(name).name for name in archive.namelist()}
     assert {"fov_ground.svg", "markers_flight.jpg", "calibration_residuals.svg", "intrinsics.csv", "conf.csv",
-            "pose_methods_vs_paper.csv", "evaluation.csv", "error_budget.csv", "report.html"} <= names
+            "pose_methods_vs_paper.csv", "evaluation.csv", "error_budget.csv", "mounting.csv", "report.html"} <= names
 
 
 def snakemake(workdir: Path, *options: str, timeout: int = 120, python=sys.executable,

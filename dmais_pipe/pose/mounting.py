@@ -79,6 +79,7 @@ from ..errors import DmaisError
 from ..frames import FlightObservations
 from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
 from ..rig import Rig
+from ..workspace import MOUNTING_COLUMNS
 
 log = logging.getLogger(__name__)
 
@@ -91,8 +92,7 @@ RAD_PER_ARCMIN = np.pi / (180.0 * 60.0)
 MAX_ITERATIONS = 50
 COST_TOLERANCE = 1e-12
 #: The mounting CSV's columns (`mounting_table`).
-TABLE_COLUMNS = ["group", "camera", "d_rx_arcmin", "d_ry_arcmin", "d_rz_arcmin", "sigma_rx_arcmin",
-                 "sigma_ry_arcmin", "sigma_rz_arcmin", "significant"]
+TABLE_COLUMNS = list(MOUNTING_COLUMNS)
 
 
 @dataclass(frozen=True)

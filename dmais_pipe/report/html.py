@@ -52,6 +52,7 @@ SECTIONS = (
     ("attitude", "Attitude error: the paper's proxy and the truth"),
     ("subsets", "Camera subsets"),
     ("budget", "Error budget of the sigmas"),
+    ("mounting", "The rig watched in flight"),
     ("runtime", "Runtime versus number of points"),
     ("stages", "Processing time per stage"),
     ("paper", "Comparison with the paper"),
@@ -84,7 +85,8 @@ def write_report(workspace: Workspace, out_html: str | Path, benchmarks_dir: str
     builders = {"dataset": _dataset_section, "markers": _markers_section, "extraction": _extraction_section,
                 "intrinsics": _intrinsics_section, "rig": _rig_section, "fov": _fov_section,
                 "residuals": _residuals_section, "frames": _frames_section, "attitude": _attitude_section,
-                "subsets": _subsets_section, "budget": _budget_section, "runtime": _runtime_section,
+                "subsets": _subsets_section, "budget": _budget_section, "mounting": _mounting_section,
+                "runtime": _runtime_section,
                 "stages": _stages_section,
                 "paper": _paper_section}
     sections = [_section(key, title, builders[key], context) for key, title in SECTIONS]
@@ -483,6 +485,40 @@ def budget_figure(components: pd.DataFrame):
         ax.set_xlabel("camera set")
     axes[0].set_ylabel("%")
     axes[1].legend(fontsize=7, loc="center left", bbox_to_anchor=(1.0, 0.5))
+    fig.tight_layout()
+    return fig
+
+
+def _mounting_section(ctx: _Context) -> dict:
+    mounting = ctx.workspace.load_table("mounting", ("group", "camera"))
+    if mounting is None:
+        raise MissingInput(f"{ctx.workspace.table_path('mounting')} is missing (run `dmais pose` with every camera, "
+                           "then `dmais evaluate`).")
+    if not len(mounting):
+        raise MissingInput(f"{ctx.workspace.table_path('mounting')} has no group: none could be adjusted (see the "
+                           "pose log).")
+    return {"deltas": Image.inline(_svg(mounting_figure(mounting))), "rows": table_of(mounting),
+            "flagged": int(mounting["significant"].astype(str).eq("True").sum())}
+
+
+def mounting_figure(mounting: pd.DataFrame):
+    """Per non-reference camera, each group's in-flight rotation change (rx, ry, rz) with its 1-sigma bars."""
+    cameras = [c for c in dict.fromkeys(mounting["camera"])
+               if mounting.loc[mounting["camera"] == c, ["sigma_rx_arcmin", "sigma_ry_arcmin"]].to_numpy(float).any()]
+    fig = Figure(figsize=(2.4 * max(len(cameras), 1), 2.8))
+    axes = np.atleast_1d(fig.subplots(1, max(len(cameras), 1), sharey=True))
+    for ax, camera in zip(axes, cameras):
+        rows = mounting[mounting["camera"] == camera]
+        x = np.arange(len(rows))
+        for k, axis in enumerate(("rx", "ry", "rz")):
+            ax.errorbar(x + (k - 1) * 0.2, rows[f"d_{axis}_arcmin"], yerr=rows[f"sigma_{axis}_arcmin"], fmt="o",
+                        ms=3, capsize=2, label=axis)
+        ax.axhline(0.0, color="0.6", lw=0.8)
+        ax.set_xticks(x, rows["group"].astype(str))
+        ax.set_title(camera)
+        ax.set_xlabel("group")
+    axes[0].set_ylabel("change (′)")
+    axes[-1].legend(fontsize=7)
     fig.tight_layout()
     return fig
 

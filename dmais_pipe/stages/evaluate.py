@@ -3,7 +3,8 @@
 Writes evaluation.csv, evaluation_<label>.csv per camera subset, tables/lever_arm.csv (the POS
 lever arm and the INS boresight, pos_calibration), tables/pose_methods.csv, tables/conf.csv (when
 subsets were solved; the full rig is the label of all its cameras), tables/error_budget.csv (each
-camera set's error budget from the poses files' budgets, evaluate.error_budget_table), tables/residuals.csv (flight
+camera set's error budget from the poses files' budgets, evaluate.error_budget_table),
+tables/mounting.csv (the rig watched in flight, poses.mounting.csv's), tables/residuals.csv (flight
 residuals per camera of the observations each pose used) and, when markers were extracted,
 tables/marker_cameras.csv and tables/marker_images.csv (marker quality, markers.quality). The
 report renders these files and computes nothing of its own.
@@ -93,6 +94,8 @@ def _poses(workspace: Workspace, rig: Rig, whole_rig: pd.DataFrame | None, conf:
     budgets[full_rig] = workspace.load_pose_budget()
     budget = error_budget_table({**subsets, full_rig: subsets.get(full_rig, evaluation)}, budgets)
     written += _replace_table(workspace, "error_budget", budget if len(budget) else None)
+    mounting = workspace.load_pose_mounting()
+    written += _replace_table(workspace, "mounting", mounting)
     for row in table.itertuples(index=False):
         log.info("group %s: %d frames, eps_pos %.3f m (per-group offset: %.3f m), eps_ang %.3f', eps_proj %.3f px, "
                  "%.2f ms", row.group, row.n_frames, row.eps_pos_mean_m, row.eps_pos_group_mean_m,

@@ -23,11 +23,14 @@ import numpy as np
 import pandas as pd
 
 from ..blas import single_threaded_blas
+from ..dataset import POINT_SIGMA, Dataset
 from ..errors import DmaisError
+from ..geometry import rotation_from_quat
 from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS
-from ..pose.flight import ROBUST_THRESHOLD_PX, solve_flight
+from ..pose.flight import ROBUST_THRESHOLD_PX, FlightPoses, solve_flight
+from ..pose.mounting import GroupRig, adjust_group_rig, mounting_table
 from ..rig import Rig
-from ..workspace import ResultsError, Workspace
+from ..workspace import MOUNTING_COLUMNS, QUAT, TRANSLATION, ResultsError, Workspace
 from . import setting
 
 log = logging.getLogger(__name__)
@@ -45,6 +48,8 @@ class Conf:
     error_sigmas: tuple = setting((), "components of the sigmas' error model fixed at a known 1-sigma, "
                                   "NAME=VALUE: pixel (px), survey (m), jitter, mounting (arc-min), focal (ppm), "
                                   "calibration (a factor on rig.json's covariance); the others are estimated")
+    in_flight_rig: bool = setting(False, "solve every frame again with its group's rig watched in flight (the "
+                                  "mounting file's, pose.mounting) instead of the calibrated one")
     error_priors: tuple = setting(("mounting=0.15",), "the 1-sigma, NAME=VALUE as error_sigmas, of components "
                                   "the flight's residuals cannot tell (not estimable or not significant), used "
                                   "instead of 0")
@@ -61,19 +66,21 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
     rig = workspace.load_rig()
     chosen = _cameras(rig, cameras)
     record = _rig_record(workspace)
-    with single_threaded_blas():  # small matrices: threads only add hand-offs to time_ms
-        solved = solve_flight(workspace.dataset, rig, workspace.load_observations(), chosen, conf.robust, conf.refine,
-                              groups, conf.robust_threshold_px, calibrated_noise_px(record, chosen),
-                              error_settings=error_settings(conf.error_sigmas, "error_sigmas"),
-                              error_priors=error_settings(conf.error_priors, "error_priors"),
-                              calibration_covariance=calibration_covariance(record, rig.camera_names))
+    solved = _solve(workspace, conf, rig, record, chosen, groups)
+    if set(chosen) == set(rig.camera_names) and len(solved.table):
+        watched = watch_rig(workspace.dataset, rig, solved, calibrated_noise_px(record, chosen))
+        if conf.in_flight_rig:
+            solved = _with_in_flight_rigs(workspace, conf, rig, record, solved, watched)
+        mounting = mounting_table(watched)
+    else:  # the rig is watched through the whole rig's solves only
+        mounting = pd.DataFrame(columns=list(MOUNTING_COLUMNS))
     table = solved.table
     if table.empty and not groups:
         raise DmaisError(f"pose: no flight frame of {workspace.dataset.root} could be solved with cameras {chosen}")
     if table.empty:
         log.warning("pose: no flight frame of group(s) %s could be solved with cameras %s", groups, chosen)
     path = out or poses_path(workspace, rig, chosen)
-    written = workspace.save_poses(table, solved.observations, path, solved.budget)
+    written = workspace.save_poses(table, solved.observations, path, solved.budget, mounting)
     if len(table):
         log.info("pose: %d frames -> %s (median %.2f ms per solve)", len(table), path, table["time_ms"].median())
     return written
@@ -87,11 +94,12 @@ def merge(workspace: Workspace, parts: list[Path], cameras: list[str] | None = N
         raise DmaisError("pose: no per-group pose file to merge")
     rig = workspace.load_rig()
     chosen = _cameras(rig, cameras)
-    tables, observations, budgets = [], [], []
+    tables, observations, budgets, mountings = [], [], [], []
     for part in parts:
         tables.append(workspace.load_poses(part, chosen, empty_ok=True))
         observations.append(workspace.load_pose_observations(part))
         budgets.append(workspace.load_pose_budget(part))
+        mountings.append(workspace.load_pose_mounting(part))
         if observations[-1] is None:
             raise ResultsError(part, "has no per-observation file beside it; the per-group pose job writes one")
     merged = pd.concat(tables, ignore_index=True)
@@ -101,12 +109,80 @@ def merge(workspace: Workspace, parts: list[Path], cameras: list[str] | None = N
     if len(repeated):
         raise DmaisError(f"pose: frame {repeated.iloc[0]!r} appears in more than one of {[str(p) for p in parts]}")
     path = out or poses_path(workspace, rig, chosen)
-    # the budget when every part has one (parts written before it have none)
+    # the budget and the mounting when every part has one (parts written before them have none)
     budget = None if any(b is None for b in budgets) else \
         pd.concat(budgets, ignore_index=True).sort_values("frame", kind="stable")
+    mounting = None if any(m is None for m in mountings) else pd.concat(mountings, ignore_index=True)
     return workspace.save_poses(merged.sort_values("frame", kind="stable"),
                                 pd.concat(observations, ignore_index=True).sort_values("frame", kind="stable"), path,
-                                budget)
+                                budget, mounting)
+
+
+def _solve(workspace: Workspace, conf: Conf, rig: Rig, record: dict, chosen: list[str],
+           groups: list[str] | None) -> FlightPoses:
+    """pose.flight.solve_flight of the frames (of `groups`) with `chosen` cameras of `rig`."""
+    with single_threaded_blas():  # small matrices: threads only add hand-offs to time_ms
+        return solve_flight(workspace.dataset, rig, workspace.load_observations(), chosen, conf.robust, conf.refine,
+                            groups, conf.robust_threshold_px, calibrated_noise_px(record, chosen),
+                            error_settings=error_settings(conf.error_sigmas, "error_sigmas"),
+                            error_priors=error_settings(conf.error_priors, "error_priors"),
+                            calibration_covariance=calibration_covariance(record, rig.camera_names))
+
+
+#: The least pixel noise the rig adjustment weighs the markers with (px): where the error model's
+#: pixel term is 0 (not told from the survey's) and rig.json has no calibration noise.
+WATCH_MIN_PIXEL_PX = 0.05
+
+
+def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise: float) -> dict[str, GroupRig]:
+    """pose.mounting's group rig adjustment of every group of `solved` (the whole rig's solves), with
+    the group's error model: its pixel noise (at least the calibration's, `calibrated_noise`, and
+    WATCH_MIN_PIXEL_PX), its camera rotation per frame (jitter and mounting together: the model
+    tells their sum far better than their split, and an adjustment without the vibration there is
+    turns the cameras by tens of arc-min to fit it) and its survey sigma (a point's own `sigma_m`
+    where given). A group it cannot adjust is left out with a warning naming it."""
+    used = solved.observations[solved.observations["used"].to_numpy(bool)]
+    points = dataset.points
+    watched = {}
+    for group, model in solved.error_model.items():
+        frames = solved.table[solved.table["group"].astype(str) == str(group)]
+        rows = used[used["frame"].isin(set(frames["frame"]))]
+        survey = points[POINT_SIGMA].reindex(rows["point_id"]).to_numpy(float) if POINT_SIGMA in points \
+            else np.full(len(rows), np.nan)
+        pixel = max(model.sigma["pixel"], calibrated_noise if np.isfinite(calibrated_noise) else 0.0,
+                    WATCH_MIN_PIXEL_PX)
+        rotation = float(np.hypot(model.sigma["jitter"], model.sigma["mounting"]))
+        survey = np.repeat(np.where(np.isnan(survey), model.sigma["survey"], survey)[:, None], 3, axis=1)
+        try:
+            watched[str(group)] = adjust_group_rig(
+                rig, rows["camera"].to_numpy(), rows[["u", "v"]].to_numpy(float), rows["point_id"].to_numpy(),
+                points.loc[rows["point_id"], ["x", "y", "z"]].to_numpy(float),
+                pd.Index(frames["frame"]).get_indexer(rows["frame"]),
+                rotation_from_quat(frames[list(QUAT)].to_numpy(float)), frames[list(TRANSLATION)].to_numpy(float),
+                pixel, rotation, survey)
+        except DmaisError as error:
+            log.warning("pose: the rig of group %s is not watched in flight: %s", group, error)
+    return watched
+
+
+def _with_in_flight_rigs(workspace: Workspace, conf: Conf, rig: Rig, record: dict, solved: FlightPoses,
+                         watched: dict[str, GroupRig]) -> FlightPoses:
+    """`solved` with each watched group's frames solved again with its in-flight rig."""
+    parts = [_solve(workspace, conf, watched[g].rig, record, rig.camera_names, [g]) if g in watched
+             else _group_of(solved, g) for g in pd.unique(solved.table["group"].astype(str))]
+    return FlightPoses(pd.concat([p.table for p in parts], ignore_index=True),
+                       pd.concat([p.observations for p in parts], ignore_index=True),
+                       {g: m for p in parts for g, m in p.error_model.items()},
+                       pd.concat([p.budget for p in parts], ignore_index=True))
+
+
+def _group_of(solved: FlightPoses, group: str) -> FlightPoses:
+    """The part of `solved` of one group."""
+    frames = set(solved.table.loc[solved.table["group"].astype(str) == group, "frame"])
+    return FlightPoses(solved.table[solved.table["frame"].isin(frames)],
+                       solved.observations[solved.observations["frame"].isin(frames)],
+                       {g: m for g, m in solved.error_model.items() if str(g) == group},
+                       solved.budget[solved.budget["frame"].isin(frames)])
 
 
 def _rig_record(workspace: Workspace) -> dict:

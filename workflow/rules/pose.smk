@@ -7,6 +7,7 @@ rule pose_group:
         csv=f"{RESULTS}/poses/{{subset}}/{{group}}.csv",
         observations=f"{RESULTS}/poses/{{subset}}/{{group}}.observations.csv",
         budget=f"{RESULTS}/poses/{{subset}}/{{group}}.budget.csv",
+        mounting=f"{RESULTS}/poses/{{subset}}/{{group}}.mounting.csv",
     wildcard_constraints:
         subset=r"all|\d+",
     params:
@@ -34,6 +35,7 @@ rule poses:
         csv=f"{RESULTS}/poses.csv",
         observations=f"{RESULTS}/poses.observations.csv",
         budget=f"{RESULTS}/poses.budget.csv",
+        mounting=f"{RESULTS}/poses.mounting.csv",
     params:
         dataset_dir=DATASET_DIR,
         results=RESULTS,
@@ -56,6 +58,7 @@ rule poses_subset:
         csv=f"{RESULTS}/poses_{{subset}}.csv",
         observations=f"{RESULTS}/poses_{{subset}}.observations.csv",
         budget=f"{RESULTS}/poses_{{subset}}.budget.csv",
+        mounting=f"{RESULTS}/poses_{{subset}}.mounting.csv",
     wildcard_constraints:
         subset=r"\d+",
     params:

@@ -4,6 +4,7 @@ rule evaluate:
         rig=f"{RESULTS}/rig.json",
         poses=f"{RESULTS}/poses.csv",
         budget=f"{RESULTS}/poses.budget.csv",
+        mounting=f"{RESULTS}/poses.mounting.csv",
         subsets=lambda wildcards: expand(f"{RESULTS}/poses_{{subset}}.csv", subset=subset_labels()),
         subset_budgets=lambda wildcards: expand(f"{RESULTS}/poses_{{subset}}.budget.csv", subset=subset_labels()),
     output:
@@ -19,6 +20,8 @@ rule evaluate:
                            subcategory="Pose")} if SUBSETS else {}),
         error_budget=report(f"{RESULTS}/tables/error_budget.csv", caption="../report/error_budget.rst",
                             category="Tables", subcategory="Pose"),
+        mounting=report(f"{RESULTS}/tables/mounting.csv", caption="../report/mounting.rst", category="Tables",
+                        subcategory="Pose"),
     params:
         dataset_dir=DATASET_DIR,
         results=RESULTS,
