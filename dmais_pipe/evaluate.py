@@ -221,7 +221,8 @@ def error_budget_table(evaluations: dict[str, pd.DataFrame], budgets: dict[str, 
         position = budget[["var_x_m2", "var_y_m2", "var_z_m2"]].sum(axis=1)
         attitude = budget[["var_heading_arcmin2", "var_pitch_arcmin2", "var_roll_arcmin2"]].sum(axis=1)
         parts = budget.assign(position=position, attitude=attitude).groupby("component", sort=False)
-        totals = {"position": position.groupby(budget["frame"]).sum(), "attitude": attitude.groupby(budget["frame"]).sum()}
+        totals = {name: values.groupby(budget["frame"]).sum()
+                  for name, values in (("position", position), ("attitude", attitude))}
         for component, part in parts:
             rows.append({"subset": label, "component": component, "sigma": part["sigma"].median(),
                          "unit": part["unit"].iloc[0], "source": part["source"].mode().iloc[0],

@@ -272,9 +272,11 @@ class Workspace:
         written = [write_text_atomic(path, csv_text(poses[[*POSE_COLUMNS, *extras]])),
                    write_text_atomic(pose_observations_path(path), csv_text(observations[list(POSE_OBSERVATION_COLUMNS)]))]
         if budget is not None:
-            written.append(write_text_atomic(pose_budget_path(path), csv_text(budget[list(POSE_BUDGET_COLUMNS)])))
+            written.append(write_text_atomic(pose_file_beside(path, "budget"),
+                                             csv_text(budget[list(POSE_BUDGET_COLUMNS)])))
         if mounting is not None:
-            written.append(write_text_atomic(pose_mounting_path(path), csv_text(mounting[list(MOUNTING_COLUMNS)])))
+            written.append(write_text_atomic(pose_file_beside(path, "mounting"),
+                                             csv_text(mounting[list(MOUNTING_COLUMNS)])))
         return written
 
     def load_poses(self, path: Path | None = None, allowed_cameras: Sequence[str] | None = None,
@@ -309,43 +311,36 @@ class Workspace:
     def load_pose_observations(self, path: Path | None = None) -> pd.DataFrame | None:
         """The per-observation file beside a poses file (default poses.csv): frame, image, camera,
         point_id (str), u, v, du, dv (float), used (bool); None when the poses file has none."""
-        path = pose_observations_path(self.poses_path() if path is None else Path(path))
-        if not path.is_file():
-            return None
         with results_errors():
-            table = read_table(path, POSE_OBSERVATION_COLUMNS)
-            used = table.text("used")
-            table.check(~np.isin(used, ("True", "False")), lambda row: f"column used: {used[row]!r} is not True/False")
-            return pd.DataFrame({**{c: table.text(c) for c in ("frame", "image", "camera", "point_id")},
-                                 **{c: table.floats(c, optional=c in ("du", "dv")) for c in ("u", "v", "du", "dv")},
-                                 "used": used == "True"})
+            table = self._beside_poses(path, "observations", POSE_OBSERVATION_COLUMNS)
+            return None if table is None else pd.DataFrame({
+                **{c: table.text(c) for c in ("frame", "image", "camera", "point_id")},
+                **{c: table.floats(c, optional=c in ("du", "dv")) for c in ("u", "v", "du", "dv")},
+                "used": _flags(table, "used")})
 
     def load_pose_budget(self, path: Path | None = None) -> pd.DataFrame | None:
         """The error budget beside a poses file (default poses.csv), POSE_BUDGET_COLUMNS typed (frame,
         component, unit, source as text); None when the poses file has none."""
-        path = pose_budget_path(self.poses_path() if path is None else Path(path))
-        if not path.is_file():
-            return None
+        text = ("frame", "component", "unit", "source")
         with results_errors():
-            table = read_table(path, POSE_BUDGET_COLUMNS)
-            text = ("frame", "component", "unit", "source")
-            return pd.DataFrame({c: table.floats(c, optional=True) if c not in text else table.text(c)
-                                 for c in POSE_BUDGET_COLUMNS})
+            table = self._beside_poses(path, "budget", POSE_BUDGET_COLUMNS)
+            return None if table is None else pd.DataFrame({
+                c: table.text(c) if c in text else table.floats(c, optional=True) for c in POSE_BUDGET_COLUMNS})
 
     def load_pose_mounting(self, path: Path | None = None) -> pd.DataFrame | None:
         """The rig watched in flight beside a poses file (default poses.csv), MOUNTING_COLUMNS (group,
         camera as text, significant as bool); None when the poses file has none."""
-        path = pose_mounting_path(self.poses_path() if path is None else Path(path))
-        if not path.is_file():
-            return None
         with results_errors():
-            table = read_table(path, MOUNTING_COLUMNS)
-            flags = table.text("significant")
-            table.check(~np.isin(flags, ("True", "False")), lambda row: f"column significant: {flags[row]!r} is not "
-                        "True/False")
-            return pd.DataFrame({"group": table.text("group"), "camera": table.text("camera"),
-                                 **{c: table.floats(c, optional=True) for c in MOUNTING_COLUMNS[2:8]},
-                                 "significant": flags == "True"})
+            table = self._beside_poses(path, "mounting", MOUNTING_COLUMNS)
+            return None if table is None else pd.DataFrame({
+                "group": table.text("group"), "camera": table.text("camera"),
+                **{c: table.floats(c, optional=True) for c in MOUNTING_COLUMNS[2:8]},
+                "significant": _flags(table, "significant")})
+
+    def _beside_poses(self, path: Path | None, kind: str, columns: Sequence[str]) -> Table | None:
+        """The `kind` file beside a poses file (default poses.csv) read with `columns`; None when absent."""
+        beside = pose_file_beside(self.poses_path() if path is None else Path(path), kind)
+        return read_table(beside, columns) if beside.is_file() else None
 
     def load_truth_frames(self) -> pd.DataFrame | None:
         """truth/frames.csv of a simulated dataset indexed by frame (TRUTH_COLUMNS as floats), None
@@ -381,22 +376,22 @@ class Workspace:
         return sorted((self.root / "tables").glob("*.csv"))
 
 
-def pose_mounting_path(poses_path: str | Path) -> Path:
-    """The rig watched in flight beside a poses file: poses.csv -> poses.mounting.csv."""
+def pose_file_beside(poses_path: str | Path, kind: str) -> Path:
+    """The `kind` file (observations, budget, mounting) beside a poses file: poses.csv -> poses.<kind>.csv."""
     poses_path = Path(poses_path)
-    return poses_path.with_name(f"{poses_path.stem}.mounting.csv")
-
-
-def pose_budget_path(poses_path: str | Path) -> Path:
-    """The error budget beside a poses file: poses.csv -> poses.budget.csv."""
-    poses_path = Path(poses_path)
-    return poses_path.with_name(f"{poses_path.stem}.budget.csv")
+    return poses_path.with_name(f"{poses_path.stem}.{kind}.csv")
 
 
 def pose_observations_path(poses_path: str | Path) -> Path:
     """The per-observation file beside a poses file: poses.csv -> poses.observations.csv."""
-    poses_path = Path(poses_path)
-    return poses_path.with_name(f"{poses_path.stem}.observations.csv")
+    return pose_file_beside(poses_path, "observations")
+
+
+def _flags(table: Table, column: str) -> np.ndarray:
+    """(n,) bool of a column of True/False cells; another value is an error naming its line."""
+    text = table.text(column)
+    table.check(~np.isin(text, ("True", "False")), lambda row: f"column {column}: {text[row]!r} is not True/False")
+    return text == "True"
 
 
 @contextmanager

@@ -244,7 +244,8 @@ class _RigProblem:
         return RigBAResult(rig_from_cam=out_cam, rig_from_world=out_pl, residuals=residuals, rms_px=rms,
                            n_observations=n_obs, std=std, prior_residuals_m=prior_res,
                            sigma0=float(np.sqrt(sigma0_sq)), backend=backend,
-                           camera_parameters=[f"{c}.{k}" for c in self.names for k in ("rx", "ry", "rz", "vx", "vy", "vz")],
+                           camera_parameters=[f"{c}.{k}" for c in self.names
+                                              for k in ("rx", "ry", "rz", "vx", "vy", "vz")],
                            camera_covariance=cov[np.ix_(camera_rows, camera_rows)],
                            intrinsics_sensitivity=sensitivity[camera_rows], intrinsics_cameras=list(self.cameras))
 

@@ -303,7 +303,8 @@ class Statistics:
         n_groups = int(self.frame_group.max()) + 1 if g.n_frames else 0
         self.group_inverse = np.linalg.pinv(_sum_by(schur, self.frame_group, n_groups), rcond=1e-10, hermitian=True)
         group_point = _dense(g.group * (int(g.point.max()) + 1 if len(g.point) else 1) + g.point)
-        self.point = np.where(np.bincount(group_point)[group_point] >= 2, group_point, -1) if len(g.point) else group_point
+        repeated = np.bincount(group_point)[group_point] >= 2 if len(g.point) else np.zeros(0, bool)
+        self.point = np.where(repeated, group_point, -1)  # points seen in 2 frames or more
         self.group_camera = _dense(g.group * cameras + g.camera)
 
     def _columns(self, rows: np.ndarray) -> np.ndarray:
