@@ -24,15 +24,16 @@ GROUPS, FRAMES, POINTS = 3, 8, 8
 TRUE = {"pixel": 0.3, "survey": 0.02, "jitter": 0.3, "mounting": 0.2, "focal": 150.0}
 
 
-def hover_geometry(seed: int, cameras=range(5), object_space: bool = True) -> em.Geometry:
-    """The Geometry at the true poses of GROUPS x FRAMES frames (residuals zero)."""
+def hover_geometry(seed: int, cameras=range(5), object_space: bool = True, relief: float = 10.0) -> em.Geometry:
+    """The Geometry at the true poses of GROUPS x FRAMES frames (residuals zero), the ground points
+    within +-relief m of the ground plane."""
     rng = np.random.default_rng(seed)
     rig = paper_rig()
     names = [rig.camera_names[k] for k in cameras]
     rows = {k: [] for k in ("cameras", "uv", "points", "frame", "ids")}
     R_all, t_all, groups = [], [], []
     for g in range(GROUPS):
-        _, _, points, R0, t0 = dmais_scene(rng, points_per_camera=POINTS, cameras=cameras)
+        _, _, points, R0, t0 = dmais_scene(rng, points_per_camera=POINTS, cameras=cameras, relief=relief)
         for f in range(FRAMES):
             R = exp_so3(rng.normal(0, 1e-4, 3)) @ R0  # a few pixels: every point stays in its image
             t = -R @ (-R0.T @ t0 + rng.normal(0, 0.05, 3))

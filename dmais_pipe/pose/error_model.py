@@ -121,7 +121,10 @@ class Geometry:
     int; survey (N, 2, 3) D_i; rotation (N, 2, 3) G_i; focal_effect (N, 2) h_i; calibration
     (N, 2, 11) C_i (per CALIBRATION_PARAMETERS, zero where the calibration gives no variance);
     calibration_covariance (11 C, 11 C) of the C rig cameras' CALIBRATION_PARAMETERS, camera by
-    camera in the rig's order; point_sigma (N,) m, NaN where not given."""
+    camera in the rig's order; point_sigma (N,) m, NaN where not given; t_centred (F, 3) the
+    translations about each frame's point centroid (t + R m), R (F, 3, 3) the solved rotations,
+    origins (N, 3) the rays' origins and points_centred (N, 3) the points less their frame's
+    centroid (for re-solving the frames, `nonlinear.py`)."""
 
     J: np.ndarray
     weight: np.ndarray
@@ -141,6 +144,9 @@ class Geometry:
     calibration_covariance: np.ndarray
     point_sigma: np.ndarray
     t_centred: np.ndarray = field(repr=False, default=None)
+    R: np.ndarray = field(repr=False, default=None)
+    origins: np.ndarray = field(repr=False, default=None)
+    points_centred: np.ndarray = field(repr=False, default=None)
 
     @property
     def n_frames(self) -> int:
@@ -172,7 +178,8 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     R_rows = R[frame_index]
     unit = directions / np.linalg.norm(directions, axis=1)[:, None]
     bases = tangent_bases(unit)
-    residual, J = _jacobian(origins, bases, points - centroid[frame_index], R_rows, t_centred[frame_index])
+    points_centred = points - centroid[frame_index]
+    residual, J = _jacobian(origins, bases, points_centred, R_rows, t_centred[frame_index])
     J = J.reshape(-1, 2, 6)
     p = np.einsum("nij,nj->ni", R_rows, points) + t[frame_index] - origins
     if object_space:
@@ -202,7 +209,7 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
                     reference=camera == names.index(rig.reference_camera), group=group_codes[frame_index],
                     point=point_codes, survey=dr_dp @ R_rows, rotation=rotation, focal_effect=focal_effect,
                     calibration=calibration, calibration_covariance=calibration_covariance, point_sigma=point_sigma,
-                    t_centred=t_centred)
+                    t_centred=t_centred, R=R, origins=origins, points_centred=points_centred)
 
 
 def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, dr_dp, variances) -> np.ndarray:
@@ -427,6 +434,24 @@ def _survey_draw(g: Geometry, signs, scale: np.ndarray) -> np.ndarray:
     """Errors (N, 2) of one draw `signs(P, 3)` of the points' moves, scaled per row by scale (N,)."""
     moves = signs(int(g.point.max()) + 1 if len(g.point) else 0, 3)[g.point] * scale[:, None]
     return np.einsum("nkj,nj->nk", g.survey, moves)
+
+
+def model_draw(geometry: Geometry, model: ErrorModel, rng: np.random.Generator,
+               calibration: list[np.ndarray] | None = None) -> np.ndarray:
+    """Errors (N, 2) rad of one Gaussian draw of every component of `model`, as `frame_covariances`
+    propagates them: per (frame, camera) one rotation of sigma hypot(jitter, mounting), a point's
+    survey error at its `sigma_m` where given; calibration: `calibration_errors(geometry)`, if
+    already computed."""
+    g = geometry
+    errors = unit_draw(g, "pixel", rng, gaussian=True) * model.si("pixel")
+    errors += unit_draw(g, "jitter", rng, gaussian=True) * np.hypot(model.si("jitter"), model.si("mounting"))
+    errors += unit_draw(g, "focal", rng, gaussian=True) * model.si("focal")
+    point_sigma = np.where(np.isnan(g.point_sigma), model.si("survey"), np.nan_to_num(g.point_sigma))
+    errors += _survey_draw(g, lambda *shape: rng.normal(size=shape), point_sigma)
+    axes = calibration_errors(g) if calibration is None else calibration
+    for axis in axes:
+        errors += axis * rng.normal() * model.si("calibration")
+    return errors
 
 
 def calibration_errors(geometry: Geometry) -> list[np.ndarray]:

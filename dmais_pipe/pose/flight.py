@@ -16,6 +16,9 @@ the pose used it and its residual. Frames with fewer than 3 usable observations,
 rejects, or whose pose puts an observed point behind its camera, are left out with a warning
 naming them.
 
+Frames past the linearisation (nonlinear.py: one narrow camera alone) get their sigmas from
+re-solving drawn errors.
+
 Only the solves run frame by frame; rays, residuals and statistics are computed for all frames at
 once, the error model and the covariances group by group (on at most 64 frames for the model), so
 that the stage runs at nearly the solver's speed.
@@ -38,6 +41,7 @@ from ..geometry import Rigid3, quat_from_rotation
 from ..rig import Rig
 from ..workspace import POSE_BUDGET_COLUMNS, POSE_COLUMNS, POSE_OBSERVATION_COLUMNS, POSE_UNCERTAINTY_COLUMNS
 from .error_model import UNITS, ErrorModel, Geometry, estimate, estimation_frames, linearised_solve
+from .nonlinear import DRAWS, NONLINEAR_INDEX, bootstrap_variances, curvature_index, observation_noise
 from .robust import solve_robust
 from .solver import solve_generalized_pose
 from .uncertainty import pose_uncertainty
@@ -148,8 +152,21 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
         sample = sample[estimation_frames(len(sample))]
         models[group] = estimate(_geometry(dataset, rig, source, sample, not refine, calibration_covariance),
                                  error_settings, calibrated_noise_px, priors=error_priors)
-        uncertainty = pose_uncertainty(_geometry(dataset, rig, solution, frames, not refine, calibration_covariance),
-                                       models[group], solution.R[frames], solution.t[frames])
+        geometry = _geometry(dataset, rig, solution, frames, not refine, calibration_covariance)
+        uncertainty = pose_uncertainty(geometry, models[group], solution.R[frames], solution.t[frames])
+        weak = curvature_index(geometry, uncertainty.covariance, observation_noise(geometry, models[group])) \
+            > NONLINEAR_INDEX
+        if weak.any():  # nonlinear.py: the linearised sigmas do not hold; these frames' solves re-drawn
+            def solve(origins, directions, points):
+                return solve_frame(origins, directions, points, None, False, refine)[:2]
+
+            with single_threaded_blas():
+                drawn = bootstrap_variances(_geometry(dataset, rig, solution, frames[weak], not refine,
+                                                      calibration_covariance), models[group], solve,
+                                            np.random.default_rng(0))
+            uncertainty = uncertainty.with_totals(np.flatnonzero(weak), *drawn)
+            log.info("pose: group %s: the sigmas of %d frame(s) from %d re-solves each (their linearised "
+                     "ones do not hold)", group, int(weak.sum()), DRAWS)
         values = np.column_stack([uncertainty.attitude, uncertainty.sigma_position, uncertainty.sigma_attitude,
                                   uncertainty.noise_px])
         for name, column in zip(POSE_UNCERTAINTY_COLUMNS, values.T):

@@ -11,7 +11,7 @@ the components; frames whose normal matrix is singular get NaN.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -27,7 +27,8 @@ class PoseUncertainty:
     world_from_rig, heading in [0, 360)); sigma_position (F, 3) m along the world x, y, z;
     sigma_attitude (F, 3) arc-min of heading, pitch, roll; noise_px (F,) the model's per-axis pixel
     noise; variance_position {component: (F, 3)} m^2 and variance_attitude {component: (F, 3)}
-    arcmin^2, each component's share (the sigmas' squares are their sums)."""
+    arcmin^2, each component's share (the sigmas' squares are their sums); covariance (F, 6, 6) the
+    linearised total of (omega, delta_t)."""
 
     attitude: np.ndarray
     sigma_position: np.ndarray
@@ -35,6 +36,23 @@ class PoseUncertainty:
     noise_px: np.ndarray
     variance_position: dict[str, np.ndarray]
     variance_attitude: dict[str, np.ndarray]
+    covariance: np.ndarray | None = None
+
+    def with_totals(self, rows: np.ndarray, position: np.ndarray, attitude: np.ndarray) -> "PoseUncertainty":
+        """This uncertainty with the frames `rows` (k,) given the total variances position (k, 3) m^2 and
+        attitude (k, 3) arcmin^2 (`nonlinear.bootstrap_variances`; NaN: kept as is): their sigmas, and
+        each component's variances scaled to sum to them (the linear model's shares)."""
+        totals = []
+        for linear, given in ((self.sigma_position ** 2, position), (self.sigma_attitude ** 2, attitude)):
+            factor = np.ones_like(linear)
+            known = np.isfinite(given) & (linear[rows] > 0)
+            factor[rows] = np.where(known, given / np.where(known, linear[rows], 1.0), 1.0)
+            totals.append(factor)
+        scaled = [{name: v * factor for name, v in parts.items()}
+                  for parts, factor in ((self.variance_position, totals[0]), (self.variance_attitude, totals[1]))]
+        return replace(self, sigma_position=self.sigma_position * np.sqrt(totals[0]),
+                       sigma_attitude=self.sigma_attitude * np.sqrt(totals[1]),
+                       variance_position=scaled[0], variance_attitude=scaled[1])
 
 
 def heading_pitch_roll(R) -> np.ndarray:
@@ -55,13 +73,15 @@ def pose_uncertainty(geometry: Geometry, model: ErrorModel, R, t) -> PoseUncerta
                                                axis=2)
     E_inverse = np.linalg.inv(euler_zyx_rates(np.radians(attitude)))
     position, angles = {}, {}
-    for name, covariance in frame_covariances(geometry, model).items():
+    covariances = frame_covariances(geometry, model)
+    for name, covariance in covariances.items():
         position[name] = _variances(G @ covariance @ np.swapaxes(G, 1, 2))
         angles[name] = _variances(E_inverse @ covariance[:, :3, :3] @ np.swapaxes(E_inverse, 1, 2)) * ARCMIN_PER_RAD**2
     return PoseUncertainty(attitude=attitude, sigma_position=np.sqrt(sum(position.values())),
                            sigma_attitude=np.sqrt(sum(angles.values())),
                            noise_px=np.full(len(R), model.sigma["pixel"]),
-                           variance_position=position, variance_attitude=angles)
+                           variance_position=position, variance_attitude=angles,
+                           covariance=sum(covariances.values()))
 
 
 def _variances(covariance) -> np.ndarray:
