@@ -69,6 +69,13 @@ def model_of(sigmas: dict, calibration: float = 1.0) -> em.ErrorModel:
 def dense_covariance(g: em.Geometry, frame: int, model: em.ErrorModel) -> np.ndarray:
     """The slow reference: frame's 6x6 covariance from the explicit 2n x 2n covariance of its errors."""
     rows = np.flatnonzero(g.frame == frame)
+    K = g.A_inverse[frame] @ (g.J[rows] * g.weight[rows, None, None]).reshape(-1, 6).T
+    return K @ dense_error_covariance(g, frame, model) @ K.T
+
+
+def dense_error_covariance(g: em.Geometry, frame: int, model: em.ErrorModel) -> np.ndarray:
+    """The explicit 2n x 2n covariance of the errors of frame's n observations, element by element."""
+    rows = np.flatnonzero(g.frame == frame)
     n = len(rows)
     cov = np.zeros((2 * n, 2 * n))
     for a, i in enumerate(rows):
@@ -86,8 +93,7 @@ def dense_covariance(g: em.Geometry, frame: int, model: em.ErrorModel) -> np.nda
             block += g.calibration[i] @ g.calibration_covariance[ci, cj] @ g.calibration[j].T * \
                 model.si("calibration") ** 2
             cov[2 * a:2 * a + 2, 2 * b:2 * b + 2] = block
-    K = g.A_inverse[frame] @ (g.J[rows] * g.weight[rows, None, None]).reshape(-1, 6).T
-    return K @ cov @ K.T
+    return cov
 
 
 @pytest.mark.parametrize("object_space", [True, False])

@@ -12,7 +12,7 @@ from dmais_pipe.pose.refine import tangent_bases
 from dmais_pipe.pose.solver import solve_generalized_pose
 from dmais_pipe.pose.uncertainty import heading_pitch_roll, pose_uncertainty
 
-from test_error_model import TRUE, hover_geometry, model_of
+from test_error_model import TRUE, dense_error_covariance, hover_geometry, model_of
 
 #: One camera over nearly flat ground (+-0.5 m in a 40 m footprint): position and attitude trade.
 WEAK = {"cameras": [0], "relief": 0.5}
@@ -39,6 +39,15 @@ def test_model_draws_spread_the_poses_as_the_propagated_covariance():
     predicted = np.diagonal(sum(em.frame_covariances(g, model).values()), axis1=1, axis2=2)
     ratio = empirical / predicted
     assert np.all(np.abs(ratio - 1) < 0.15), (ratio.min(), ratio.max())
+
+
+def test_the_observations_noise_is_the_diagonal_of_their_independent_terms():
+    g = hover_geometry(1)
+    noise = nl.observation_noise(g, model_of(TRUE))
+    independent = model_of({"pixel": TRUE["pixel"], "survey": TRUE["survey"]}, calibration=0.0)
+    for frame in (0, 13):
+        diagonal = np.diagonal(dense_error_covariance(g, frame, independent)).reshape(-1, 2)
+        np.testing.assert_allclose(noise[g.frame == frame], np.sqrt(diagonal.mean(axis=1)), rtol=1e-9)
 
 
 def test_the_curvature_index_is_the_second_order_part_and_separates_weak_frames():

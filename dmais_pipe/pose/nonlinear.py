@@ -39,20 +39,20 @@ DRAWS = 64
 
 
 def observation_noise(geometry: Geometry, model: ErrorModel) -> np.ndarray:
-    """(N,) rad: each observation's standard deviation per axis under `model`, correlations left out."""
+    """(N,) rad: each observation's standard deviation per axis from the terms independent between
+    the observations of a frame (pixel noise, survey). The others (jitter, mounting, focal,
+    calibration) move all points of a camera together, and a frame's pose absorbs most of them:
+    they are not the noise against which its fit's curvature shows."""
     g = geometry
     point_sigma = np.where(np.isnan(g.point_sigma), model.si("survey"), np.nan_to_num(g.point_sigma))
-    rotation = np.where(g.reference, 0.0, np.hypot(model.si("jitter"), model.si("mounting")))
-    variance = (model.si("pixel") / g.focal) ** 2 + point_sigma**2 * np.sum(g.survey**2, axis=(1, 2)) / 2 \
-        + rotation**2 * np.sum(g.rotation**2, axis=(1, 2)) / 2 \
-        + model.si("focal") ** 2 * np.sum(g.focal_effect**2, axis=1) / 2
-    return np.sqrt(variance)
+    return np.sqrt((model.si("pixel") / g.focal) ** 2 + point_sigma**2 * np.sum(g.survey**2, axis=(1, 2)) / 2)
 
 
 def curvature_index(geometry: Geometry, covariance: np.ndarray, noise: np.ndarray) -> np.ndarray:
     """(F,) the largest, over the principal axes of each frame's covariance (F, 6, 6) of (omega,
     delta_t), of the norm of its residuals' second-order part at one sigma along the axis, in units
-    of the observations' noise (N,) rad; inf where the covariance is not finite."""
+    of the observations' noise (N,) rad (observations without noise left out); inf where the
+    covariance is not finite."""
     g = geometry
     finite = np.isfinite(covariance).all(axis=(1, 2))
     values, vectors = np.linalg.eigh(np.where(finite[:, None, None], covariance, np.eye(6)))
@@ -63,7 +63,8 @@ def curvature_index(geometry: Geometry, covariance: np.ndarray, noise: np.ndarra
         step = vectors[:, :, k] * np.sqrt(np.clip(values[:, k], 0.0, None))[:, None]  # (F, 6)
         plus = _residuals(g, bases, _rotated(step[:, :3], g.R), g.t_centred + step[:, 3:])
         minus = _residuals(g, bases, _rotated(-step[:, :3], g.R), g.t_centred - step[:, 3:])
-        second = (plus + minus - 2 * centre) / 2 / noise[:, None]
+        second = np.divide(plus + minus - 2 * centre, 2 * noise[:, None], out=np.zeros_like(centre),
+                           where=noise[:, None] > 0)
         index = np.maximum(index, np.sqrt(np.bincount(g.frame, np.sum(second**2, axis=1), minlength=g.n_frames)))
     return np.where(finite, index, np.inf)
 
