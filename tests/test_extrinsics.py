@@ -17,6 +17,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from dmais_pipe import cli
+from dmais_pipe.calib import extrinsics as extrinsics_module
 from dmais_pipe.calib import rig_ba
 from dmais_pipe.calib.extrinsics import (
     DEFAULT_BACKEND,
@@ -505,3 +506,48 @@ def test_calibration_covariance_carries_the_intrinsics_errors_into_the_rig(calib
     assert np.linalg.eigvalsh(matrix).min() > -1e-9 * np.abs(matrix).max()
     written = json.loads((results / "rig.json").read_text())["calibration_covariance"]
     assert written["parameters"] == labels
+
+
+def test_the_rig_responds_to_its_control_points_survey_errors(calibrated):
+    """The rig adjustment holds the control points at their surveyed coordinates: its survey response
+    is its change when one point is moved by its survey sigma (solved again), and rig.json's joint
+    covariance is that of the errors' generative model, intrinsics and rig moved by the same points."""
+    from dmais_pipe.calib.extrinsics import calibration_covariance
+    from dmais_pipe.geometry import log_so3
+
+    dataset, results, _ = calibrated
+    workspace = Workspace.open(dataset, results)
+    observations, cameras, sigma, std, survey = extrinsics._inputs(workspace, 0.0)
+    ds = workspace.dataset
+
+    def solve(points):
+        return calibrate_extrinsics(cameras, ds.reference_camera, ds.images_of("extrinsics"), observations, points,
+                                    use_priors=True, pixel_sigma=sigma, backend="scipy").ba
+
+    base = solve(ds.points)
+    assert len(base.survey_points) > 10 and base.survey_response.shape == (6 * 4, 3 * len(base.survey_points))
+    seen = observations[observations["image"].isin(ds.images_of("extrinsics")["image"])]
+    point = seen["point_id"].value_counts().index[0]  # the point most seen
+    for axis in range(3):
+        moved = ds.points.copy()
+        moved.loc[point, ["x", "y", "z"][axis]] += moved.loc[point, "sigma_m"]
+        again = solve(moved)
+        column = 3 * base.survey_points.index(point) + axis
+        for other in ("C1", "C3"):
+            k = base.camera_parameters.index(f"{other}.rx")
+            change = np.r_[log_so3(again.rig_from_cam[other].R @ base.rig_from_cam[other].R.T),
+                           again.rig_from_cam[other].t - base.rig_from_cam[other].t]
+            predicted = base.survey_response[k:k + 6, column]
+            np.testing.assert_allclose(change, predicted, atol=0.05 * np.abs(predicted).max() + 1e-12)
+    # the joint covariance is M M^T of the model: intrinsics -Z u + d, rig S (-Z u + d) + R u + e
+    labels, matrix = calibration_covariance(base, std, survey)
+    own, Z, points = extrinsics_module._intrinsics_parts(base.intrinsics_cameras, std, survey, base.survey_points)
+    R = np.zeros((len(base.camera_parameters), len(points) * 3))
+    for k, p in enumerate(base.survey_points):
+        R[:, 3 * points.index(p):3 * points.index(p) + 3] = base.survey_response[:, 3 * k:3 * k + 3]
+    S = base.intrinsics_sensitivity
+    e = np.linalg.cholesky(base.camera_covariance + 1e-30 * np.eye(len(R)))
+    M = np.block([[-Z, np.diag(np.sqrt(own)), np.zeros((len(own), len(R)))],
+                  [-(S @ Z) + R, S * np.sqrt(own), e]])
+    np.testing.assert_allclose(matrix, M @ M.T, rtol=1e-9, atol=1e-12 * np.abs(matrix).max())
+    assert np.linalg.eigvalsh(matrix).min() > -1e-9 * np.abs(matrix).max()

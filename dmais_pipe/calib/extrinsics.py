@@ -24,6 +24,7 @@ import numpy as np
 import pandas as pd
 
 from ..camera import Camera
+from ..dataset import POINT_SIGMA
 from ..errors import DmaisError
 from ..geometry import Rigid3, average_rotations, euler_zyx_from_rotation
 from ..rig import Rig
@@ -82,7 +83,15 @@ def intrinsics_covariance(cameras: list[str], std: dict[str, dict], survey_effec
     camera's `std` (<camera>.json), of which the share of the control points' survey errors,
     `survey_effect` ({point: (5, 3)} one-sigma effects), is common to every camera that saw the
     same points; what a camera lacks counts as 0."""
-    points = sorted({p for c in cameras for p in (survey_effect.get(c) or {})})
+    own, shared, _ = _intrinsics_parts(cameras, std, survey_effect, [])
+    return np.diag(own) + shared @ shared.T
+
+
+def _intrinsics_parts(cameras: list[str], std: dict[str, dict], survey_effect: dict[str, dict],
+                      more_points: list[str]) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """`intrinsics_covariance` as diag(own) + shared shared^T: own (5 C,) the variances but the survey's,
+    shared (5 C, 3 P) the effects of the points (P,) (the survey_effect's and more_points, sorted)."""
+    points = sorted({p for c in cameras for p in (survey_effect.get(c) or {})} | set(more_points))
     shared = np.zeros((5 * len(cameras), 3 * len(points)))
     own = np.zeros(5 * len(cameras))
     for c, camera in enumerate(cameras):
@@ -92,20 +101,33 @@ def intrinsics_covariance(cameras: list[str], std: dict[str, dict], survey_effec
             shared[rows, 3 * k:3 * k + 3] = np.asarray(effect, dtype=float)
         given = std.get(camera) or {}
         own[rows] = [float(given.get(name, 0.0)) ** 2 for name in INTRINSICS]
-    return np.diag(np.clip(own - np.sum(shared**2, axis=1), 0.0, None)) + shared @ shared.T
+    return np.clip(own - np.sum(shared**2, axis=1), 0.0, None), shared, points
 
 
 def calibration_covariance(ba: RigBAResult, std: dict[str, dict], survey_effect: dict[str, dict]
                            ) -> tuple[list[str], np.ndarray]:
     """The calibration's parameters ("<camera>.fx" ... ".d" for every camera, then the rig
     adjustment's "<camera>.rx" ... ".vz", rig_ba.RigBAResult.camera_parameters) and their joint
-    covariance: the intrinsics' (`intrinsics_covariance`), carried into the rig's rotations and
-    centres by the adjustment's sensitivity S (the rig is fitted with the intrinsics as they are):
-    cov(rig) = cov(rig | intrinsics) + S K S^T, cov(rig, intrinsics) = S K."""
-    K = intrinsics_covariance(ba.intrinsics_cameras, std, survey_effect)
+    covariance. The intrinsics' errors K = D + Z Z^T (`intrinsics_covariance`: Z the control
+    points' survey share, one column per point and axis) are carried into the rig by the
+    adjustment's sensitivity S (the rig is fitted with the intrinsics as they are), and the same
+    points' survey errors move the rig directly by its response R (`survey_response`: the rig is
+    fitted on the points as surveyed). With u the points' errors in sigmas, the intrinsics move by
+    -Z u (the survey_effect's sign: N^-1 J^T S, minus the response) plus d ~ N(0, D), the rig by
+    S (-Z u + d) + R u + e: so, with Z_rig = S Z - R,
+
+        cov(rig) = cov(e) + S D S^T + Z_rig Z_rig^T,   cov(rig, intrinsics) = S D + Z_rig Z^T."""
+    response = ba.survey_response if ba.survey_response.size else np.zeros((len(ba.camera_parameters), 0))
+    own, Z, points = _intrinsics_parts(ba.intrinsics_cameras, std, survey_effect, ba.survey_points)
     S = ba.intrinsics_sensitivity
-    cross = S @ K
-    matrix = np.block([[K, cross.T], [cross, ba.camera_covariance + cross @ S.T]])
+    R = np.zeros((len(ba.camera_parameters), Z.shape[1]))
+    for k, point in enumerate(ba.survey_points):
+        j = 3 * points.index(point)
+        R[:, j:j + 3] = response[:, 3 * k:3 * k + 3]
+    Z_rig = S @ Z - R
+    cross = S * own + Z_rig @ Z.T
+    rig = ba.camera_covariance + (S * own) @ S.T + Z_rig @ Z_rig.T
+    matrix = np.block([[np.diag(own) + Z @ Z.T, cross.T], [cross, rig]])
     labels = [f"{c}.{k}" for c in ba.intrinsics_cameras for k in INTRINSICS] + list(ba.camera_parameters)
     return labels, 0.5 * (matrix + matrix.T)
 
@@ -159,6 +181,8 @@ def calibrate_extrinsics(cameras: dict[str, Camera], reference: str, images: pd.
         raise DmaisError(f"camera(s) {', '.join(unknown)} have extrinsics images but no intrinsics")
     sig = {c: float(pixel_sigma[c]) if isinstance(pixel_sigma, dict) else float(pixel_sigma) for c in cameras}
     by_image = {k: g for k, g in observations.groupby("image", sort=False)}
+    survey_sigma = points[POINT_SIGMA].fillna(0.0) if POINT_SIGMA in points.columns else \
+        pd.Series(0.0, index=points.index)
     has_prior_cols = all(c in images.columns for c in PRIOR_CENTER)
     blocks: list[ImageBlock] = []
     skipped: list[str] = []
@@ -183,7 +207,8 @@ def calibrate_extrinsics(cameras: dict[str, Camera], reference: str, images: pd.
                     prior = None
             X = points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
             blocks.append(ImageBlock(str(row.image), str(row.camera), str(placement), X,
-                                     obs[["u", "v"]].to_numpy(dtype=float), prior))
+                                     obs[["u", "v"]].to_numpy(dtype=float), prior, obs["point_id"].to_numpy(str),
+                                     survey_sigma[obs["point_id"]].to_numpy(dtype=float)))
     if not blocks:
         raise DmaisError("extrinsics: no usable placement")
     alone = sorted(set(images["camera"]) - {b.camera for b in blocks} - {reference})

@@ -51,7 +51,9 @@ COLMAP_PIXEL_OFFSET = 0.5  # COLMAP pixel = ours + 0.5 (see colmap_pixels)
 
 @dataclass
 class ImageBlock:
-    """Observations of one image: camera, placement, world points X (n, 3), pixels uv (n, 2), centre prior."""
+    """Observations of one image: camera, placement, world points X (n, 3), pixels uv (n, 2), centre
+    prior; the points' ids (n,) and survey sigmas per axis (n,) m (0: exact), for the survey's share
+    of the covariance (`RigBAResult.survey_response`)."""
 
     image: str
     camera: str
@@ -59,6 +61,8 @@ class ImageBlock:
     X: np.ndarray
     uv: np.ndarray
     center_prior: np.ndarray | None = None
+    point_ids: np.ndarray | None = None
+    point_sigma: np.ndarray | None = None
 
 
 @dataclass
@@ -81,6 +85,11 @@ class RigBAResult:
     #: first-order response, intrinsics_cameras' order), to carry the intrinsics' errors into them
     intrinsics_sensitivity: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     intrinsics_cameras: list[str] = field(default_factory=list)
+    #: the surveyed control points (P,) (the blocks' points with a survey sigma) and (6 C', 3 P) the
+    #: cameras' parameters' change per one-sigma survey error of each along x, y, z (the optimum's
+    #: response: the control points are held fixed, so their errors are not in camera_covariance)
+    survey_points: list[str] = field(default_factory=list)
+    survey_response: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
 
 def _camera_sigmas(cameras, pixel_sigma: float | dict[str, float]) -> dict[str, float]:
@@ -225,6 +234,8 @@ class _RigProblem:
         std_all = np.sqrt(np.clip(np.diag(cov), 0, None))
         camera_rows = np.arange(6 * len(self.names))  # the cameras' parameters come first
         sensitivity = -inverse @ J.T @ self.intrinsics_jacobian(p)
+        survey_points, survey_jacobian = self.survey_jacobian(p)
+        survey_response = -inverse @ J.T @ survey_jacobian
         std = {self.reference: {"rotation_deg": [0.0, 0.0, 0.0], "center_m": [0.0, 0.0, 0.0]}}
         for c in self.names:
             k = self.cam_index[c]
@@ -247,7 +258,8 @@ class _RigProblem:
                            camera_parameters=[f"{c}.{k}" for c in self.names
                                               for k in ("rx", "ry", "rz", "vx", "vy", "vz")],
                            camera_covariance=cov[np.ix_(camera_rows, camera_rows)],
-                           intrinsics_sensitivity=sensitivity[camera_rows], intrinsics_cameras=list(self.cameras))
+                           intrinsics_sensitivity=sensitivity[camera_rows], intrinsics_cameras=list(self.cameras),
+                           survey_points=survey_points, survey_response=survey_response[camera_rows])
 
     def intrinsics_jacobian(self, p: np.ndarray) -> np.ndarray:
         """(n_res, 5 C) the whitened residuals' derivatives with respect to every camera's (fx, fy,
@@ -263,6 +275,29 @@ class _RigProblem:
             k = 5 * order.index(b.camera)
             J[r0:r0 + 2 * len(b.X), k:k + 5] = J_intrinsics.reshape(-1, 5) / self.sig[b.camera]
         return J
+
+
+    def survey_jacobian(self, p: np.ndarray) -> tuple[list[str], np.ndarray]:
+        """The surveyed points' ids (P,) (the blocks' points with a survey sigma above 0) and (n_res,
+        3 P) the whitened residuals' change per one-sigma error of each point's coordinates along x,
+        y, z (the same point in every image that sees it)."""
+        given = [(b, r0) for b, (r0, _) in zip(self.blocks, self.rows)
+                 if b.point_ids is not None and b.point_sigma is not None]
+        ids = sorted({str(i) for b, _ in given for i, sigma in zip(b.point_ids, b.point_sigma) if sigma > 0})
+        column = {point: 3 * k for k, point in enumerate(ids)}
+        J = np.zeros((self.n_res, 3 * len(ids)))
+        for b, r0 in given:
+            cam = self.cameras[b.camera]
+            _, Rc, c = self.camera_params(p, b.camera)
+            _, Rj, Cj = self.placement_params(p, b.placement)
+            X_cam = ((b.X - Cj) @ Rj.T - c) @ Rc
+            J_cam = project_unmasked(X_cam, cam.fx, cam.fy, cam.cx, cam.cy, cam.d, jacobian=True)[1]
+            d_point = J_cam @ (Rc.T @ Rj) / self.sig[b.camera]  # (n, 2, 3): X_cam = R_c^T R_j (X - C_j) - ...
+            for row, (point, sigma) in enumerate(zip(b.point_ids, b.point_sigma)):
+                if sigma > 0:
+                    k = column[str(point)]
+                    J[r0 + 2 * row:r0 + 2 * row + 2, k:k + 3] = d_point[row] * sigma
+        return ids, J
 
 
 def refine_rig(cameras: dict[str, Camera], reference: str, blocks: list[ImageBlock],

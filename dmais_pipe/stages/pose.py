@@ -24,6 +24,7 @@ import pandas as pd
 
 from ..blas import single_threaded_blas
 from ..dataset import POINT_SIGMA, Dataset
+from ..evaluate import POS
 from ..errors import DmaisError
 from ..geometry import rotation_from_quat
 from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS
@@ -53,6 +54,12 @@ class Conf:
     error_priors: tuple = setting(("mounting=0.15",), "the 1-sigma, NAME=VALUE as error_sigmas, of components "
                                   "the flight's residuals cannot tell (not estimable or not significant), used "
                                   "instead of 0")
+    pos_lever_arm: tuple = setting((), "the POS reference point in the rig frame, x,y,z (m; tables/lever_arm.csv "
+                                   "of an earlier run): given, the rig watched in flight holds each frame's centre "
+                                   "to frames.csv's POS position less it, which fixes the cameras' common tilt "
+                                   "that the rig's height otherwise trades against")
+    pos_sigma: tuple = setting(("0.02", "0.02", "0.03"), "the POS positions' 1-sigma along the world x,y,z (m), "
+                               "with pos_lever_arm")
 
 
 #: "paper": the paper's solver alone; "robust": RANSAC first and a polished pose, for wrong ids.
@@ -68,7 +75,7 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
     record = _rig_record(workspace)
     solved = _solve(workspace, conf, rig, record, chosen, groups)
     if set(chosen) == set(rig.camera_names) and len(solved.table):
-        watched = watch_rig(workspace.dataset, rig, solved, calibrated_noise_px(record, chosen))
+        watched = watch_rig(workspace.dataset, rig, solved, calibrated_noise_px(record, chosen), *pos_prior(conf))
         if conf.in_flight_rig:
             solved = _with_in_flight_rigs(workspace, conf, rig, record, solved, watched)
         mounting = mounting_table(watched)
@@ -134,13 +141,16 @@ def _solve(workspace: Workspace, conf: Conf, rig: Rig, record: dict, chosen: lis
 WATCH_MIN_PIXEL_PX = 0.05
 
 
-def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise: float) -> dict[str, GroupRig]:
+def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise: float,
+              lever_arm: np.ndarray | None = None, pos_sigma: np.ndarray | None = None) -> dict[str, GroupRig]:
     """pose.mounting's group rig adjustment of every group of `solved` (the whole rig's solves), with
     the group's error model: its pixel noise (at least the calibration's, `calibrated_noise`, and
     WATCH_MIN_PIXEL_PX), its camera rotation per frame (jitter and mounting together: the model
     tells their sum far better than their split, and an adjustment without the vibration there is
     turns the cameras by tens of arc-min to fit it) and its survey sigma (a point's own `sigma_m`
-    where given). A group it cannot adjust is left out with a warning naming it."""
+    where given); with a lever_arm (3,) m in the rig frame, the frames' centres held to their POS
+    positions less it, per-axis sigma pos_sigma (3,) m. A group it cannot adjust is left out with a
+    warning naming it."""
     used = solved.observations[solved.observations["used"].to_numpy(bool)]
     points = dataset.points
     watched = {}
@@ -153,16 +163,40 @@ def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise:
                     WATCH_MIN_PIXEL_PX)
         rotation = float(np.hypot(model.sigma["jitter"], model.sigma["mounting"]))
         survey = np.repeat(np.where(np.isnan(survey), model.sigma["survey"], survey)[:, None], 3, axis=1)
+        R = rotation_from_quat(frames[list(QUAT)].to_numpy(float))
+        centres = {} if lever_arm is None else {
+            "center_prior_m": dataset.frames.set_index("frame").loc[frames["frame"], list(POS)].to_numpy(float)
+            - np.einsum("fji,j->fi", R, lever_arm), "center_sigma_m": pos_sigma}
         try:
             watched[str(group)] = adjust_group_rig(
                 rig, rows["camera"].to_numpy(), rows[["u", "v"]].to_numpy(float), rows["point_id"].to_numpy(),
                 points.loc[rows["point_id"], ["x", "y", "z"]].to_numpy(float),
-                pd.Index(frames["frame"]).get_indexer(rows["frame"]),
-                rotation_from_quat(frames[list(QUAT)].to_numpy(float)), frames[list(TRANSLATION)].to_numpy(float),
-                pixel, rotation, survey)
+                pd.Index(frames["frame"]).get_indexer(rows["frame"]), R, frames[list(TRANSLATION)].to_numpy(float),
+                pixel, rotation, survey, **centres)
         except DmaisError as error:
             log.warning("pose: the rig of group %s is not watched in flight: %s", group, error)
     return watched
+
+
+def pos_prior(conf: Conf) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The settings pos_lever_arm (3,) m and pos_sigma (3,) m as numbers, (None, None) without a lever
+    arm; DmaisError naming the setting where one is not three finite numbers (pos_sigma above 0)."""
+    if not conf.pos_lever_arm:
+        return None, None
+    lever, sigma = (_three_numbers(getattr(conf, key), key) for key in ("pos_lever_arm", "pos_sigma"))
+    if not (sigma > 0).all():
+        raise DmaisError(f"pose: setting pos_sigma: every value must be above 0, got {','.join(conf.pos_sigma)}")
+    return lever, sigma
+
+
+def _three_numbers(items: tuple, key: str) -> np.ndarray:
+    try:
+        values = np.array([float(v) for v in items])
+    except ValueError:
+        values = np.array([np.nan])
+    if values.shape != (3,) or not np.isfinite(values).all():
+        raise DmaisError(f"pose: setting {key}: {','.join(map(str, items))!r} is not three numbers x,y,z (m)")
+    return values
 
 
 def _with_in_flight_rigs(workspace: Workspace, conf: Conf, rig: Rig, record: dict, solved: FlightPoses,
