@@ -58,7 +58,7 @@ class Conf:
                                    "of an earlier run): given, the rig watched in flight holds each frame's centre "
                                    "to frames.csv's POS position less it, which fixes the cameras' common tilt "
                                    "that the rig's height otherwise trades against")
-    pos_sigma: tuple = setting(("0.02", "0.02", "0.03"), "the POS positions' 1-sigma along the world x,y,z (m), "
+    pos_sigma: tuple = setting((0.02, 0.02, 0.03), "the POS positions' 1-sigma along the world x,y,z (m), "
                                "with pos_lever_arm")
 
 
@@ -185,7 +185,8 @@ def pos_prior(conf: Conf) -> tuple[np.ndarray | None, np.ndarray | None]:
         return None, None
     lever, sigma = (_three_numbers(getattr(conf, key), key) for key in ("pos_lever_arm", "pos_sigma"))
     if not (sigma > 0).all():
-        raise DmaisError(f"pose: setting pos_sigma: every value must be above 0, got {','.join(conf.pos_sigma)}")
+        given = ",".join(map(str, conf.pos_sigma))
+        raise DmaisError(f"pose: setting pos_sigma: every value must be above 0, got {given}")
     return lever, sigma
 
 
