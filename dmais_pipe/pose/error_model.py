@@ -478,7 +478,8 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     fewer than MIN_DEGREES_OF_FREEDOM the free components are not estimable: their prior or 0, the
     pixel noise fallback_pixel_px where finite (the calibration's). That is also the free pixel
     noise's floor: an estimate below it (0 where the camera rotations take all of a few frames'
-    residuals) gives way to it, source 'calibration', the other components estimated again."""
+    residuals) gives way to it, source 'calibration', the others kept as estimated (estimated
+    again with it, an 8-frame group's rotations fell below significance)."""
     g = geometry
     settings = {k: v for k, v in (settings or {}).items() if v is not None and np.isfinite(v)}
     settings.setdefault("calibration", 1.0)
@@ -540,8 +541,7 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     for name, variance in zip(estimable, variances if estimable else []):
         sigma[name], source[name] = float(np.sqrt(variance)) / _TO_SI[name], "estimated"
     if "pixel" in free and sigma["pixel"] < fallback_pixel_px:
-        floored = estimate(geometry, {**settings, "pixel": float(fallback_pixel_px)}, seed=seed, priors=priors)
-        return replace(floored, source={**floored.source, "pixel": "calibration"})
+        sigma["pixel"], source["pixel"] = float(fallback_pixel_px), "calibration"
     return ErrorModel(sigma, source, g.dof)
 
 
