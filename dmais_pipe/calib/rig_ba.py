@@ -276,7 +276,6 @@ class _RigProblem:
             J[r0:r0 + 2 * len(b.X), k:k + 5] = J_intrinsics.reshape(-1, 5) / self.sig[b.camera]
         return J
 
-
     def survey_jacobian(self, p: np.ndarray) -> tuple[list[str], np.ndarray]:
         """The surveyed points' ids (P,) (the blocks' points with a survey sigma above 0) and (n_res,
         3 P) the whitened residuals' change per one-sigma error of each point's coordinates along x,

@@ -42,16 +42,16 @@ class PoseUncertainty:
         """This uncertainty with the frames `rows` (k,) given the total variances position (k, 3) m^2 and
         attitude (k, 3) arcmin^2 (`nonlinear.bootstrap_variances`; NaN: kept as is): their sigmas, and
         each component's variances scaled to sum to them (the linear model's shares)."""
-        totals = []
+        factors = []
         for linear, given in ((self.sigma_position ** 2, position), (self.sigma_attitude ** 2, attitude)):
             factor = np.ones_like(linear)
             known = np.isfinite(given) & (linear[rows] > 0)
             factor[rows] = np.where(known, given / np.where(known, linear[rows], 1.0), 1.0)
-            totals.append(factor)
+            factors.append(factor)
         scaled = [{name: v * factor for name, v in parts.items()}
-                  for parts, factor in ((self.variance_position, totals[0]), (self.variance_attitude, totals[1]))]
-        return replace(self, sigma_position=self.sigma_position * np.sqrt(totals[0]),
-                       sigma_attitude=self.sigma_attitude * np.sqrt(totals[1]),
+                  for parts, factor in ((self.variance_position, factors[0]), (self.variance_attitude, factors[1]))]
+        return replace(self, sigma_position=self.sigma_position * np.sqrt(factors[0]),
+                       sigma_attitude=self.sigma_attitude * np.sqrt(factors[1]),
                        variance_position=scaled[0], variance_attitude=scaled[1])
 
 

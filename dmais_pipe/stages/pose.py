@@ -72,10 +72,11 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
     poses.csv or poses_<label>.csv) and its per-observation file."""
     rig = workspace.load_rig()
     chosen = _cameras(rig, cameras)
+    prior = pos_prior(conf)
     record = _rig_record(workspace)
     solved = _solve(workspace, conf, rig, record, chosen, groups)
     if set(chosen) == set(rig.camera_names) and len(solved.table):
-        watched = watch_rig(workspace.dataset, rig, solved, calibrated_noise_px(record, chosen), *pos_prior(conf))
+        watched = watch_rig(workspace.dataset, rig, solved, calibrated_noise_px(record, chosen), *prior)
         if conf.in_flight_rig:
             solved = _with_in_flight_rigs(workspace, conf, rig, record, solved, watched)
         mounting = mounting_table(watched)
