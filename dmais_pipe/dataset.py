@@ -355,6 +355,14 @@ def _read_points(path: Path) -> tuple[pd.DataFrame, Table]:
     return _frame(table, columns, known).set_index("point_id"), table
 
 
+def point_sigma(points: pd.DataFrame, point_ids) -> np.ndarray:
+    """(n,) the `sigma_m` (survey sigma per axis, m) of each of point_ids (n,) in points (indexed by
+    point_id), NaN where the file has no such column, the cell is empty or the point is not there."""
+    if POINT_SIGMA not in points.columns:
+        return np.full(len(point_ids), np.nan)
+    return points[POINT_SIGMA].reindex(point_ids).to_numpy(float)
+
+
 def _check_disjoint(control: Table, ground: Table) -> None:
     control_rows = control.first_rows(["point_id"], "point id")
     ids = ground.text("point_id")

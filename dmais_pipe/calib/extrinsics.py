@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from ..camera import Camera
-from ..dataset import POINT_SIGMA
+from ..dataset import point_sigma
 from ..errors import DmaisError
 from ..geometry import Rigid3, average_rotations, euler_zyx_from_rotation
 from ..rig import Rig
@@ -181,8 +181,6 @@ def calibrate_extrinsics(cameras: dict[str, Camera], reference: str, images: pd.
         raise DmaisError(f"camera(s) {', '.join(unknown)} have extrinsics images but no intrinsics")
     sig = {c: float(pixel_sigma[c]) if isinstance(pixel_sigma, dict) else float(pixel_sigma) for c in cameras}
     by_image = {k: g for k, g in observations.groupby("image", sort=False)}
-    survey_sigma = points[POINT_SIGMA].fillna(0.0) if POINT_SIGMA in points.columns else \
-        pd.Series(0.0, index=points.index)
     has_prior_cols = all(c in images.columns for c in PRIOR_CENTER)
     blocks: list[ImageBlock] = []
     skipped: list[str] = []
@@ -208,7 +206,7 @@ def calibrate_extrinsics(cameras: dict[str, Camera], reference: str, images: pd.
             X = points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
             blocks.append(ImageBlock(str(row.image), str(row.camera), str(placement), X,
                                      obs[["u", "v"]].to_numpy(dtype=float), prior, obs["point_id"].to_numpy(str),
-                                     survey_sigma[obs["point_id"]].to_numpy(dtype=float)))
+                                     np.nan_to_num(point_sigma(points, obs["point_id"]))))
     if not blocks:
         raise DmaisError("extrinsics: no usable placement")
     alone = sorted(set(images["camera"]) - {b.camera for b in blocks} - {reference})

@@ -436,6 +436,12 @@ def _survey_draw(g: Geometry, signs, scale: np.ndarray) -> np.ndarray:
     return np.einsum("nkj,nj->nk", g.survey, moves)
 
 
+def survey_sigma(point_sigma: np.ndarray, model: ErrorModel) -> np.ndarray:
+    """(N,) m: each observation's survey sigma per axis, its point's own `sigma_m` (point_sigma (N,),
+    NaN where not given) or else the model's survey term."""
+    return np.where(np.isnan(point_sigma), model.si("survey"), np.nan_to_num(point_sigma))
+
+
 def model_draw(geometry: Geometry, model: ErrorModel, rng: np.random.Generator,
                calibration: list[np.ndarray] | None = None) -> np.ndarray:
     """Errors (N, 2) rad of one Gaussian draw of every component of `model`, as `frame_covariances`
@@ -446,8 +452,7 @@ def model_draw(geometry: Geometry, model: ErrorModel, rng: np.random.Generator,
     errors = unit_draw(g, "pixel", rng, gaussian=True) * model.si("pixel")
     errors += unit_draw(g, "jitter", rng, gaussian=True) * np.hypot(model.si("jitter"), model.si("mounting"))
     errors += unit_draw(g, "focal", rng, gaussian=True) * model.si("focal")
-    point_sigma = np.where(np.isnan(g.point_sigma), model.si("survey"), np.nan_to_num(g.point_sigma))
-    errors += _survey_draw(g, lambda *shape: rng.normal(size=shape), point_sigma)
+    errors += _survey_draw(g, lambda *shape: rng.normal(size=shape), survey_sigma(g.point_sigma, model))
     axes = calibration_errors(g) if calibration is None else calibration
     for axis in axes:
         errors += axis * rng.normal() * model.si("calibration")
@@ -589,7 +594,7 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
 
     pixel = per_observation(np.broadcast_to(np.eye(2), (len(g.frame), 2, 2)) / g.focal[:, None, None],
                             np.full(len(g.frame), model.si("pixel") ** 2))
-    point_variance = np.where(np.isnan(g.point_sigma), model.si("survey") ** 2, np.nan_to_num(g.point_sigma) ** 2)
+    point_variance = survey_sigma(g.point_sigma, model) ** 2
     rotation_sigma = np.hypot(model.si("jitter"), model.si("mounting"))
     moving = np.where(np.bincount(frame_camera, g.reference, minlength=len(block_frame)) > 0, 0.0, rotation_sigma)
     covariances = {

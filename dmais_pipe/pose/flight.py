@@ -34,7 +34,7 @@ import numpy as np
 import pandas as pd
 
 from ..blas import single_threaded_blas
-from ..dataset import FRAME_COLUMNS, POINT_SIGMA, PRIOR_QUAT, Dataset
+from ..dataset import FRAME_COLUMNS, PRIOR_QUAT, Dataset, point_sigma
 from ..errors import PoseError
 from ..frames import FlightObservations, flight_observations_by_frame
 from ..geometry import Rigid3, quat_from_rotation
@@ -145,6 +145,10 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
     table = solution.table.copy()
     table[list(POSE_UNCERTAINTY_COLUMNS)] = np.nan
     models, budgets = {}, []
+
+    def resolve(origins, directions, points):  # the re-solves of nonlinear.py: this stage's solver, no RANSAC
+        return solve_frame(origins, directions, points, None, False, refine)[:2]
+
     for group in pd.unique(table["group"]):
         frames = np.flatnonzero(table["group"].to_numpy() == group)
         estimated_on = np.flatnonzero(whole.table["group"].to_numpy() == group)
@@ -157,12 +161,9 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
         weak = curvature_index(geometry, uncertainty.covariance, observation_noise(geometry, models[group])) \
             > NONLINEAR_INDEX
         if weak.any():  # nonlinear.py: the linearised sigmas do not hold; these frames' solves re-drawn
-            def solve(origins, directions, points):
-                return solve_frame(origins, directions, points, None, False, refine)[:2]
-
             with single_threaded_blas():
                 drawn = bootstrap_variances(_geometry(dataset, rig, solution, frames[weak], not refine,
-                                                      calibration_covariance), models[group], solve,
+                                                      calibration_covariance), models[group], resolve,
                                             np.random.default_rng(0))
             uncertainty = uncertainty.with_totals(np.flatnonzero(weak), *drawn)
             log.info("pose: group %s: the sigmas of %d frame(s) from %d re-solves each (their linearised "
@@ -228,8 +229,8 @@ def _geometry(dataset: Dataset, rig: Rig, solution: _Solution, frames: np.ndarra
     return linearised_solve(rig, flight.cameras[rows], flight.uv[rows], flight.origins[rows],
                             flight.directions[rows], flight.points[rows], frame_of_row[frame_of_row >= 0],
                             solution.R[frames], solution.t[frames], solution.table["group"].to_numpy()[frames],
-                            flight.point_ids[rows], object_space, survey_sigma(dataset, flight.point_ids[rows]),
-                            calibration_covariance)
+                            flight.point_ids[rows], object_space,
+                            point_sigma(dataset.ground_points, flight.point_ids[rows]), calibration_covariance)
 
 
 def _solve_frames(flight: FlightObservations, focal: np.ndarray, robust: bool, refine: bool,
@@ -275,13 +276,6 @@ def _poses_table(cameras: list[str], flight: FlightObservations, solved: np.ndar
                "eps_proj_px": np.sqrt(squares / np.maximum(n_points, 1)), "time_ms": ms[solved],
                "certified": certified[solved]}
     return pd.DataFrame(columns, columns=COLUMNS)
-
-
-def survey_sigma(dataset: Dataset, point_ids: np.ndarray) -> np.ndarray:
-    """(N,) ground_points.csv's `sigma_m` of each point (m per axis), NaN where not given."""
-    if POINT_SIGMA not in dataset.ground_points.columns:
-        return np.full(len(point_ids), np.nan)
-    return dataset.ground_points[POINT_SIGMA].reindex(point_ids).to_numpy(float)
 
 
 def budget_table(frames: np.ndarray, uncertainty, model: ErrorModel) -> pd.DataFrame:

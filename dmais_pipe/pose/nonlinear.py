@@ -26,7 +26,7 @@ import numpy as np
 
 from ..geometry import exp_so3
 from ..errors import PoseError
-from .error_model import ErrorModel, Geometry, calibration_errors, model_draw
+from .error_model import ErrorModel, Geometry, calibration_errors, model_draw, survey_sigma
 from .refine import tangent_bases
 from .uncertainty import heading_pitch_roll
 
@@ -44,8 +44,8 @@ def observation_noise(geometry: Geometry, model: ErrorModel) -> np.ndarray:
     calibration) move all points of a camera together, and a frame's pose absorbs most of them:
     they are not the noise against which its fit's curvature shows."""
     g = geometry
-    point_sigma = np.where(np.isnan(g.point_sigma), model.si("survey"), np.nan_to_num(g.point_sigma))
-    return np.sqrt((model.si("pixel") / g.focal) ** 2 + point_sigma**2 * np.sum(g.survey**2, axis=(1, 2)) / 2)
+    survey = survey_sigma(g.point_sigma, model)
+    return np.sqrt((model.si("pixel") / g.focal) ** 2 + survey**2 * np.sum(g.survey**2, axis=(1, 2)) / 2)
 
 
 def curvature_index(geometry: Geometry, covariance: np.ndarray, noise: np.ndarray) -> np.ndarray:

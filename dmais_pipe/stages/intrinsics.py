@@ -24,7 +24,7 @@ from ..calib.intrinsics import (METHODS, TABLE_COLUMNS, IntrinsicsResult, Plausi
                                 calibrate_camera_dlt_lm, calibrate_camera_opencv, check_plausible)
 from ..calib.import_intrinsics import (DEFAULT_MAX_RESIDUAL_PX, ForeignCamera, imported_record, one_coefficient_camera,
                                        read_colmap_cameras, read_opencv_file)
-from ..dataset import POINT_SIGMA
+from ..dataset import point_sigma
 from ..errors import DmaisError
 from ..workspace import CALIBRATION_RESIDUAL_COLUMNS, Workspace
 from . import setting
@@ -205,7 +205,5 @@ def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tupl
         obs = observations[observations["image"] == image]
         X[image] = points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
         uv[image] = obs[["u", "v"]].to_numpy(dtype=float)
-        sigma = points.loc[obs["point_id"], POINT_SIGMA].to_numpy(dtype=float) if POINT_SIGMA in points.columns \
-            else np.zeros(len(obs))
-        survey[image] = (obs["point_id"].to_numpy(dtype=str), np.nan_to_num(sigma))
+        survey[image] = (obs["point_id"].to_numpy(dtype=str), np.nan_to_num(point_sigma(points, obs["point_id"])))
     return X, uv, survey

@@ -23,11 +23,11 @@ import numpy as np
 import pandas as pd
 
 from ..blas import single_threaded_blas
-from ..dataset import POINT_SIGMA, Dataset
+from ..dataset import Dataset, point_sigma
 from ..evaluate import POS
 from ..errors import DmaisError
 from ..geometry import rotation_from_quat
-from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS
+from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS, survey_sigma
 from ..pose.flight import ROBUST_THRESHOLD_PX, FlightPoses, solve_flight
 from ..pose.mounting import GroupRig, adjust_group_rig, mounting_table
 from ..rig import Rig
@@ -153,21 +153,19 @@ def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise:
     positions less it, per-axis sigma pos_sigma (3,) m. A group it cannot adjust is left out with a
     warning naming it."""
     used = solved.observations[solved.observations["used"].to_numpy(bool)]
-    points = dataset.points
+    points, pos = dataset.points, dataset.frames.set_index("frame")[list(POS)]
     watched = {}
     for group, model in solved.error_model.items():
         frames = solved.table[solved.table["group"].astype(str) == str(group)]
         rows = used[used["frame"].isin(set(frames["frame"]))]
-        survey = points[POINT_SIGMA].reindex(rows["point_id"]).to_numpy(float) if POINT_SIGMA in points \
-            else np.full(len(rows), np.nan)
         pixel = max(model.sigma["pixel"], calibrated_noise if np.isfinite(calibrated_noise) else 0.0,
                     WATCH_MIN_PIXEL_PX)
         rotation = float(np.hypot(model.sigma["jitter"], model.sigma["mounting"]))
-        survey = np.repeat(np.where(np.isnan(survey), model.sigma["survey"], survey)[:, None], 3, axis=1)
+        survey = np.repeat(survey_sigma(point_sigma(points, rows["point_id"]), model)[:, None], 3, axis=1)
         R = rotation_from_quat(frames[list(QUAT)].to_numpy(float))
         centres = {} if lever_arm is None else {
-            "center_prior_m": dataset.frames.set_index("frame").loc[frames["frame"], list(POS)].to_numpy(float)
-            - np.einsum("fji,j->fi", R, lever_arm), "center_sigma_m": pos_sigma}
+            "center_prior_m": pos.loc[frames["frame"]].to_numpy(float) - np.einsum("fji,j->fi", R, lever_arm),
+            "center_sigma_m": pos_sigma}
         try:
             watched[str(group)] = adjust_group_rig(
                 rig, rows["camera"].to_numpy(), rows[["u", "v"]].to_numpy(float), rows["point_id"].to_numpy(),
