@@ -44,8 +44,10 @@ SPLITS = ("calib", "eval")
 DEFAULT_MARKER_SIZE_M = 2.0
 
 POINT_COLUMNS = ("point_id", "x", "y", "z")
-#: Optional column of control_points.csv and ground_points.csv: the point's survey sigma per axis (m).
+#: Optional columns of control_points.csv and ground_points.csv: the point's survey sigma per axis (m),
+#: and its vertical (z) sigma where the survey gives one apart (sigma_m is then that of x and y).
 POINT_SIGMA = "sigma_m"
+POINT_SIGMA_Z = "sigma_z_m"
 PRIOR_CENTER = ("prior_x", "prior_y", "prior_z")
 PRIOR_QUAT = ("prior_qw", "prior_qx", "prior_qy", "prior_qz")
 IMAGE_COLUMNS = ("image", "camera", "stage", "split", "placement", "path")
@@ -340,27 +342,40 @@ def _strings(values) -> pd.Series:
 
 
 def _read_points(path: Path) -> tuple[pd.DataFrame, Table]:
-    """Points indexed by point_id (str) with float columns x, y, z, sigma_m when the file has it
-    (NaN in its empty cells) (+ extras), and the table read."""
-    table = read_table(path, POINT_COLUMNS, (POINT_SIGMA,))
+    """Points indexed by point_id (str) with float columns x, y, z, and sigma_m, sigma_z_m where the
+    file has them (NaN in their empty cells) (+ extras), and the table read."""
+    table = read_table(path, POINT_COLUMNS, (POINT_SIGMA, POINT_SIGMA_Z))
     ids = table.required_text("point_id")
     table.first_rows(["point_id"], "point id")
     columns = {"point_id": _strings(ids), **{axis: table.floats(axis) for axis in "xyz"}}
     known = POINT_COLUMNS
-    if POINT_SIGMA in table.cells:
-        sigma = table.floats(POINT_SIGMA, optional=True)
-        table.check(sigma < 0, lambda row: f"column {POINT_SIGMA}: {sigma[row]} is negative; expected a survey "
-                    "sigma per axis in metres (or an empty cell)")
-        columns[POINT_SIGMA], known = sigma, (*POINT_COLUMNS, POINT_SIGMA)
+    for name in (POINT_SIGMA, POINT_SIGMA_Z):
+        if name in table.cells:
+            sigma = table.floats(name, optional=True)
+            table.check(sigma < 0, lambda row: f"column {name}: {sigma[row]} is negative; expected a survey "
+                        "sigma in metres (or an empty cell)")
+            columns[name], known = sigma, (*known, name)
     return _frame(table, columns, known).set_index("point_id"), table
 
 
 def point_sigma(points: pd.DataFrame, point_ids) -> np.ndarray:
-    """(n,) the `sigma_m` (survey sigma per axis, m) of each of point_ids (n,) in points (indexed by
-    point_id), NaN where the file has no such column, the cell is empty or the point is not there."""
-    if POINT_SIGMA not in points.columns:
-        return np.full(len(point_ids), np.nan)
-    return points[POINT_SIGMA].reindex(point_ids).to_numpy(float)
+    """(n, 3) the survey sigma (m) along x, y, z of each of point_ids (n,) in points (indexed by
+    point_id): `sigma_m`, and `sigma_z_m` along z where given; NaN where the file has no such
+    column, the cell is empty or the point is not there."""
+    sigma = np.full((len(point_ids), 3), np.nan)
+    if POINT_SIGMA in points.columns:
+        sigma[:] = points[POINT_SIGMA].reindex(point_ids).to_numpy(float)[:, None]
+    if POINT_SIGMA_Z in points.columns:
+        vertical = points[POINT_SIGMA_Z].reindex(point_ids).to_numpy(float)
+        sigma[:, 2] = np.where(np.isnan(vertical), sigma[:, 2], vertical)
+    return sigma
+
+
+def largest_point_sigma(points: pd.DataFrame, point_ids) -> np.ndarray:
+    """(n,) the largest of each point's survey sigmas along x, y, z (`point_sigma`), 0 where none is
+    given: the calibration's survey term, one sigma for all three axes."""
+    sigma = point_sigma(points, point_ids)
+    return np.where(np.isnan(sigma), 0.0, sigma).max(axis=1) if len(sigma) else np.zeros(0)
 
 
 def _check_disjoint(control: Table, ground: Table) -> None:
@@ -778,7 +793,7 @@ def write_dataset(
 def _points_out(points: pd.DataFrame) -> pd.DataFrame:
     if "point_id" not in points.columns:
         points = points.rename_axis("point_id").reset_index()
-    return _table_out(points, POINT_COLUMNS, ((POINT_SIGMA,),), texts=("point_id",))
+    return _table_out(points, POINT_COLUMNS, ((POINT_SIGMA,), (POINT_SIGMA_Z,)), texts=("point_id",))
 
 
 def _table_out(frame: pd.DataFrame, columns: Sequence[str], groups: Sequence[Sequence[str]],

@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from dmais_pipe.cli import main
-from dmais_pipe.dataset import CameraSpec, Dataset, write_dataset
+from dmais_pipe.dataset import CameraSpec, Dataset, largest_point_sigma, point_sigma, write_dataset
 from dmais_pipe.errors import DatasetError
 from dmais_pipe.workspace import Workspace
 
@@ -372,13 +372,28 @@ def test_points_survey_sigma_is_read_and_written_and_optional(tmp_path):
     assert np.isnan(ds.points.loc["G1", "sigma_m"])
 
 
-@pytest.mark.parametrize("cell, message", [("-0.01", "column sigma_m: -0.01 is negative"),
-                                           ("abc", "column sigma_m: 'abc' is not a finite number"),
-                                           ("inf", "column sigma_m: 'inf' is not a finite number")])
-def test_points_survey_sigma_that_is_not_a_sigma_is_refused_naming_the_line(tmp_path, cell, message):
+def test_points_vertical_survey_sigma_is_read_written_and_looked_up_per_axis(tmp_path):
     inputs = _inputs()
-    inputs["ground_points"]["sigma_m"] = [0.02, 0.03]
+    inputs["ground_points"]["sigma_m"] = [0.015, np.nan]
+    inputs["ground_points"]["sigma_z_m"] = [0.025, 0.03]
     root = _write(tmp_path / "ds", inputs)
-    _set_cells(root, "ground_points.csv", 1, sigma_m=cell)
+    assert _rows(root, "ground_points.csv")[0] == ["point_id", "x", "y", "z", "sigma_m", "sigma_z_m"]
+    ds = Dataset.load(root)
+    ids = ["G1", "G2", "A1", "nowhere"]
+    np.testing.assert_array_equal(point_sigma(ds.points, ids), [
+        [0.015, 0.015, 0.025], [np.nan, np.nan, 0.03], [np.nan] * 3, [np.nan] * 3])
+    np.testing.assert_array_equal(largest_point_sigma(ds.points, ids), [0.025, 0.03, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("column", ["sigma_m", "sigma_z_m"])
+@pytest.mark.parametrize("cell, message", [("-0.01", "-0.01 is negative"),
+                                           ("abc", "'abc' is not a finite number"),
+                                           ("inf", "'inf' is not a finite number")])
+def test_points_survey_sigma_that_is_not_a_sigma_is_refused_naming_the_line(tmp_path, column, cell, message):
+    inputs = _inputs()
+    inputs["ground_points"][column] = [0.02, 0.03]
+    root = _write(tmp_path / "ds", inputs)
+    _set_cells(root, "ground_points.csv", 1, **{column: cell})
+    message = f"column {column}: {message}"
     with pytest.raises(DatasetError, match=rf"ground_points\.csv, line 3: {message}"):
         Dataset.load(root)

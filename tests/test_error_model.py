@@ -21,7 +21,7 @@ from pose_scenes import dmais_scene
 from test_pose_uncertainty import paper_rig
 
 GROUPS, FRAMES, POINTS = 3, 8, 8
-TRUE = {"pixel": 0.3, "survey": 0.02, "jitter": 0.3, "mounting": 0.2, "focal": 150.0}
+TRUE = {"pixel": 0.3, "survey": 0.02, "survey_vertical": 0.035, "jitter": 0.3, "mounting": 0.2, "focal": 150.0}
 
 
 def hover_geometry(seed: int, cameras=range(5), object_space: bool = True, relief: float = 10.0) -> em.Geometry:
@@ -83,7 +83,8 @@ def dense_error_covariance(g: em.Geometry, frame: int, model: em.ErrorModel) -> 
             block = np.zeros((2, 2))
             if i == j:
                 block += np.eye(2) * (model.si("pixel") / g.focal[i]) ** 2
-                block += g.survey[i] @ g.survey[i].T * model.si("survey") ** 2
+                survey = np.diag([model.si("survey"), model.si("survey"), model.si("survey_vertical")]) ** 2
+                block += g.survey[i] @ survey @ g.survey[i].T
             if g.camera[i] == g.camera[j]:
                 if not g.reference[i]:
                     rotation = model.si("jitter") ** 2 + model.si("mounting") ** 2
@@ -113,7 +114,7 @@ def test_propagation_matches_the_spread_of_drawn_errors_through_the_solve():
     spreads the poses as its propagated covariance says (Rademacher draws: the same second moments)."""
     g = hover_geometry(2)
     rng = np.random.default_rng(3)
-    for name in ("pixel", "survey", "jitter", "focal"):
+    for name in ("pixel", "survey", "survey_vertical", "jitter", "focal"):
         model = model_of({name: TRUE[name]})
         predicted = em.frame_covariances(g, model)[name][:, [0, 1, 3]][:, :, [0, 1, 3]]
         steps = []
@@ -136,11 +137,11 @@ def test_estimation_recovers_known_components_from_drawn_residuals():
         errors = sum(em.unit_draw(g, name, rng) * TRUE[name] * em._TO_SI[name] for name in TRUE)
         drawn = dataclasses.replace(g, residual=em.solve_response(g, errors))
         model = em.estimate(drawn, {"calibration": 0.0}, seed=draw)
-        assert model.source["pixel"] == model.source["survey"] == "estimated"
+        assert model.source["pixel"] == model.source["survey"] == model.source["survey_vertical"] == "estimated"
         assert {model.source[name] for name in ("jitter", "mounting", "focal")} <= {"estimated", "not significant"}
         estimates.append([model.sigma[name] ** 2 for name in TRUE])
     rms = dict(zip(TRUE, np.sqrt(np.mean(estimates, axis=0))))
-    for name in ("pixel", "survey"):
+    for name in ("pixel", "survey", "survey_vertical"):
         assert abs(rms[name] / TRUE[name] - 1) < 0.1, (name, rms[name])
     # a 150 ppm focal change moves the image edge by 0.3 px, under the 2.6 px survey errors: it is
     # not significant, and must not come out inflated
@@ -155,6 +156,9 @@ def test_zero_residuals_give_zero_components_and_the_set_ones_are_kept():
     g = hover_geometry(6)
     model = em.estimate(g, {"survey": 0.015, "calibration": 0.0})
     assert model.source["survey"] == "set" and model.sigma["survey"] == 0.015
+    assert model.source["survey_vertical"] == "set" and model.sigma["survey_vertical"] == 0.015  # survey alone: all axes
+    model = em.estimate(g, {"survey": 0.015, "survey_vertical": 0.025, "calibration": 0.0})
+    assert model.sigma["survey_vertical"] == 0.025
     assert all(model.sigma[name] == pytest.approx(0.0, abs=1e-9) for name in ("pixel", "jitter", "mounting", "focal"))
 
 
@@ -166,6 +170,27 @@ def test_a_reference_camera_alone_has_no_rotation_terms_and_its_focal_change_is_
     assert model.source["focal"] == "not estimable"  # a scale of a narrow image is a change of range
     parts = em.frame_covariances(g, model_of({"jitter": 1.0, "mounting": 1.0}))
     assert np.all(parts["jitter"] == 0) and np.all(parts["mounting"] == 0)
+
+
+def test_a_height_error_the_residuals_cannot_tell_takes_the_horizontal_survey_sigma():
+    """A nadir camera alone hardly sees heights: the vertical survey term is the horizontal one
+    (at most what the data allow); with the tilted cameras it is estimated, also when it is 0."""
+    rng = np.random.default_rng(12)
+    for cameras, vertical in (([0], 0.04), (range(5), 0.04), (range(5), 0.0)):
+        g = hover_geometry(11, cameras=cameras)
+        errors = em.unit_draw(g, "pixel", rng) * 0.3 + em.unit_draw(g, "survey", rng) * 0.02 + \
+            em.unit_draw(g, "survey_vertical", rng) * vertical
+        model = em.estimate(dataclasses.replace(g, residual=em.solve_response(g, errors)), {"calibration": 0.0})
+        assert model.source["survey"] == "estimated" and abs(model.sigma["survey"] / 0.02 - 1) < 0.15
+        if len(cameras) == 1:
+            assert model.source["survey_vertical"] == "prior"
+            assert model.sigma["survey_vertical"] == model.sigma["survey"]
+        elif vertical:
+            assert model.source["survey_vertical"] == "estimated"
+            assert abs(model.sigma["survey_vertical"] / vertical - 1) < 0.15
+        else:  # not significant: at most its estimate plus 2 standard errors, under the horizontal one
+            assert model.source["survey_vertical"] == "prior"
+            assert model.sigma["survey_vertical"] < model.sigma["survey"]
 
 
 def test_too_few_observations_fall_back_to_the_calibrated_pixel_noise():

@@ -44,7 +44,7 @@ def test_model_draws_spread_the_poses_as_the_propagated_covariance():
 def test_the_observations_noise_is_the_diagonal_of_their_independent_terms():
     g = hover_geometry(1)
     noise = nl.observation_noise(g, model_of(TRUE))
-    independent = model_of({"pixel": TRUE["pixel"], "survey": TRUE["survey"]}, calibration=0.0)
+    independent = model_of({name: TRUE[name] for name in ("pixel", "survey", "survey_vertical")}, calibration=0.0)
     for frame in (0, 13):
         diagonal = np.diagonal(dense_error_covariance(g, frame, independent)).reshape(-1, 2)
         np.testing.assert_allclose(noise[g.frame == frame], np.sqrt(diagonal.mean(axis=1)), rtol=1e-9)

@@ -24,7 +24,7 @@ import numpy as np
 import pandas as pd
 
 from ..camera import Camera
-from ..dataset import point_sigma
+from ..dataset import largest_point_sigma
 from ..errors import DmaisError
 from ..geometry import Rigid3, average_rotations, euler_zyx_from_rotation
 from ..rig import Rig
@@ -206,7 +206,7 @@ def calibrate_extrinsics(cameras: dict[str, Camera], reference: str, images: pd.
             X = points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
             blocks.append(ImageBlock(str(row.image), str(row.camera), str(placement), X,
                                      obs[["u", "v"]].to_numpy(dtype=float), prior, obs["point_id"].to_numpy(str),
-                                     np.nan_to_num(point_sigma(points, obs["point_id"]))))
+                                     largest_point_sigma(points, obs["point_id"])))
     if not blocks:
         raise DmaisError("extrinsics: no usable placement")
     alone = sorted(set(images["camera"]) - {b.camera for b in blocks} - {reference})

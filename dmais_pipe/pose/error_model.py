@@ -9,22 +9,25 @@ frame, R the frame's rig_from_world):
 
     component    effect on r_i                         random variable                  one draw per
     pixel        n_i / F_i                             n_i ~ N(0, s_px^2 I2) px         observation
-    survey       D_i dM_p, D_i = dr_i/dp R  (2, 3)     dM_p ~ N(0, s_p^2 I3) m          ground point
+    survey       D_i dM_p, D_i = dr_i/dp R  (2, 3)     dM_p ~ N(0, diag(s_h^2, s_h^2,   ground point
+                                                        s_v^2)) m
     jitter       G_i w, G_i = B_i [f_i]x  (2, 3)       w ~ N(0, s_j^2 I3) rad           frame, non-reference camera
     mounting     G_i m                                 m ~ N(0, s_m^2 I3) rad           group, non-reference camera
     focal        h_i k, h_i = -(f_i . a_c) B_i a_c     k ~ N(0, s_k^2) (relative)       group, camera
     calibration  C_i x  (2, 11)                        x ~ N(0, Sigma_c) (fx fy cx cy   whole flight
                                                         d, rotation, centre) of all cameras
 
-Jitter is the camera's vibration within a frame (every point of that camera moves together),
+The survey error's horizontal (world x, y: component `survey`) and vertical (z:
+`survey_vertical`) sigmas are two components, as RTK gives them (its height is worse). Jitter is
+the camera's vibration within a frame (every point of that camera moves together),
 mounting its rotation against the calibrated rig during a group, focal its focal-length change
 (a thermal focus change, or the calibration's own focal error: both scale the image about the
 axis). The reference camera has no jitter or mounting term: the rig frame is its frame, so its
 rotation is the platform's attitude. The calibration term is fixed: the calibration's joint
 covariance of every camera's parameters (rig.json's calibration_covariance: cameras calibrated on
 the same control points share their survey errors, and the rig is fitted with the intrinsics as
-they are, so their errors are correlated); the survey term is fixed per point where ground_points.csv gives `sigma_m`, and any
-other component where the user sets it.
+they are, so their errors are correlated); the survey terms are fixed per point where
+ground_points.csv gives `sigma_m` (and `sigma_z_m`), and any other component where the user sets it.
 
 Estimation (variance-component estimation, method of moments as Helmert's: quadratic forms of the
 residuals equated to their expectations), per flight group, on at most ESTIMATION_FRAMES of its
@@ -34,7 +37,8 @@ r = e - J A^-1 sum_i w_i J_i^T e_i per frame (J, w, A as uncertainty.py), so eac
 estimated by Monte Carlo trace estimation (Rademacher draws of each component through the same
 linear solve, Koch & Kusche 2002, J. Geodesy 76: 641-652), the calibration's exactly (its few
 parameters one at a time). The statistics separate the components by their structure: pixel
-noise is what no structure explains; survey what repeats per point; jitter what moves a camera's
+noise is what no structure explains; survey what repeats per point (its vertical part along the
+direction in which a height error moves that point's image, the horizontal the rest); jitter what moves a camera's
 points together in one frame only; mounting and focal what does so in every frame of the group.
 
 The system is solved for the free components by non-negative least squares, each statistic
@@ -43,7 +47,8 @@ weighted by its spread under a first fit (drawn, `_spread`). A component that th
 standard errors is not significant (the least significant is dropped and the rest estimated
 again); both are 0 for the others' estimation, and in the sigmas their prior where one is given
 (`estimate`'s priors; for a not significant one at most its estimate plus SIGNIFICANCE standard
-errors), else 0. Jitter and
+errors), else 0; the vertical survey's prior is the horizontal one (a nadir camera hardly sees
+heights). Jitter and
 mounting act alike on one frame, so their sum is far better determined than their split; the
 sigmas use the sum. A mounting change hardly shows in one group's residuals (the pose and the
 same points' survey errors absorb it) yet moves the whole rig's position: 0.45' of it moved a
@@ -69,11 +74,16 @@ from .refine import _jacobian, inverse_normal_matrices, tangent_bases
 
 ARCMIN = np.radians(1.0 / 60.0)
 #: The components, in the order of every array here.
-COMPONENTS = ("pixel", "survey", "jitter", "mounting", "focal", "calibration")
+COMPONENTS = ("pixel", "survey", "survey_vertical", "jitter", "mounting", "focal", "calibration")
+#: The components drawn at random per observation, point, frame or group (all but the calibration).
+RANDOM = COMPONENTS[:-1]
 #: Units of ErrorModel.sigma per component (calibration: a factor on rig.json's covariance).
-UNITS = {"pixel": "px", "survey": "m", "jitter": "arcmin", "mounting": "arcmin", "focal": "ppm",
-         "calibration": "x"}
-_TO_SI = {"pixel": 1.0, "survey": 1.0, "jitter": ARCMIN, "mounting": ARCMIN, "focal": 1e-6, "calibration": 1.0}
+UNITS = {"pixel": "px", "survey": "m", "survey_vertical": "m", "jitter": "arcmin", "mounting": "arcmin",
+         "focal": "ppm", "calibration": "x"}
+_TO_SI = {"pixel": 1.0, "survey": 1.0, "survey_vertical": 1.0, "jitter": ARCMIN, "mounting": ARCMIN, "focal": 1e-6,
+          "calibration": 1.0}
+#: Which world axes (x, y, z) each survey component moves.
+SURVEY_AXES = {"survey": np.array([1.0, 1.0, 0.0]), "survey_vertical": np.array([0.0, 0.0, 1.0])}
 #: Fewest residual degrees of freedom (2n - 6 per frame, summed) to estimate any component.
 MIN_DEGREES_OF_FREEDOM = 4
 #: Monte Carlo draws of each component for the expectations, and of the fitted model for the
@@ -121,7 +131,7 @@ class Geometry:
     int; survey (N, 2, 3) D_i; rotation (N, 2, 3) G_i; focal_effect (N, 2) h_i; calibration
     (N, 2, 11) C_i (per CALIBRATION_PARAMETERS, zero where the calibration gives no variance);
     calibration_covariance (11 C, 11 C) of the C rig cameras' CALIBRATION_PARAMETERS, camera by
-    camera in the rig's order; point_sigma (N,) m, NaN where not given; t_centred (F, 3) the
+    camera in the rig's order; point_sigma (N, 3) m along x, y, z, NaN where not given; t_centred (F, 3) the
     translations about each frame's point centroid (t + R m), R (F, 3, 3) the solved rotations,
     origins (N, 3) the rays' origins and points_centred (N, 3) the points less their frame's
     centroid (for re-solving the frames, `nonlinear.py`)."""
@@ -165,8 +175,8 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     cameras (N,) names, uv (N, 2) px, origins, directions (N, 3) rig frame, points (N, 3) world,
     frame_index (N,) ascending with every frame present, R (F, 3, 3), t (F, 3) rig_from_world,
     groups (F,) the frames' groups, point_ids (N,), object_space: the poses minimise the paper's
-    eq. objfun (True) or the angular residuals (False); point_sigma_m (N,) the survey sigma of each
-    observation's point (NaN where not given); calibration_covariance (11 C, 11 C) of the rig cameras'
+    eq. objfun (True) or the angular residuals (False); point_sigma_m (N, 3) or (N,) (all axes) the
+    survey sigma of each observation's point along x, y, z (NaN where not given); calibration_covariance (11 C, 11 C) of the rig cameras'
     CALIBRATION_PARAMETERS (Geometry; rotations rx, ry, rz in rad about the rig's axes, the camera
     centre vx, vy, vz in the rig, m), None: 0.
     """
@@ -202,7 +212,8 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     calibration_covariance = np.zeros((n_parameters, n_parameters)) if calibration_covariance is None \
         else np.asarray(calibration_covariance, dtype=float)
     calibration = _calibration_effects(rig, names, cameras, uv, bases, unit, dr_dp, np.diag(calibration_covariance))
-    point_sigma = np.full(len(points), np.nan) if point_sigma_m is None else np.asarray(point_sigma_m, float)
+    point_sigma = np.full((len(points), 3), np.nan) if point_sigma_m is None else \
+        np.broadcast_to(np.asarray(point_sigma_m, float).reshape(len(points), -1), (len(points), 3)).copy()
     return Geometry(J=J, weight=weight, A_inverse=inverse_normal_matrices(A), residual=residual,
                     focal=np.array([rig.cameras[n].fx for n in names])[camera], frame=np.asarray(frame_index),
                     starts=np.searchsorted(frame_index, np.arange(n_frames)), camera=camera,
@@ -278,7 +289,9 @@ class Statistics:
                     non-reference camera explain (least squares, frame by frame; jitter, mounting);
         T_pixel     what remains (q), less T_point (pixel noise);
         T_point     the part of q that a constant per (group, point) explains, points seen in 2
-                    frames or more (survey);
+                    frames or more, across the direction in which a height error moves the
+                    point's image (horizontal survey);
+        T_vertical  that constant's part along it (vertical survey);
         T_group     per group, the part that one rotation per non-reference camera for all its
                     frames explains beyond each frame's pose (mounting);
         T_focal     the part of q that one focal change per (group, camera) explains (focal).
@@ -287,7 +300,7 @@ class Statistics:
     swamped by the sampling noise of the large ones.
     """
 
-    NAMES = ("rotation", "pixel", "point", "group", "focal")
+    NAMES = ("rotation", "pixel", "point", "vertical", "group", "focal")
 
     def __init__(self, geometry: Geometry):
         g = self.geometry = geometry
@@ -312,6 +325,7 @@ class Statistics:
         group_point = _dense(g.group * (int(g.point.max()) + 1 if len(g.point) else 1) + g.point)
         repeated = np.bincount(group_point)[group_point] >= 2 if len(g.point) else np.zeros(0, bool)
         self.point = np.where(repeated, group_point, -1)  # points seen in 2 frames or more
+        self.vertical = _block_directions(g.survey[:, :, 2] * g.focal[:, None], self.point)
         self.group_camera = _dense(g.group * cameras + g.camera)
 
     def _columns(self, rows: np.ndarray) -> np.ndarray:
@@ -341,7 +355,7 @@ class Statistics:
         return normal
 
     def __call__(self, residuals: np.ndarray) -> np.ndarray:
-        """(5,) the statistics (NAMES) of residuals (N, 2) rad."""
+        """(6,) the statistics (NAMES) of residuals (N, 2) rad."""
         g = self.geometry
         s = residuals * g.focal[:, None]
         products = np.concatenate([np.einsum("nki,nk->ni", self.pose_rows, s),
@@ -356,10 +370,10 @@ class Statistics:
         fitted = np.einsum("nki,ni->nk", self.pose_rows, coefficients[g.frame, :6]) + \
             np.einsum("nki,ni->nk", self.rotation_rows, own)
         rest = s - fitted
-        point = _constant_explained(rest, self.point)
+        point, vertical = _constant_explained(rest, self.point, self.vertical)
         within = float(np.sum(rest * rest))
-        return np.array([float(np.sum(s * s)) - within, within - point, point, self._group(columns),
-                         _focal_explained(rest, self.focal_rows, self.group_camera)])
+        return np.array([float(np.sum(s * s)) - within, within - point, point - vertical, vertical,
+                         self._group(columns), _focal_explained(rest, self.focal_rows, self.group_camera)])
 
     def _group(self, columns: np.ndarray) -> float:
         """T_group from the frames' right-hand sides (F, width): per group, the pixels that one
@@ -373,14 +387,26 @@ class Statistics:
         return float(np.einsum("gi,gij,gj->", right, self.group_inverse, right))
 
 
-def _constant_explained(values: np.ndarray, key: np.ndarray) -> float:
-    """sum over blocks of ||sum of the block's values||^2 / its rows: the part of values (N, k) that a
-    constant per block (key (N,), -1: none) explains."""
+def _constant_explained(values: np.ndarray, key: np.ndarray, direction: np.ndarray) -> tuple[float, float]:
+    """The part of values (N, 2) that a constant per block (key (N,), -1: none) explains (sum over
+    blocks of ||sum of the block's values||^2 / its rows), and the part of it along each block's
+    unit direction (B, 2)."""
     keep = key >= 0
     if not keep.any():
-        return 0.0
+        return 0.0, 0.0
     sums = _sum_by(values[keep], key[keep], int(key.max()) + 1)
-    return float(np.sum(np.sum(sums * sums, axis=1) / np.maximum(np.bincount(key[keep]), 1)))
+    rows = np.maximum(np.bincount(key[keep]), 1)
+    along = np.einsum("bk,bk->b", sums, direction)
+    return float(np.sum(np.sum(sums * sums, axis=1) / rows)), float(np.sum(along**2 / rows))
+
+
+def _block_directions(values: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """(B, 2) the unit direction of the sum of values (N, 2) per block (key (N,), -1: none; B blocks),
+    0 where that sum is 0."""
+    keep = key >= 0
+    sums = _sum_by(values[keep], key[keep], int(key.max()) + 1 if keep.any() else 0)
+    norm = np.linalg.norm(sums, axis=1)
+    return np.divide(sums, norm[:, None], out=np.zeros_like(sums), where=norm[:, None] > 0)
 
 
 def _focal_explained(values: np.ndarray, rows: np.ndarray, key: np.ndarray) -> float:
@@ -403,16 +429,16 @@ def estimation_frames(n_frames: int) -> np.ndarray:
 
 def unit_draw(geometry: Geometry, name: str, rng: np.random.Generator, gaussian: bool = False) -> np.ndarray:
     """Errors (N, 2) rad of one draw of component `name` with unit variance (1 px, 1 m, 1 rad, 1
-    relative focal change), Rademacher (the least-variance trace estimate) or Gaussian; survey only
-    on the points whose sigma is not given."""
+    relative focal change), Rademacher (the least-variance trace estimate) or Gaussian; the survey
+    components along their SURVEY_AXES where the point's sigma is not given."""
     g = geometry
     signs = (lambda *shape: rng.normal(size=shape)) if gaussian else \
         (lambda *shape: rng.integers(0, 2, shape) * 2.0 - 1.0)
     n = len(g.frame)
     if name == "pixel":
         return signs(n, 2) / g.focal[:, None]
-    if name == "survey":
-        return _survey_draw(g, signs, np.isnan(g.point_sigma).astype(float))
+    if name in SURVEY_AXES:
+        return _survey_draw(g, signs, np.isnan(g.point_sigma) * SURVEY_AXES[name])
     n_cameras = int(g.camera.max()) + 1 if n else 1
     if name in ("jitter", "mounting"):
         key = _dense(np.where(g.reference, -1, (g.frame if name == "jitter" else g.group) * n_cameras + g.camera))
@@ -431,15 +457,16 @@ def fixed_survey_draw(geometry: Geometry, rng: np.random.Generator) -> np.ndarra
 
 
 def _survey_draw(g: Geometry, signs, scale: np.ndarray) -> np.ndarray:
-    """Errors (N, 2) of one draw `signs(P, 3)` of the points' moves, scaled per row by scale (N,)."""
-    moves = signs(int(g.point.max()) + 1 if len(g.point) else 0, 3)[g.point] * scale[:, None]
+    """Errors (N, 2) of one draw `signs(P, 3)` of the points' moves, scaled per row and axis by scale (N, 3)."""
+    moves = signs(int(g.point.max()) + 1 if len(g.point) else 0, 3)[g.point] * scale
     return np.einsum("nkj,nj->nk", g.survey, moves)
 
 
 def survey_sigma(point_sigma: np.ndarray, model: ErrorModel) -> np.ndarray:
-    """(N,) m: each observation's survey sigma per axis, its point's own `sigma_m` (point_sigma (N,),
-    NaN where not given) or else the model's survey term."""
-    return np.where(np.isnan(point_sigma), model.si("survey"), np.nan_to_num(point_sigma))
+    """(N, 3) m: each observation's survey sigma along x, y, z, its point's own (point_sigma (N, 3),
+    NaN where not given) or else the model's survey terms (horizontal, vertical)."""
+    model_sigma = np.array([model.si("survey"), model.si("survey"), model.si("survey_vertical")])
+    return np.where(np.isnan(point_sigma), model_sigma, np.nan_to_num(point_sigma))
 
 
 def model_draw(geometry: Geometry, model: ErrorModel, rng: np.random.Generator,
@@ -489,7 +516,9 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     settings = {k: v for k, v in (settings or {}).items() if v is not None and np.isfinite(v)}
     settings.setdefault("calibration", 1.0)
     priors = {k: float(v) for k, v in (priors or {}).items() if k not in settings}
-    free = [name for name in COMPONENTS[:5] if name not in settings]
+    if "survey" in settings:  # a survey sigma set alone is that of every axis
+        settings.setdefault("survey_vertical", settings["survey"])
+    free = [name for name in RANDOM if name not in settings]
     source = {name: "set" for name in settings}
     sigma = {name: float(settings.get(name, 0.0)) for name in COMPONENTS}
     if g.dof < MIN_DEGREES_OF_FREEDOM:
@@ -497,30 +526,34 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
             sigma[name], source[name] = (priors[name], "prior") if name in priors else (0.0, "not estimable")
         if "pixel" in free and np.isfinite(fallback_pixel_px):
             sigma["pixel"], source["pixel"] = float(fallback_pixel_px), "calibration"
+        _vertical_like_horizontal(sigma, source, priors, {})
         return ErrorModel(sigma, source, g.dof)
     statistics = Statistics(g)
     rng = np.random.default_rng(seed)
     expected, visible = {}, {}
-    for name in COMPONENTS[:5]:
+    for name in RANDOM:
         errors = [unit_draw(g, name, rng) for _ in range(DRAWS)]
         expected[name] = np.mean([statistics(solve_response(g, e)) for e in errors], axis=0)
         raw = np.mean([np.sum((e * g.focal[:, None]) ** 2) for e in errors])
         visible[name] = expected[name].sum() / raw if raw > 0 else 0.0
-    known = sum((statistics(solve_response(g, e)) for e in calibration_errors(g)), np.zeros(5)) \
+    known = sum((statistics(solve_response(g, e)) for e in calibration_errors(g)), np.zeros(len(Statistics.NAMES))) \
         * settings["calibration"] ** 2
     if np.isfinite(g.point_sigma).any():
         known += np.mean([statistics(solve_response(g, fixed_survey_draw(g, rng)))
                           for _ in range(DRAWS)], axis=0)
-    for name in COMPONENTS[:5]:
+    for name in RANDOM:
         if name in settings:
             known += expected[name] * (settings[name] * _TO_SI[name]) ** 2
     observed = statistics(g.residual)
     total = observed.sum()
     estimable = [name for name in free if visible[name] > MIN_VISIBLE]
 
+    bounds = {}
+
     def untold(name: str, why: str, upper: float = np.inf) -> None:
         """0 for the estimation; its prior, at most the data's bound `upper` (UNITS), for the sigmas."""
         sigma[name], source[name] = (min(priors[name], upper), "prior") if name in priors else (0.0, why)
+        bounds[name] = upper
 
     for name in free:
         if name not in estimable:
@@ -545,13 +578,23 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
         untold(name, "not significant", np.sqrt(variances[k] + SIGNIFICANCE * errors[k]) / _TO_SI[name])
     for name, variance in zip(estimable, variances if estimable else []):
         sigma[name], source[name] = float(np.sqrt(variance)) / _TO_SI[name], "estimated"
+    _vertical_like_horizontal(sigma, source, priors, bounds)
     if "pixel" in free and sigma["pixel"] < fallback_pixel_px:
         sigma["pixel"], source["pixel"] = float(fallback_pixel_px), "calibration"
     return ErrorModel(sigma, source, g.dof)
 
 
+def _vertical_like_horizontal(sigma: dict, source: dict, priors: dict, bounds: dict) -> None:
+    """The vertical survey term the residuals cannot tell and that has no prior of its own: the
+    horizontal one (at most the data's bound), source 'prior'."""
+    name = "survey_vertical"
+    if source.get(name) in ("not estimable", "not significant") and name not in priors \
+            and source.get("survey") in ("estimated", "prior"):
+        sigma[name], source[name] = min(sigma["survey"], bounds.get(name, np.inf)), "prior"
+
+
 def _spread(g: Geometry, statistics: Statistics, variances: dict[str, float], rng) -> np.ndarray:
-    """(5,) the standard deviations of the statistics under the model `variances` (SI), by drawing
+    """(6,) the standard deviations of the statistics under the model `variances` (SI), by drawing
     all its components together DRAWS times (Gaussian, as the errors are taken to be)."""
     samples = []
     for _ in range(DRAWS):
@@ -594,12 +637,13 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
 
     pixel = per_observation(np.broadcast_to(np.eye(2), (len(g.frame), 2, 2)) / g.focal[:, None, None],
                             np.full(len(g.frame), model.si("pixel") ** 2))
-    point_variance = survey_sigma(g.point_sigma, model) ** 2
+    point_sigma = survey_sigma(g.point_sigma, model)
     rotation_sigma = np.hypot(model.si("jitter"), model.si("mounting"))
     moving = np.where(np.bincount(frame_camera, g.reference, minlength=len(block_frame)) > 0, 0.0, rotation_sigma)
     covariances = {
         "pixel": pixel,
-        "survey": per_observation(g.survey, point_variance),
+        "survey": per_observation(g.survey[:, :, :2] * point_sigma[:, None, :2], np.ones(len(g.frame))),
+        "survey_vertical": per_observation(g.survey[:, :, 2:] * point_sigma[:, None, 2:], np.ones(len(g.frame))),
         "rotation": per_block(g.rotation, np.repeat(moving[:, None], 3, axis=1)),
         "focal": per_block(g.focal_effect[:, :, None], np.full((len(block_frame), 1), model.si("focal"))),
         "calibration": calibration(),

@@ -44,8 +44,8 @@ def observation_noise(geometry: Geometry, model: ErrorModel) -> np.ndarray:
     calibration) move all points of a camera together, and a frame's pose absorbs most of them:
     they are not the noise against which its fit's curvature shows."""
     g = geometry
-    survey = survey_sigma(g.point_sigma, model)
-    return np.sqrt((model.si("pixel") / g.focal) ** 2 + survey**2 * np.sum(g.survey**2, axis=(1, 2)) / 2)
+    survey = survey_sigma(g.point_sigma, model)  # (N, 3)
+    return np.sqrt((model.si("pixel") / g.focal) ** 2 + np.sum(survey**2 * np.sum(g.survey**2, axis=1), axis=1) / 2)
 
 
 def curvature_index(geometry: Geometry, covariance: np.ndarray, noise: np.ndarray) -> np.ndarray:

@@ -24,7 +24,7 @@ from ..calib.intrinsics import (METHODS, TABLE_COLUMNS, IntrinsicsResult, Plausi
                                 calibrate_camera_dlt_lm, calibrate_camera_opencv, check_plausible)
 from ..calib.import_intrinsics import (DEFAULT_MAX_RESIDUAL_PX, ForeignCamera, imported_record, one_coefficient_camera,
                                        read_colmap_cameras, read_opencv_file)
-from ..dataset import point_sigma
+from ..dataset import largest_point_sigma
 from ..errors import DmaisError
 from ..workspace import CALIBRATION_RESIDUAL_COLUMNS, Workspace
 from . import setting
@@ -199,11 +199,11 @@ def residual_table(dataset, result: IntrinsicsResult, observations: pd.DataFrame
 
 def _per_image(observations: pd.DataFrame, points: pd.DataFrame, images) -> tuple[dict, dict, dict]:
     """Per image: world points (n, 3), pixels (n, 2) and (point ids (n,), survey sigmas (n,)) (the
-    points' `sigma_m`, 0 where not given) of its observations."""
+    points' largest survey sigma, dataset.largest_point_sigma) of its observations."""
     X, uv, survey = {}, {}, {}
     for image in images:
         obs = observations[observations["image"] == image]
         X[image] = points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(dtype=float)
         uv[image] = obs[["u", "v"]].to_numpy(dtype=float)
-        survey[image] = (obs["point_id"].to_numpy(dtype=str), np.nan_to_num(point_sigma(points, obs["point_id"])))
+        survey[image] = (obs["point_id"].to_numpy(dtype=str), largest_point_sigma(points, obs["point_id"]))
     return X, uv, survey

@@ -161,7 +161,7 @@ def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise:
         pixel = max(model.sigma["pixel"], calibrated_noise if np.isfinite(calibrated_noise) else 0.0,
                     WATCH_MIN_PIXEL_PX)
         rotation = float(np.hypot(model.sigma["jitter"], model.sigma["mounting"]))
-        survey = np.repeat(survey_sigma(point_sigma(points, rows["point_id"]), model)[:, None], 3, axis=1)
+        survey = survey_sigma(point_sigma(points, rows["point_id"]), model)
         R = rotation_from_quat(frames[list(QUAT)].to_numpy(float))
         centres = {} if lever_arm is None else {
             "center_prior_m": pos.loc[frames["frame"]].to_numpy(float) - np.einsum("fji,j->fi", R, lever_arm),
