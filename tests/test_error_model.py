@@ -136,12 +136,12 @@ def test_estimation_recovers_known_components_from_drawn_residuals():
     for draw in range(12):
         errors = sum(em.unit_draw(g, name, rng) * TRUE[name] * em._TO_SI[name] for name in TRUE)
         drawn = dataclasses.replace(g, residual=em.solve_response(g, errors))
-        model = em.estimate(drawn, {"calibration": 0.0}, seed=draw)
-        assert model.source["pixel"] == model.source["survey"] == model.source["survey_vertical"] == "estimated"
+        model = em.estimate(drawn, {"calibration": 0.0, "survey_vertical": TRUE["survey_vertical"]}, seed=draw)
+        assert model.source["pixel"] == model.source["survey"] == "estimated"
         assert {model.source[name] for name in ("jitter", "mounting", "focal")} <= {"estimated", "not significant"}
         estimates.append([model.sigma[name] ** 2 for name in TRUE])
     rms = dict(zip(TRUE, np.sqrt(np.mean(estimates, axis=0))))
-    for name in ("pixel", "survey", "survey_vertical"):
+    for name in ("pixel", "survey"):
         assert abs(rms[name] / TRUE[name] - 1) < 0.1, (name, rms[name])
     # a 150 ppm focal change moves the image edge by 0.3 px, under the 2.6 px survey errors: it is
     # not significant, and must not come out inflated
@@ -172,25 +172,30 @@ def test_a_reference_camera_alone_has_no_rotation_terms_and_its_focal_change_is_
     assert np.all(parts["jitter"] == 0) and np.all(parts["mounting"] == 0)
 
 
-def test_a_height_error_the_residuals_cannot_tell_takes_the_horizontal_survey_sigma():
-    """A nadir camera alone hardly sees heights: the vertical survey term is the horizontal one
-    (at most what the data allow); with the tilted cameras it is estimated, also when it is 0."""
+def test_the_survey_is_one_sigma_for_all_axes_unless_its_vertical_is_given():
+    """Residuals of a survey 2 cm horizontal, 4 cm vertical: with the vertical given (a setting or
+    every point's sigma_z_m) the horizontal comes out; without, one sigma for the three axes
+    between the two."""
+    g = hover_geometry(11)
     rng = np.random.default_rng(12)
-    for cameras, vertical in (([0], 0.04), (range(5), 0.04), (range(5), 0.0)):
-        g = hover_geometry(11, cameras=cameras)
+    horizontal, vertical = [], []
+    for draw in range(6):
         errors = em.unit_draw(g, "pixel", rng) * 0.3 + em.unit_draw(g, "survey", rng) * 0.02 + \
-            em.unit_draw(g, "survey_vertical", rng) * vertical
-        model = em.estimate(dataclasses.replace(g, residual=em.solve_response(g, errors)), {"calibration": 0.0})
-        assert model.source["survey"] == "estimated" and abs(model.sigma["survey"] / 0.02 - 1) < 0.15
-        if len(cameras) == 1:
-            assert model.source["survey_vertical"] == "prior"
-            assert model.sigma["survey_vertical"] == model.sigma["survey"]
-        elif vertical:
-            assert model.source["survey_vertical"] == "estimated"
-            assert abs(model.sigma["survey_vertical"] / vertical - 1) < 0.15
-        else:  # not significant: at most its estimate plus 2 standard errors, under the horizontal one
-            assert model.source["survey_vertical"] == "prior"
-            assert model.sigma["survey_vertical"] < model.sigma["survey"]
+            em.unit_draw(g, "survey_vertical", rng) * 0.04
+        drawn = dataclasses.replace(g, residual=em.solve_response(g, errors))
+        tied = em.estimate(drawn, {"calibration": 0.0}, seed=draw)
+        assert tied.source["survey_vertical"] == tied.source["survey"] == "estimated"
+        assert tied.sigma["survey_vertical"] == tied.sigma["survey"]
+        vertical.append(tied.sigma["survey"])
+        given = em.estimate(drawn, {"calibration": 0.0, "survey_vertical": 0.04}, seed=draw)
+        assert given.source["survey"] == "estimated" and given.source["survey_vertical"] == "set"
+        per_point = dataclasses.replace(drawn, point_sigma=np.where([False, False, True], 0.04, np.nan) *
+                                        np.ones((len(g.frame), 1)))
+        from_points = em.estimate(per_point, {"calibration": 0.0}, seed=draw)
+        assert abs(from_points.sigma["survey"] / given.sigma["survey"] - 1) < 0.1
+        horizontal.append(given.sigma["survey"])
+    assert abs(np.sqrt(np.mean(np.square(horizontal))) / 0.02 - 1) < 0.1
+    assert 0.022 < np.sqrt(np.mean(np.square(vertical))) < 0.04
 
 
 def test_too_few_observations_fall_back_to_the_calibrated_pixel_noise():

@@ -18,7 +18,11 @@ frame, R the frame's rig_from_world):
                                                         d, rotation, centre) of all cameras
 
 The survey error's horizontal (world x, y: component `survey`) and vertical (z:
-`survey_vertical`) sigmas are two components, as RTK gives them (its height is worse). Jitter is
+`survey_vertical`) sigmas are two components, as RTK reports give them (its height is worse);
+unless the vertical is given (a setting, or ground_points.csv's `sigma_z_m`) the two are one
+sigma, estimated for all three axes: estimated apart from one group's points (40 on the
+paper-scale run) the split was too uncertain to use (horizontal 0.87-1.71 cm where the groups'
+points had 1.20-1.60). Jitter is
 the camera's vibration within a frame (every point of that camera moves together),
 mounting its rotation against the calibrated rig during a group, focal its focal-length change
 (a thermal focus change, or the calibration's own focal error: both scale the image about the
@@ -37,8 +41,7 @@ r = e - J A^-1 sum_i w_i J_i^T e_i per frame (J, w, A as uncertainty.py), so eac
 estimated by Monte Carlo trace estimation (Rademacher draws of each component through the same
 linear solve, Koch & Kusche 2002, J. Geodesy 76: 641-652), the calibration's exactly (its few
 parameters one at a time). The statistics separate the components by their structure: pixel
-noise is what no structure explains; survey what repeats per point (its vertical part along the
-direction in which a height error moves that point's image, the horizontal the rest); jitter what moves a camera's
+noise is what no structure explains; survey what repeats per point; jitter what moves a camera's
 points together in one frame only; mounting and focal what does so in every frame of the group.
 
 The system is solved for the free components by non-negative least squares, each statistic
@@ -47,8 +50,7 @@ weighted by its spread under a first fit (drawn, `_spread`). A component that th
 standard errors is not significant (the least significant is dropped and the rest estimated
 again); both are 0 for the others' estimation, and in the sigmas their prior where one is given
 (`estimate`'s priors; for a not significant one at most its estimate plus SIGNIFICANCE standard
-errors), else 0; the vertical survey's prior is the horizontal one (a nadir camera hardly sees
-heights). Jitter and
+errors), else 0. Jitter and
 mounting act alike on one frame, so their sum is far better determined than their split; the
 sigmas use the sum. A mounting change hardly shows in one group's residuals (the pose and the
 same points' survey errors absorb it) yet moves the whole rig's position: 0.45' of it moved a
@@ -289,9 +291,7 @@ class Statistics:
                     non-reference camera explain (least squares, frame by frame; jitter, mounting);
         T_pixel     what remains (q), less T_point (pixel noise);
         T_point     the part of q that a constant per (group, point) explains, points seen in 2
-                    frames or more, across the direction in which a height error moves the
-                    point's image (horizontal survey);
-        T_vertical  that constant's part along it (vertical survey);
+                    frames or more (survey);
         T_group     per group, the part that one rotation per non-reference camera for all its
                     frames explains beyond each frame's pose (mounting);
         T_focal     the part of q that one focal change per (group, camera) explains (focal).
@@ -300,7 +300,7 @@ class Statistics:
     swamped by the sampling noise of the large ones.
     """
 
-    NAMES = ("rotation", "pixel", "point", "vertical", "group", "focal")
+    NAMES = ("rotation", "pixel", "point", "group", "focal")
 
     def __init__(self, geometry: Geometry):
         g = self.geometry = geometry
@@ -325,7 +325,6 @@ class Statistics:
         group_point = _dense(g.group * (int(g.point.max()) + 1 if len(g.point) else 1) + g.point)
         repeated = np.bincount(group_point)[group_point] >= 2 if len(g.point) else np.zeros(0, bool)
         self.point = np.where(repeated, group_point, -1)  # points seen in 2 frames or more
-        self.vertical = _block_directions(g.survey[:, :, 2] * g.focal[:, None], self.point)
         self.group_camera = _dense(g.group * cameras + g.camera)
 
     def _columns(self, rows: np.ndarray) -> np.ndarray:
@@ -355,7 +354,7 @@ class Statistics:
         return normal
 
     def __call__(self, residuals: np.ndarray) -> np.ndarray:
-        """(6,) the statistics (NAMES) of residuals (N, 2) rad."""
+        """(5,) the statistics (NAMES) of residuals (N, 2) rad."""
         g = self.geometry
         s = residuals * g.focal[:, None]
         products = np.concatenate([np.einsum("nki,nk->ni", self.pose_rows, s),
@@ -370,10 +369,10 @@ class Statistics:
         fitted = np.einsum("nki,ni->nk", self.pose_rows, coefficients[g.frame, :6]) + \
             np.einsum("nki,ni->nk", self.rotation_rows, own)
         rest = s - fitted
-        point, vertical = _constant_explained(rest, self.point, self.vertical)
+        point = _constant_explained(rest, self.point)
         within = float(np.sum(rest * rest))
-        return np.array([float(np.sum(s * s)) - within, within - point, point - vertical, vertical,
-                         self._group(columns), _focal_explained(rest, self.focal_rows, self.group_camera)])
+        return np.array([float(np.sum(s * s)) - within, within - point, point, self._group(columns),
+                         _focal_explained(rest, self.focal_rows, self.group_camera)])
 
     def _group(self, columns: np.ndarray) -> float:
         """T_group from the frames' right-hand sides (F, width): per group, the pixels that one
@@ -387,26 +386,14 @@ class Statistics:
         return float(np.einsum("gi,gij,gj->", right, self.group_inverse, right))
 
 
-def _constant_explained(values: np.ndarray, key: np.ndarray, direction: np.ndarray) -> tuple[float, float]:
-    """The part of values (N, 2) that a constant per block (key (N,), -1: none) explains (sum over
-    blocks of ||sum of the block's values||^2 / its rows), and the part of it along each block's
-    unit direction (B, 2)."""
+def _constant_explained(values: np.ndarray, key: np.ndarray) -> float:
+    """sum over blocks of ||sum of the block's values||^2 / its rows: the part of values (N, k) that a
+    constant per block (key (N,), -1: none) explains."""
     keep = key >= 0
     if not keep.any():
-        return 0.0, 0.0
+        return 0.0
     sums = _sum_by(values[keep], key[keep], int(key.max()) + 1)
-    rows = np.maximum(np.bincount(key[keep]), 1)
-    along = np.einsum("bk,bk->b", sums, direction)
-    return float(np.sum(np.sum(sums * sums, axis=1) / rows)), float(np.sum(along**2 / rows))
-
-
-def _block_directions(values: np.ndarray, key: np.ndarray) -> np.ndarray:
-    """(B, 2) the unit direction of the sum of values (N, 2) per block (key (N,), -1: none; B blocks),
-    0 where that sum is 0."""
-    keep = key >= 0
-    sums = _sum_by(values[keep], key[keep], int(key.max()) + 1 if keep.any() else 0)
-    norm = np.linalg.norm(sums, axis=1)
-    return np.divide(sums, norm[:, None], out=np.zeros_like(sums), where=norm[:, None] > 0)
+    return float(np.sum(np.sum(sums * sums, axis=1) / np.maximum(np.bincount(key[keep]), 1)))
 
 
 def _focal_explained(values: np.ndarray, rows: np.ndarray, key: np.ndarray) -> float:
@@ -518,7 +505,9 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     priors = {k: float(v) for k, v in (priors or {}).items() if k not in settings}
     if "survey" in settings:  # a survey sigma set alone is that of every axis
         settings.setdefault("survey_vertical", settings["survey"])
-    free = [name for name in RANDOM if name not in settings]
+    tied = "survey_vertical" not in settings  # one survey sigma for all three axes (module docstring)
+    modelled = [name for name in RANDOM if not (tied and name == "survey_vertical")]
+    free = [name for name in modelled if name not in settings]
     source = {name: "set" for name in settings}
     sigma = {name: float(settings.get(name, 0.0)) for name in COMPONENTS}
     if g.dof < MIN_DEGREES_OF_FREEDOM:
@@ -526,13 +515,12 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
             sigma[name], source[name] = (priors[name], "prior") if name in priors else (0.0, "not estimable")
         if "pixel" in free and np.isfinite(fallback_pixel_px):
             sigma["pixel"], source["pixel"] = float(fallback_pixel_px), "calibration"
-        _vertical_like_horizontal(sigma, source, priors, {})
-        return ErrorModel(sigma, source, g.dof)
+        return _tied(ErrorModel(sigma, source, g.dof), tied)
     statistics = Statistics(g)
     rng = np.random.default_rng(seed)
     expected, visible = {}, {}
-    for name in RANDOM:
-        errors = [unit_draw(g, name, rng) for _ in range(DRAWS)]
+    for name in modelled:
+        errors = [_component_draw(g, name, rng, tied) for _ in range(DRAWS)]
         expected[name] = np.mean([statistics(solve_response(g, e)) for e in errors], axis=0)
         raw = np.mean([np.sum((e * g.focal[:, None]) ** 2) for e in errors])
         visible[name] = expected[name].sum() / raw if raw > 0 else 0.0
@@ -541,19 +529,17 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     if np.isfinite(g.point_sigma).any():
         known += np.mean([statistics(solve_response(g, fixed_survey_draw(g, rng)))
                           for _ in range(DRAWS)], axis=0)
-    for name in RANDOM:
+    for name in modelled:
         if name in settings:
             known += expected[name] * (settings[name] * _TO_SI[name]) ** 2
     observed = statistics(g.residual)
     total = observed.sum()
     estimable = [name for name in free if visible[name] > MIN_VISIBLE]
 
-    bounds = {}
 
     def untold(name: str, why: str, upper: float = np.inf) -> None:
         """0 for the estimation; its prior, at most the data's bound `upper` (UNITS), for the sigmas."""
         sigma[name], source[name] = (min(priors[name], upper), "prior") if name in priors else (0.0, why)
-        bounds[name] = upper
 
     for name in free:
         if name not in estimable:
@@ -564,7 +550,8 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
         if weight is None:  # each statistic weighted by its spread under the first fit of every component
             scale = 1.0 / np.maximum(observed, MIN_EFFECT * total)
             first = nnls(design * scale[:, None], (observed - known) * scale)[0]
-            weight = 1.0 / np.maximum(_spread(g, statistics, dict(zip(estimable, first)), rng), MIN_EFFECT * total)
+            spread = _spread(g, statistics, dict(zip(estimable, first)), rng, tied)
+            weight = 1.0 / np.maximum(spread, MIN_EFFECT * total)
         variances = nnls(design * weight[:, None], (observed - known) * weight)[0]
         information = (design * weight[:, None]).T @ (design * weight[:, None])
         errors = np.sqrt(np.clip(np.diag(np.linalg.pinv(information)), 0.0, None))
@@ -578,27 +565,34 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
         untold(name, "not significant", np.sqrt(variances[k] + SIGNIFICANCE * errors[k]) / _TO_SI[name])
     for name, variance in zip(estimable, variances if estimable else []):
         sigma[name], source[name] = float(np.sqrt(variance)) / _TO_SI[name], "estimated"
-    _vertical_like_horizontal(sigma, source, priors, bounds)
     if "pixel" in free and sigma["pixel"] < fallback_pixel_px:
         sigma["pixel"], source["pixel"] = float(fallback_pixel_px), "calibration"
-    return ErrorModel(sigma, source, g.dof)
+    return _tied(ErrorModel(sigma, source, g.dof), tied)
 
 
-def _vertical_like_horizontal(sigma: dict, source: dict, priors: dict, bounds: dict) -> None:
-    """The vertical survey term the residuals cannot tell and that has no prior of its own: the
-    horizontal one (at most the data's bound), source 'prior'."""
+def _component_draw(g: Geometry, name: str, rng: np.random.Generator, tied: bool, gaussian: bool = False) -> np.ndarray:
+    """unit_draw of component `name`; with `tied` the survey's moves all three axes."""
+    errors = unit_draw(g, name, rng, gaussian)
+    if tied and name == "survey":
+        errors = errors + unit_draw(g, "survey_vertical", rng, gaussian)
+    return errors
+
+
+def _tied(model: ErrorModel, tied: bool) -> ErrorModel:
+    """model with, if tied, the vertical survey term the horizontal one, from the same source."""
+    if not tied:
+        return model
     name = "survey_vertical"
-    if source.get(name) in ("not estimable", "not significant") and name not in priors \
-            and source.get("survey") in ("estimated", "prior"):
-        sigma[name], source[name] = min(sigma["survey"], bounds.get(name, np.inf)), "prior"
+    return ErrorModel({**model.sigma, name: model.sigma["survey"]}, {**model.source, name: model.source["survey"]},
+                      model.dof)
 
 
-def _spread(g: Geometry, statistics: Statistics, variances: dict[str, float], rng) -> np.ndarray:
-    """(6,) the standard deviations of the statistics under the model `variances` (SI), by drawing
+def _spread(g: Geometry, statistics: Statistics, variances: dict[str, float], rng, tied: bool) -> np.ndarray:
+    """(5,) the standard deviations of the statistics under the model `variances` (SI), by drawing
     all its components together DRAWS times (Gaussian, as the errors are taken to be)."""
     samples = []
     for _ in range(DRAWS):
-        errors = sum(unit_draw(g, name, rng, gaussian=True) * np.sqrt(v) for name, v in variances.items())
+        errors = sum(_component_draw(g, name, rng, tied, gaussian=True) * np.sqrt(v) for name, v in variances.items())
         samples.append(statistics(solve_response(g, errors)))
     return np.std(samples, axis=0, ddof=1)
 
