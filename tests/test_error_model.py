@@ -198,6 +198,22 @@ def test_the_survey_is_one_sigma_for_all_axes_unless_its_vertical_is_given():
     assert 0.022 < np.sqrt(np.mean(np.square(vertical))) < 0.04
 
 
+def test_a_mounting_under_the_calibrations_own_rotation_errors_is_not_ruled_out():
+    """A group's 0.15' mounting and one draw of the calibration (whose camera rotations, 0.1-0.17',
+    look like a mounting) in the residuals: the mounting is not significant, and the data cannot
+    bound it below its prior, since the calibration's draw counts in the estimate's spread (with
+    its expectation alone subtracted, the bound came out 0.002-0.014')."""
+    g = hover_geometry(13)
+    axes = em.calibration_errors(g)
+    rng = np.random.default_rng(2)
+    for draw in range(8):
+        errors = em.unit_draw(g, "pixel", rng, gaussian=True) * 0.3 + sum(a * rng.normal() for a in axes) + \
+            em.unit_draw(g, "mounting", rng, gaussian=True) * 0.15 * em.ARCMIN
+        model = em.estimate(dataclasses.replace(g, residual=em.solve_response(g, errors)), seed=draw,
+                            priors={"mounting": 0.15})
+        assert model.sigma["mounting"] >= 0.15, (draw, model.sigma["mounting"], model.source["mounting"])
+
+
 def test_too_few_observations_fall_back_to_the_calibrated_pixel_noise():
     g = hover_geometry(8)
     first = g.frame == 0

@@ -524,7 +524,8 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
         expected[name] = np.mean([statistics(solve_response(g, e)) for e in errors], axis=0)
         raw = np.mean([np.sum((e * g.focal[:, None]) ** 2) for e in errors])
         visible[name] = expected[name].sum() / raw if raw > 0 else 0.0
-    known = sum((statistics(solve_response(g, e)) for e in calibration_errors(g)), np.zeros(len(Statistics.NAMES))) \
+    axes = calibration_errors(g)
+    known = sum((statistics(solve_response(g, e)) for e in axes), np.zeros(len(Statistics.NAMES))) \
         * settings["calibration"] ** 2
     if np.isfinite(g.point_sigma).any():
         known += np.mean([statistics(solve_response(g, fixed_survey_draw(g, rng)))
@@ -550,7 +551,9 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
         if weight is None:  # each statistic weighted by its spread under the first fit of every component
             scale = 1.0 / np.maximum(observed, MIN_EFFECT * total)
             first = nnls(design * scale[:, None], (observed - known) * scale)[0]
-            spread = _spread(g, statistics, dict(zip(estimable, first)), rng, tied)
+            fitted = {**dict(zip(estimable, first)), **{name: (settings[name] * _TO_SI[name]) ** 2
+                                                         for name in modelled if name in settings}}
+            spread = _spread(g, statistics, fitted, rng, tied, [a * settings["calibration"] for a in axes])
             weight = 1.0 / np.maximum(spread, MIN_EFFECT * total)
         variances = nnls(design * weight[:, None], (observed - known) * weight)[0]
         information = (design * weight[:, None]).T @ (design * weight[:, None])
@@ -587,12 +590,18 @@ def _tied(model: ErrorModel, tied: bool) -> ErrorModel:
                       model.dof)
 
 
-def _spread(g: Geometry, statistics: Statistics, variances: dict[str, float], rng, tied: bool) -> np.ndarray:
-    """(5,) the standard deviations of the statistics under the model `variances` (SI), by drawing
-    all its components together DRAWS times (Gaussian, as the errors are taken to be)."""
+def _spread(g: Geometry, statistics: Statistics, variances: dict[str, float], rng, tied: bool,
+            calibration: list[np.ndarray]) -> np.ndarray:
+    """(5,) the standard deviations of the statistics under the model `variances` (SI) with the
+    known terms (calibration: its error (N, 2) along each axis, `calibration_errors`; the points'
+    given survey sigmas), by drawing all together DRAWS times (Gaussian, as the errors are taken to
+    be). The known terms' draws count: the calibration is one draw for the whole flight, and its
+    camera rotations look like a group's mounting, so its spread is that estimate's uncertainty."""
     samples = []
     for _ in range(DRAWS):
         errors = sum(_component_draw(g, name, rng, tied, gaussian=True) * np.sqrt(v) for name, v in variances.items())
+        errors = errors + sum(axis * rng.normal() for axis in calibration) + \
+            _survey_draw(g, lambda *shape: rng.normal(size=shape), np.nan_to_num(g.point_sigma))
         samples.append(statistics(solve_response(g, errors)))
     return np.std(samples, axis=0, ddof=1)
 
