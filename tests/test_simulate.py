@@ -17,9 +17,11 @@ from dmais_pipe.dataset import Dataset
 from dmais_pipe.errors import ConfigError, DmaisError
 from dmais_pipe.geometry import Rigid3, rotation_error
 from dmais_pipe.rig import Rig
-from dmais_pipe.sim.config import DEFAULTS, load_config, merge
+from dmais_pipe.sim.config import DEFAULTS, load_config, merge, settings_to_write
 from dmais_pipe.sim.render import render_image
-from dmais_pipe.sim.simulate import build_world, markers_for, render_settings, simulate, stream, truth_observations
+from dmais_pipe.sim.scene import build_rig, flight_frames
+from dmais_pipe.sim.simulate import (build_world, flight_shots, markers_for, render_settings, simulate, stream,
+                                     truth_observations)
 
 from conftest import observation_only
 
@@ -34,6 +36,11 @@ def write_config(path, settings) -> str:
 @pytest.fixture(scope="module")
 def small_dataset(simulated_dataset):
     return Dataset.load(simulated_dataset(SMALL))
+
+
+def with_flight(settings: dict, **flight) -> dict:
+    """A simulator settings mapping with more flight settings."""
+    return {**settings, "flight": {**settings.get("flight", {}), **flight}}
 
 
 def pose_from_row(row) -> Rigid3:
@@ -201,10 +208,11 @@ def test_flight_noise_budget_gives_the_papers_reprojection_error(tmp_path):
     assert 0.4 < np.std(errors) < 1.6
 
 
-@pytest.mark.parametrize("image", ["extr_p1_C3", "flight_g2_f000_C0", "flight_g3_f001_C2"])
-def test_rendered_marker_centres_are_the_projections(tmp_path, image):
+@pytest.mark.parametrize("pattern, image", [("hover", "extr_p1_C3"), ("hover", "flight_g2_f000_C0"),
+                                            ("hover", "flight_g3_f001_C2"), ("line", "flight_g2_f001_C3")])
+def test_rendered_marker_centres_are_the_projections(tmp_path, pattern, image):
     """Every marker in a rendered image has its X-corner at the projection of its (true) point."""
-    config = load_config(write_config(tmp_path / "r.yaml", SMALL))
+    config = load_config(write_config(tmp_path / "r.yaml", with_flight(SMALL, pattern=pattern)))
     world = build_world(config)
     truth = truth_observations(config, world)
     shot = next(s for s in world["shots"] if s.image == image)
@@ -226,6 +234,13 @@ def test_rendered_marker_centres_are_the_projections(tmp_path, image):
 def test_config_errors(tmp_path):
     with pytest.raises(ConfigError, match="flight.frames_per_grup"):
         load_config(write_config(tmp_path / "bad.yaml", {"flight": {"frames_per_grup": 3}}))
+    with pytest.raises(ConfigError, match="'flight.pattern' is 'zigzag'"):
+        load_config(write_config(tmp_path / "bad.yaml", {"flight": {"pattern": "zigzag"}}))
+    for spacing in (0.0, -5.0, "20 m"):
+        with pytest.raises(ConfigError, match="flight.line_spacing_m"):
+            load_config(write_config(tmp_path / "bad.yaml", {"flight": {"pattern": "line", "line_spacing_m": spacing}}))
+    with pytest.raises(ConfigError, match="flight.pattern"):  # settings that never went through load_config
+        flight_frames(merge(DEFAULTS, {"flight": {"pattern": "Line"}}), build_rig(DEFAULTS["rig"]), stream(0, "flight"))
     assert cli.main(["simulate", str(tmp_path / "missing.yaml"), "--out", str(tmp_path / "x")]) == 2
 
 
@@ -237,3 +252,91 @@ def test_refuses_to_replace_a_folder_that_is_not_a_simulated_dataset(tmp_path):
         simulate(write_config(tmp_path / "s.yaml", SMALL), precious)
     assert (precious / "notes.txt").read_text() == "keep me"
     assert not any(p.name.endswith(".partial") for p in tmp_path.iterdir())
+
+
+# ------------------------------------------------------------------------------ flight patterns
+
+ONE_GROUP = {"A": {"center_m": [1500.0, -800.0, 45.0], "groups": [1]}}
+
+
+def flight_world(seed: int, **flight) -> tuple[dict, dict]:
+    """Settings and the flight part of the world (one group at site A unless `sites` is given):
+    rig, frames, ground markers, flight shots."""
+    config = merge(DEFAULTS, {"seed": seed, "flight": {"sites": ONE_GROUP, **flight}})
+    rig = build_rig(config["rig"])
+    frames, ground = flight_frames(config, rig, stream(seed, "flight"))
+    return config, {"rig": rig, "field": [], "ground": ground, "frames": frames, "shots": flight_shots(rig, frames)}
+
+
+def test_hover_is_the_default_and_its_frames_are_as_before():
+    """The default pattern is hover, and a seed gives the frames and markers it gave before the
+    patterns existed (values from that code)."""
+    assert DEFAULTS["flight"]["pattern"] == "hover"
+    config = merge(DEFAULTS, {"flight": {"frames_per_group": 3}})
+    frames, markers = flight_frames(config, build_rig(config["rig"]), np.random.default_rng(11))
+    assert (len(frames), len(markers)) == (15, 200)
+    np.testing.assert_allclose(frames[0].rig_from_world.center, [1499.3475457127827, -791.9749975935451,
+                                                                 391.55319493698204], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(frames[-1].rig_from_world.center, [-2184.7720299318576, 1770.1115784578312,
+                                                                  474.9076719797285], rtol=0, atol=1e-9)
+    assert markers[-1].point_ids == ["GB080"]
+    np.testing.assert_allclose(markers[-1].board.origin, [-2359.994012931139, 2096.686789139952, 122.81808600283239],
+                               rtol=0, atol=1e-9)
+    hover = settings_to_write(config)["flight"]
+    assert "pattern" not in hover and "line_spacing_m" not in hover  # truth/simulation.yaml as before
+    line = settings_to_write(merge(config, {"flight": {"pattern": "line"}}))["flight"]
+    assert line["pattern"] == "line" and line["line_spacing_m"] == DEFAULTS["flight"]["line_spacing_m"]
+
+
+def test_line_frames_move_by_the_spacing_along_the_heading():
+    """Consecutive frames' rig centres step line_spacing_m along C0's image up (the heading), within
+    the hover jitter (1 m per axis), at one height; without jitter exactly."""
+    for jitter, tolerance in ((1.0, 5.0), (0.0, 1e-6)):
+        _, world = flight_world(3, pattern="line", line_spacing_m=35.0, frames_per_group=8,
+                                hover_position_sigma_m=jitter, hover_attitude_sigma_deg=0.2 * jitter)
+        frames = world["frames"]
+        centres = np.array([f.rig_from_world.center for f in frames])
+        heading = -frames[0].rig_from_world.R[1]  # C0's image up in the world: world_from_rig's y column, negated
+        assert abs(heading[2]) < 0.01
+        steps = np.diff(centres, axis=0)
+        along = steps @ heading
+        across = np.linalg.norm(steps - along[:, None] * heading, axis=1)
+        assert np.all(np.abs(along - 35.0) < tolerance) and np.all(across < tolerance)
+        assert abs(np.mean(along) - 35.0) < tolerance / 2
+        assert np.ptp(centres[:, 2]) < 2 * tolerance
+        # the line passes through the group's pose: the middle of the frames is within the offset of the site
+        assert np.linalg.norm(centres.mean(axis=0)[:2] - [1500.0, -800.0]) < np.sqrt(2) * 40.0 + tolerance
+
+
+def test_line_frames_see_new_markers_and_earlier_frames_markers():
+    """C0 sees mostly markers it did not see in the previous frame; markers placed for one frame are
+    seen by the others where they fall in their view (a tilted camera keeps some of its markers)."""
+    config, world = flight_world(4, pattern="line", frames_per_group=6)
+    truth = truth_observations(config, world)
+    seen = truth.groupby("image")["point_id"].apply(set)
+    per_camera = config["flight"]["markers_per_camera"]
+    c0 = [seen[f"flight_g1_f{k:03d}_C0"] for k in range(6)]
+    new = np.array([len(now - before) for before, now in zip(c0, c0[1:])])
+    assert all(len(now) >= per_camera - 2 for now in c0)
+    assert np.all(new > 0.5 * np.array([len(now) for now in c0[1:]]))
+    assert new.sum() > 0.75 * sum(len(now) for now in c0[1:])
+    kept = [len(seen[f"flight_g1_f{k:03d}_{c}"] & seen[f"flight_g1_f{k - 1:03d}_{c}"])
+            for k in range(1, 6) for c in ("C1", "C2", "C3", "C4")]
+    assert min(kept) > 0
+    assert len(world["ground"]) > 6 * 5 * per_camera * 0.8  # placed per frame, not once per group
+
+
+def test_the_view_cone_preselection_leaves_out_no_seen_corner(tmp_path, monkeypatch):
+    """visible_points looks only at the markers of scene.in_view_cone: the same observations as
+    with every marker, for every calibration and flight image of a small line flight."""
+    from dmais_pipe.sim import scene
+
+    config = load_config(write_config(tmp_path / "v.yaml", with_flight(SMALL, pattern="line")))
+    world = build_world(config)
+    chosen = truth_observations(config, world)
+    frames = {frame.frame: frame for frame in world["frames"]}
+    shot = next(s for s in world["shots"] if s.stage == "flight")
+    cone = scene.in_view_cone(world["rig"].cameras[shot.camera], shot.cam_from_world, markers_for(shot, world, frames))
+    assert len(cone) < len(world["ground"]) / 4  # it does leave markers out
+    monkeypatch.setattr(scene, "in_view_cone", lambda camera, cam_from_world, markers: markers)
+    pd.testing.assert_frame_equal(chosen, truth_observations(config, world))

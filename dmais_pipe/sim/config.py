@@ -12,6 +12,12 @@ Noise budget (see docs/simulator.md for the derivation):
   and flight) plus 0.3 arc-min per frame (vibration);
 - flight marker positions when not rendered: 0.5 px per axis (vibration, turbulence at 350-500 m).
 Together these give eps_proj ~ 4 px for a 5-camera frame, as tab:pose_methods.
+
+Flight pattern (`flight.pattern`, `check_flight_pattern`): "hover" (the default) keeps each group's
+frames around one pose, over the same markers; "line" flies them along a line, `line_spacing_m`
+apart, with markers placed for every frame (sim.scene.flight_frames). A hover dataset's
+truth/simulation.yaml leaves the two line settings out (`settings_to_write`), so that it is the
+same file as before they existed.
 """
 
 from __future__ import annotations
@@ -105,6 +111,12 @@ DEFAULTS = {
         },
         "group_offset_m": 40.0,
         "frames_per_group": 30,
+        # How a group's frames move (FLIGHT_PATTERNS): "hover" around the group's pose, so every frame
+        # sees the same markers; "line" along a straight line through it in the direction of its
+        # heading, line_spacing_m apart (20 m: C0's footprint is ~23 m along the line, so each frame
+        # sees mostly new markers), markers placed for every frame.
+        "pattern": "hover",
+        "line_spacing_m": 20.0,
         "markers_per_camera": 8,
         "marker_margin_frac": 0.15,
         "terrain_amplitude_m": 3.0,
@@ -121,6 +133,33 @@ DEFAULTS = {
         "border_margin_px": 20.0,
     },
 }
+
+
+#: flight.pattern's values (module docstring).
+FLIGHT_PATTERNS = ("hover", "line")
+#: The flight settings that only the line pattern uses, absent from a hover dataset's simulation.yaml.
+LINE_SETTINGS = ("pattern", "line_spacing_m")
+
+
+def check_flight_pattern(config: dict) -> str:
+    """flight.pattern of resolved settings, after checking it and line_spacing_m; ConfigError otherwise."""
+    flight = config["flight"]
+    pattern = flight["pattern"]
+    if pattern not in FLIGHT_PATTERNS:
+        raise ConfigError(f"simulator setting 'flight.pattern' is {pattern!r}; expected one of "
+                          f"{', '.join(FLIGHT_PATTERNS)}")
+    spacing = flight["line_spacing_m"]
+    if isinstance(spacing, bool) or not isinstance(spacing, (int, float)) or not spacing > 0:
+        raise ConfigError(f"simulator setting 'flight.line_spacing_m' must be a number above 0, got {spacing!r}")
+    return pattern
+
+
+def settings_to_write(config: dict) -> dict:
+    """The resolved settings as truth/simulation.yaml holds them: a hover flight's without LINE_SETTINGS."""
+    if config["flight"]["pattern"] != "hover":
+        return config
+    flight = {key: value for key, value in config["flight"].items() if key not in LINE_SETTINGS}
+    return {**config, "flight": flight}
 
 
 def merge(defaults: dict, overrides: dict, where: str = "") -> dict:
@@ -151,6 +190,8 @@ def load_config(path: str | Path) -> dict:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a mapping of settings")
     try:
-        return merge(DEFAULTS, data)
+        config = merge(DEFAULTS, data)
+        check_flight_pattern(config)
     except ConfigError as error:
         raise ConfigError(f"{path}: {error}") from None
+    return config

@@ -14,6 +14,7 @@ from scipy.spatial.transform import Rotation
 from ..camera import Camera
 from ..geometry import Rigid3, exp_so3, rotation_from_euler_zyx
 from ..rig import Rig
+from .config import check_flight_pattern
 from .render import MarkerBoard
 
 
@@ -160,7 +161,7 @@ def visible_points(camera: Camera, cam_from_world: Rigid3, markers: list[Marker]
     """
     seen = []
     center = cam_from_world.center
-    for marker in markers:
+    for marker in in_view_cone(camera, cam_from_world, markers):
         corners = marker.board.corners()
         cam_points = cam_from_world.apply(corners)
         uv = camera.project(cam_points)
@@ -171,6 +172,24 @@ def visible_points(camera: Camera, cam_from_world: Rigid3, markers: list[Marker]
         for k in np.flatnonzero(ok):
             seen.append((marker.point_ids[k], uv[k], float(size_px[k])))
     return seen
+
+
+def in_view_cone(camera: Camera, cam_from_world: Rigid3, markers: list[Marker]) -> list[Marker]:
+    """The markers (in their order) whose board may reach into the image: centre within twice the
+    widest angle of the image's corners from the optical axis, widened by the board's angular radius.
+    A cheap preselection, not a test: a marker left out has no corner in the image."""
+    corners = np.array([[-0.5, -0.5], [camera.width - 0.5, -0.5], [-0.5, camera.height - 0.5],
+                        [camera.width - 0.5, camera.height - 0.5]])
+    widest = 2.0 * np.max(np.arccos(np.clip(camera.unproject(corners)[:, 2], -1.0, 1.0)))
+    if not markers or not np.isfinite(widest) or widest >= np.pi / 2:
+        return markers
+    centres = cam_from_world.apply(np.array([m.board.origin for m in markers]))  # (M, 3)
+    radius = np.array([np.hypot(*m.board.half_size) + m.board.margin for m in markers])  # (M,)
+    distance = np.linalg.norm(centres, axis=1)
+    off_axis = np.arctan2(np.hypot(centres[:, 0], centres[:, 1]), centres[:, 2])
+    reach = np.arcsin(np.clip(radius / np.maximum(distance, 1e-12), 0.0, 1.0))
+    keep = (distance <= radius) | (off_axis <= widest + reach)
+    return [marker for marker, kept in zip(markers, keep) if kept]
 
 
 # ------------------------------------------------------------------------------ calibration shots
@@ -276,10 +295,11 @@ def ground_markers_for(config: dict, rig: Rig, rig_from_world: Rigid3, site: str
     """Flat 2 m markers on the terrain, `markers_per_camera` inside each camera's footprint.
 
     New markers' centres stay 2.5 marker sizes from each other and from the site's `existing`
-    markers, so that no two boards overlap whatever their spin.
+    markers, so that no two boards overlap whatever their spin. Ids number the site's markers:
+    G<site><len(existing) + 1 ...>.
     """
     fl = config["flight"]
-    taken = [m.board.origin for m in existing]
+    taken = np.array([m.board.origin for m in existing]).reshape(-1, 3)  # (n, 3) centres
     min_gap = 2.5 * config["marker_size_m"]
     markers = []
     for name, camera in rig.cameras.items():
@@ -292,9 +312,9 @@ def ground_markers_for(config: dict, rig: Rig, rig_from_world: Rigid3, site: str
             point = _terrain_hit(config, site_center, cam_from_world, camera, uv)
             size_px = camera.fx * config["marker_size_m"] / np.linalg.norm(point - cam_from_world.center)
             apart = all(np.hypot(*(uv - other)) > 3.0 * size_px for other in placed)
-            if apart and all(np.linalg.norm(point - other) > min_gap for other in taken):
+            if apart and np.all(np.linalg.norm(taken - point, axis=1) > min_gap):
                 placed.append(uv)
-                taken.append(point)
+                taken = np.vstack([taken, point])
                 index = len(existing) + len(markers) + 1
                 markers.append(_ground_marker(config, site, site_center, point, rng, f"G{site}{index:03d}"))
     return markers
@@ -306,14 +326,17 @@ def _random_pixel(camera: Camera, margin_frac: float, rng) -> np.ndarray:
 
 
 def _terrain_hit(config, site_center, cam_from_world: Rigid3, camera: Camera, uv) -> np.ndarray:
-    """World point where the ray of pixel uv meets the terrain (fixed-point on the height)."""
+    """World point where the ray of pixel uv meets the terrain (fixed-point on the height, at most 20
+    iterations; once the height repeats exactly, further ones would change nothing)."""
     world_from_cam = cam_from_world.inverse()
     ray = world_from_cam.R @ camera.unproject(uv)[0]
     origin = world_from_cam.t
     height = site_center[2]
     for _ in range(20):
         point = origin + ray * (height - origin[2]) / ray[2]
-        height = terrain_height(config, site_center, point[None, :2])[0]
+        height, previous = terrain_height(config, site_center, point[None, :2])[0], height
+        if height == previous:
+            break
     return origin + ray * (height - origin[2]) / ray[2]
 
 
@@ -332,21 +355,40 @@ def _ground_marker(config, site, site_center, point, rng, point_id) -> Marker:
     return Marker(board, [point_id], site)
 
 
+def line_poses(config: dict, nominal: Rigid3) -> list[Rigid3]:
+    """rig_from_world of each of a group's `frames_per_group` frames on a straight line through its
+    `nominal` pose, in the direction of its heading (C0's image up): frame k at (k - (F - 1) / 2) x
+    `line_spacing_m` along it, with the nominal attitude and height."""
+    fl = config["flight"]
+    world_from_nominal = nominal.inverse()
+    heading = -world_from_nominal.R[:, 1]  # C0 looks down with its image's y axis away from the heading
+    steps = (np.arange(fl["frames_per_group"]) - (fl["frames_per_group"] - 1) / 2) * fl["line_spacing_m"]
+    return [Rigid3(world_from_nominal.R, world_from_nominal.t + step * heading).inverse() for step in steps]
+
+
 def flight_frames(config: dict, rig: Rig, rng: np.random.Generator) -> tuple[list[Frame], list[Marker]]:
-    """Hovering frames of every group, with the sites' ground markers."""
+    """The frames of every group, with the sites' ground markers. Per `flight.pattern`: "hover", every
+    frame around the group's nominal pose, markers placed once for it; "line", frame k around
+    `line_poses`[k], markers placed for every frame's pose in turn (after the earlier frames')."""
+    pattern = check_flight_pattern(config)
     fl = config["flight"]
     frames, markers = [], []
     for site, spec in fl["sites"].items():
         site_center = np.asarray(spec["center_m"], dtype=float)
         for group in spec["groups"]:
             nominal = nominal_rig_pose(config, site_center, rng)
-            site_markers = [m for m in markers if m.group == site]
-            markers += ground_markers_for(config, rig, nominal, site, site_center, rng, site_markers)
-            frames += _group_frames(config, rig, nominal, site, str(group), rng)
+            poses = [nominal] * fl["frames_per_group"] if pattern == "hover" else line_poses(config, nominal)
+            placements = poses[:1] if pattern == "hover" else poses  # the poses that markers are placed for
+            for pose in placements:
+                site_markers = [m for m in markers if m.group == site]
+                markers += ground_markers_for(config, rig, pose, site, site_center, rng, site_markers)
+            frames += _group_frames(config, rig, poses, site, str(group), rng)
     return frames, markers
 
 
-def _group_frames(config, rig: Rig, nominal: Rigid3, site: str, group: str, rng) -> list[Frame]:
+def _group_frames(config, rig: Rig, nominals: list[Rigid3], site: str, group: str, rng) -> list[Frame]:
+    """The group's frames, frame k jittered around nominals[k] (rig_from_world), with the group's
+    mounting change and each frame's vibration."""
     fl = config["flight"]
     arcmin = np.radians(1.0 / 60.0)
     # The rig frame is the reference camera's, so only the other cameras move relative to it.
@@ -356,8 +398,8 @@ def _group_frames(config, rig: Rig, nominal: Rigid3, site: str, group: str, rng)
         for name in others
     }
     frames = []
-    world_from_nominal = nominal.inverse()
-    for k in range(fl["frames_per_group"]):
+    for k, nominal in enumerate(nominals):
+        world_from_nominal = nominal.inverse()
         R = small_rotation(rng, np.radians(fl["hover_attitude_sigma_deg"])) @ world_from_nominal.R
         t = world_from_nominal.t + rng.normal(0.0, fl["hover_position_sigma_m"], 3)
         cam_from_rig = {rig.reference_camera: rig.cam_from_rig[rig.reference_camera]}

@@ -23,7 +23,7 @@ from ..errors import ConfigError, DmaisError
 from ..files import write_csv_atomic, write_png_atomic, write_yaml_atomic
 from ..geometry import Rigid3, exp_so3
 from ..rig import Rig
-from .config import load_config
+from .config import load_config, settings_to_write
 from .render import RenderSettings, render_image
 from .scene import (
     Frame,
@@ -256,7 +256,7 @@ def _write_truth(config, world, shots, truth, control_truth, ground_truth, folde
     write_csv_atomic(folder / "flight_cam_from_rig.csv", pd.DataFrame(
         [{"frame": f.frame, "camera": name, **_pose_columns(pose)}
          for f in world["frames"] for name, pose in f.cam_from_rig.items()]))
-    write_yaml_atomic(folder / "simulation.yaml", config)
+    write_yaml_atomic(folder / "simulation.yaml", settings_to_write(config))
 
 
 # ------------------------------------------------------------------------------ rendering
