@@ -209,8 +209,19 @@ def _cmd_bench_mounting(args) -> None:
     from .bench.mounting import bench_mounting, print_table, simulations
 
     chosen = simulations(args.seeds, args.mount, args.vibration, args.survey, args.pixel, groups=args.groups,
-                         frames_per_group=args.frames_per_group, calibrated=args.calibrated)
+                         frames_per_group=args.frames_per_group, calibrated=args.calibrated, patterns=args.pattern)
     print_table(bench_mounting(args.csv, chosen, pos=args.pos, work=args.work), args.csv)
+
+
+def _flight_patterns(text: str) -> list[str]:
+    """An argparse type: comma-separated flight patterns of the simulator (sim.config.FLIGHT_PATTERNS)."""
+    from .sim.config import FLIGHT_PATTERNS
+
+    patterns = [part.strip() for part in text.split(",") if part.strip()]
+    if not patterns or any(pattern not in FLIGHT_PATTERNS for pattern in patterns):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected flight patterns among {', '.join(FLIGHT_PATTERNS)}, "
+                                         "comma-separated")
+    return patterns
 
 
 def _comma_separated(kind):
@@ -426,6 +437,9 @@ def _parser() -> argparse.ArgumentParser:
     mounting.add_argument("--pixel", type=float, default=0.5, help="flight marker noise, px (default: %(default)s)")
     mounting.add_argument("--groups", type=_positive_int, default=4, help="flight groups (default: %(default)s)")
     mounting.add_argument("--frames-per-group", type=_positive_int, default=30, help="(default: %(default)s)")
+    mounting.add_argument("--pattern", type=_flight_patterns, default=["hover"],
+                          help="the simulator's flight.pattern, comma-separated: hover (every frame over the same "
+                               "markers), line (frames along a line, new markers each frame) (default: hover)")
     mounting.add_argument("--calibrated", action="store_true",
                           help="solve with the chain's calibrated rig (intrinsics, extrinsics), not the simulator's")
     mounting.add_argument("--pos", action="store_true",

@@ -12,6 +12,7 @@ import pandas as pd
 import pytest
 from scipy.optimize import least_squares
 
+from dmais_pipe import cli
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.geometry import Rigid3, exp_so3, rotation_error
 from dmais_pipe.pose.mounting import RAD_PER_ARCMIN, TABLE_COLUMNS, adjust_group_rig, mounting_table
@@ -347,3 +348,32 @@ def test_bench_runs_one_small_simulation_and_writes_its_tables(tmp_path):
     cameras = pd.read_csv(tmp_path / "mounting_cameras.csv")
     assert set(TABLE_COLUMNS) <= set(cameras.columns) and len(cameras) == 2 * 5
     assert len(pd.read_csv(tmp_path / "mounting_frames.csv")) == 2 * 4
+
+
+def test_bench_simulations_take_the_flight_pattern():
+    """--pattern: a line simulation asks the simulator for it and is named so; a hover one is the
+    simulation it was before patterns existed (same name, no pattern setting)."""
+    from dmais_pipe.bench.mounting import simulations
+
+    hover, line = simulations(seeds=[3], mounts=[2.0], patterns=["hover", "line"])
+    assert (hover.pattern, line.pattern) == ("hover", "line")
+    assert hover.name == "vib0.3-mount2-survey0.025-px0.5-4x30-seed3-truthrig"
+    assert "pattern" not in hover.config()["flight"]
+    assert line.name == "vib0.3-mount2-survey0.025-px0.5-4x30-line-seed3-truthrig"
+    assert line.config()["flight"]["pattern"] == "line"
+    parser = cli._parser()
+    assert parser.parse_args(["bench", "mounting", "--pattern", "hover,line"]).pattern == ["hover", "line"]
+    assert parser.parse_args(["bench", "mounting"]).pattern == ["hover"]
+    with pytest.raises(SystemExit):
+        parser.parse_args(["bench", "mounting", "--pattern", "zigzag"])
+
+
+def test_bench_runs_a_line_flight(tmp_path):
+    from dmais_pipe.bench.mounting import bench_mounting, simulations
+
+    chosen = simulations(seeds=[3], mounts=[2.0], groups=1, frames_per_group=4, patterns=["line"])
+    table = bench_mounting(tmp_path / "mounting.csv", chosen, work=tmp_path / "work")
+    assert set(table["pattern"]) == {"line"} and (table["n"] == 4).all()
+    truth = pd.read_csv(tmp_path / "work" / chosen[0].name / "dataset" / "truth" / "frames.csv")
+    steps = np.linalg.norm(np.diff(truth[["x", "y"]].to_numpy(), axis=0), axis=1)
+    assert np.all(np.abs(steps - DEFAULTS["flight"]["line_spacing_m"]) < 5.0)

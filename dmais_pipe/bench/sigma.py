@@ -237,7 +237,8 @@ def simulation_settings(truth_dir: Path) -> dict:
 class Simulation:
     """One observation-only flight of the grid and its calibration (module docstring). truth_rig:
     solve with the simulator's rig (truth/rig.json) instead of calibrating one, which tells the
-    calibration's share of the errors from the flight's."""
+    calibration's share of the errors from the flight's. pattern: the simulator's flight.pattern
+    (hover, line)."""
 
     vibration_arcmin: float
     survey_m: float
@@ -249,20 +250,24 @@ class Simulation:
     calib_images: int = 6
     eval_images: int = 2
     truth_rig: bool = False
+    pattern: str = DEFAULTS["flight"]["pattern"]
 
     @property
     def name(self) -> str:
+        pattern = "" if self.pattern == DEFAULTS["flight"]["pattern"] else f"-{self.pattern}"
         return (f"vib{self.vibration_arcmin:g}-mount{self.mount_arcmin:g}-survey{self.survey_m:g}-px{self.pixel_px:g}"
-                f"-{self.groups}x{self.frames_per_group}-seed{self.seed}{'-truthrig' if self.truth_rig else ''}")
+                f"-{self.groups}x{self.frames_per_group}{pattern}-seed{self.seed}"
+                f"{'-truthrig' if self.truth_rig else ''}")
 
     def config(self) -> dict:
-        """Its simulator settings (a mapping over sim.config.DEFAULTS)."""
+        """Its simulator settings (a mapping over sim.config.DEFAULTS); flight.pattern only when not the default."""
+        pattern = {} if self.pattern == DEFAULTS["flight"]["pattern"] else {"pattern": self.pattern}
         return {"name": self.name, "seed": self.seed,
                 "intrinsics": {"calib_images_per_camera": self.calib_images,
                                "eval_images_per_camera": self.eval_images},
                 "flight": {"frames_per_group": self.frames_per_group, "sites": alternating_sites(self.groups),
                            "vibration_sigma_arcmin": self.vibration_arcmin, "mount_sigma_arcmin": self.mount_arcmin,
-                           "survey_sigma_m": [self.survey_m] * 3, "pixel_sigma_px": self.pixel_px},
+                           "survey_sigma_m": [self.survey_m] * 3, "pixel_sigma_px": self.pixel_px, **pattern},
                 "render": {"intrinsics": False, "extrinsics": False, "flight": False}}
 
 
