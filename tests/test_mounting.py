@@ -4,7 +4,6 @@ markers, and a known mounting change per camera (drawn here, so that the truth i
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -195,12 +194,14 @@ def test_without_change_about_1_percent_is_flagged_and_chi2_is_honest():
     assert np.mean(np.array(chi2) > 11.34) <= 2 / len(chi2)
 
 
-@pytest.mark.parametrize("with_centres", [False, True])
-def test_agrees_with_scipy_least_squares_on_the_same_whitened_residuals(with_centres):
+@pytest.mark.parametrize("with_centres, frames", [(False, 3), (True, 3), (False, 4)])
+def test_agrees_with_scipy_least_squares_on_the_same_whitened_residuals(with_centres, frames):
     """An independent dense reference: every unknown in one vector (poses as rotation vectors and
     centre moves from the starting ones), scipy's least_squares with central differences,
-    covariance (J^T J)^-1; with and without the rig-centre prior."""
-    group = make_group(5, frames=3, mount_arcmin=1.0, markers_per_camera=4)
+    covariance (J^T J)^-1; with and without the rig-centre prior. 20 points: with 3 frames (54
+    frame unknowns) the adjustment eliminates the points, with 4 (72) the frames."""
+    group = make_group(5, frames=frames, mount_arcmin=1.0, markers_per_camera=4)
+    assert len(np.unique(group.point_ids)) == 20
     sigmas = {"pixel_sigma_px": 0.5, "jitter_sigma_arcmin": 0.3, "survey_sigma_m": 0.025, "prior_sigma_arcmin": 30.0}
     if with_centres:
         true = centres(group.true_R, group.true_t)
@@ -322,18 +323,6 @@ def test_a_frame_with_fewer_than_3_observations_is_refused():
     with pytest.raises(DmaisError, match="fewer than 3"):
         adjust_group_rig(group.rig, group.cameras[rows], group.uv[rows], group.point_ids[rows], group.points[rows],
                          group.frame_index[rows], group.R, group.t, **noise())
-
-
-def test_200_frames_take_under_a_second():
-    """A 40-frame group's observations repeated 5 times as 200 frames (the same cost as 200 distinct)."""
-    group = make_group(6, frames=40, mount_arcmin=2.0)
-    repeat = lambda a: np.concatenate([a] * 5)  # noqa: E731
-    frame_index = np.concatenate([group.frame_index + 40 * k for k in range(5)])
-    start = time.perf_counter()
-    result = adjust_group_rig(group.rig, repeat(group.cameras), repeat(group.uv), repeat(group.point_ids),
-                              repeat(group.points), frame_index, repeat(group.R), repeat(group.t), **noise())
-    elapsed = time.perf_counter() - start
-    assert result.n_frames == 200 and elapsed < 1.0
 
 
 def test_bench_runs_one_small_simulation_and_writes_its_tables(tmp_path):

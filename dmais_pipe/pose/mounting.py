@@ -32,13 +32,15 @@ Observations: the markers' distorted pixels uv with a per-axis pixel sigma (per 
 
 ((C_c, t_c) the calibrated cam_from_rig) is minimised by Levenberg-Marquardt; delta and j are
 additive rotation vectors (exact Jacobians through geometry.left_jacobian_so3). Each frame's
-pose and jitters (6 + 3K unknowns) touch only that frame's observations, so they are eliminated
-by the Schur complement, leaving the 3K + 3P system of the deltas and points: the cost is linear
-in F (~0.1 s for 30 frames x 5 cameras x 8 points, ~0.3-0.5 s for 200 frames on a busy core) and
-cubic in P (~30 s for a 30-frame group flying a line over ~1950 points).
+pose and jitters (6 + 3K unknowns) touch only that frame's observations, and each point's 3 only
+its own, so either set is eliminated by the Schur complement, whichever leaves the smaller dense
+system: the frames when hovering (the 3K + 3P system of the deltas and points: 0.06 s for 30
+frames x 5 cameras x 8 points, 0.4 s for 200 frames), the points on a line (the F (6 + 3K) + 3K
+system of the frames and deltas: 0.26 s for 30 frames over 1,173 points, where eliminating the
+frames took 9.5 s).
 
-Covariance: the inverse normal matrix at the minimum; the deltas' block of it is the inverse of
-the Schur complement's (the frames and jitters marginalised). sigma: the square roots of its
+Covariance: the inverse normal matrix at the minimum; the deltas' block of it is that of the
+inverse of either Schur complement (the others marginalised). sigma: the square roots of its
 diagonal, in arc-min. chi2_c = delta_c^T cov_c^-1 delta_c; `significant` where chi2_c exceeds
 chi2.ppf(1 - SIGNIFICANCE, 3): with no change and honest noise values, a share SIGNIFICANCE (1%)
 of the (camera, group) rows is flagged.
@@ -483,10 +485,14 @@ def _cost(problem: _Problem, state: _State) -> float:
 # ------------------------------------------------------------------------------ normal equations
 
 
+#: The share of non-zeros above which the Schur complement's coupling block is handled dense.
+DENSE_SHARE = 0.25
+
+
 @dataclass(frozen=True)
 class _Normal:
-    """The normal equations in blocks: A (F, L, L) per frame, W (F, L, G) frame x global, H (G, G),
-    gradients b_local (F, L), b_global (G,) (J^T e with the priors')."""
+    """The normal equations in blocks: A (F, L, L) per frame, W (F L, G) frames x globals and H (G, G)
+    sparse, gradients b_local (F, L), b_global (G,) (J^T e with the priors')."""
 
     A: np.ndarray
     W: np.ndarray
@@ -495,10 +501,10 @@ class _Normal:
     b_global: np.ndarray
 
 
-def _scatter(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """The dense (shape) sum of values at (rows, cols), all broadcast to one shape."""
+def _scatter(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> sparse.csr_array:
+    """The sparse (shape) sum of values at (rows, cols), all broadcast to one shape."""
     values, rows, cols = np.broadcast_arrays(values, rows, cols)
-    return sparse.coo_array((values.ravel(), (rows.ravel(), cols.ravel())), shape=shape).toarray()
+    return sparse.coo_array((values.ravel(), (rows.ravel(), cols.ravel())), shape=shape).tocsr()
 
 
 def _normal_equations(problem: _Problem, state: _State) -> _Normal:
@@ -509,21 +515,22 @@ def _normal_equations(problem: _Problem, state: _State) -> _Normal:
     local_J, local_cols, global_J, global_cols = _jacobians(p, state, forward)
     rows = p.frame[:, None] * L + local_cols  # (N, l) rows of the stacked frame blocks
     local_T, global_T = np.swapaxes(local_J, 1, 2), np.swapaxes(global_J, 1, 2)
-    A = _scatter(local_T @ local_J, rows[:, :, None], local_cols[:, None, :], (F * L, L)).reshape(F, L, L)
-    W = _scatter(local_T @ global_J, rows[:, :, None], global_cols[:, None, :], (F * L, G)).reshape(F, L, G)
+    A = _scatter(local_T @ local_J, rows[:, :, None], local_cols[:, None, :], (F * L, L)).toarray().reshape(F, L, L)
+    W = _scatter(local_T @ global_J, rows[:, :, None], global_cols[:, None, :], (F * L, G))
     H = _scatter(global_T @ global_J, global_cols[:, :, None], global_cols[:, None, :], (G, G))
-    b_local = _scatter((local_T @ forward.e[:, :, None])[..., 0], rows, 0, (F * L, 1)).reshape(F, L)
-    b_global = _scatter((global_T @ forward.e[:, :, None])[..., 0], global_cols, 0, (G, 1)).ravel()
-    _add_priors(p, state, A, H, b_local, b_global)
+    b_local = _scatter((local_T @ forward.e[:, :, None])[..., 0], rows, 0, (F * L, 1)).toarray().reshape(F, L)
+    b_global = _scatter((global_T @ forward.e[:, :, None])[..., 0], global_cols, 0, (G, 1)).toarray().ravel()
+    H = _add_priors(p, state, A, H, b_local, b_global)
     return _Normal(A, W, H, b_local, b_global)
 
 
-def _add_priors(problem: _Problem, state: _State, A, H, b_local, b_global) -> None:
-    """Add the priors' terms to the normal equations' blocks (in place): the deltas' and points' to H
-    and b_global, the jitters' and rig centres' to A and b_local."""
+def _add_priors(problem: _Problem, state: _State, A, H, b_local, b_global) -> sparse.csr_array:
+    """Add the priors' terms to the normal equations' blocks (A, b_local, b_global in place; H
+    returned): the deltas' and points' to H and b_global, the jitters' and rig centres' to A and
+    b_local."""
     p, K = problem, len(problem.free)
     weights = np.concatenate([np.full(3 * K, p.prior**-2), (p.survey_sigma**-2).ravel()])
-    H[np.diag_indices(len(H))] += weights
+    H = (H + sparse.diags_array(weights)).tocsr()
     b_global += weights * np.concatenate([state.delta.ravel(), (state.points - p.surveyed).ravel()])
     if p.center is not None:
         residuals, J = _center_residuals(p, state)
@@ -533,38 +540,90 @@ def _add_priors(problem: _Problem, state: _State, A, H, b_local, b_global) -> No
         jitter = np.arange(6, p.local_size)
         A[:, jitter, jitter] += p.jitter**-2
         b_local[:, 6:] += state.jitter.reshape(p.n_frames, -1) / p.jitter**2
+    return H
 
 
-def _reduced(normal: _Normal, damping: float = 0.0):
-    """The Schur complement of the frame blocks: (S (G, G), its right side (G,), A^-1 (F, L, L)), the
-    diagonals raised by damping x themselves (Levenberg-Marquardt)."""
-    A, H = normal.A.copy(), normal.H.copy()
-    if damping:
-        L, G = A.shape[1], H.shape[0]
-        A[:, np.arange(L), np.arange(L)] *= 1.0 + damping
-        H[np.arange(G), np.arange(G)] *= 1.0 + damping
+def _damped(normal: _Normal, damping: float) -> _Normal:
+    """The normal equations with their diagonal raised by damping x itself (Levenberg-Marquardt)."""
+    if not damping:
+        return normal
+    A = normal.A.copy()
+    L = A.shape[1]
+    A[:, np.arange(L), np.arange(L)] *= 1.0 + damping
+    H = (normal.H + sparse.diags_array(normal.H.diagonal() * damping)).tocsr()
+    return _Normal(A, normal.W, H, normal.b_local, normal.b_global)
+
+
+def _solved(normal: _Normal, n_deltas: int, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The solution of the normal equations for right sides (F L + G, k) (the frames' unknowns, then
+    the globals), and the deltas' block (n_deltas, n_deltas) of their inverse, by the Schur complement
+    of whichever blocks make the smaller dense system: the frames' (F blocks of L: hovering, few
+    points, many frames) or the points' (P blocks of 3: a line, thousands of points each seen by a
+    few frames; eliminating the frames there left a dense 3P system, 9.5 s for 30 frames over 1,173
+    points)."""
+    F, L, _ = normal.A.shape
+    n_points = (normal.H.shape[0] - n_deltas) // 3
+    if 3 * n_points <= F * L:  # the frames' blocks eliminated: the deltas and points kept
+        order = np.arange(F * L + normal.H.shape[0])
+        blocks, coupling, kept = normal.A, normal.W, normal.H.toarray()
+        deltas = np.arange(n_deltas)
+    else:  # the points' blocks eliminated: the frames and deltas kept
+        d = n_deltas
+        order = np.concatenate([F * L + d + np.arange(3 * n_points), np.arange(F * L + d)])
+        blocks = _point_blocks(normal.H[d:, d:], n_points)
+        coupling = sparse.vstack([normal.W[:, d:], normal.H[:d, d:]]).T.tocsr()
+        kept = sparse.block_array([[sparse.block_diag(list(normal.A)), normal.W[:, :d]],
+                                   [normal.W[:, :d].T, normal.H[:d, :d]]]).toarray()
+        deltas = F * L + np.arange(d)
+    solution, inverse = _schur_solved(blocks, coupling, kept, right[order], deltas)
+    out = np.empty_like(solution)
+    out[order] = solution
+    return out, inverse
+
+
+def _point_blocks(H_points: sparse.csr_array, n_points: int) -> np.ndarray:
+    """(P, 3, 3) the diagonal blocks of the points' part of H (3P, 3P), which has no others."""
+    coo = H_points.tocoo()
+    blocks = np.zeros((n_points, 3, 3))
+    np.add.at(blocks, (coo.row // 3, coo.row % 3, coo.col % 3), coo.data)
+    return blocks
+
+
+def _schur_solved(blocks: np.ndarray, coupling: sparse.csr_array, kept: np.ndarray, right: np.ndarray,
+                  deltas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Solve [[E, C], [C^T, K]] x = right for E block-diagonal (n, b, b) `blocks`, C (n b, m)
+    `coupling`, K (m, m) `kept`, right (n b + m, k): x (n b + m, k), and the rows and columns
+    `deltas` of the kept part of the inverse (the inverse of the Schur complement K - C^T E^-1 C).
+    C is taken dense where it is mostly filled (hovering: every frame sees every point)."""
     try:
-        A_inv = np.linalg.inv(A)
+        E_inv = np.linalg.inv(blocks)
     except np.linalg.LinAlgError:
-        raise DmaisError("mounting: a frame's pose is not determined by its observations (too few or collinear "
-                         "points)") from None
-    F, L, G = normal.W.shape
-    WA = np.swapaxes(normal.W, 1, 2) @ A_inv  # W_f^T A_f^-1: (F, G, L)
-    WA = np.swapaxes(WA, 0, 1).reshape(G, F * L)  # all frames side by side: one product each below
-    S = H - WA @ normal.W.reshape(F * L, G)
-    rhs = normal.b_global - WA @ normal.b_local.ravel()
-    return S, rhs, A_inv
-
-
-def _step(normal: _Normal, damping: float) -> tuple[np.ndarray, np.ndarray]:
-    """The (damped) Gauss-Newton step: local (F, L), global (G,)."""
-    S, rhs, A_inv = _reduced(normal, damping)
+        raise DmaisError("mounting: a frame's pose or a point is not determined by its observations (too few "
+                         "or collinear points)") from None
+    n, b, _ = blocks.shape
+    if coupling.nnz > DENSE_SHARE * np.prod(coupling.shape):
+        coupling = coupling.toarray()
+        E_inv_C = (E_inv @ coupling.reshape(n, b, -1)).reshape(n * b, -1)
+        schur = kept - coupling.T @ E_inv_C
+    else:
+        E_inv_C = sparse.block_diag(list(E_inv)).tocsr() @ coupling
+        schur = kept - (coupling.T @ E_inv_C).toarray()
     try:
-        d_global = -np.linalg.solve(S, rhs)
+        inverse = np.linalg.inv(schur)
     except np.linalg.LinAlgError:
         raise DmaisError("mounting: the group's normal equations are singular") from None
-    d_local = -np.einsum("flm,fm->fl", A_inv, normal.b_local + normal.W @ d_global)
-    return d_local, d_global
+    E_inv_right = (E_inv @ right[:n * b].reshape(n, b, -1)).reshape(n * b, -1)
+    x_kept = inverse @ (right[n * b:] - coupling.T @ E_inv_right)
+    x_eliminated = E_inv_right - E_inv_C @ x_kept
+    return np.concatenate([x_eliminated, x_kept]), inverse[np.ix_(deltas, deltas)]
+
+
+def _step(problem: _Problem, normal: _Normal, damping: float) -> tuple[np.ndarray, np.ndarray]:
+    """The (damped) Gauss-Newton step: local (F, L), global (G,)."""
+    F, L, _ = normal.A.shape
+    right = -np.concatenate([normal.b_local.ravel(), normal.b_global])[:, None]
+    step = _solved(_damped(normal, damping), 3 * len(problem.free), right)[0][:, 0]
+    return step[:F * L].reshape(F, L), step[F * L:]
 
 
 def _moved(problem: _Problem, state: _State, d_local: np.ndarray, d_global: np.ndarray) -> _State:
@@ -583,7 +642,7 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
     for iteration in range(1, MAX_ITERATIONS + 1):
         normal = _normal_equations(problem, state)
         while True:
-            trial = _moved(problem, state, *_step(normal, damping))
+            trial = _moved(problem, state, *_step(problem, normal, damping))
             trial_cost = _cost(problem, trial)
             if np.isfinite(trial_cost) and trial_cost <= cost:
                 break
@@ -602,11 +661,10 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
 
 
 def _delta_covariance(problem: _Problem, state: _State) -> np.ndarray:
-    """(K, 3, 3) covariance of the deltas (rad^2): blocks of the inverse Schur complement, whose
-    first 3K rows and columns are the deltas'."""
+    """(K, 3, 3) covariance of the deltas (rad^2): their blocks of the inverse normal matrix."""
     K = len(problem.free)
-    S, _, _ = _reduced(_normal_equations(problem, state))
-    covariance = np.linalg.inv(S)
+    normal = _normal_equations(problem, state)
+    covariance = _solved(normal, 3 * K, np.zeros((normal.A.shape[0] * normal.A.shape[1] + normal.H.shape[0], 1)))[1]
     return np.array([covariance[3 * k:3 * k + 3, 3 * k:3 * k + 3] for k in range(K)]).reshape(K, 3, 3)
 
 
