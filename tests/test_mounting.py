@@ -4,7 +4,7 @@ markers, and a known mounting change per camera (drawn here, so that the truth i
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -258,6 +258,36 @@ def reference_solution(group: Group, pixel_sigma_px, jitter_sigma_arcmin, survey
     delta = unpack(solution.x)[2] / RAD_PER_ARCMIN
     sigma = np.sqrt(np.diag(covariance)).reshape(K, 3) / RAD_PER_ARCMIN
     return delta, sigma
+
+
+@pytest.mark.parametrize("changes", [[("C2", "cx", 2.0)], [("C0", "cy", 2.0)], [("C3", "fx", 20.0)],
+                                     [("C1", "d", 0.05)], [("C2", "ry", 2e-4)],
+                                     [("C2", "cx", 2.0), ("C2", "ry", 2e-4), ("C0", "cx", -3.0)]])
+def test_the_calibrations_share_is_what_re_adjusting_with_its_error_gives(changes):
+    """Calibration parameters off by their steps together: the deltas' change from adjusting again
+    with the rig so changed (brute force) is the sigma the calibration's share gives with the
+    covariance of that one joint error (v v^T, its signs included). A rotation error w (rad, about
+    the rig's axes) of a calibrated camera turns its rig_from_cam by exp(w)."""
+    group = make_group(7, frames=6, mount_arcmin=1.0)
+    base = group.adjust(**noise())
+    rig = group.rig
+    cameras, cam_from_rig, v = dict(rig.cameras), dict(rig.cam_from_rig), np.zeros(11 * 5)
+    for camera, parameter, step in changes:
+        v[11 * rig.camera_names.index(camera) + ("fx", "fy", "cx", "cy", "d", "rx", "ry", "rz").index(parameter)] = step
+        if parameter in ("rx", "ry", "rz"):
+            w = np.zeros(3)
+            w["xyz".index(parameter[1])] = step
+            cam_from_rig[camera] = (Rigid3(exp_so3(w), np.zeros(3)) * cam_from_rig[camera].inverse()).inverse()
+        else:
+            cameras[camera] = replace(cameras[camera], **{parameter: getattr(cameras[camera], parameter) + step})
+    moved = adjust_group_rig(Rig(cameras, cam_from_rig, rig.reference_camera), group.cameras, group.uv,
+                             group.point_ids, group.points, group.frame_index, group.R, group.t, **noise())
+    shared = group.adjust(**noise(), calibration_covariance=np.outer(v, v))
+    chosen = others(group, base)
+    predicted = np.sqrt(np.diagonal(shared.covariance_arcmin2 - base.covariance_arcmin2, axis1=1, axis2=2))[chosen]
+    brute = np.abs(moved.delta_arcmin - base.delta_arcmin)[chosen]
+    assert brute.max() > 0.05  # the parameters matter
+    np.testing.assert_allclose(predicted, brute, rtol=0.02, atol=5e-3 * brute.max())  # steps of ~0.5': second order
 
 
 def test_a_camera_without_observations_gets_a_nan_row_with_a_warning(caplog):

@@ -18,8 +18,8 @@ the group's mount with that frame's vibration, and not the mount itself (nothing
 simulator). The truth of a (group, camera) is the rotation mean of its frames' cam_from_rig
 (geometry.average_rotations): the vibration averages out to vibration / sqrt(frames) per axis
 (0.055 arc-min for 0.3 and 30 frames), which stays in the truth; the truth delta is
-log(mean @ C_cal^T) against the calibrated rig's C_cal (with `calibrated` it holds the calibration's
-error too). The true in-flight rig of a group: the simulator's rig with every camera turned to that
+log(mean @ C^T) against the simulator's rooftop rig C (truth/rig.json): the mount change itself,
+also with `calibrated`. The true in-flight rig of a group: the simulator's rig with every camera turned to that
 mean.
 
 Rows of the CSV, per rig, variant, setting and seed, and `pooled` over the seeds:
@@ -59,24 +59,32 @@ hover,line --pos`), as median sigma about the tilted cameras' x, y and z axes:
   1004-1009): the common tilt is no longer traded against the height. What is left is the three
   noise terms alike: on group 1 of seed 1001 the sigma is 0.073, 0.094, 0.116 with the true noise
   values, 0.061, 0.068, 0.082 with a 1 mm survey, 0.045, 0.074, 0.095 without vibration and 0.059,
-  0.057, 0.064 with 0.05 px markers. The adjustment solves a dense system of the points, so a line
-  simulation (4 groups, both variants) takes 2-4.5 min on 2 shared cores, a hovering one 3-4 s.
+  0.057, 0.064 with 0.05 px markers. A line simulation (4 groups, one variant) takes ~15 s, a
+  hovering one 3-4 s.
 
-With `calibrated` the truth columns compare against the true rotation change from the calibrated
-rig's rotations only: the calibrated intrinsics' errors (a principal point off by d px looks like a
-turn of d / f) are in the estimate and not in that truth, so within_3sigma and rms_z there are not a
-test of the adjustment; the position columns are. Seeds 1001-1003 (`dmais bench mounting --pattern
-hover,line --pos --calibrated`): hovering, adjusted_over_true 4.1 and 0.95 with the prior, as with
-the simulator's rig. Flying a line, whose sigma is below the calibration's errors (in seed 1002
-principal points off by up to 41 px, and 1 px is 0.08'), those are flagged as changes (2/3 of the
-rows without one), and adjusted_over_true is 1.25 (1.06-1.45 a seed; the calibrated rig itself 1.08
-without a change), 1.02-1.03 with the prior. Without it the adjusted rig's mean height error is
-0.07-0.12 m a group in seed 1002 (0.03-0.04 m with the calibrated rig), of the sign and size of
-C0's focal error (+407 ppm: 0.14 m at 350 m), which the rotations cannot take.
+With `calibrated` the adjustment is given rig.json's calibration covariance, as the pose stage
+gives it, so its sigmas carry the calibration's share (pose.mounting._calibration_share); the
+truth stays the mount change against the simulator's rig. Seeds 1001-1003 (`dmais bench mounting
+--pattern hover,line --pos --calibrated`), pooled over no change and a 2' change:
+
+- hovering: sigma 1.73, 2.25, 3.44 (0.137, 2.11, 3.20 with the prior), within_3sigma 1 (0.986),
+  rms_z 0.88-0.90 (1.24-1.28), flagged without a change 1 of 48 (4 of 48), adjusted_over_true 4.1
+  (0.95);
+- flying a line: sigma 0.56, 0.19, 0.36, at most 0.99 (0.15, 0.19, 0.32, at most 0.38 with the
+  prior: the common tilt pinned), within_3sigma 1, rms_z 0.86-0.97 (0.97-1.06), none flagged
+  without a change, every row beyond 5 sigma flagged with one (37 and 45 rows), adjusted_over_true
+  1.25-1.28 (1.02-1.03 with the prior). Without the calibration's share the line's sigma was the
+  flight's alone (0.08-0.14) while the estimate was 0.23-0.36' off the mount change: the
+  calibration's error (intrinsics off by up to 41 px in the principal point, rotations 0.7-1.9')
+  mostly cancels between the rooftop and the flight, not all; 2/3 of the unchanged rows were
+  flagged. Without the prior the adjusted rig's mean height error is 0.07-0.12 m a group in seed
+  1002 (0.03-0.04 m with the calibrated rig), of the sign and size of C0's focal error (+407 ppm:
+  0.14 m at 350 m), which the rotations cannot take.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import tempfile
 import time
@@ -94,6 +102,7 @@ from ..pose.flight import estimate_poses
 from ..pose.mounting import RAD_PER_ARCMIN, adjust_flight_groups, mounting_table
 from ..rig import Rig
 from ..workspace import CENTER, QUAT, TRANSLATION, Workspace
+from ..stages.pose import calibration_covariance
 from .sigma import Simulation, _stages_quiet, calibrated_workspace
 
 log = logging.getLogger(__name__)
@@ -157,6 +166,9 @@ def run_simulation(simulation: Simulation, folder: Path, pos: bool) -> tuple[pd.
         R[~np.isfinite(t).all(axis=1)] = np.nan
         noise = {"pixel_sigma_px": simulation.pixel_px, "jitter_sigma_arcmin": simulation.vibration_arcmin,
                  "survey_sigma_m": [simulation.survey_m] * 3}
+        if not simulation.truth_rig:  # the calibration's share, as the pose stage gives it (watch_rig)
+            record = json.loads(workspace.rig_path.read_text())
+            noise["calibration_covariance"] = calibration_covariance(record, rig.camera_names)
         variants = {"survey": {}}
         if pos:
             world_pos = workspace.dataset.frames.set_index("frame").loc[flight.frames, ["pos_x", "pos_y", "pos_z"]]
@@ -168,7 +180,7 @@ def run_simulation(simulation: Simulation, folder: Path, pos: bool) -> tuple[pd.
         cameras, frames = [], []
         for variant, extra in variants.items():
             adjusted = adjust_flight_groups(flight, rig, R, t, **noise, **extra)
-            cameras.append(_camera_rows(adjusted, rig, mounts).assign(variant=variant))
+            cameras.append(_camera_rows(adjusted, rig, truth_rig, mounts).assign(variant=variant))
             frames.append(_frame_rows(workspace, adjusted, flight, start, truth_rig, mounts, truth_frames)
                           .assign(variant=variant))
     keys = {"rig": "truth" if simulation.truth_rig else "calibrated", "pattern": simulation.pattern,
@@ -178,10 +190,11 @@ def run_simulation(simulation: Simulation, folder: Path, pos: bool) -> tuple[pd.
     return (pd.concat(cameras, ignore_index=True).assign(**keys), pd.concat(frames, ignore_index=True).assign(**keys))
 
 
-def _camera_rows(adjusted: dict, rig: Rig, mounts: dict) -> pd.DataFrame:
-    """pose.mounting's table with the truth t_r*_arcmin and chi2, per group and camera."""
+def _camera_rows(adjusted: dict, rig: Rig, truth_rig: Rig, mounts: dict) -> pd.DataFrame:
+    """pose.mounting's table with the truth t_r*_arcmin (against the simulator's rig) and chi2, per
+    group and camera."""
     table = mounting_table(adjusted)
-    truth = np.array([log_so3(mounts[g][c] @ rig.cam_from_rig[c].R.T) / RAD_PER_ARCMIN
+    truth = np.array([log_so3(mounts[g][c] @ truth_rig.cam_from_rig[c].R.T) / RAD_PER_ARCMIN
                       for g, c in zip(table["group"], table["camera"])])
     table[[f"t_{axis}_arcmin" for axis in AXES]] = truth
     table["chi2"] = np.concatenate([result.chi2 for result in adjusted.values()])

@@ -40,8 +40,10 @@ system of the frames and deltas: 0.26 s for 30 frames over 1,173 points, where e
 frames took 9.5 s).
 
 Covariance: the inverse normal matrix at the minimum; the deltas' block of it is that of the
-inverse of either Schur complement (the others marginalised). sigma: the square roots of its
-diagonal, in arc-min. chi2_c = delta_c^T cov_c^-1 delta_c; `significant` where chi2_c exceeds
+inverse of either Schur complement (the others marginalised); given the calibration's joint
+covariance, plus its share (`_calibration_share`): the calibrated rig is a measurement too, and a
+flight that resolves the rig better than the calibration did would flag its error as a change.
+sigma: the square roots of its diagonal, in arc-min. chi2_c = delta_c^T cov_c^-1 delta_c; `significant` where chi2_c exceeds
 chi2.ppf(1 - SIGNIFICANCE, 3): with no change and honest noise values, a share SIGNIFICANCE (1%)
 of the (camera, group) rows is flagged.
 
@@ -88,6 +90,7 @@ from ..frames import FlightObservations
 from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
 from ..rig import Rig
 from ..workspace import MOUNTING_COLUMNS
+from .error_model import CALIBRATION_PARAMETERS
 
 log = logging.getLogger(__name__)
 
@@ -186,7 +189,7 @@ class _State:
 def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t,
                      pixel_sigma_px: float | Mapping[str, float], jitter_sigma_arcmin: float, survey_sigma_m,
                      prior_sigma_arcmin: float = PRIOR_SIGMA_ARCMIN, center_prior_m=None,
-                     center_sigma_m=None) -> GroupRig:
+                     center_sigma_m=None, calibration_covariance=None) -> GroupRig:
     """The group rig adjustment (module docstring) of the N observations of F frames of one group.
 
     rig: the calibrated rig; cameras (N,) names; uv (N, 2) distorted pixels; point_ids (N,);
@@ -198,7 +201,9 @@ def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t
     center_prior_m (F, 3) (e.g. the POS positions less the lever arm) with per-axis sigma
     center_sigma_m (float, (3,) or (F, 3)): not in the model above; it pins the common outward tilt
     of the cameras, which the rig's height otherwise trades against (module docstring).
-    Raises DmaisError on inconsistent or degenerate input; a non-reference camera without
+    calibration_covariance (11 C, 11 C): the calibrated rig's joint covariance of its C cameras'
+    error_model.CALIBRATION_PARAMETERS, camera by camera in rig order (rig.json's), whose share
+    the deltas' covariance then carries (`_calibration_share`). Raises DmaisError on inconsistent or degenerate input; a non-reference camera without
     observations gets a NaN row, with a warning.
     """
     problem = _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px, jitter_sigma_arcmin,
@@ -210,17 +215,19 @@ def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t
     with single_threaded_blas():  # small matrices: threads only add hand-offs (2x slower on 2 busy cores)
         state, iterations, cost = _levenberg_marquardt(problem, state)
         covariance = _delta_covariance(problem, state)
+        if calibration_covariance is not None:
+            covariance = covariance + _calibration_share(problem, state, np.asarray(calibration_covariance, float))
     return _result(problem, state, covariance, iterations, cost)
 
 
 def adjust_flight_groups(flight: FlightObservations, rig: Rig, R, t, pixel_sigma_px, jitter_sigma_arcmin: float,
                          survey_sigma_m, prior_sigma_arcmin: float = PRIOR_SIGMA_ARCMIN, center_prior_m=None,
-                         center_sigma_m=None) -> dict[str, GroupRig]:
+                         center_sigma_m=None, calibration_covariance=None) -> dict[str, GroupRig]:
     """`adjust_group_rig` of every group of `flight` (frames.flight_observations_by_frame).
 
     R (F, 3, 3), t (F, 3): the rig_from_world of flight's F frames, NaN for a frame not solved (left
     out); survey_sigma_m: a float or (3,); center_prior_m (F, 3), center_sigma_m: as in
-    `adjust_group_rig`, per frame of flight. Returns group -> GroupRig, whose R, t are of the
+    `adjust_group_rig`, per frame of flight; calibration_covariance as there. Returns group -> GroupRig, whose R, t are of the
     group's solved frames in flight's order.
     """
     R, t = np.asarray(R, dtype=float).reshape(-1, 3, 3), np.asarray(t, dtype=float).reshape(-1, 3)
@@ -240,7 +247,8 @@ def adjust_flight_groups(flight: FlightObservations, rig: Rig, R, t, pixel_sigma
         adjusted[str(group)] = adjust_group_rig(
             rig, flight.cameras[rows], flight.uv[rows], flight.point_ids[rows], flight.points[rows],
             np.searchsorted(frames, flight.frame_index[rows]), R[frames], t[frames], pixel_sigma_px,
-            jitter_sigma_arcmin, survey_sigma_m, prior_sigma_arcmin, **centers)
+            jitter_sigma_arcmin, survey_sigma_m, prior_sigma_arcmin, **centers,
+            calibration_covariance=calibration_covariance)
     return adjusted
 
 
@@ -666,6 +674,57 @@ def _delta_covariance(problem: _Problem, state: _State) -> np.ndarray:
     normal = _normal_equations(problem, state)
     covariance = _solved(normal, 3 * K, np.zeros((normal.A.shape[0] * normal.A.shape[1] + normal.H.shape[0], 1)))[1]
     return np.array([covariance[3 * k:3 * k + 3, 3 * k:3 * k + 3] for k in range(K)]).reshape(K, 3, 3)
+
+
+def _calibration_share(problem: _Problem, state: _State, calibration_covariance: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) the deltas' covariance (rad^2) from the calibration's error: A Sigma A^T, Sigma
+    (11 C, 11 C) as `adjust_group_rig`'s. A: how a calibration error moves the estimated deltas.
+    An intrinsics error x moves the adjusted unknowns by -N^-1 J^T (d e / d x) x (the minimum's
+    implicit derivative, N the normal matrix; d e / d x the projection's, camera.project_unmasked);
+    much of it is a rotation the calibrated rig took up too (a principal point off by d px looks
+    like a turn of d / f), so it cancels. An error w of the calibrated rotation itself (about the
+    rig's axes: rig_from_cam became exp(w) rig_from_cam) moves the delta, in the camera's frame, by
+    C w (C the camera's cam_from_rig rotation); its centre's error is left out (a few mm at
+    hundreds of metres). Where the flight resolves the rig better than the calibration (a line
+    of frames), this share is what keeps a calibration error from being flagged as a change."""
+    p, K = problem, len(problem.free)
+    n_all, n_intrinsics = len(CALIBRATION_PARAMETERS), 5  # fx, fy, cx, cy, d first
+    A = np.zeros((3 * K, n_all * len(p.names)))
+    right, columns = _intrinsics_right_sides(p, state)
+    normal = _normal_equations(p, state)
+    F, L = p.n_frames, p.local_size
+    moved = _solved(normal, 3 * K, -right)[0][F * L:F * L + 3 * K]  # (3K, columns)
+    for j, (c, k) in enumerate(columns):
+        A[:, n_all * c + k] = moved[:, j]
+    for slot, name in enumerate(p.free):
+        c = p.names.index(name)
+        A[3 * slot:3 * slot + 3, n_all * c + n_intrinsics:n_all * c + n_intrinsics + 3] = p.rig.cam_from_rig[name].R
+    share = A @ calibration_covariance @ A.T
+    return np.array([share[3 * k:3 * k + 3, 3 * k:3 * k + 3] for k in range(K)]).reshape(K, 3, 3)
+
+
+def _intrinsics_right_sides(problem: _Problem, state: _State) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """J^T (d e / d x) (F L + G, n): per observed camera c and intrinsic k (`columns`, n pairs (c,
+    k)), the gradient's change per unit change of that camera's CALIBRATION_PARAMETERS[k] (k < 5)."""
+    p = problem
+    f = _forward(p, state)
+    local_J, local_cols, global_J, global_cols = _jacobians(p, state, f)
+    F, L, G = p.n_frames, p.local_size, p.global_size
+    local_rows, global_rows = p.frame[:, None] * L + local_cols, F * L + global_cols
+    sides, columns = [], []
+    for c in np.unique(p.camera):
+        rows = np.flatnonzero(p.camera == c)
+        camera = p.rig.cameras[p.names[c]]
+        by_intrinsic = project_unmasked(f.x[rows], camera.fx, camera.fy, camera.cx, camera.cy, camera.d, True)[2]
+        for k in range(by_intrinsic.shape[2]):
+            change = np.zeros((len(p.uv), 2))
+            change[rows] = by_intrinsic[:, :, k] * p.weight[rows, None]
+            side = np.zeros(F * L + G)
+            np.add.at(side, local_rows.ravel(), np.einsum("nkl,nk->nl", local_J, change).ravel())
+            np.add.at(side, global_rows.ravel(), np.einsum("nkl,nk->nl", global_J, change).ravel())
+            sides.append(side)
+            columns.append((int(c), k))
+    return np.column_stack(sides), columns
 
 
 def _result(problem: _Problem, state: _State, covariance: np.ndarray, iterations: int, cost: float) -> GroupRig:

@@ -76,7 +76,8 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
     record = _rig_record(workspace)
     solved = _solve(workspace, conf, rig, record, chosen, groups)
     if set(chosen) == set(rig.camera_names) and len(solved.table):
-        watched = watch_rig(workspace.dataset, rig, solved, calibrated_noise_px(record, chosen), *prior)
+        watched = watch_rig(workspace.dataset, rig, solved, calibrated_noise_px(record, chosen), *prior,
+                            calibration=calibration_covariance(record, rig.camera_names))
         if conf.in_flight_rig:
             solved = _with_in_flight_rigs(workspace, conf, rig, record, solved, watched)
         mounting = mounting_table(watched)
@@ -143,15 +144,17 @@ WATCH_MIN_PIXEL_PX = 0.05
 
 
 def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise: float,
-              lever_arm: np.ndarray | None = None, pos_sigma: np.ndarray | None = None) -> dict[str, GroupRig]:
+              lever_arm: np.ndarray | None = None, pos_sigma: np.ndarray | None = None,
+              calibration: np.ndarray | None = None) -> dict[str, GroupRig]:
     """pose.mounting's group rig adjustment of every group of `solved` (the whole rig's solves), with
     the group's error model: its pixel noise (at least the calibration's, `calibrated_noise`, and
     WATCH_MIN_PIXEL_PX), its camera rotation per frame (jitter and mounting together: the model
     tells their sum far better than their split, and an adjustment without the vibration there is
     turns the cameras by tens of arc-min to fit it) and its survey sigma (a point's own `sigma_m`
     where given); with a lever_arm (3,) m in the rig frame, the frames' centres held to their POS
-    positions less it, per-axis sigma pos_sigma (3,) m. A group it cannot adjust is left out with a
-    warning naming it."""
+    positions less it, per-axis sigma pos_sigma (3,) m; with the calibration's joint covariance
+    `calibration` (`calibration_covariance`), the changes' sigmas carry its share (a calibration error
+    is not flagged as a change). A group it cannot adjust is left out with a warning naming it."""
     used = solved.observations[solved.observations["used"].to_numpy(bool)]
     points, pos = dataset.points, dataset.frames.set_index("frame")[list(POS)]
     watched = {}
@@ -171,7 +174,7 @@ def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise:
                 rig, rows["camera"].to_numpy(), rows[["u", "v"]].to_numpy(float), rows["point_id"].to_numpy(),
                 points.loc[rows["point_id"], ["x", "y", "z"]].to_numpy(float),
                 pd.Index(frames["frame"]).get_indexer(rows["frame"]), R, frames[list(TRANSLATION)].to_numpy(float),
-                pixel, rotation, survey, **centres)
+                pixel, rotation, survey, **centres, calibration_covariance=calibration)
         except DmaisError as error:
             log.warning("pose: the rig of group %s is not watched in flight: %s", group, error)
     return watched
