@@ -156,7 +156,8 @@ def test_zero_residuals_give_zero_components_and_the_set_ones_are_kept():
     g = hover_geometry(6)
     model = em.estimate(g, {"survey": 0.015, "calibration": 0.0})
     assert model.source["survey"] == "set" and model.sigma["survey"] == 0.015
-    assert model.source["survey_vertical"] == "set" and model.sigma["survey_vertical"] == 0.015  # survey alone: all axes
+    # survey set alone is that of all three axes
+    assert model.source["survey_vertical"] == "set" and model.sigma["survey_vertical"] == 0.015
     model = em.estimate(g, {"survey": 0.015, "survey_vertical": 0.025, "calibration": 0.0})
     assert model.sigma["survey_vertical"] == 0.025
     assert all(model.sigma[name] == pytest.approx(0.0, abs=1e-9) for name in ("pixel", "jitter", "mounting", "focal"))

@@ -14,6 +14,7 @@ from scipy.optimize import least_squares
 from dmais_pipe import cli
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.geometry import Rigid3, exp_so3, rotation_error
+from dmais_pipe.pose.error_model import CALIBRATION_PARAMETERS
 from dmais_pipe.pose.mounting import RAD_PER_ARCMIN, TABLE_COLUMNS, adjust_group_rig, mounting_table
 from dmais_pipe.pose.solver import solve_generalized_pose
 from dmais_pipe.rig import Rig
@@ -273,7 +274,7 @@ def test_the_calibrations_share_is_what_re_adjusting_with_its_error_gives(change
     rig = group.rig
     cameras, cam_from_rig, v = dict(rig.cameras), dict(rig.cam_from_rig), np.zeros(11 * 5)
     for camera, parameter, step in changes:
-        v[11 * rig.camera_names.index(camera) + ("fx", "fy", "cx", "cy", "d", "rx", "ry", "rz").index(parameter)] = step
+        v[11 * rig.camera_names.index(camera) + CALIBRATION_PARAMETERS.index(parameter)] = step
         if parameter in ("rx", "ry", "rz"):
             w = np.zeros(3)
             w["xyz".index(parameter[1])] = step

@@ -22,8 +22,9 @@ The survey error's horizontal (world x, y: component `survey`) and vertical (z:
 unless the vertical is given (a setting, or ground_points.csv's `sigma_z_m`) the two are one
 sigma, estimated for all three axes: estimated apart from one group's points (40 on the
 paper-scale run) the split was too uncertain to use (horizontal 0.87-1.71 cm where the groups'
-points had 1.20-1.60). Jitter is
-the camera's vibration within a frame (every point of that camera moves together),
+points had 1.20-1.60).
+
+Jitter is the camera's vibration within a frame (every point of that camera moves together),
 mounting its rotation against the calibrated rig during a group, focal its focal-length change
 (a thermal focus change, or the calibration's own focal error: both scale the image about the
 axis). The reference camera has no jitter or mounting term: the rig frame is its frame, so its
@@ -133,8 +134,8 @@ class Geometry:
     int; survey (N, 2, 3) D_i; rotation (N, 2, 3) G_i; focal_effect (N, 2) h_i; calibration
     (N, 2, 11) C_i (per CALIBRATION_PARAMETERS, zero where the calibration gives no variance);
     calibration_covariance (11 C, 11 C) of the C rig cameras' CALIBRATION_PARAMETERS, camera by
-    camera in the rig's order; point_sigma (N, 3) m along x, y, z, NaN where not given; t_centred (F, 3) the
-    translations about each frame's point centroid (t + R m), R (F, 3, 3) the solved rotations,
+    camera in the rig's order; point_sigma (N, 3) m along x, y, z, NaN where not given; t_centred
+    (F, 3) the translations about each frame's point centroid (t + R m), R (F, 3, 3) the solved rotations,
     origins (N, 3) the rays' origins and points_centred (N, 3) the points less their frame's
     centroid (for re-solving the frames, `nonlinear.py`)."""
 
@@ -178,9 +179,10 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     frame_index (N,) ascending with every frame present, R (F, 3, 3), t (F, 3) rig_from_world,
     groups (F,) the frames' groups, point_ids (N,), object_space: the poses minimise the paper's
     eq. objfun (True) or the angular residuals (False); point_sigma_m (N, 3) or (N,) (all axes) the
-    survey sigma of each observation's point along x, y, z (NaN where not given); calibration_covariance (11 C, 11 C) of the rig cameras'
-    CALIBRATION_PARAMETERS (Geometry; rotations rx, ry, rz in rad about the rig's axes, the camera
-    centre vx, vy, vz in the rig, m), None: 0.
+    survey sigma of each observation's point along x, y, z (NaN where not given);
+    calibration_covariance (11 C, 11 C) of the rig cameras' CALIBRATION_PARAMETERS (Geometry;
+    rotations rx, ry, rz in rad about the rig's axes, the camera centre vx, vy, vz in the rig, m),
+    None: 0.
     """
     n_frames = len(R)
     counts = np.bincount(frame_index, minlength=n_frames)
@@ -537,7 +539,6 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     total = observed.sum()
     estimable = [name for name in free if visible[name] > MIN_VISIBLE]
 
-
     def untold(name: str, why: str, upper: float = np.inf) -> None:
         """0 for the estimation; its prior, at most the data's bound `upper` (UNITS), for the sigmas."""
         sigma[name], source[name] = (min(priors[name], upper), "prior") if name in priors else (0.0, why)
@@ -573,7 +574,8 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     return _tied(ErrorModel(sigma, source, g.dof), tied)
 
 
-def _component_draw(g: Geometry, name: str, rng: np.random.Generator, tied: bool, gaussian: bool = False) -> np.ndarray:
+def _component_draw(g: Geometry, name: str, rng: np.random.Generator, tied: bool,
+                    gaussian: bool = False) -> np.ndarray:
     """unit_draw of component `name`; with `tied` the survey's moves all three axes."""
     errors = unit_draw(g, name, rng, gaussian)
     if tied and name == "survey":

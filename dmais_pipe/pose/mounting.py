@@ -43,9 +43,9 @@ Covariance: the inverse normal matrix at the minimum; the deltas' block of it is
 inverse of either Schur complement (the others marginalised); given the calibration's joint
 covariance, plus its share (`_calibration_share`): the calibrated rig is a measurement too, and a
 flight that resolves the rig better than the calibration did would flag its error as a change.
-sigma: the square roots of its diagonal, in arc-min. chi2_c = delta_c^T cov_c^-1 delta_c; `significant` where chi2_c exceeds
-chi2.ppf(1 - SIGNIFICANCE, 3): with no change and honest noise values, a share SIGNIFICANCE (1%)
-of the (camera, group) rows is flagged.
+sigma: the square roots of its diagonal, in arc-min. chi2_c = delta_c^T cov_c^-1 delta_c;
+`significant` where chi2_c exceeds chi2.ppf(1 - SIGNIFICANCE, 3): with no change and honest noise
+values, a share SIGNIFICANCE (1%) of the (camera, group) rows is flagged.
 
 Fisher-information bound: the sigma reported with the true noise values is the Cramer-Rao bound
 of the geometry. For the simulator's groups (the paper's rig 350 m above ground, 8 markers in each
@@ -203,8 +203,8 @@ def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t
     of the cameras, which the rig's height otherwise trades against (module docstring).
     calibration_covariance (11 C, 11 C): the calibrated rig's joint covariance of its C cameras'
     error_model.CALIBRATION_PARAMETERS, camera by camera in rig order (rig.json's), whose share
-    the deltas' covariance then carries (`_calibration_share`). Raises DmaisError on inconsistent or degenerate input; a non-reference camera without
-    observations gets a NaN row, with a warning.
+    the deltas' covariance then carries (`_calibration_share`). Raises DmaisError on inconsistent or
+    degenerate input; a non-reference camera without observations gets a NaN row, with a warning.
     """
     problem = _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px, jitter_sigma_arcmin,
                        survey_sigma_m, prior_sigma_arcmin, center_prior_m, center_sigma_m)
@@ -227,8 +227,8 @@ def adjust_flight_groups(flight: FlightObservations, rig: Rig, R, t, pixel_sigma
 
     R (F, 3, 3), t (F, 3): the rig_from_world of flight's F frames, NaN for a frame not solved (left
     out); survey_sigma_m: a float or (3,); center_prior_m (F, 3), center_sigma_m: as in
-    `adjust_group_rig`, per frame of flight; calibration_covariance as there. Returns group -> GroupRig, whose R, t are of the
-    group's solved frames in flight's order.
+    `adjust_group_rig`, per frame of flight; calibration_covariance as there. Returns group ->
+    GroupRig, whose R, t are of the group's solved frames in flight's order.
     """
     R, t = np.asarray(R, dtype=float).reshape(-1, 3, 3), np.asarray(t, dtype=float).reshape(-1, 3)
     if len(R) != len(flight) or len(t) != len(flight):
