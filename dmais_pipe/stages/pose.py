@@ -47,8 +47,9 @@ class Conf:
         ROBUST_THRESHOLD_PX, "RANSAC's inlier threshold (px; an angle per observation: this over its camera's fx)",
         above=0)
     error_sigmas: tuple = setting((), "components of the sigmas' error model fixed at a known 1-sigma, "
-                                  "NAME=VALUE: pixel (px), survey (m), jitter, mounting (arc-min), focal (ppm), "
-                                  "calibration (a factor on rig.json's covariance); the others are estimated")
+                                  "NAME=VALUE: pixel (px), survey (m, horizontal; also the vertical unless "
+                                  "survey_vertical is given), survey_vertical (m), jitter, mounting (arc-min), focal "
+                                  "(ppm), calibration (a factor on rig.json's covariance); the others are estimated")
     in_flight_rig: bool = setting(False, "solve every frame again with its group's rig watched in flight (the "
                                   "mounting file's, pose.mounting) instead of the calibrated one")
     error_priors: tuple = setting(("mounting=0.15",), "the 1-sigma, NAME=VALUE as error_sigmas, of components "
