@@ -201,7 +201,8 @@ def _cmd_bench_sigma(args) -> None:
 
     simulations = simulation_grid(args.seeds, args.vibration, args.survey, pixel_px=args.pixel,
                                   mount_arcmin=args.mount, groups=args.groups, frames_per_group=args.frames_per_group,
-                                  calib_images=args.calib_images, truth_rig=args.truth_rig) if args.simulate else []
+                                  calib_images=args.calib_images, truth_rig=args.truth_rig,
+                                  patterns=args.pattern) if args.simulate else []
     print_table(bench_sigma(args.csv, args.results or [], simulations, work=args.work), args.csv)
 
 
@@ -419,6 +420,9 @@ def _parser() -> argparse.ArgumentParser:
     sigma.add_argument("--calib-images", type=_positive_int, default=6,
                        help="calibration images per camera (default: %(default)s, the demo's)")
     sigma.add_argument("--truth-rig", action="store_true", help="solve with the simulator's rig, no calibration")
+    sigma.add_argument("--pattern", type=_flight_patterns, default=["hover"],
+                       help="the simulator's flight.pattern, comma-separated: hover (every frame over the same "
+                            "markers), line (frames along a line, new markers each frame) (default: hover)")
     sigma.add_argument("--work", type=Path, help="keep each simulation in WORK/<name> (default: a temporary folder)")
     sigma.add_argument("--csv", type=Path, default=Path("reports/bench/sigma.csv"),
                        help="output table, the per-frame rows beside it (default: %(default)s)")

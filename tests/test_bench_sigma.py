@@ -17,8 +17,10 @@ from dmais_pipe.bench.sigma import (
     frames_path,
     is_ok,
     sigma_table,
+    simulation_grid,
     wrapped_degrees,
 )
+from dmais_pipe import cli
 from dmais_pipe.cli import main
 from dmais_pipe.geometry import quat_from_rotation, rotation_from_euler_zyx
 
@@ -27,7 +29,8 @@ TRUE_ANGLES = np.array([[359.9, 0.5, 179.95], [10.0, -1.0, -179.9], [120.0, 2.0,
 TRUE_CENTRES = np.array([[100.0, 200.0, 400.0], [101.0, 199.0, 401.0], [99.0, 201.0, 399.0], [100.5, 200.5, 400.5]])
 #: Sigmas per axis (m, m, m, arc-min x 3); powers of two, so that the position errors are exact.
 SIGMAS = np.array([0.25, 0.125, 0.5, 12.0, 6.0, 6.0])
-SETTINGS = {"source": "hand-made", "rig": "truth", "seed": "1", "vibration_arcmin": 0.0, "mount_arcmin": 0.0,
+SETTINGS = {"source": "hand-made", "rig": "truth", "pattern": "hover", "seed": "1", "vibration_arcmin": 0.0,
+            "mount_arcmin": 0.0,
             "survey_h_m": 0.01, "survey_v_m": 0.01, "pixel_px": 0.25}
 
 
@@ -128,6 +131,15 @@ def test_several_seeds_add_pooled_rows():
     assert len(table) == 3 * 8
 
 
+def test_the_grid_and_the_command_take_the_flight_pattern():
+    grid = simulation_grid([3], [0.3], [0.02], patterns=["hover", "line"])
+    assert [s.pattern for s in grid] == ["hover", "line"] and grid[0].name != grid[1].name
+    assert grid[1].config()["flight"]["pattern"] == "line" and "pattern" not in grid[0].config()["flight"]
+    parser = cli._parser()
+    assert parser.parse_args(["bench", "sigma", "--pattern", "line"]).pattern == ["line"]
+    assert parser.parse_args(["bench", "sigma"]).pattern == ["hover"]
+
+
 def test_a_tiny_simulation_and_its_results_folder(tmp_path, capsys):
     common = ["--csv", str(tmp_path / "simulated.csv")]
     assert main(["bench", "sigma", "--simulate", "--seeds", "5", "--vibration", "0.3", "--survey", "0.02",
@@ -138,8 +150,8 @@ def test_a_tiny_simulation_and_its_results_folder(tmp_path, capsys):
     assert list(simulated.columns) == TABLE_COLUMNS and len(simulated) == 5 * 8
     assert set(simulated["set"]) == {"0", "01", "012", "1234", "01234"}
     assert (simulated["n_frames"] == 4).all() and np.isfinite(simulated["rms_ratio"]).all()
-    settings = simulated[["vibration_arcmin", "survey_h_m", "survey_v_m", "pixel_px"]].iloc[0]
-    assert settings.tolist() == [0.3, 0.02, 0.02, 0.25]
+    settings = simulated[["pattern", "vibration_arcmin", "survey_h_m", "survey_v_m", "pixel_px"]].iloc[0]
+    assert settings.tolist() == ["hover", 0.3, 0.02, 0.02, 0.25]
     assert frames_path(tmp_path / "simulated.csv").is_file()
 
     folder = tmp_path / "work" / Simulation(0.3, 0.02, 5, groups=2, frames_per_group=2, calib_images=3).name

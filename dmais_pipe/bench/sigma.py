@@ -84,7 +84,8 @@ COVERAGE_TOLERANCE = 0.10
 COVERAGE_ROUNDING = 1e-9
 #: The workflow's camera sets (config/config.yaml's subsets) and the full rig.
 CAMERA_SETS = ("0", "01", "012", "1234", "01234")
-SETTING_COLUMNS = ["source", "rig", "seed", "vibration_arcmin", "mount_arcmin", "survey_h_m", "survey_v_m", "pixel_px"]
+SETTING_COLUMNS = ["source", "rig", "pattern", "seed", "vibration_arcmin", "mount_arcmin", "survey_h_m", "survey_v_m",
+                   "pixel_px"]
 STATISTIC_COLUMNS = ["n_frames", "rms_ratio", "cover_1sigma", "cover_2sigma", "median_sigma", "median_abs_error"]
 TABLE_COLUMNS = [*SETTING_COLUMNS, "set", "axis", "unit", *STATISTIC_COLUMNS, "ok"]
 #: Printed names of the setting columns.
@@ -218,14 +219,15 @@ def checked_poses(workspace: Workspace, path: Path, truth: pd.DataFrame) -> pd.D
 
 
 def simulation_settings(truth_dir: Path) -> dict:
-    """SETTING_COLUMNS but source and rig, from truth/simulation.yaml: seed (text), vibration and mounting
-    change (arc-min), ground survey horizontal and vertical sigma (m), the flight's marker noise
-    (px; NaN when the flight images were rendered)."""
+    """SETTING_COLUMNS but source and rig, from truth/simulation.yaml: the flight's pattern, seed
+    (text), vibration and mounting change (arc-min), ground survey horizontal and vertical sigma (m),
+    the flight's marker noise (px; NaN when the flight images were rendered)."""
     config = yaml.safe_load((truth_dir / "simulation.yaml").read_text())
     flight = config["flight"]
     survey = np.broadcast_to(np.asarray(flight["survey_sigma_m"], dtype=float), 3)
     rendered = config.get("render", {}).get("flight", False)
-    return {"seed": str(config["seed"]), "vibration_arcmin": float(flight["vibration_sigma_arcmin"]),
+    return {"pattern": str(flight.get("pattern", DEFAULTS["flight"]["pattern"])), "seed": str(config["seed"]),
+            "vibration_arcmin": float(flight["vibration_sigma_arcmin"]),
             "mount_arcmin": float(flight["mount_sigma_arcmin"]), "survey_h_m": float(survey[0]),
             "survey_v_m": float(survey[2]), "pixel_px": np.nan if rendered else float(flight["pixel_sigma_px"])}
 
@@ -279,9 +281,11 @@ def alternating_sites(groups: int) -> dict:
 
 
 def simulation_grid(seeds=DEFAULT_SEEDS, vibrations=DEFAULT_VIBRATION_ARCMIN, surveys=DEFAULT_SURVEY_M,
-                    **options) -> list[Simulation]:
-    """Every vibration x survey x seed (seeds innermost); options: Simulation's other fields."""
-    return [Simulation(v, s, seed, **options) for v in vibrations for s in surveys for seed in seeds]
+                    patterns=("hover",), **options) -> list[Simulation]:
+    """Every flight pattern x vibration x survey x seed (seeds innermost); options: Simulation's other
+    fields."""
+    return [Simulation(v, s, seed, pattern=pattern, **options)
+            for pattern in patterns for v in vibrations for s in surveys for seed in seeds]
 
 
 def calibrated_workspace(simulation: Simulation, folder: Path) -> Workspace:
