@@ -214,9 +214,7 @@ def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t
                    problem.surveyed.copy())
     with single_threaded_blas():  # small matrices: threads only add hand-offs (2x slower on 2 busy cores)
         state, iterations, cost = _levenberg_marquardt(problem, state)
-        covariance = _delta_covariance(problem, state)
-        if calibration_covariance is not None:
-            covariance = covariance + _calibration_share(problem, state, np.asarray(calibration_covariance, float))
+        covariance = _delta_covariance(problem, state, calibration_covariance)
     return _result(problem, state, covariance, iterations, cost)
 
 
@@ -668,17 +666,29 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
 # ------------------------------------------------------------------------------ the result
 
 
-def _delta_covariance(problem: _Problem, state: _State) -> np.ndarray:
-    """(K, 3, 3) covariance of the deltas (rad^2): their blocks of the inverse normal matrix."""
+def _delta_covariance(problem: _Problem, state: _State, calibration_covariance=None) -> np.ndarray:
+    """(K, 3, 3) covariance of the deltas (rad^2): their blocks of the inverse normal matrix, plus,
+    given the calibration's covariance (`adjust_group_rig`), its share (`_calibration_share`); one
+    solve gives both."""
     K = len(problem.free)
     normal = _normal_equations(problem, state)
-    covariance = _solved(normal, 3 * K, np.zeros((normal.A.shape[0] * normal.A.shape[1] + normal.H.shape[0], 1)))[1]
+    size = normal.A.shape[0] * normal.A.shape[1] + normal.H.shape[0]
+    right, columns = _intrinsics_right_sides(problem, state) if calibration_covariance is not None \
+        else (np.zeros((size, 0)), [])
+    moved, covariance = _solved(normal, 3 * K, -right)
+    if calibration_covariance is not None:
+        first = normal.A.shape[0] * normal.A.shape[1]
+        covariance = covariance + _calibration_share(problem, moved[first:first + 3 * K], columns,
+                                                     np.asarray(calibration_covariance, float))
     return np.array([covariance[3 * k:3 * k + 3, 3 * k:3 * k + 3] for k in range(K)]).reshape(K, 3, 3)
 
 
-def _calibration_share(problem: _Problem, state: _State, calibration_covariance: np.ndarray) -> np.ndarray:
-    """(K, 3, 3) the deltas' covariance (rad^2) from the calibration's error: A Sigma A^T, Sigma
-    (11 C, 11 C) as `adjust_group_rig`'s. A: how a calibration error moves the estimated deltas.
+def _calibration_share(problem: _Problem, moved: np.ndarray, columns: list[tuple[int, int]],
+                       calibration_covariance: np.ndarray) -> np.ndarray:
+    """(3K, 3K) the deltas' covariance (rad^2) from the calibration's error: A Sigma A^T, Sigma
+    (11 C, 11 C) as `adjust_group_rig`'s; moved (3K, n): the deltas' change per unit change of each
+    intrinsic of `columns` (`_intrinsics_right_sides`). A: how a calibration error moves the
+    estimated deltas.
     An intrinsics error x moves the adjusted unknowns by -N^-1 J^T (d e / d x) x (the minimum's
     implicit derivative, N the normal matrix; d e / d x the projection's, camera.project_unmasked);
     much of it is a rotation the calibrated rig took up too (a principal point off by d px looks
@@ -690,17 +700,12 @@ def _calibration_share(problem: _Problem, state: _State, calibration_covariance:
     p, K = problem, len(problem.free)
     n_all, n_intrinsics = len(CALIBRATION_PARAMETERS), 5  # fx, fy, cx, cy, d first
     A = np.zeros((3 * K, n_all * len(p.names)))
-    right, columns = _intrinsics_right_sides(p, state)
-    normal = _normal_equations(p, state)
-    F, L = p.n_frames, p.local_size
-    moved = _solved(normal, 3 * K, -right)[0][F * L:F * L + 3 * K]  # (3K, columns)
     for j, (c, k) in enumerate(columns):
         A[:, n_all * c + k] = moved[:, j]
     for slot, name in enumerate(p.free):
         c = p.names.index(name)
         A[3 * slot:3 * slot + 3, n_all * c + n_intrinsics:n_all * c + n_intrinsics + 3] = p.rig.cam_from_rig[name].R
-    share = A @ calibration_covariance @ A.T
-    return np.array([share[3 * k:3 * k + 3, 3 * k:3 * k + 3] for k in range(K)]).reshape(K, 3, 3)
+    return A @ calibration_covariance @ A.T
 
 
 def _intrinsics_right_sides(problem: _Problem, state: _State) -> tuple[np.ndarray, list[tuple[int, int]]]:

@@ -75,12 +75,13 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
     chosen = _cameras(rig, cameras)
     prior = pos_prior(conf)
     record = _rig_record(workspace)
-    solved = _solve(workspace, conf, rig, record, chosen, groups)
+    calibration = calibration_covariance(record, rig.camera_names)
+    solved = _solve(workspace, conf, rig, record, calibration, chosen, groups)
     if set(chosen) == set(rig.camera_names) and len(solved.table):
         watched = watch_rig(workspace.dataset, rig, solved, calibrated_noise_px(record, chosen), *prior,
-                            calibration=calibration_covariance(record, rig.camera_names))
+                            calibration=calibration)
         if conf.in_flight_rig:
-            solved = _with_in_flight_rigs(workspace, conf, rig, record, solved, watched)
+            solved = _with_in_flight_rigs(workspace, conf, rig, record, calibration, solved, watched)
         mounting = mounting_table(watched)
     else:  # the rig is watched through the whole rig's solves only
         mounting = pd.DataFrame(columns=list(MOUNTING_COLUMNS))
@@ -128,15 +129,16 @@ def merge(workspace: Workspace, parts: list[Path], cameras: list[str] | None = N
                                 budget, mounting)
 
 
-def _solve(workspace: Workspace, conf: Conf, rig: Rig, record: dict, chosen: list[str],
+def _solve(workspace: Workspace, conf: Conf, rig: Rig, record: dict, calibration: np.ndarray, chosen: list[str],
            groups: list[str] | None) -> FlightPoses:
-    """pose.flight.solve_flight of the frames (of `groups`) with `chosen` cameras of `rig`."""
+    """pose.flight.solve_flight of the frames (of `groups`) with `chosen` cameras of `rig`; record:
+    rig.json as written, calibration its `calibration_covariance`."""
     with single_threaded_blas():  # small matrices: threads only add hand-offs to time_ms
         return solve_flight(workspace.dataset, rig, workspace.load_observations(), chosen, conf.robust, conf.refine,
                             groups, conf.robust_threshold_px, calibrated_noise_px(record, chosen),
                             error_settings=error_settings(conf.error_sigmas, "error_sigmas"),
                             error_priors=error_settings(conf.error_priors, "error_priors"),
-                            calibration_covariance=calibration_covariance(record, rig.camera_names))
+                            calibration_covariance=calibration)
 
 
 #: The least pixel noise the rig adjustment weighs the markers with (px): where the error model's
@@ -203,10 +205,10 @@ def _three_numbers(items: tuple, key: str) -> np.ndarray:
     return values
 
 
-def _with_in_flight_rigs(workspace: Workspace, conf: Conf, rig: Rig, record: dict, solved: FlightPoses,
-                         watched: dict[str, GroupRig]) -> FlightPoses:
+def _with_in_flight_rigs(workspace: Workspace, conf: Conf, rig: Rig, record: dict, calibration: np.ndarray,
+                         solved: FlightPoses, watched: dict[str, GroupRig]) -> FlightPoses:
     """`solved` with each watched group's frames solved again with its in-flight rig."""
-    parts = [_solve(workspace, conf, watched[g].rig, record, rig.camera_names, [g]) if g in watched
+    parts = [_solve(workspace, conf, watched[g].rig, record, calibration, rig.camera_names, [g]) if g in watched
              else _group_of(solved, g) for g in pd.unique(solved.table["group"].astype(str))]
     return FlightPoses(pd.concat([p.table for p in parts], ignore_index=True),
                        pd.concat([p.observations for p in parts], ignore_index=True),
