@@ -374,8 +374,7 @@ def point_sigma(points: pd.DataFrame, point_ids) -> np.ndarray:
 def largest_point_sigma(points: pd.DataFrame, point_ids) -> np.ndarray:
     """(n,) the largest of each point's survey sigmas along x, y, z (`point_sigma`), 0 where none is
     given: the calibration's survey term, one sigma for all three axes."""
-    sigma = point_sigma(points, point_ids)
-    return np.where(np.isnan(sigma), 0.0, sigma).max(axis=1) if len(sigma) else np.zeros(0)
+    return np.nan_to_num(point_sigma(points, point_ids)).max(axis=1)
 
 
 def _check_disjoint(control: Table, ground: Table) -> None:

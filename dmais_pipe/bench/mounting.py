@@ -84,7 +84,6 @@ truth stays the mount change against the simulator's rig. Seeds 1001-1003 (`dmai
 
 from __future__ import annotations
 
-import json
 import logging
 import tempfile
 import time
@@ -101,8 +100,8 @@ from ..geometry import Rigid3, average_rotations, log_so3, rotation_from_quat
 from ..pose.flight import estimate_poses
 from ..pose.mounting import RAD_PER_ARCMIN, adjust_flight_groups, mounting_table
 from ..rig import Rig
+from ..stages.pose import _rig_record, calibration_covariance
 from ..workspace import CENTER, QUAT, TRANSLATION, Workspace
-from ..stages.pose import calibration_covariance
 from .sigma import Simulation, _stages_quiet, calibrated_workspace
 
 log = logging.getLogger(__name__)
@@ -167,8 +166,7 @@ def run_simulation(simulation: Simulation, folder: Path, pos: bool) -> tuple[pd.
         noise = {"pixel_sigma_px": simulation.pixel_px, "jitter_sigma_arcmin": simulation.vibration_arcmin,
                  "survey_sigma_m": [simulation.survey_m] * 3}
         if not simulation.truth_rig:  # the calibration's share, as the pose stage gives it (watch_rig)
-            record = json.loads(workspace.rig_path.read_text())
-            noise["calibration_covariance"] = calibration_covariance(record, rig.camera_names)
+            noise["calibration_covariance"] = calibration_covariance(_rig_record(workspace), rig.camera_names)
         variants = {"survey": {}}
         if pos:
             world_pos = workspace.dataset.frames.set_index("frame").loc[flight.frames, ["pos_x", "pos_y", "pos_z"]]
