@@ -47,9 +47,10 @@ POSE_BUDGET_COLUMNS = ("frame", "component", "sigma", "unit", "source", "var_x_m
                        "var_heading_arcmin2", "var_pitch_arcmin2", "var_roll_arcmin2")
 #: <poses>.mounting.csv and tables/mounting.csv: per flight group and camera, the rotation of its
 #: in-flight cam_from_rig times the calibrated one's inverse (rotation vector in the camera frame,
-#: arc-min), its 1-sigma, and whether it is significant (pose/mounting.py).
+#: arc-min), its 1-sigma, and whether it is significant; then its focal change and 1-sigma (ppm,
+#: empty where the focal length was held; a file of an earlier version has neither) (pose/mounting.py).
 MOUNTING_COLUMNS = ("group", "camera", "d_rx_arcmin", "d_ry_arcmin", "d_rz_arcmin", "sigma_rx_arcmin",
-                    "sigma_ry_arcmin", "sigma_rz_arcmin", "significant")
+                    "sigma_ry_arcmin", "sigma_rz_arcmin", "significant", "d_focal_ppm", "sigma_focal_ppm")
 TRUTH_COLUMNS = ("frame", "group", *QUAT, *TRANSLATION, *CENTER)
 #: markers/<image>.csv: every detection, its sub-pixel standard deviation per axis and the fit's
 #: residual (fraction of the marker's contrast), and its point id ('' when unidentified).
@@ -331,11 +332,12 @@ class Workspace:
         """The rig watched in flight beside a poses file (default poses.csv), MOUNTING_COLUMNS (group,
         camera as text, significant as bool); None when the poses file has none."""
         with results_errors():
-            table = self._beside_poses(path, "mounting", MOUNTING_COLUMNS)
+            table = self._beside_poses(path, "mounting", MOUNTING_COLUMNS[:9])
             return None if table is None else pd.DataFrame({
                 "group": table.text("group"), "camera": table.text("camera"),
                 **{c: table.floats(c, optional=True) for c in MOUNTING_COLUMNS[2:8]},
-                "significant": _flags(table, "significant")})
+                "significant": _flags(table, "significant"),
+                **{c: table.floats(c, optional=True) for c in MOUNTING_COLUMNS[9:]}})
 
     def _beside_poses(self, path: Path | None, kind: str, columns: Sequence[str]) -> Table | None:
         """The `kind` file beside a poses file (default poses.csv) read with `columns`; None when absent."""

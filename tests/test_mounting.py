@@ -19,7 +19,7 @@ from dmais_pipe.pose.mounting import RAD_PER_ARCMIN, TABLE_COLUMNS, adjust_group
 from dmais_pipe.pose.solver import solve_generalized_pose
 from dmais_pipe.rig import Rig
 from dmais_pipe.sim.config import DEFAULTS, merge
-from dmais_pipe.sim.scene import build_rig, ground_markers_for, nominal_rig_pose, visible_points
+from dmais_pipe.sim.scene import build_rig, ground_markers_for, line_poses, nominal_rig_pose, visible_points
 
 SITE = np.array([1500.0, -800.0, 45.0])
 
@@ -46,22 +46,28 @@ class Group:
 
 
 def make_group(seed: int, frames: int = 30, mount_arcmin: float = 0.0, vibration_arcmin: float = 0.3,
-               survey_m: float = 0.025, pixel_px: float = 0.5, markers_per_camera: int = 8) -> Group:
-    """A hovering group over the simulator's site A (scene helpers), every non-reference camera
-    turned by mount_arcmin per axis with seeded signs, each frame's cameras by N(0, vibration^2); the
+               survey_m: float = 0.025, pixel_px: float = 0.5, markers_per_camera: int = 8,
+               pattern: str = "hover") -> Group:
+    """A group over the simulator's site A (scene helpers), hovering or along a line (the
+    simulator's flight patterns, markers placed for every frame), every non-reference camera turned
+    by mount_arcmin per axis with seeded signs, each frame's cameras by N(0, vibration^2); the
     frames' poses from the project's solver with the calibrated rig."""
-    config = merge(DEFAULTS, {"seed": seed, "flight": {"markers_per_camera": markers_per_camera}})
+    config = merge(DEFAULTS, {"seed": seed, "flight": {"markers_per_camera": markers_per_camera,
+                                                       "frames_per_group": frames}})
     rng = np.random.default_rng(seed)
     rig = build_rig(config["rig"])
     nominal = nominal_rig_pose(config, SITE, rng)
-    markers = ground_markers_for(config, rig, nominal, "A", SITE, rng, [])
+    nominals = [nominal] * frames if pattern == "hover" else line_poses(config, nominal)
+    markers = []
+    for pose in nominals[:1] if pattern == "hover" else nominals:
+        markers += ground_markers_for(config, rig, pose, "A", SITE, rng, markers)
     true_points = {pid: xyz for m in markers for pid, xyz in zip(m.point_ids, m.board.corners())}
     surveyed = {pid: xyz + rng.normal(0.0, survey_m, 3) for pid, xyz in true_points.items()}
     tilted = [c for c in rig.camera_names if c != rig.reference_camera]
     mount = {c: mount_arcmin * rng.choice([-1.0, 1.0], 3) for c in tilted}
     rows, true_R, true_t, R, t = [], [], [], [], []
     for f in range(frames):
-        world_from_nominal = nominal.inverse()
+        world_from_nominal = nominals[f].inverse()
         rig_from_world = Rigid3(exp_so3(rng.normal(0.0, np.radians(0.2), 3)) @ world_from_nominal.R,
                                 world_from_nominal.t + rng.normal(0.0, 1.0, 3)).inverse()
         frame_rows = []
@@ -216,24 +222,28 @@ def test_agrees_with_scipy_least_squares_on_the_same_whitened_residuals(with_cen
 
 
 def reference_solution(group: Group, pixel_sigma_px, jitter_sigma_arcmin, survey_sigma_m, prior_sigma_arcmin,
-                       center_prior_m=None, center_sigma_m=None):
+                       center_prior_m=None, center_sigma_m=None, focal_sigma=()):
     """delta (K, 3) and sigma (K, 3) in arc-min of the model, written from its definition: every
-    unknown an offset from its start (poses as a rotation vector and the rig centre's move)."""
+    unknown an offset from its start (poses as a rotation vector and the rig centre's move); with
+    focal_sigma (C,), each camera's relative focal change an unknown too (fx and fy scaled by 1 + it)
+    with that prior sigma, and also its estimate and sigma (C,) in ppm."""
     rig = group.rig
     moving = [c for c in rig.camera_names if c != rig.reference_camera]
     ids, point = np.unique(group.point_ids, return_inverse=True)
     surveyed = np.array([group.points[np.flatnonzero(point == p)[0]] for p in range(len(ids))])
-    F, K, P = len(group.R), len(moving), len(ids)
+    F, K, P, C = len(group.R), len(moving), len(ids), len(focal_sigma)
+    n = 6 * F + 3 * K + 3 * F * K + 3 * P
     jitter_rad, prior_rad = jitter_sigma_arcmin * RAD_PER_ARCMIN, prior_sigma_arcmin * RAD_PER_ARCMIN
 
     def unpack(x):
         omega, dc = x[:3 * F].reshape(F, 3), x[3 * F:6 * F].reshape(F, 3)
         delta = x[6 * F:6 * F + 3 * K].reshape(K, 3)
         jitter = x[6 * F + 3 * K:6 * F + 3 * K + 3 * F * K].reshape(F, K, 3)
-        return omega, dc, delta, jitter, surveyed + x[6 * F + 3 * K + 3 * F * K:].reshape(P, 3)
+        return omega, dc, delta, jitter, surveyed + x[6 * F + 3 * K + 3 * F * K:n].reshape(P, 3)
 
     def residuals(x):
         omega, dc, delta, jitter, points = unpack(x)
+        focal = x[n:]
         R, centers = exp_so3(omega) @ group.R, start_centers + dc
         x_rig = np.einsum("nij,nj->ni", R[group.frame_index], points[point] - centers[group.frame_index])
         pixels = np.empty_like(group.uv)
@@ -244,46 +254,118 @@ def reference_solution(group: Group, pixel_sigma_px, jitter_sigma_arcmin, survey
                 k = moving.index(name)
                 turn = exp_so3(jitter[group.frame_index[rows], k]) @ exp_so3(delta[k])
             x_cam = np.einsum("nij,nj->ni", turn, rig.cam_from_rig[name].apply(x_rig[rows]))
-            pixels[rows] = rig.cameras[name].project(x_cam)
+            camera = rig.cameras[name]
+            if C:
+                scale = 1.0 + focal[rig.camera_names.index(name)]
+                camera = replace(camera, fx=camera.fx * scale, fy=camera.fy * scale)
+            pixels[rows] = camera.project(x_cam)
         centre_prior = [] if center_prior_m is None else [((centers - center_prior_m) / center_sigma_m).ravel()]
         return np.concatenate([((pixels - group.uv) / pixel_sigma_px).ravel(),
                                ((points - surveyed) / survey_sigma_m).ravel(), delta.ravel() / prior_rad,
-                               jitter.ravel() / jitter_rad, *centre_prior])
+                               jitter.ravel() / jitter_rad, *centre_prior, focal / np.asarray(focal_sigma)])
 
     start_centers = centres(group.R, group.t)
-    x0 = np.zeros(6 * F + 3 * K + 3 * F * K + 3 * P)
+    x0 = np.zeros(n + C)
     solution = least_squares(residuals, x0, jac="3-point", x_scale="jac", method="lm", xtol=1e-15, ftol=1e-15,
                              gtol=1e-15)
     J = solution.jac  # at solution.x
-    covariance = np.linalg.inv(J.T @ J)[6 * F:6 * F + 3 * K, 6 * F:6 * F + 3 * K]
+    covariance = np.linalg.inv(J.T @ J)
     delta = unpack(solution.x)[2] / RAD_PER_ARCMIN
-    sigma = np.sqrt(np.diag(covariance)).reshape(K, 3) / RAD_PER_ARCMIN
-    return delta, sigma
+    sigma = np.sqrt(np.diag(covariance)[6 * F:6 * F + 3 * K]).reshape(K, 3) / RAD_PER_ARCMIN
+    if not C:
+        return delta, sigma
+    return delta, sigma, solution.x[n:] * 1e6, np.sqrt(np.diag(covariance)[n:]) * 1e6
 
 
-@pytest.mark.parametrize("changes", [[("C2", "cx", 2.0)], [("C0", "cy", 2.0)], [("C3", "fx", 20.0)],
-                                     [("C1", "d", 0.05)], [("C2", "ry", 2e-4)],
-                                     [("C2", "cx", 2.0), ("C2", "ry", 2e-4), ("C0", "cx", -3.0)]])
-def test_the_calibrations_share_is_what_re_adjusting_with_its_error_gives(changes):
+def focal_covariance(rig: Rig, sigma) -> np.ndarray:
+    """(11 C, 11 C) a calibration covariance of fx and fy alone, each camera's off together by its
+    relative sigma (C,) (its focal change's prior in the adjustment)."""
+    covariance = np.zeros((11 * len(rig.camera_names),) * 2)
+    for c, name in enumerate(rig.camera_names):
+        f = sigma[c] * np.array([rig.cameras[name].fx, rig.cameras[name].fy])
+        covariance[11 * c:11 * c + 2, 11 * c:11 * c + 2] = np.outer(f, f)
+    return covariance
+
+
+def test_focal_changes_agree_with_scipy_least_squares():
+    """Given a calibration covariance, each camera's focal change is an unknown with the
+    calibration's relative sigma as its prior: the same solution and sigmas as the dense reference
+    with that unknown written in (one camera's focal length held: its sigma 0)."""
+    group = make_group(5, frames=3, mount_arcmin=1.0, markers_per_camera=4)
+    focal_sigma = np.array([3e-4, 2e-4, 0.0, 4e-4, 2.5e-4])
+    sigmas = {"pixel_sigma_px": 0.5, "jitter_sigma_arcmin": 0.3, "survey_sigma_m": 0.025, "prior_sigma_arcmin": 30.0}
+    result = group.adjust(**sigmas, calibration_covariance=focal_covariance(group.rig, focal_sigma))
+    held = focal_sigma == 0
+    delta, sigma, focal, focal_sigma_ppm = reference_solution(group, **sigmas, focal_sigma=np.where(held, 1e-12,
+                                                                                                     focal_sigma))
+    chosen = others(group, result)
+    np.testing.assert_allclose(result.delta_arcmin[chosen], delta, atol=1e-5 * np.max(sigma))
+    np.testing.assert_allclose(result.sigma_arcmin[chosen], sigma, rtol=1e-4)
+    np.testing.assert_allclose(result.focal_ppm[~held], focal[~held], atol=1e-4 * np.max(focal_sigma_ppm))
+    np.testing.assert_allclose(result.sigma_focal_ppm[~held], focal_sigma_ppm[~held], rtol=1e-4)
+    assert np.isnan(result.focal_ppm[held]).all() and np.isnan(result.sigma_focal_ppm[held]).all()
+    for c, name in enumerate(result.cameras):
+        scale = 1.0 + np.nan_to_num(result.focal_ppm[c]) * 1e-6
+        assert result.rig.cameras[name].fx == pytest.approx(group.rig.cameras[name].fx * scale, rel=1e-12)
+        assert result.rig.cameras[name].cx == group.rig.cameras[name].cx
+
+
+def test_a_calibrated_focal_error_is_found_in_flight():
+    """The calibrated rig's focal lengths off by 300-500 ppm (ten times its 0.5 px of 45,000 px) on a
+    line of 30 frames (every frame new markers): each camera's focal change is found within 3
+    sigma, its sigma below the calibration's, and the deltas stay within 3 sigma of the truth."""
+    truth = make_group(31, frames=30, mount_arcmin=1.0, pattern="line")
+    error = np.array([4e-4, -3e-4, 5e-4, 3e-4, -4e-4])
+    cameras = {name: replace(camera, fx=camera.fx * (1 + e), fy=camera.fy * (1 + e))
+               for e, (name, camera) in zip(error, truth.rig.cameras.items())}
+    group = replace(truth, rig=Rig(cameras, dict(truth.rig.cam_from_rig), truth.rig.reference_camera))
+    prior = np.full(5, 4e-4)
+    result = group.adjust(**noise(), calibration_covariance=focal_covariance(group.rig, prior))
+    true_change = (1.0 / (1.0 + error) - 1.0) * 1e6
+    assert np.all(np.abs(result.focal_ppm - true_change) < 3 * result.sigma_focal_ppm)
+    assert np.all(result.sigma_focal_ppm < prior * 1e6)
+    assert np.all(np.abs(errors_in_sigmas(group, result)) < 3.0)
+
+
+@pytest.mark.parametrize("changes, focal_held", [
+    ([("C2", "cx", 2.0)], False), ([("C0", "cy", 2.0)], False), ([("C3", "fy", 20.0), ("C3", "fx", -20.0)], False),
+    ([("C3", "fy", 20.0), ("C3", "fx", -20.0)], True), ([("C1", "d", 0.05)], False), ([("C2", "ry", 2e-4)], False),
+    ([("C4", "vz", 0.05)], False), ([("C1", "vx", 0.03), ("C1", "vy", -0.03)], False),
+    ([("C2", "cx", 2.0), ("C2", "ry", 2e-4), ("C0", "cx", -3.0), ("C1", "fx", 10.0), ("C1", "fy", -10.0)], False)])
+def test_the_calibrations_share_is_what_re_adjusting_with_its_error_gives(changes, focal_held):
     """Calibration parameters off by their steps together: the deltas' change from adjusting again
     with the rig so changed (brute force) is the sigma the calibration's share gives with the
     covariance of that one joint error (v v^T, its signs included). A rotation error w (rad, about
-    the rig's axes) of a calibrated camera turns its rig_from_cam by exp(w)."""
+    the rig's axes) of a calibrated camera turns its rig_from_cam by exp(w). Every focal length is an
+    unknown with a 200 ppm prior (as the pose stage has it), so fx and fy move by opposite relative
+    steps (the aspect, which stays in the share); with focal_held, the focal lengths are held (no
+    prior) and the aspect's share is fx's and fy's. A camera centre's error (m, in the rig) moves
+    its rays' origin."""
     group = make_group(7, frames=6, mount_arcmin=1.0)
-    base = group.adjust(**noise())
     rig = group.rig
+    focal = (lambda rig: np.zeros((55, 55))) if focal_held else (lambda rig: focal_covariance(rig, np.full(5, 2e-4)))
+    base = group.adjust(**noise(), calibration_covariance=focal(rig))
     cameras, cam_from_rig, v = dict(rig.cameras), dict(rig.cam_from_rig), np.zeros(11 * 5)
     for camera, parameter, step in changes:
+        if parameter in ("fx", "fy"):  # relative steps: fx / fx0 - 1 = step / 45,000
+            step *= getattr(rig.cameras[camera], parameter) / 45_000.0
         v[11 * rig.camera_names.index(camera) + CALIBRATION_PARAMETERS.index(parameter)] = step
         if parameter in ("rx", "ry", "rz"):
             w = np.zeros(3)
             w["xyz".index(parameter[1])] = step
             cam_from_rig[camera] = (Rigid3(exp_so3(w), np.zeros(3)) * cam_from_rig[camera].inverse()).inverse()
+        elif parameter in ("vx", "vy", "vz"):
+            move = np.zeros(3)
+            move["xyz".index(parameter[1])] = step
+            R = cam_from_rig[camera].R
+            cam_from_rig[camera] = Rigid3(R, cam_from_rig[camera].t - R @ move)
         else:
             cameras[camera] = replace(cameras[camera], **{parameter: getattr(cameras[camera], parameter) + step})
-    moved = adjust_group_rig(Rig(cameras, cam_from_rig, rig.reference_camera), group.cameras, group.uv,
-                             group.point_ids, group.points, group.frame_index, group.R, group.t, **noise())
-    shared = group.adjust(**noise(), calibration_covariance=np.outer(v, v))
+    changed = Rig(cameras, cam_from_rig, rig.reference_camera)
+    moved = adjust_group_rig(changed, group.cameras, group.uv, group.point_ids, group.points, group.frame_index,
+                             group.R, group.t, **noise(), calibration_covariance=focal(changed))
+    shared = group.adjust(**noise(), calibration_covariance=focal(rig) + np.outer(v, v))
+    assert np.isnan(shared.focal_ppm).all() == focal_held
     chosen = others(group, base)
     predicted = np.sqrt(np.diagonal(shared.covariance_arcmin2 - base.covariance_arcmin2, axis1=1, axis2=2))[chosen]
     brute = np.abs(moved.delta_arcmin - base.delta_arcmin)[chosen]

@@ -188,6 +188,12 @@ def test_the_rig_is_watched_in_flight_beside_the_whole_rigs_poses(dataset, tmp_p
     parts = [pose.run(workspace, groups=[g], out=tmp_path / "parts" / f"{g}.csv")[0] for g in groups]
     pose.merge(workspace, parts)
     pd.testing.assert_frame_equal(workspace.load_pose_mounting(), mounting)
+    # the truth rig has no calibration covariance: the focal lengths were held; a file of an earlier
+    # version, without the focal columns, reads the same
+    assert mounting[list(MOUNTING_COLUMNS[9:])].isna().all().all()
+    beside = tmp_path / "poses.mounting.csv"
+    pd.read_csv(beside).drop(columns=list(MOUNTING_COLUMNS[9:])).to_csv(beside, index=False)
+    pd.testing.assert_frame_equal(workspace.load_pose_mounting(), mounting)
     # in_flight_rig: every frame solved again with its group's watched rig
     again = pd.read_csv(pose.run(workspace, pose.Conf(in_flight_rig=True))[0], dtype={"frame": str, "group": str})
     assert list(again["frame"]) == list(poses["frame"]) and np.isfinite(again["sigma_x_m"]).all()

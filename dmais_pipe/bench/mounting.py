@@ -195,6 +195,8 @@ def _camera_rows(adjusted: dict, rig: Rig, truth_rig: Rig, mounts: dict) -> pd.D
     truth = np.array([log_so3(mounts[g][c] @ truth_rig.cam_from_rig[c].R.T) / RAD_PER_ARCMIN
                       for g, c in zip(table["group"], table["camera"])])
     table[[f"t_{axis}_arcmin" for axis in AXES]] = truth
+    table["t_focal_ppm"] = [(0.5 * (truth_rig.cameras[c].fx / rig.cameras[c].fx + truth_rig.cameras[c].fy
+                                    / rig.cameras[c].fy) - 1.0) * 1e6 for c in table["camera"]]
     table["chi2"] = np.concatenate([result.chi2 for result in adjusted.values()])
     table["reference"] = table["camera"] == rig.reference_camera
     return table

@@ -22,6 +22,10 @@ Model. Unknowns, for F frames, K non-reference cameras with observations and P g
   which moves all points of one camera in one frame together. Without it the frames would look
   independent and delta's sigma would shrink as 1/sqrt(F) below what the vibration allows;
 - a prior N(0, sigma_prior^2) per axis on delta_c (default 30 arc-min), a regulariser only;
+- given the calibration's covariance, per camera c (the reference too) its relative focal change
+  s_c, fx and fy scaled by 1 + s_c, prior N(0, sigma_s^2) with sigma_s the calibration's sigma of
+  (dfx / fx + dfy / fy) / 2: the calibration's focal error, which no rotation takes up (C0's
+  +400 ppm is 0.14 m of the rig's height at 350 m), or a change in flight (focus, temperature);
 - optionally (not in the issue's model) a prior on the rig centres -R_f^T t_f, e.g. the POS
   positions less the lever arm (`adjust_group_rig`'s center_prior_m): see the bound below.
 
@@ -30,7 +34,8 @@ Observations: the markers' distorted pixels uv with a per-axis pixel sigma (per 
     sum_i |(project_c(exp([j_fc]) exp([delta_c]) (C_c (R_f M_p + t_f) + t_c)) - uv_i) / sigma_px|^2
     + sum_p |(M_p - surveyed_p) / sigma_p|^2 + sum_fc |j_fc / sigma_jitter|^2 + sum_c |delta_c / sigma_prior|^2
 
-((C_c, t_c) the calibrated cam_from_rig) is minimised by Levenberg-Marquardt; delta and j are
+((C_c, t_c) the calibrated cam_from_rig; project_c with the focal change, and sum_c |s_c /
+sigma_s|^2 with it) is minimised by Levenberg-Marquardt; delta and j are
 additive rotation vectors (exact Jacobians through geometry.left_jacobian_so3). Each frame's
 pose and jitters (6 + 3K unknowns) touch only that frame's observations, and each point's 3 only
 its own, so either set is eliminated by the Schur complement, whichever leaves the smaller dense
@@ -76,7 +81,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -84,7 +89,7 @@ from scipy import sparse
 from scipy.stats import chi2 as chi2_distribution
 
 from ..blas import single_threaded_blas
-from ..camera import project_unmasked
+from ..camera import Camera, project_unmasked
 from ..errors import DmaisError
 from ..frames import FlightObservations
 from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
@@ -99,6 +104,13 @@ SIGNIFICANCE = 0.01
 #: Default per-axis prior sigma of delta (arc-min): generous, so that it only regularises.
 PRIOR_SIGMA_ARCMIN = 30.0
 RAD_PER_ARCMIN = np.pi / (180.0 * 60.0)
+#: A relative focal sigma of the calibration below this holds the camera's focal length.
+HELD_FOCAL_SIGMA = 1e-9
+#: `_calibration_right_sides`' parameter indices of the focal lengths' aspect, (fx / fx0 - fy / fy0) / 2,
+#: and of the mean of the focal change's prior.
+ASPECT, FOCAL_PRIOR = -1, -2
+#: CALIBRATION_PARAMETERS' index of the camera centre's x (then y, z).
+CENTRE = CALIBRATION_PARAMETERS.index("vx")
 #: Levenberg-Marquardt: iteration limit, and stop when an accepted step lowers the cost by less than this fraction.
 MAX_ITERATIONS = 50
 COST_TOLERANCE = 1e-12
@@ -114,7 +126,10 @@ class GroupRig:
     the camera frame, module docstring) and its 1-sigma per axis, arc-min; covariance_arcmin2:
     (C, 3, 3); chi2: (C,) delta^T cov^-1 delta; significant: (C,) chi2 beyond SIGNIFICANCE. The
     reference camera's row is 0 (not significant); a camera without observations has NaN (not
-    significant). rig: the in-flight rig (the calibrated one with the deltas applied); R (F, 3, 3),
+    significant). focal_ppm, sigma_focal_ppm: (C,) each camera's focal change (fx and fy scaled by
+    1 + focal_ppm 1e-6) and its 1-sigma, given the calibration's covariance (NaN without it, or
+    without observations). rig: the in-flight rig (the calibrated one with the deltas and focal
+    changes applied); R (F, 3, 3),
     t (F, 3): the refined rig_from_world of the frames; n_frames F; iterations of LM; cost: the
     final whitened cost (module docstring) and dof its degrees of freedom, 2N - 6F (each prior adds
     as many residuals as unknowns).
@@ -126,6 +141,8 @@ class GroupRig:
     covariance_arcmin2: np.ndarray
     chi2: np.ndarray
     significant: np.ndarray
+    focal_ppm: np.ndarray
+    sigma_focal_ppm: np.ndarray
     rig: Rig
     R: np.ndarray
     t: np.ndarray
@@ -141,7 +158,9 @@ class _Problem:
     order; slot (N,) the camera's delta slot in [0, K) or -1 (reference); point (N,) in [0, P);
     uv (N, 2); weight (N,) 1 / pixel sigma. surveyed, survey_sigma (P, 3); centroid (F, 3) each frame's
     surveyed points' mean, about which its pose turns; free (K,) the cameras with a delta; jitter,
-    prior: sigmas in rad (jitter 0: no jitter unknowns)."""
+    prior: sigmas in rad (jitter 0: no jitter unknowns); focal_prior (C',): the prior sigma of the
+    relative focal change of each camera with a focal slot, focal_slot (C,) in [0, C') or -1 (its
+    focal length held)."""
 
     rig: Rig
     names: list[str]
@@ -160,6 +179,8 @@ class _Problem:
     center_sigma: np.ndarray | None
     jitter: float
     prior: float
+    focal_prior: np.ndarray
+    focal_slot: np.ndarray
 
     @property
     def local_size(self) -> int:
@@ -167,19 +188,26 @@ class _Problem:
         return 6 + 3 * len(self.free) * (self.jitter > 0)
 
     @property
+    def rig_size(self) -> int:
+        """The rig's unknowns: the deltas (3K), then the focal changes (C')."""
+        return 3 * len(self.free) + len(self.focal_prior)
+
+    @property
     def global_size(self) -> int:
-        """The deltas (3K) then the points (3P)."""
-        return 3 * len(self.free) + self.surveyed.size
+        """The rig's unknowns, then the points (3P)."""
+        return self.rig_size + self.surveyed.size
 
 
 @dataclass
 class _State:
-    """R (F, 3, 3), t (F, 3), delta (K, 3), jitter (F, K, 3) (rad), points (P, 3)."""
+    """R (F, 3, 3), t (F, 3), delta (K, 3), jitter (F, K, 3) (rad), focal (C',) the relative focal
+    changes, points (P, 3)."""
 
     R: np.ndarray
     t: np.ndarray
     delta: np.ndarray
     jitter: np.ndarray
+    focal: np.ndarray
     points: np.ndarray
 
 
@@ -207,14 +235,14 @@ def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t
     degenerate input; a non-reference camera without observations gets a NaN row, with a warning.
     """
     problem = _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px, jitter_sigma_arcmin,
-                       survey_sigma_m, prior_sigma_arcmin, center_prior_m, center_sigma_m)
+                       survey_sigma_m, prior_sigma_arcmin, center_prior_m, center_sigma_m, calibration_covariance)
     R, t = _checked_poses(R, t, problem.n_frames)
     K = len(problem.free)
     state = _State(R.copy(), t.copy(), np.zeros((K, 3)), np.zeros((problem.n_frames, K, 3)),
-                   problem.surveyed.copy())
+                   np.zeros(len(problem.focal_prior)), problem.surveyed.copy())
     with single_threaded_blas():  # small matrices: threads only add hand-offs (2x slower on 2 busy cores)
         state, iterations, cost = _levenberg_marquardt(problem, state)
-        covariance = _delta_covariance(problem, state, calibration_covariance)
+        covariance = _rig_covariance(problem, state, calibration_covariance)
     return _result(problem, state, covariance, iterations, cost)
 
 
@@ -258,7 +286,8 @@ def mounting_table(adjusted: Mapping[str, GroupRig]) -> pd.DataFrame:
             rows.append({"group": group, "camera": name,
                          **dict(zip(TABLE_COLUMNS[2:5], result.delta_arcmin[c])),
                          **dict(zip(TABLE_COLUMNS[5:8], result.sigma_arcmin[c])),
-                         "significant": bool(result.significant[c])})
+                         "significant": bool(result.significant[c]),
+                         "d_focal_ppm": result.focal_ppm[c], "sigma_focal_ppm": result.sigma_focal_ppm[c]})
     return pd.DataFrame(rows, columns=TABLE_COLUMNS)
 
 
@@ -266,7 +295,7 @@ def mounting_table(adjusted: Mapping[str, GroupRig]) -> pd.DataFrame:
 
 
 def _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px, jitter_sigma_arcmin,
-             survey_sigma_m, prior_sigma_arcmin, center_prior_m, center_sigma_m) -> _Problem:
+             survey_sigma_m, prior_sigma_arcmin, center_prior_m, center_sigma_m, calibration_covariance) -> _Problem:
     """The checked inputs of `adjust_group_rig` as a _Problem."""
     cameras, uv, point_ids, points = _checked_observations(rig, cameras, uv, point_ids, points, frame_index)
     n_frames = len(np.asarray(R).reshape(-1, 3, 3))
@@ -282,7 +311,8 @@ def _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px
     centroid = sums / np.bincount(frame, minlength=n_frames)[:, None]
     return _Problem(rig, rig.camera_names, free, frame, camera, slot, point, uv,
                     1.0 / _pixel_sigmas(cameras, pixel_sigma_px), surveyed, survey_sigma, centroid, n_frames,
-                    *_centers(center_prior_m, center_sigma_m, n_frames), jitter, prior)
+                    *_centers(center_prior_m, center_sigma_m, n_frames), jitter, prior,
+                    *_focal_priors(rig, calibration_covariance))
 
 
 def _checked_observations(rig: Rig, cameras, uv, point_ids, points, frame_index):
@@ -375,6 +405,27 @@ def _centers(center_prior_m, center_sigma_m, n_frames: int) -> tuple[np.ndarray 
     return center, sigma
 
 
+def _focal_priors(rig: Rig, calibration_covariance) -> tuple[np.ndarray, np.ndarray]:
+    """The relative focal sigma (C',) of each camera the calibration's covariance (11 C, 11 C)
+    (`adjust_group_rig`) gives one (that of the mean of fx / fx0 and fy / fy0), and each camera's
+    slot (C,) among them (-1: none, its focal length held); none without a covariance."""
+    C = len(rig.camera_names)
+    if calibration_covariance is None:
+        return np.zeros(0), np.full(C, -1)
+    n_all = len(CALIBRATION_PARAMETERS)
+    covariance = np.asarray(calibration_covariance, dtype=float)
+    if covariance.shape != (n_all * C, n_all * C) or not np.isfinite(covariance).all():
+        raise DmaisError(f"mounting: the calibration covariance must be finite, ({n_all * C}, {n_all * C}) for "
+                         f"{C} cameras, got {covariance.shape}")
+    sigma = np.empty(C)
+    for c, name in enumerate(rig.camera_names):
+        scale = np.zeros(n_all * C)
+        scale[n_all * c:n_all * c + 2] = 0.5 / np.array([rig.cameras[name].fx, rig.cameras[name].fy])
+        sigma[c] = np.sqrt(max(scale @ covariance @ scale, 0.0))
+    held = sigma < HELD_FOCAL_SIGMA
+    return sigma[~held], np.where(held, -1, np.cumsum(~held) - 1)
+
+
 def _pixel_sigmas(cameras: np.ndarray, pixel_sigma_px) -> np.ndarray:
     """(N,) per-axis pixel sigma of each observation, from one value or a per-camera mapping."""
     if isinstance(pixel_sigma_px, Mapping):
@@ -409,10 +460,12 @@ class _Forward:
     """The model at a state, per observation: e (N, 2) whitened pixel residuals; J_e (N, 2, 3) d e /
     d x; x (N, 3) the point in the (jittered) camera frame, z (N, 3) before the jitter, q (N, 3) the
     point less its frame's centroid, turned into the rig frame; D, J (N, 3, 3) exp of delta and
-    jitter; deltas (K + 1, 3) and jitters (F, K + 1, 3) with a zero row for the slot -1."""
+    jitter; deltas (K + 1, 3) and jitters (F, K + 1, 3) with a zero row for the slot -1; J_focal (N,
+    2) d e / d (the camera's relative focal change)."""
 
     e: np.ndarray
     J_e: np.ndarray
+    J_focal: np.ndarray
     x: np.ndarray
     z: np.ndarray
     q: np.ndarray
@@ -434,28 +487,46 @@ def _forward(problem: _Problem, state: _State) -> _Forward:
     y = np.einsum("nij,nj->ni", cal_R, np.einsum("nij,nj->ni", R, X) + state.t[p.frame]) + cal_t
     z = np.einsum("nij,nj->ni", D, y)
     x = np.einsum("nij,nj->ni", J, z)
-    predicted, J_pixel = np.empty((len(x), 2)), np.empty((len(x), 2, 3))
+    predicted, J_pixel, J_focal = np.empty((len(x), 2)), np.empty((len(x), 2, 3)), np.empty((len(x), 2))
     for c in np.unique(p.camera):
         rows = p.camera == c
-        cam = rig.cameras[p.names[c]]
-        predicted[rows], J_pixel[rows], _ = project_unmasked(x[rows], cam.fx, cam.fy, cam.cx, cam.cy, cam.d, True)
+        cam = _focal_changed(rig.cameras[p.names[c]], _focal(p, state, c))
+        predicted[rows], J_pixel[rows], by_intrinsic = project_unmasked(x[rows], cam.fx, cam.fy, cam.cx, cam.cy,
+                                                                        cam.d, True)
+        unscaled = rig.cameras[p.names[c]]
+        J_focal[rows] = by_intrinsic[:, :, 0] * unscaled.fx + by_intrinsic[:, :, 1] * unscaled.fy
     w = p.weight[:, None]
-    return _Forward((predicted - p.uv) * w, J_pixel * w[:, :, None], x, z, q, D, J, deltas, jitters)
+    return _Forward((predicted - p.uv) * w, J_pixel * w[:, :, None], J_focal * w, x, z, q, D, J, deltas, jitters)
+
+
+def _focal(problem: _Problem, state: _State, camera: int) -> float:
+    """The relative focal change of the camera (index in rig order): 0 where it is held."""
+    slot = problem.focal_slot[camera]
+    return float(state.focal[slot]) if slot >= 0 else 0.0
+
+
+def _focal_changed(camera: Camera, focal: float) -> Camera:
+    """`camera` with fx and fy scaled by 1 + focal."""
+    return replace(camera, fx=camera.fx * (1.0 + focal), fy=camera.fy * (1.0 + focal)) if focal else camera
 
 
 def _jacobians(problem: _Problem, state: _State, f: _Forward):
     """The compact Jacobians of e: local (N, 2, L) with its columns (N, L) in the frame's block (pose
-    0:6, then the camera's jitter) and global (N, 2, 6) with its columns (N, 6) in the vector of the
-    deltas and points; an observation of the reference camera has zeros for delta and jitter."""
+    0:6, then the camera's jitter) and global (N, 2, g) with its columns (N, g) in the vector of the
+    deltas, focal changes and points (g = 6, 7 with the focal changes); an observation of the
+    reference camera has zeros for delta and jitter."""
     p, K = problem, len(problem.free)
     has, slot = (problem.slot >= 0)[:, None, None], np.maximum(problem.slot, 0)
     cal_R = np.array([p.rig.cam_from_rig[c].R for c in p.names])[p.camera]
     d_rig = f.J_e @ f.J @ f.D @ cal_R  # d e / d x_rig
     pose = np.concatenate([-d_rig @ skew(f.q), d_rig], axis=2)
     d_delta = np.where(has, -(f.J_e @ f.J) @ skew(f.z) @ _left_jacobians(f.deltas)[p.slot], 0.0)
-    global_J = np.concatenate([d_delta, d_rig @ state.R[p.frame]], axis=2)
-    global_cols = np.concatenate([3 * slot[:, None] + np.arange(3), 3 * K + 3 * p.point[:, None] + np.arange(3)],
-                                 axis=1)
+    focal_slot = p.focal_slot[p.camera]
+    focal = [np.where(focal_slot[:, None] >= 0, f.J_focal, 0.0)[:, :, None]] if len(p.focal_prior) else []
+    focal_cols = [3 * K + np.maximum(focal_slot, 0)[:, None]] if len(p.focal_prior) else []
+    global_J = np.concatenate([d_delta, *focal, d_rig @ state.R[p.frame]], axis=2)
+    global_cols = np.concatenate([3 * slot[:, None] + np.arange(3), *focal_cols,
+                                  p.rig_size + 3 * p.point[:, None] + np.arange(3)], axis=1)
     pose_cols = np.broadcast_to(np.arange(6), (len(slot), 6))
     if p.local_size == 6:
         return pose, pose_cols, global_J, global_cols
@@ -480,7 +551,8 @@ def _cost(problem: _Problem, state: _State) -> float:
     """The whitened cost (module docstring)."""
     p = problem
     e = _forward(p, state).e
-    priors = [((state.points - p.surveyed) / p.survey_sigma).ravel(), state.delta.ravel() / p.prior]
+    priors = [((state.points - p.surveyed) / p.survey_sigma).ravel(), state.delta.ravel() / p.prior,
+              state.focal / p.focal_prior]
     if p.jitter > 0:
         priors.append(state.jitter.ravel() / p.jitter)
     if p.center is not None:
@@ -532,12 +604,12 @@ def _normal_equations(problem: _Problem, state: _State) -> _Normal:
 
 def _add_priors(problem: _Problem, state: _State, A, H, b_local, b_global) -> sparse.csr_array:
     """Add the priors' terms to the normal equations' blocks (A, b_local, b_global in place; H
-    returned): the deltas' and points' to H and b_global, the jitters' and rig centres' to A and
-    b_local."""
+    returned): the deltas', focal changes' and points' to H and b_global, the jitters' and rig
+    centres' to A and b_local."""
     p, K = problem, len(problem.free)
-    weights = np.concatenate([np.full(3 * K, p.prior**-2), (p.survey_sigma**-2).ravel()])
+    weights = np.concatenate([np.full(3 * K, p.prior**-2), p.focal_prior**-2, (p.survey_sigma**-2).ravel()])
     H = (H + sparse.diags_array(weights)).tocsr()
-    b_global += weights * np.concatenate([state.delta.ravel(), (state.points - p.surveyed).ravel()])
+    b_global += weights * np.concatenate([state.delta.ravel(), state.focal, (state.points - p.surveyed).ravel()])
     if p.center is not None:
         residuals, J = _center_residuals(p, state)
         A[:, :6, :6] += np.swapaxes(J, 1, 2) @ J
@@ -562,7 +634,8 @@ def _damped(normal: _Normal, damping: float) -> _Normal:
 
 def _solved(normal: _Normal, n_deltas: int, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The solution of the normal equations for right sides (F L + G, k) (the frames' unknowns, then
-    the globals), and the deltas' block (n_deltas, n_deltas) of their inverse, by the Schur complement
+    the globals), and the block (n_deltas, n_deltas) of their inverse of the rig's unknowns (the
+    globals before the points), by the Schur complement
     of whichever blocks make the smaller dense system: the frames' (F blocks of L: hovering, few
     points, many frames) or the points' (P blocks of 3: a line, thousands of points each seen by a
     few frames; eliminating the frames there left a dense 3P system, 9.5 s for 30 frames over 1,173
@@ -628,18 +701,18 @@ def _step(problem: _Problem, normal: _Normal, damping: float) -> tuple[np.ndarra
     """The (damped) Gauss-Newton step: local (F, L), global (G,)."""
     F, L, _ = normal.A.shape
     right = -np.concatenate([normal.b_local.ravel(), normal.b_global])[:, None]
-    step = _solved(_damped(normal, damping), 3 * len(problem.free), right)[0][:, 0]
+    step = _solved(_damped(normal, damping), problem.rig_size, right)[0][:, 0]
     return step[:F * L].reshape(F, L), step[F * L:]
 
 
 def _moved(problem: _Problem, state: _State, d_local: np.ndarray, d_global: np.ndarray) -> _State:
     """`state` moved by a step: R <- exp(omega) R about the frame's centroid m (R m + t moves by dt)."""
-    K, m = len(problem.free), problem.centroid
+    K, m, n_rig = len(problem.free), problem.centroid, problem.rig_size
     R = exp_so3(d_local[:, :3]) @ state.R
     t = np.einsum("fij,fj->fi", state.R - R, m) + state.t + d_local[:, 3:6]
     jitter = state.jitter + d_local[:, 6:].reshape(problem.n_frames, -1, 3) if problem.local_size > 6 else state.jitter
-    return _State(R, t, state.delta + d_global[:3 * K].reshape(K, 3), jitter,
-                  state.points + d_global[3 * K:].reshape(-1, 3))
+    return _State(R, t, state.delta + d_global[:3 * K].reshape(K, 3), jitter, state.focal + d_global[3 * K:n_rig],
+                  state.points + d_global[n_rig:].reshape(-1, 3))
 
 
 def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int, float]:
@@ -666,74 +739,114 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
 # ------------------------------------------------------------------------------ the result
 
 
-def _delta_covariance(problem: _Problem, state: _State, calibration_covariance=None) -> np.ndarray:
-    """(K, 3, 3) covariance of the deltas (rad^2): their blocks of the inverse normal matrix, plus,
-    given the calibration's covariance (`adjust_group_rig`), its share (`_calibration_share`); one
-    solve gives both."""
-    K = len(problem.free)
+def _rig_covariance(problem: _Problem, state: _State, calibration_covariance=None) -> np.ndarray:
+    """(3K + C', 3K + C') covariance of the rig's unknowns (the deltas, rad^2, then C' focal changes):
+    their block of the inverse normal matrix, plus, given the calibration's covariance
+    (`adjust_group_rig`), its share (`_calibration_share`); one solve gives both."""
     normal = _normal_equations(problem, state)
     size = normal.A.shape[0] * normal.A.shape[1] + normal.H.shape[0]
-    right, columns = _intrinsics_right_sides(problem, state) if calibration_covariance is not None \
+    right, columns = _calibration_right_sides(problem, state) if calibration_covariance is not None \
         else (np.zeros((size, 0)), [])
-    moved, covariance = _solved(normal, 3 * K, -right)
+    moved, covariance = _solved(normal, problem.rig_size, -right)
     if calibration_covariance is not None:
         first = normal.A.shape[0] * normal.A.shape[1]
-        covariance = covariance + _calibration_share(problem, moved[first:first + 3 * K], columns,
+        covariance = covariance + _calibration_share(problem, moved[first:first + problem.rig_size], columns,
                                                      np.asarray(calibration_covariance, float))
-    return np.array([covariance[3 * k:3 * k + 3, 3 * k:3 * k + 3] for k in range(K)]).reshape(K, 3, 3)
+    return covariance
 
 
 def _calibration_share(problem: _Problem, moved: np.ndarray, columns: list[tuple[int, int]],
                        calibration_covariance: np.ndarray) -> np.ndarray:
-    """(3K, 3K) the deltas' covariance (rad^2) from the calibration's error: A Sigma A^T, Sigma
-    (11 C, 11 C) as `adjust_group_rig`'s; moved (3K, n): the deltas' change per unit change of each
-    intrinsic of `columns` (`_intrinsics_right_sides`). A: how a calibration error moves the
-    estimated deltas.
-    An intrinsics error x moves the adjusted unknowns by -N^-1 J^T (d e / d x) x (the minimum's
-    implicit derivative, N the normal matrix; d e / d x the projection's, camera.project_unmasked);
-    much of it is a rotation the calibrated rig took up too (a principal point off by d px looks
-    like a turn of d / f), so it cancels. An error w of the calibrated rotation itself (about the
-    rig's axes: rig_from_cam became exp(w) rig_from_cam) moves the delta, in the camera's frame, by
-    C w (C the camera's cam_from_rig rotation); its centre's error is left out (a few mm at
-    hundreds of metres). Where the flight resolves the rig better than the calibration (a line
-    of frames), this share is what keeps a calibration error from being flagged as a change."""
-    p, K = problem, len(problem.free)
+    """(3K + C', 3K + C') the rig's unknowns' covariance from the calibration's error: A Sigma A^T,
+    Sigma (11 C, 11 C) as `adjust_group_rig`'s; moved (3K + C', n): their change per unit change of
+    each parameter of `columns` (`_calibration_right_sides`). A: how a calibration error moves the
+    estimates. Where the flight resolves the rig better than the calibration (a line of frames),
+    this share is what keeps a calibration error from being flagged as a change.
+
+    - An intrinsics error x moves the adjusted unknowns by -N^-1 J^T (d e / d x) x (the minimum's
+      implicit derivative, N the normal matrix; d e / d x the projection's,
+      camera.project_unmasked); much of it is a rotation the calibrated rig took up too (a
+      principal point off by d px looks like a turn of d / f), so it cancels.
+    - A camera whose focal change s is an unknown (prior N(0, sigma_s^2), sigma_s the calibration's
+      sigma of s = (dfx / fx + dfy / fy) / 2): fx's and fy's error enters by its aspect a = (dfx /
+      fx - dfy / fy) / 2, as above, and by s through the prior, whose mean is off by s: the
+      unknowns move by N^-1 e_s / sigma_s^2 per unit s. The inverse normal matrix holds that term's
+      variance already (the prior's own), so it is taken off again: what is left is its
+      correlation with the other parameters' errors.
+    - An error w of the calibrated rotation itself (about the rig's axes: rig_from_cam became
+      exp(w) rig_from_cam) moves the delta, in the camera's frame, by C w (C the camera's
+      cam_from_rig rotation).
+    - An error of its centre in the rig enters as the intrinsics do. It matters: a rooftop
+      calibration of 5 deg cameras places the centres to 2-5 cm along the rig's z axis, and 5 cm
+      seen sideways from 500 m is 0.2-0.3 arc-min of a tilted camera's rx."""
+    p = problem
     n_all, n_intrinsics = len(CALIBRATION_PARAMETERS), 5  # fx, fy, cx, cy, d first
-    A = np.zeros((3 * K, n_all * len(p.names)))
+    A = np.zeros((p.rig_size, n_all * len(p.names)))
+    counted = np.zeros((p.rig_size, p.rig_size))  # the focal priors' own share, already in N^-1
     for j, (c, k) in enumerate(columns):
-        A[:, n_all * c + k] = moved[:, j]
+        camera = p.rig.cameras[p.names[c]]
+        if k in (ASPECT, FOCAL_PRIOR):
+            sign = -1.0 if k == ASPECT else 1.0
+            A[:, n_all * c] += moved[:, j] / (2.0 * camera.fx)
+            A[:, n_all * c + 1] += sign * moved[:, j] / (2.0 * camera.fy)
+        else:
+            A[:, n_all * c + k] = moved[:, j]
+        if k == FOCAL_PRIOR:
+            counted += np.outer(moved[:, j], moved[:, j]) * p.focal_prior[p.focal_slot[c]]**2
     for slot, name in enumerate(p.free):
         c = p.names.index(name)
         A[3 * slot:3 * slot + 3, n_all * c + n_intrinsics:n_all * c + n_intrinsics + 3] = p.rig.cam_from_rig[name].R
-    return A @ calibration_covariance @ A.T
+    return A @ calibration_covariance @ A.T - counted
 
 
-def _intrinsics_right_sides(problem: _Problem, state: _State) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """J^T (d e / d x) (F L + G, n): per observed camera c and intrinsic k (`columns`, n pairs (c,
-    k)), the gradient's change per unit change of that camera's CALIBRATION_PARAMETERS[k] (k < 5)."""
+def _calibration_right_sides(problem: _Problem, state: _State) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """J^T (d e / d x) (F L + G, n): per observed camera c and calibration parameter k (`columns`, n
+    pairs (c, k)), the gradient's change per unit change of that camera's CALIBRATION_PARAMETERS[k]:
+    the intrinsics (k < 5) and the centre (k = CENTRE + axis, m in the rig frame); of a camera whose
+    focal change is an unknown, in place of fx and fy its aspect (k = ASPECT: fx and fy scaled by
+    1 + a and 1 - a) and its prior's mean (k = FOCAL_PRIOR)."""
     p = problem
     f = _forward(p, state)
     local_J, local_cols, global_J, global_cols = _jacobians(p, state, f)
     F, L, G = p.n_frames, p.local_size, p.global_size
     local_rows, global_rows = p.frame[:, None] * L + local_cols, F * L + global_cols
+    cal_R = np.array([p.rig.cam_from_rig[c].R for c in p.names])[p.camera]
+    d_rig = f.J_e @ f.J @ f.D @ cal_R  # d e / d x_rig; x_cam = C (x_rig - centre), so d e / d centre = -d_rig
+
+    def side_of(change: np.ndarray) -> np.ndarray:
+        """J^T change (F L + G,) of a change (N, 2) of the whitened residuals."""
+        side = np.zeros(F * L + G)
+        np.add.at(side, local_rows.ravel(), np.einsum("nkl,nk->nl", local_J, change).ravel())
+        np.add.at(side, global_rows.ravel(), np.einsum("nkl,nk->nl", global_J, change).ravel())
+        return side
+
     sides, columns = [], []
     for c in np.unique(p.camera):
         rows = np.flatnonzero(p.camera == c)
-        camera = p.rig.cameras[p.names[c]]
-        by_intrinsic = project_unmasked(f.x[rows], camera.fx, camera.fy, camera.cx, camera.cy, camera.d, True)[2]
-        for k in range(by_intrinsic.shape[2]):
+        camera = _focal_changed(p.rig.cameras[p.names[c]], _focal(p, state, c))
+        by_parameter = project_unmasked(f.x[rows], camera.fx, camera.fy, camera.cx, camera.cy, camera.d, True)[2]
+        by_parameter = by_parameter * p.weight[rows, None, None]
+        parameters = [0, 1, 2, 3, 4]
+        if p.focal_slot[c] >= 0:
+            aspect = by_parameter[:, :, :1] * camera.fx - by_parameter[:, :, 1:2] * camera.fy
+            by_parameter, parameters = np.concatenate([aspect, by_parameter[:, :, 2:]], axis=2), [ASPECT, 2, 3, 4]
+        by_parameter = np.concatenate([by_parameter, -d_rig[rows]], axis=2)
+        for k, parameter in enumerate(parameters + [CENTRE, CENTRE + 1, CENTRE + 2]):
             change = np.zeros((len(p.uv), 2))
-            change[rows] = by_intrinsic[:, :, k] * p.weight[rows, None]
+            change[rows] = by_parameter[:, :, k]
+            sides.append(side_of(change))
+            columns.append((int(c), parameter))
+        if p.focal_slot[c] >= 0:  # the prior's residual (s - m) / sigma_s: d gradient / d m
             side = np.zeros(F * L + G)
-            np.add.at(side, local_rows.ravel(), np.einsum("nkl,nk->nl", local_J, change).ravel())
-            np.add.at(side, global_rows.ravel(), np.einsum("nkl,nk->nl", global_J, change).ravel())
+            side[F * L + 3 * len(p.free) + p.focal_slot[c]] = -p.focal_prior[p.focal_slot[c]]**-2
             sides.append(side)
-            columns.append((int(c), k))
+            columns.append((int(c), FOCAL_PRIOR))
     return np.column_stack(sides), columns
 
 
 def _result(problem: _Problem, state: _State, covariance: np.ndarray, iterations: int, cost: float) -> GroupRig:
-    """The GroupRig of the minimum: rows in rig order, the reference's 0, unobserved cameras' NaN."""
+    """The GroupRig of the minimum: rows in rig order, the reference's 0, unobserved cameras' NaN;
+    covariance (3K + C', 3K + C') the rig's unknowns' (`_rig_covariance`)."""
     rig, names = problem.rig, problem.names
     C = len(names)
     delta, cov, chi2 = np.full((C, 3), np.nan), np.full((C, 3, 3), np.nan), np.full(C, np.nan)
@@ -742,11 +855,26 @@ def _result(problem: _Problem, state: _State, covariance: np.ndarray, iterations
     cam_from_rig = dict(rig.cam_from_rig)
     for k, name in enumerate(problem.free):
         c = names.index(name)
-        delta[c], cov[c] = state.delta[k], covariance[k]
-        chi2[c] = state.delta[k] @ np.linalg.solve(covariance[k], state.delta[k])
+        delta[c], cov[c] = state.delta[k], covariance[3 * k:3 * k + 3, 3 * k:3 * k + 3]
+        chi2[c] = state.delta[k] @ np.linalg.solve(cov[c], state.delta[k])
         cam_from_rig[name] = Rigid3(exp_so3(state.delta[k]), np.zeros(3)) * rig.cam_from_rig[name]
+    focal, sigma_focal, cameras = _focal_changes(problem, state, covariance)
     significant = np.nan_to_num(chi2, nan=0.0) > chi2_distribution.ppf(1.0 - SIGNIFICANCE, 3)
     sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2)) / RAD_PER_ARCMIN
     return GroupRig(tuple(names), delta / RAD_PER_ARCMIN, sigma, cov / RAD_PER_ARCMIN**2, chi2, significant,
-                    Rig(dict(rig.cameras), cam_from_rig, rig.reference_camera), state.R, state.t, problem.n_frames,
-                    iterations, cost, 2 * len(problem.uv) - 6 * problem.n_frames)
+                    focal, sigma_focal, Rig(cameras, cam_from_rig, rig.reference_camera), state.R, state.t,
+                    problem.n_frames, iterations, cost, 2 * len(problem.uv) - 6 * problem.n_frames)
+
+
+def _focal_changes(problem: _Problem, state: _State, covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
+    """(C,) the focal changes and their sigmas in ppm (NaN where not estimated or not observed), and
+    the cameras with them applied."""
+    names, C, K = problem.names, len(problem.names), len(problem.free)
+    cameras = dict(problem.rig.cameras)
+    focal, sigma = np.full(C, np.nan), np.full(C, np.nan)
+    for c in np.unique(problem.camera):
+        slot = problem.focal_slot[c]
+        if slot >= 0:
+            focal[c], sigma[c] = state.focal[slot] * 1e6, np.sqrt(covariance[3 * K + slot, 3 * K + slot]) * 1e6
+            cameras[names[c]] = _focal_changed(cameras[names[c]], state.focal[slot])
+    return focal, sigma, cameras
