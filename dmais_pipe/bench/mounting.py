@@ -63,23 +63,30 @@ hover,line --pos`), as median sigma about the tilted cameras' x, y and z axes:
   hovering one 3-4 s.
 
 With `calibrated` the adjustment is given rig.json's calibration covariance, as the pose stage
-gives it, so its sigmas carry the calibration's share (pose.mounting._calibration_share); the
-truth stays the mount change against the simulator's rig. Seeds 1001-1003 (`dmais bench mounting
+gives it: each camera's focal change is then an unknown with the calibration's focal sigma as its
+prior, and the sigmas carry the calibration's share (pose.mounting._calibration_share); the truth
+stays the mount change against the simulator's rig, and t_focal_ppm in <stem>_cameras.csv is the
+focal change that would give the simulator's focal lengths. Seeds 1001-1003 (`dmais bench mounting
 --pattern hover,line --pos --calibrated`), pooled over no change and a 2' change:
 
-- hovering: sigma 1.73, 2.25, 3.44 (0.137, 2.11, 3.20 with the prior), within_3sigma 1 (0.986),
-  rms_z 0.88-0.90 (1.24-1.28), flagged without a change 1 of 48 (4 of 48), adjusted_over_true 4.1
+- hovering: sigma 1.69, 2.25, 3.44 (0.25, 2.11, 3.20 with the prior), within_3sigma 1 (1),
+  rms_z 0.88-0.90 (0.96-1.00), flagged without a change 1 of 48 (0 of 48), adjusted_over_true 4.1
   (0.95);
-- flying a line: sigma 0.56, 0.19, 0.36, at most 0.99 (0.15, 0.19, 0.32, at most 0.38 with the
-  prior: the common tilt pinned), within_3sigma 1, rms_z 0.86-0.97 (0.97-1.06), none flagged
-  without a change, every row beyond 5 sigma flagged with one (37 and 45 rows), adjusted_over_true
-  1.25-1.28 (1.02-1.03 with the prior). Without the calibration's share the line's sigma was the
-  flight's alone (0.08-0.14) while the estimate was 0.23-0.36' off the mount change: the
-  calibration's error (intrinsics off by up to 41 px in the principal point, rotations 0.7-1.9')
-  mostly cancels between the rooftop and the flight, not all; 2/3 of the unchanged rows were
-  flagged. Without the prior the adjusted rig's mean height error is 0.07-0.12 m a group in seed
-  1002 (0.03-0.04 m with the calibrated rig), of the sign and size of C0's focal error (+407 ppm:
-  0.14 m at 350 m), which the rotations cannot take.
+- flying a line: sigma 0.40, 0.19, 0.39, at most 0.73 (0.21, 0.19, 0.31, at most 0.37 with the
+  prior), within_3sigma 1, rms_z 0.95-1.04 (0.97-1.05), none flagged without a change, every row
+  beyond 5 sigma flagged with one (39 and 45 rows), adjusted_over_true 1.14-1.16, at most 1.20 a
+  seed (1.00 with the prior).
+
+Without the calibration's share the line's sigma was the flight's alone (0.08-0.14) while the
+estimate was 0.23-0.36' off the mount change: the calibration's error (intrinsics off by up to
+41 px in the principal point, rotations 0.7-1.9', tilted cameras' centres 3-8 cm along the rig's
+z axis) mostly cancels between the rooftop and the flight, not all; 2/3 of the unchanged rows were
+flagged. The share's linearisation is exact here: on group 1 of seed 1003 with the prior, A x
+(x the calibrated rig less the simulator's) is the change of the estimates between adjusting with
+the calibrated and with the simulator's rig to 0.02' (rx 0.165 against 0.177, ...) and to 40 ppm
+in focal. With the focal lengths held, the adjusted rig's mean height error was 0.07-0.12 m a
+group in seed 1002, of the sign and size of C0's focal error (+407 ppm: 0.14 m at 350 m), which
+the rotations cannot take, and adjusted_over_true 1.25-1.28.
 """
 
 from __future__ import annotations
