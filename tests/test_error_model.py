@@ -132,13 +132,14 @@ def test_estimation_recovers_known_components_from_drawn_residuals():
     """Residuals drawn from the model with known sigmas: the estimates average to them."""
     g = hover_geometry(4)
     rng = np.random.default_rng(5)
-    estimates = []
+    estimates, mounting_found = [], 0
     for draw in range(12):
         errors = sum(em.unit_draw(g, name, rng) * TRUE[name] * em._TO_SI[name] for name in TRUE)
         drawn = dataclasses.replace(g, residual=em.solve_response(g, errors))
         model = em.estimate(drawn, {"calibration": 0.0, "survey_vertical": TRUE["survey_vertical"]}, seed=draw)
         assert model.source["pixel"] == model.source["survey"] == "estimated"
         assert {model.source[name] for name in ("jitter", "mounting", "focal")} <= {"estimated", "not significant"}
+        mounting_found += model.source["mounting"] == "estimated"
         estimates.append([model.sigma[name] ** 2 for name in TRUE])
     rms = dict(zip(TRUE, np.sqrt(np.mean(estimates, axis=0))))
     for name in ("pixel", "survey"):
@@ -147,9 +148,12 @@ def test_estimation_recovers_known_components_from_drawn_residuals():
     # not significant, and must not come out inflated
     assert rms["focal"] < 3 * TRUE["focal"]
     # the per-frame rotation total, what the sigmas use, is well determined; its split into jitter
-    # and mounting (12 draws per group, 3 groups) is not, and is often called not significant
-    rotation = np.sqrt(np.array(estimates)[:, 2] + np.array(estimates)[:, 3])
+    # and mounting (12 draws per group, 3 groups) less so, yet tested against mounting's absence
+    # (error_model._null_error) a 0.2' mounting is found in most draws (under the fit with it, never)
+    names = list(TRUE)
+    rotation = np.sqrt(np.array(estimates)[:, names.index("jitter")] + np.array(estimates)[:, names.index("mounting")])
     assert abs(np.mean(rotation) / np.hypot(TRUE["jitter"], TRUE["mounting"]) - 1) < 0.15
+    assert mounting_found >= 8
 
 
 def test_zero_residuals_give_zero_components_and_the_set_ones_are_kept():

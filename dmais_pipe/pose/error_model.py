@@ -48,8 +48,9 @@ points together in one frame only; mounting and focal what does so in every fram
 The system is solved for the free components by non-negative least squares, each statistic
 weighted by its spread under a first fit (drawn, `_spread`). A component that the solves absorb
 (a rotation of a camera solved alone) is not estimable; one estimated below SIGNIFICANCE of its
-standard errors is not significant (the least significant is dropped and the rest estimated
-again); both are 0 for the others' estimation, and in the sigmas their prior where one is given
+standard errors were it absent (`_null_error`: under the fit with it, a group's 2' mounting
+change was never significant, its own draws making its statistic's spread as large as its value)
+is not significant (the least significant is dropped and the rest estimated again); both are 0 for the others' estimation, and in the sigmas their prior where one is given
 (`estimate`'s priors; for a not significant one at most its estimate plus SIGNIFICANCE standard
 errors), else 0. Jitter and
 mounting act alike on one frame, so their sum is far better determined than their split; the
@@ -546,7 +547,8 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     for name in free:
         if name not in estimable:
             untold(name, "not estimable")
-    variances, weight = [], None
+    variances, weight, null_spreads = [], None, {}
+    calibration = [a * settings["calibration"] for a in axes]
     while estimable:
         design = np.column_stack([expected[name] for name in estimable])
         if weight is None:  # each statistic weighted by its spread under the first fit of every component
@@ -554,17 +556,22 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
             first = nnls(design * scale[:, None], (observed - known) * scale)[0]
             fitted = {**dict(zip(estimable, first)), **{name: (settings[name] * _TO_SI[name]) ** 2
                                                          for name in modelled if name in settings}}
-            spread = _spread(g, statistics, fitted, rng, tied, [a * settings["calibration"] for a in axes])
-            weight = 1.0 / np.maximum(spread, MIN_EFFECT * total)
+            weight = 1.0 / np.maximum(_spread(g, statistics, fitted, rng, tied, calibration), MIN_EFFECT * total)
         variances = nnls(design * weight[:, None], (observed - known) * weight)[0]
-        information = (design * weight[:, None]).T @ (design * weight[:, None])
-        errors = np.sqrt(np.clip(np.diag(np.linalg.pinv(information)), 0.0, None))
-        weak = [name for name, v, e in zip(estimable, variances, errors)
-                if name != "pixel" and v < SIGNIFICANCE * e]
+
+        def null_error(k: int) -> float:
+            """The standard error of estimable[k]'s variance were it absent (`_null_error`)."""
+            name = estimable[k]
+            if name not in null_spreads:
+                null_spreads[name] = _spread(g, statistics, {**fitted, name: 0.0}, rng, tied, calibration)
+            return _null_error(design, weight, np.maximum(null_spreads[name], MIN_EFFECT * total), k)
+
+        errors = {k: null_error(k) for k, name in enumerate(estimable) if name != "pixel"}
+        weak = [k for k, e in errors.items() if variances[k] < SIGNIFICANCE * e]
         if not weak:
             break
         # the least significant one is taken as absent, the others estimated again without it
-        k = min((estimable.index(name) for name in weak), key=lambda k: variances[k] / errors[k])
+        k = min(weak, key=lambda k: variances[k] / errors[k])
         name = estimable.pop(k)  # its data bound: the estimate plus SIGNIFICANCE standard errors
         untold(name, "not significant", np.sqrt(variances[k] + SIGNIFICANCE * errors[k]) / _TO_SI[name])
     for name, variance in zip(estimable, variances if estimable else []):
@@ -572,6 +579,19 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
     if "pixel" in free and sigma["pixel"] < fallback_pixel_px:
         sigma["pixel"], source["pixel"] = float(fallback_pixel_px), "calibration"
     return _tied(ErrorModel(sigma, source, g.dof), tied)
+
+
+def _null_error(design: np.ndarray, weight: np.ndarray, null_spread: np.ndarray, k: int) -> float:
+    """The standard error of the k-th variance of the weighted fit (design (S, m) of the S
+    statistics' expectations per unit variance, weight (S,)) were its component absent: the
+    sandwich M diag((weight null_spread)^2) M^T, M the fit's map from weighted statistics to
+    variances, null_spread (S,) the statistics' spread under the first fit without the component.
+    The test of a component is against its absence: under the first fit with it, a large
+    component's own draws make its statistic's spread as large as its value (one group's mounting is
+    a chi-square of 3 (K - 1) degrees of freedom), so that a 2' change was never significant."""
+    weighted = design * weight[:, None]
+    M = np.linalg.pinv(weighted.T @ weighted) @ weighted.T
+    return float(np.sqrt(max(M[k] ** 2 @ (weight * null_spread) ** 2, 0.0)))
 
 
 def _component_draw(g: Geometry, name: str, rng: np.random.Generator, tied: bool,
