@@ -50,7 +50,8 @@ weighted by its spread under a first fit (drawn, `_spread`). A component that th
 (a rotation of a camera solved alone) is not estimable; one estimated below SIGNIFICANCE of its
 standard errors were it absent (`_null_error`: under the fit with it, a group's 2' mounting
 change was never significant, its own draws making its statistic's spread as large as its value)
-is not significant (the least significant is dropped and the rest estimated again); both are 0 for the others' estimation, and in the sigmas their prior where one is given
+is not significant (the least significant is dropped and the rest estimated again); both are 0
+for the others' estimation, and in the sigmas their prior where one is given
 (`estimate`'s priors; for a not significant one at most its estimate plus SIGNIFICANCE standard
 errors), else 0. Jitter and
 mounting act alike on one frame, so their sum is far better determined than their split; the
@@ -558,6 +559,8 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
                                                          for name in modelled if name in settings}}
             weight = 1.0 / np.maximum(_spread(g, statistics, fitted, rng, tied, calibration), MIN_EFFECT * total)
         variances = nnls(design * weight[:, None], (observed - known) * weight)[0]
+        information = (design * weight[:, None]).T @ (design * weight[:, None])
+        fitted_errors = np.sqrt(np.clip(np.diag(np.linalg.pinv(information)), 0.0, None))
 
         def null_error(k: int) -> float:
             """The standard error of estimable[k]'s variance were it absent (`_null_error`)."""
@@ -566,7 +569,10 @@ def estimate(geometry: Geometry, settings: dict[str, float] | None = None, fallb
                 null_spreads[name] = _spread(g, statistics, {**fitted, name: 0.0}, rng, tied, calibration)
             return _null_error(design, weight, np.maximum(null_spreads[name], MIN_EFFECT * total), k)
 
-        errors = {k: null_error(k) for k, name in enumerate(estimable) if name != "pixel"}
+        # significant under the fit with it is significant (its own draws only widen the spread);
+        # the others are tested against their absence
+        errors = {k: null_error(k) for k, name in enumerate(estimable)
+                  if name != "pixel" and variances[k] < SIGNIFICANCE * fitted_errors[k]}
         weak = [k for k, e in errors.items() if variances[k] < SIGNIFICANCE * e]
         if not weak:
             break

@@ -230,8 +230,9 @@ def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t
     center_sigma_m (float, (3,) or (F, 3)): not in the model above; it pins the common outward tilt
     of the cameras, which the rig's height otherwise trades against (module docstring).
     calibration_covariance (11 C, 11 C): the calibrated rig's joint covariance of its C cameras'
-    error_model.CALIBRATION_PARAMETERS, camera by camera in rig order (rig.json's), whose share
-    the deltas' covariance then carries (`_calibration_share`). Raises DmaisError on inconsistent or
+    error_model.CALIBRATION_PARAMETERS, camera by camera in rig order (rig.json's): each camera's
+    focal change is then an unknown with its focal sigma as prior, and the covariance carries the
+    share of the rest (`_calibration_share`). Raises DmaisError on inconsistent or
     degenerate input; a non-reference camera without observations gets a NaN row, with a warning.
     """
     problem = _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px, jitter_sigma_arcmin,
