@@ -283,8 +283,9 @@ def _parser() -> argparse.ArgumentParser:
                       help="only write tables/intrinsics.csv from the cameras' intrinsics/<camera>.methods.csv")
     defaults = IntrinsicsConf()
     intrinsics.add_argument("--import", dest="import_file", type=Path, metavar="FILE",
-                            help="take the --camera's intrinsics from an OpenCV calibration file (YAML/XML/JSON) or "
-                                 "a COLMAP cameras.txt / cameras.bin instead of calibrating")
+                            help="take the --camera's intrinsics from an OpenCV calibration file (YAML/XML/JSON; "
+                                 "FILE:M2 for the pair M2, D2 of a stereo calibration) or a COLMAP cameras.txt / "
+                                 "cameras.bin instead of calibrating")
     intrinsics.add_argument("--max-eps-px", type=float,
                             help=f"refuse a calibration whose eps_calib exceeds this (px; default {defaults.max_eps_calib_px})")
     intrinsics.add_argument("--max-focal-deviation", type=float,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
 import pycolmap
@@ -137,3 +139,46 @@ def test_a_size_mismatch_is_refused(dataset, tmp_path):
     assert read_opencv_file(source).width == ours.width + 2
     with pytest.raises(DmaisError, match=r"camera C0: .*C0.yaml is for \d+x\d+ images, dataset.yaml says"):
         intrinsics.import_cameras(Workspace.open(dataset, tmp_path / "results"), ["C0"], source)
+
+
+def _stereo_file(path, cameras) -> None:
+    """A stereo calibration file as OpenCV's stereo_calib sample writes it: M1, D1, M2, D2 (and R, T),
+    no image size."""
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_WRITE)
+    for n, camera in enumerate(cameras, start=1):
+        storage.write(f"M{n}", camera.K)
+        storage.write(f"D{n}", np.array([[camera.d, 0.0, 0.0, 0.0, 0.0]]))
+    storage.write("R", np.eye(3))
+    storage.write("T", np.array([[-0.1], [0.0], [0.0]]))
+    storage.release()
+
+
+def test_a_stereo_calibrations_pair_is_named_and_takes_the_datasets_size(dataset, tmp_path):
+    left, right = _ours(dataset, "C0", -0.02), _ours(dataset, "C0", 0.012)
+    right = Camera(right.fx * 1.004, right.fy * 1.003, right.cx - 11.0, right.cy + 6.0, right.d, right.width,
+                   right.height)
+    _stereo_file(tmp_path / "intrinsics.yml", [left, right])
+    results = tmp_path / "results"
+    argv = ["intrinsics", str(dataset), "--out", str(results), "--camera", "C0", "--import"]
+    assert cli.main([*argv, f"{tmp_path / 'intrinsics.yml'}:M2"]) == 0
+    camera, record = Workspace.open(dataset, results).load_intrinsics("C0")
+    assert camera == right  # the size the dataset's, the file has none
+    assert record["imported"]["model"] == "OpenCV stereo M2"
+    assert record["imported"]["file"] == f"{tmp_path / 'intrinsics.yml'}:M2"
+    intrinsics.import_cameras(Workspace.open(dataset, results), ["C0"], tmp_path / "intrinsics.yml:M1")
+    assert Workspace.open(dataset, results).load_intrinsics("C0")[0] == left
+
+
+@pytest.mark.parametrize("suffix, message", [
+    ("", r"a stereo calibration \(M1, M2\); name the camera's pair, e.g. --import .*intrinsics.yml:M1"),
+    (":M3", r"intrinsics.yml: missing matrix M3"),
+])
+def test_a_stereo_file_without_its_pair_is_one_line_and_exit_2(dataset, tmp_path, capsys, suffix, message):
+    ours = _ours(dataset, "C0")
+    _stereo_file(tmp_path / "intrinsics.yml", [ours, ours])
+    argv = ["intrinsics", str(dataset), "--out", str(tmp_path / "results"), "--camera", "C0",
+            "--import", f"{tmp_path / 'intrinsics.yml'}{suffix}"]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and re.search(message, err), err
+    assert not (tmp_path / "results" / "intrinsics").exists()

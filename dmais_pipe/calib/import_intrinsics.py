@@ -20,6 +20,7 @@ it at (0.5, 0.5), so its principal point is shifted by -0.5 px.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import struct
 import tempfile
@@ -52,7 +53,8 @@ COLMAP_MODELS = {
 @dataclass
 class ForeignCamera:
     """A camera as another tool calibrated it: pinhole in our pixel convention plus OpenCV's
-    distortion coefficients by name (absent ones are zero)."""
+    distortion coefficients by name (absent ones are zero); width, height 0 where the file has no
+    image size."""
 
     fx: float
     fy: float
@@ -78,9 +80,20 @@ class Conversion:
 # ------------------------------------------------------------------------------ reading
 
 
-def read_opencv_file(path: Path) -> ForeignCamera:
-    """A camera of an OpenCV calibration file (cv2.FileStorage YAML/XML/JSON as OpenCV's calibration
-    sample writes it): camera_matrix, distortion_coefficients, image_width, image_height."""
+def split_pair(source: Path | str) -> tuple[Path, str | None]:
+    """(file, pair) of an --import argument: FILE, or FILE:M<n> naming the pair M<n>, D<n> of a
+    stereo calibration file (OpenCV's stereo_calib sample writes M1, D1, M2, D2)."""
+    match = re.fullmatch(r"(.+):(M[0-9]+)", str(source))
+    if match and not Path(source).is_file():
+        return Path(match.group(1)), match.group(2)
+    return Path(source), None
+
+
+def read_opencv_file(path: Path, pair: str | None = None) -> ForeignCamera:
+    """A camera of an OpenCV calibration file (cv2.FileStorage YAML/XML/JSON): camera_matrix,
+    distortion_coefficients, image_width, image_height, as OpenCV's calibration sample writes
+    them; or, given `pair` M<n>, the matrices M<n>, D<n> of a stereo calibration (OpenCV's
+    stereo_calib sample), whose files have no image size (width, height 0: the dataset's)."""
     import cv2
 
     if not Path(path).is_file():
@@ -92,17 +105,24 @@ def read_opencv_file(path: Path) -> ForeignCamera:
         raise DmaisError(f"{path}: not an OpenCV FileStorage file ({_first_line(error)})") from None
     if not opened:
         raise DmaisError(f"{path}: not an OpenCV FileStorage file")
-    K = _matrix(storage, "camera_matrix", path)
-    coefficients = _matrix(storage, "distortion_coefficients", path).ravel()
+    names = ("camera_matrix", "distortion_coefficients") if pair is None else (pair, "D" + pair[1:])
+    if pair is None and storage.getNode("camera_matrix").empty():
+        pairs = [key for key in storage.root().keys() if re.fullmatch(r"M[0-9]+", key)]
+        if pairs:
+            raise DmaisError(f"{path}: a stereo calibration ({', '.join(pairs)}); name the camera's pair, e.g. "
+                             f"--import {path}:{pairs[0]}")
+    K = _matrix(storage, names[0], path)
+    coefficients = _matrix(storage, names[1], path).ravel()
     if K.shape != (3, 3) or not np.allclose(K[2], [0, 0, 1]) or K[1, 0] != 0:
-        raise DmaisError(f"{path}: camera_matrix {K.tolist()} is not a 3x3 intrinsic matrix")
+        raise DmaisError(f"{path}: {names[0]} {K.tolist()} is not a 3x3 intrinsic matrix")
     if K[0, 1] != 0:
-        raise DmaisError(f"{path}: camera_matrix has skew {K[0, 1]:g}; our model has none")
+        raise DmaisError(f"{path}: {names[0]} has skew {K[0, 1]:g}; our model has none")
     if len(coefficients) not in (4, 5, 8, 12, 14):
-        raise DmaisError(f"{path}: distortion_coefficients has {len(coefficients)} values; "
-                         "OpenCV's have 4, 5, 8, 12 or 14")
-    size = [_integer(storage, key, path) for key in ("image_width", "image_height")]
-    return ForeignCamera(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), *size, model="OpenCV",
+        raise DmaisError(f"{path}: {names[1]} has {len(coefficients)} values; OpenCV's have 4, 5, 8, 12 or 14")
+    sized = pair is None or not storage.getNode("image_width").empty()
+    size = [_integer(storage, key, path) if sized else 0 for key in ("image_width", "image_height")]
+    model = "OpenCV" if pair is None else f"OpenCV stereo {pair}"
+    return ForeignCamera(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), *size, model=model,
                          distortion=dict(zip(OPENCV_COEFFICIENTS, map(float, coefficients))))
 
 

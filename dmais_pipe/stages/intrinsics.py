@@ -23,7 +23,7 @@ import pandas as pd
 from ..calib.intrinsics import (METHODS, TABLE_COLUMNS, IntrinsicsResult, Plausibility, calibrate_camera,
                                 calibrate_camera_dlt_lm, calibrate_camera_opencv, check_plausible)
 from ..calib.import_intrinsics import (DEFAULT_MAX_RESIDUAL_PX, ForeignCamera, imported_record, one_coefficient_camera,
-                                       read_colmap_cameras, read_opencv_file)
+                                       read_colmap_cameras, read_opencv_file, split_pair)
 from ..dataset import largest_point_sigma
 from ..errors import DmaisError
 from ..workspace import CALIBRATION_RESIDUAL_COLUMNS, Workspace
@@ -132,7 +132,8 @@ def _calibrate(workspace: Workspace, name: str, conf: Conf, observations: pd.Dat
 
 def import_cameras(workspace: Workspace, names: list[str], source: Path, conf: Conf = Conf()) -> list[Path]:
     """intrinsics/<camera>.json and <camera>.methods.csv (method "imported") of each named camera from
-    `source`: an OpenCV calibration file (one camera) or a COLMAP cameras.txt / cameras.bin (its
+    `source`: an OpenCV calibration file (one camera; FILE:M<n> the pair M<n>, D<n> of a stereo
+    calibration, whose image size is the dataset's) or a COLMAP cameras.txt / cameras.bin (its
     cameras in camera-id order, one per name). Every camera is checked and converted before anything
     is written; the record's "method" says where it came from."""
     dataset, source = workspace.dataset, Path(source)
@@ -144,6 +145,8 @@ def import_cameras(workspace: Workspace, names: list[str], source: Path, conf: C
     conversions = {}
     for name in names:
         spec = dataset.cameras[name]
+        if not foreign[name].width:  # a stereo calibration file has no image size
+            foreign[name].width, foreign[name].height = spec.width, spec.height
         if (foreign[name].width, foreign[name].height) != (spec.width, spec.height):
             raise DmaisError(f"camera {name}: {source} is for {foreign[name].width}x{foreign[name].height} images, "
                              f"dataset.yaml says {spec.width}x{spec.height}")
@@ -172,7 +175,10 @@ def _check_nominal_focal(name: str, foreign: ForeignCamera, focal_px: float | No
 
 def _foreign_cameras(source: Path, names: list[str]) -> dict[str, ForeignCamera]:
     """Each named camera as `source` describes it: COLMAP for .txt / .bin, OpenCV's FileStorage otherwise."""
-    if source.suffix in (".txt", ".bin"):
+    path, pair = split_pair(source)
+    if path.suffix in (".txt", ".bin"):
+        if pair:
+            raise DmaisError(f"{source}: a COLMAP cameras file has no {pair}; name its cameras with --camera")
         cameras = read_colmap_cameras(source)
         if len(cameras) != len(names):
             raise DmaisError(f"{source}: holds {len(cameras)} camera(s) (ids {', '.join(map(str, sorted(cameras)))}) "
@@ -180,7 +186,7 @@ def _foreign_cameras(source: Path, names: list[str]) -> dict[str, ForeignCamera]
         return dict(zip(names, (cameras[k] for k in sorted(cameras))))
     if len(names) != 1:
         raise DmaisError(f"{source}: an OpenCV calibration file holds one camera; give exactly one --camera")
-    return {names[0]: read_opencv_file(source)}
+    return {names[0]: read_opencv_file(path, pair)}
 
 
 def residual_table(dataset, result: IntrinsicsResult, observations: pd.DataFrame) -> pd.DataFrame:
