@@ -811,14 +811,14 @@ def _calibration_right_sides(problem: _Problem, state: _State) -> tuple[np.ndarr
     local_J, local_cols, global_J, global_cols = _jacobians(p, state, f)
     F, L, G = p.n_frames, p.local_size, p.global_size
     local_rows, global_rows = p.frame[:, None] * L + local_cols, F * L + global_cols
-    cal_R = np.array([p.rig.cam_from_rig[c].R for c in p.names])[p.camera]
-    d_rig = f.J_e @ f.J @ f.D @ cal_R  # d e / d x_rig; x_cam = C (x_rig - centre), so d e / d centre = -d_rig
+    # d e / d x_rig is the pose's translation columns; x_cam = C (x_rig - centre): d e / d centre = -d_rig
+    d_rig = local_J[:, :, 3:6]
 
-    def side_of(change: np.ndarray) -> np.ndarray:
-        """J^T change (F L + G,) of a change (N, 2) of the whitened residuals."""
+    def side_of(rows: np.ndarray, change: np.ndarray) -> np.ndarray:
+        """J^T change (F L + G,) of a change (n, 2) of the whitened residuals of `rows` (n,)."""
         side = np.zeros(F * L + G)
-        np.add.at(side, local_rows.ravel(), np.einsum("nkl,nk->nl", local_J, change).ravel())
-        np.add.at(side, global_rows.ravel(), np.einsum("nkl,nk->nl", global_J, change).ravel())
+        np.add.at(side, local_rows[rows].ravel(), np.einsum("nkl,nk->nl", local_J[rows], change).ravel())
+        np.add.at(side, global_rows[rows].ravel(), np.einsum("nkl,nk->nl", global_J[rows], change).ravel())
         return side
 
     sides, columns = [], []
@@ -833,9 +833,7 @@ def _calibration_right_sides(problem: _Problem, state: _State) -> tuple[np.ndarr
             by_parameter, parameters = np.concatenate([aspect, by_parameter[:, :, 2:]], axis=2), [ASPECT, 2, 3, 4]
         by_parameter = np.concatenate([by_parameter, -d_rig[rows]], axis=2)
         for k, parameter in enumerate(parameters + [CENTRE, CENTRE + 1, CENTRE + 2]):
-            change = np.zeros((len(p.uv), 2))
-            change[rows] = by_parameter[:, :, k]
-            sides.append(side_of(change))
+            sides.append(side_of(rows, by_parameter[:, :, k]))
             columns.append((int(c), parameter))
         if p.focal_slot[c] >= 0:  # the prior's residual (s - m) / sigma_s: d gradient / d m
             side = np.zeros(F * L + G)
