@@ -225,6 +225,13 @@ def _flight_patterns(text: str) -> list[str]:
     return patterns
 
 
+def _add_pattern_argument(parser: argparse.ArgumentParser) -> None:
+    """--pattern, the simulated flights' patterns, of the benches that simulate (sigma, mounting)."""
+    parser.add_argument("--pattern", type=_flight_patterns, default=["hover"],
+                        help="the simulator's flight.pattern, comma-separated: hover (every frame over the same "
+                             "markers), line (frames along a line, new markers each frame) (default: hover)")
+
+
 def _comma_separated(kind):
     """An argparse type: 'a,b,c' -> [kind(a), kind(b), kind(c)]."""
     def parse(text: str) -> list:
@@ -421,9 +428,7 @@ def _parser() -> argparse.ArgumentParser:
     sigma.add_argument("--calib-images", type=_positive_int, default=6,
                        help="calibration images per camera (default: %(default)s, the demo's)")
     sigma.add_argument("--truth-rig", action="store_true", help="solve with the simulator's rig, no calibration")
-    sigma.add_argument("--pattern", type=_flight_patterns, default=["hover"],
-                       help="the simulator's flight.pattern, comma-separated: hover (every frame over the same "
-                            "markers), line (frames along a line, new markers each frame) (default: hover)")
+    _add_pattern_argument(sigma)
     sigma.add_argument("--work", type=Path, help="keep each simulation in WORK/<name> (default: a temporary folder)")
     sigma.add_argument("--csv", type=Path, default=Path("reports/bench/sigma.csv"),
                        help="output table, the per-frame rows beside it (default: %(default)s)")
@@ -442,9 +447,7 @@ def _parser() -> argparse.ArgumentParser:
     mounting.add_argument("--pixel", type=float, default=0.5, help="flight marker noise, px (default: %(default)s)")
     mounting.add_argument("--groups", type=_positive_int, default=4, help="flight groups (default: %(default)s)")
     mounting.add_argument("--frames-per-group", type=_positive_int, default=30, help="(default: %(default)s)")
-    mounting.add_argument("--pattern", type=_flight_patterns, default=["hover"],
-                          help="the simulator's flight.pattern, comma-separated: hover (every frame over the same "
-                               "markers), line (frames along a line, new markers each frame) (default: hover)")
+    _add_pattern_argument(mounting)
     mounting.add_argument("--calibrated", action="store_true",
                           help="solve with the chain's calibrated rig (intrinsics, extrinsics), not the simulator's")
     mounting.add_argument("--pos", action="store_true",
