@@ -1,32 +1,60 @@
-"""Pinhole camera with one radial distortion coefficient, exactly the paper's eq. 2-3.
+"""Pinhole cameras with lens distortion: the paper's one radial coefficient (eq. 2-3) or OpenCV's model.
 
-An undistorted pixel (u, v) with normalized coordinates x = (u - cx) / fx, y = (v - cy) / fy is
-distorted to
+Two models, named in dataset.yaml's camera entry (`model:`):
 
-    u' = u + d (u - cx) (x^2 + y^2),    v' = v + d (v - cy) (x^2 + y^2),
+- `radial1` (the paper's, the default): an undistorted pixel (u, v) with normalized coordinates
+  x = (u - cx) / fx, y = (v - cy) / fy is distorted to
 
-i.e. the normalized point (x, y) is scaled by (1 + d r^2). Pixel coordinates follow OpenCV: the
-centre of the top-left pixel is (0, 0). Camera coordinates: x right, y down, z forward.
+      u' = u + d (u - cx) (x^2 + y^2),    v' = v + d (v - cy) (x^2 + y^2),
 
-For a point X_c of the camera frame (OpenCV's pinhole with k1 = d):
+  i.e. the normalized point (x, y) is scaled by (1 + d r^2). Parameters (fx, fy, cx, cy, d).
+- `opencv`: cv2.calibrateCamera's default model, parameters (fx, fy, cx, cy, k1, k2, p1, p2, k3):
 
-    x = X_c0 / X_c2,  y = X_c1 / X_c2,  s = 1 + d (x^2 + y^2),  u = fx x s + cx,  v = fy y s + cy.
+      x' = x s + 2 p1 x y + p2 (r^2 + 2 x^2),  y' = y s + p1 (r^2 + 2 y^2) + 2 p2 x y,
+      s = 1 + k1 r^2 + k2 r^4 + k3 r^6,        u = fx x' + cx,  v = fy y' + cy.
+
+  With k2 = p1 = p2 = k3 = 0 it is radial1 with d = k1; the Camera field `d` holds k1 in both.
+
+Pixel coordinates follow OpenCV: the centre of the top-left pixel is (0, 0). Camera coordinates:
+x right, y down, z forward; x = X_c0 / X_c2, y = X_c1 / X_c2 of a point X_c of the camera frame.
+
+Where the model is invertible: the map (x, y) -> (x', y') is one-to-one inside the disk of
+undistorted radius `Camera.max_projectable_radius`, the largest radius within which its Jacobian
+determinant stays positive in every direction (radial1: r (1 + d r^2) turns at 1 / sqrt(-3 d) for
+d < 0; opencv: found numerically). `Camera.project` returns NaN beyond it, `Camera.undistort*` for
+pixels whose undistorted point lies beyond it, and `Camera.folds_in_image` says whether that disk
+leaves out part of the image (the dataset refuses such a camera).
 
 `Camera.project` returns NaN for points the camera does not image; least-squares solvers use
 `project_unmasked`, the same formula for every point off the camera plane, so that a trial step
 that moves a point behind the camera gives a large residual instead of NaN. Both can return the
-Jacobians with respect to the point and to the intrinsics (fx, fy, cx, cy, d).
+Jacobians with respect to the point and to the model's parameters (`Camera.parameter_names`).
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+import functools
+from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import DmaisError
 
 _NEWTON_MAX_ITERATIONS = 50
+#: The parameters of each model, in the order of the intrinsics Jacobian's columns; the first five
+#: are (fx, fy, cx, cy, first radial coefficient) in both.
+PARAMETER_NAMES = {
+    "radial1": ("fx", "fy", "cx", "cy", "d"),
+    "opencv": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"),
+}
+MODELS = tuple(PARAMETER_NAMES)
+#: The fold search of the opencv model: directions, and radial samples out to this many times the
+#: image's normalized half-diagonal (a fold farther out never reaches an imaged point).
+_FOLD_DIRECTIONS = 256
+_FOLD_SAMPLES = 4096
+_FOLD_REACH = 8.0
+#: Undistortion converges to this many pixels (Newton's method; the issue asks for 1e-3 px).
+UNDISTORT_TOLERANCE_PX = 1e-9
 
 
 def image_centre(width: int, height: int) -> np.ndarray:
@@ -44,15 +72,17 @@ def _as_points(array, width: int, name: str) -> np.ndarray:
     return points
 
 
-def project_unmasked(points_cam, fx: float, fy: float, cx: float, cy: float, d: float, jacobian: bool = False):
-    """Distorted pixels (n, 2) of points (n, 3) in the camera frame, by eq. 2-3 for any point with z != 0.
+def project_unmasked(points_cam, camera: "Camera", jacobian: bool = False):
+    """Distorted pixels (n, 2) of points (n, 3) in the camera frame, by the camera's model, for any
+    point with z != 0.
 
     Unlike `Camera.project`, points behind the camera or beyond the distortion's fold are projected
     by the same formula (the model's smooth extension, for least-squares solvers). With `jacobian`,
-    returns (pixels (n, 2), d pixels / d points_cam (n, 2, 3), d pixels / d (fx, fy, cx, cy, d) (n, 2, 5)).
+    returns (pixels (n, 2), d pixels / d points_cam (n, 2, 3), d pixels / d parameters (n, 2, P)),
+    P = len(camera.parameter_names).
     """
     xy, z = _normalized_from_cam(_as_points(points_cam, 3, "points_cam"))
-    return _project_normalized(xy, z, fx, fy, cx, cy, d, jacobian)
+    return _project_normalized(xy, z, camera, jacobian)
 
 
 def _normalized_from_cam(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -72,9 +102,45 @@ def _pixels(xy: np.ndarray, s, fx: float, fy: float, cx: float, cy: float) -> np
     return np.column_stack([fx * xy[:, 0] * s + cx, fy * xy[:, 1] * s + cy])
 
 
-def _project_normalized(xy, z, fx, fy, cx, cy, d, jacobian: bool):
+def _distorted_opencv(xy: np.ndarray, k1: float, k2: float, p1: float, p2: float, k3: float,
+                      jacobian: bool = False):
+    """OpenCV's distorted normalized points (n, 2) of undistorted ones xy (n, 2); with `jacobian`
+    also d distorted / d xy (n, 2, 2)."""
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    s = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    distorted = np.column_stack([x * s + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+                                 y * s + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y])
+    if not jacobian:
+        return distorted
+    g = 2.0 * k1 + r2 * (4.0 * k2 + 6.0 * k3 * r2)  # d s / d x = g x, d s / d y = g y
+    J = np.empty((len(xy), 2, 2))
+    J[:, 0, 0] = s + g * x * x + 2.0 * p1 * y + 6.0 * p2 * x
+    J[:, 0, 1] = g * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+    J[:, 1, 0] = g * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+    J[:, 1, 1] = s + g * y * y + 6.0 * p1 * y + 2.0 * p2 * x
+    return distorted, J
+
+
+def _project_normalized(xy, z, camera: "Camera", jacobian: bool):
     """Pixels (n, 2) of undistorted normalized points xy (n, 2) at depths z (n,); with `jacobian` also
-    d pixels / d point (n, 2, 3) and d pixels / d (fx, fy, cx, cy, d) (n, 2, 5)."""
+    d pixels / d point (n, 2, 3) and d pixels / d parameters (n, 2, P)."""
+    if camera.model == "radial1":
+        out = _project_radial1(xy, camera.fx, camera.fy, camera.cx, camera.cy, camera.d, jacobian)
+    else:
+        out = _project_opencv(xy, camera, jacobian)
+    if not jacobian:
+        return out
+    uv, J_xy, J_parameters = out
+    J_normalized = np.zeros((len(xy), 2, 3))  # d (x, y) / d point
+    J_normalized[:, 0, 0] = J_normalized[:, 1, 1] = 1.0 / z
+    J_normalized[:, 0, 2], J_normalized[:, 1, 2] = -xy[:, 0] / z, -xy[:, 1] / z
+    return uv, J_xy @ J_normalized, J_parameters
+
+
+def _project_radial1(xy, fx, fy, cx, cy, d, jacobian: bool):
+    """Pixels (n, 2) by eq. 2-3; with `jacobian` also d pixels / d (x, y) (n, 2, 2) and
+    d pixels / d (fx, fy, cx, cy, d) (n, 2, 5)."""
     s = _radial_scale(xy, d)
     uv = _pixels(xy, s, fx, fy, cx, cy)
     if not jacobian:
@@ -85,20 +151,38 @@ def _project_normalized(xy, z, fx, fy, cx, cy, d, jacobian: bool):
     J_intrinsics[:, 0, 0], J_intrinsics[:, 1, 1] = x * s, y * s
     J_intrinsics[:, 0, 2] = J_intrinsics[:, 1, 3] = 1.0
     J_intrinsics[:, 0, 4], J_intrinsics[:, 1, 4] = fx * x * r2, fy * y * r2
-    J_xy = np.empty((len(xy), 2, 2))  # d pixels / d (x, y)
+    J_xy = np.empty((len(xy), 2, 2))
     J_xy[:, 0, 0] = fx * (s + 2.0 * d * x * x)
     J_xy[:, 0, 1] = fx * 2.0 * d * x * y
     J_xy[:, 1, 0] = fy * 2.0 * d * x * y
     J_xy[:, 1, 1] = fy * (s + 2.0 * d * y * y)
-    J_normalized = np.zeros((len(xy), 2, 3))  # d (x, y) / d point
-    J_normalized[:, 0, 0] = J_normalized[:, 1, 1] = 1.0 / z
-    J_normalized[:, 0, 2], J_normalized[:, 1, 2] = -x / z, -y / z
-    return uv, J_xy @ J_normalized, J_intrinsics
+    return uv, J_xy, J_intrinsics
+
+
+def _project_opencv(xy, camera: "Camera", jacobian: bool):
+    """Pixels (n, 2) by OpenCV's model; with `jacobian` also d pixels / d (x, y) (n, 2, 2) and
+    d pixels / d (fx, fy, cx, cy, k1, k2, p1, p2, k3) (n, 2, 9)."""
+    f = np.array([camera.fx, camera.fy])
+    distorted = _distorted_opencv(xy, *camera.distortion, jacobian)
+    if not jacobian:
+        return distorted * f + [camera.cx, camera.cy]
+    distorted, J_distorted = distorted
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    J = np.zeros((len(xy), 2, 9))
+    J[:, 0, 0], J[:, 1, 1] = distorted[:, 0], distorted[:, 1]
+    J[:, 0, 2] = J[:, 1, 3] = 1.0
+    for column, power in ((4, r2), (5, r2 * r2), (8, r2 * r2 * r2)):  # k1, k2, k3
+        J[:, 0, column], J[:, 1, column] = camera.fx * x * power, camera.fy * y * power
+    J[:, 0, 6], J[:, 1, 6] = camera.fx * 2.0 * x * y, camera.fy * (r2 + 2.0 * y * y)  # p1
+    J[:, 0, 7], J[:, 1, 7] = camera.fx * (r2 + 2.0 * x * x), camera.fy * 2.0 * x * y  # p2
+    return distorted * f + [camera.cx, camera.cy], J_distorted * f[None, :, None], J
 
 
 @dataclass(frozen=True)
 class Camera:
-    """Intrinsics of one camera: focal lengths and principal point in pixels, distortion d, size."""
+    """Intrinsics of one camera: focal lengths and principal point in pixels, the first radial
+    coefficient d (k1), image size, the distortion model and, for `opencv`, k2, p1, p2, k3."""
 
     fx: float
     fy: float
@@ -107,6 +191,17 @@ class Camera:
     d: float
     width: int
     height: int
+    model: str = "radial1"
+    k2: float = 0.0
+    p1: float = 0.0
+    p2: float = 0.0
+    k3: float = 0.0
+
+    def __post_init__(self):
+        if self.model not in PARAMETER_NAMES:
+            raise DmaisError(f"camera model {self.model!r} is not one of {', '.join(MODELS)}")
+        if self.model == "radial1" and any((self.k2, self.p1, self.p2, self.k3)):
+            raise DmaisError("the radial1 model has only d; k2, p1, p2, k3 need model opencv")
 
     @property
     def K(self) -> np.ndarray:
@@ -114,33 +209,71 @@ class Camera:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
     @property
+    def distortion(self) -> tuple[float, float, float, float, float]:
+        """OpenCV's distortion vector (k1, k2, p1, p2, k3) of this camera (radial1: (d, 0, 0, 0, 0))."""
+        return (self.d, self.k2, self.p1, self.p2, self.k3)
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        """The model's parameters, in the order of `parameters` and of the intrinsics Jacobians."""
+        return PARAMETER_NAMES[self.model]
+
+    @property
+    def parameters(self) -> np.ndarray:
+        """(P,) the model's parameters (`parameter_names`)."""
+        return np.array([self.fx, self.fy, self.cx, self.cy, *self.distortion][:len(self.parameter_names)],
+                        dtype=float)
+
+    def with_parameters(self, parameters) -> "Camera":
+        """The camera of the same model and size with parameters (P,) (`parameter_names`' order)."""
+        p = [float(v) for v in parameters]
+        if len(p) != len(self.parameter_names):
+            raise DmaisError(f"model {self.model} has {len(self.parameter_names)} parameters, got {len(p)}")
+        extra = dict(zip(("k2", "p1", "p2", "k3"), p[5:]))
+        return Camera(*p[:5], self.width, self.height, self.model, **extra)
+
+    @property
+    def max_projectable_radius(self) -> float:
+        """Largest undistorted normalized radius within which the model is one-to-one (inf if it
+        never folds): radial1 with d < 0 turns at r = 1 / sqrt(-3 d), beyond which pixels would
+        move back towards the centre, so such points are not imaged."""
+        if self.model == "radial1":
+            return np.inf if self.d >= 0 else 1.0 / np.sqrt(-3.0 * self.d)
+        return _opencv_fold_radius(self.distortion, self._half_diagonal())
+
+    @property
     def max_undistortable_radius(self) -> float:
-        """Largest distorted normalized radius the model maps back one-to-one (inf for d >= 0)."""
+        """Largest distorted normalized radius of the radial1 model that maps back one-to-one (inf
+        for d >= 0); the opencv model's region is not a disk: see `undistort_normalized`."""
+        if self.model != "radial1":
+            raise DmaisError("max_undistortable_radius is the radial1 model's; use max_projectable_radius")
         if self.d >= 0:
             return np.inf
         return 2.0 / 3.0 * self.max_projectable_radius  # r (1 + d r^2) at its turning point
 
     @property
-    def max_projectable_radius(self) -> float:
-        """Largest undistorted normalized radius before the model folds back (inf for d >= 0).
-
-        For d < 0, r (1 + d r^2) peaks at r = 1 / sqrt(-3 d); beyond it pixels would move back
-        towards the centre, so such points are not imaged.
-        """
-        return np.inf if self.d >= 0 else 1.0 / np.sqrt(-3.0 * self.d)
+    def folds_in_image(self) -> bool:
+        """Whether the model folds inside the image: some pixel of the image border (sampled every
+        few pixels) has no undistorted point within `max_projectable_radius`."""
+        n = max(self.width, self.height) // 4 + 2
+        us, vs = np.linspace(-0.5, self.width - 0.5, n), np.linspace(-0.5, self.height - 0.5, n)
+        border = np.concatenate([np.column_stack([us, np.full(n, -0.5)]),
+                                 np.column_stack([us, np.full(n, self.height - 0.5)]),
+                                 np.column_stack([np.full(n, -0.5), vs]),
+                                 np.column_stack([np.full(n, self.width - 0.5), vs])])
+        return bool(np.isnan(self.undistort_normalized(border)).any())
 
     def project(self, points_cam, jacobian: bool = False):
         """Distorted pixels (n, 2) of points (n, 3) in the camera frame.
 
-        NaN for points with z <= 0 and, for d < 0, beyond `max_projectable_radius`. With `jacobian`,
-        returns (pixels (n, 2), d pixels / d points_cam (n, 2, 3), d pixels / d (fx, fy, cx, cy, d)
-        (n, 2, 5)), NaN in the rows of points not imaged.
+        NaN for points with z <= 0 and beyond `max_projectable_radius`. With `jacobian`, returns
+        (pixels (n, 2), d pixels / d points_cam (n, 2, 3), d pixels / d parameters (n, 2, P)), NaN
+        in the rows of points not imaged.
         """
         xy, z = _normalized_from_cam(_as_points(points_cam, 3, "points_cam"))
         hidden = ~(z > 0) | (np.hypot(xy[:, 0], xy[:, 1]) > self.max_projectable_radius)
         xy[hidden] = np.nan
-        out = _project_normalized(xy, np.where(hidden, np.nan, z), self.fx, self.fy, self.cx, self.cy, self.d,
-                                      jacobian)
+        out = _project_normalized(xy, np.where(hidden, np.nan, z), self, jacobian)
         if jacobian:
             out[1][hidden] = np.nan
             out[2][hidden] = np.nan
@@ -149,7 +282,7 @@ class Camera:
     def distort(self, uv) -> np.ndarray:
         """Distorted pixels (n, 2) from undistorted pixels (n, 2) (eq. 2)."""
         xy = self._normalized_from_pixel(uv)
-        return _pixels(xy, _radial_scale(xy, self.d), self.fx, self.fy, self.cx, self.cy)
+        return _project_normalized(xy, None, self, False)
 
     def undistort(self, uv) -> np.ndarray:
         """Undistorted pixels (n, 2) from distorted pixels (n, 2); NaN where not invertible."""
@@ -158,10 +291,17 @@ class Camera:
     def undistort_normalized(self, uv) -> np.ndarray:
         """Undistorted normalized coordinates (n, 2) (x, y) of distorted pixels (n, 2).
 
-        Inverts r_d = r (1 + d r^2) radially by Newton's method; for d < 0 points beyond the radius
-        where the model folds back (see `max_undistortable_radius`) come out as NaN.
+        radial1 inverts r_d = r (1 + d r^2) radially by Newton's method; opencv solves the 2-D
+        distortion by Newton's method from x = x_d. Pixels whose undistorted point lies beyond
+        `max_projectable_radius` (where the model folds back), or where Newton's method does not
+        reach `UNDISTORT_TOLERANCE_PX`, come out as NaN.
         """
         xy_d = self._normalized_from_pixel(uv)
+        if self.model == "radial1":
+            return self._undistort_radial1(xy_d)
+        return self._undistort_opencv(xy_d)
+
+    def _undistort_radial1(self, xy_d: np.ndarray) -> np.ndarray:
         r_d = np.hypot(xy_d[:, 0], xy_d[:, 1])
         r = r_d.copy()
         for _ in range(_NEWTON_MAX_ITERATIONS):
@@ -173,6 +313,28 @@ class Camera:
             scale = np.where(r_d > 0, r / r_d, 1.0)
         scale[r_d > self.max_undistortable_radius] = np.nan
         return xy_d * scale[:, None]
+
+    def _undistort_opencv(self, xy_d: np.ndarray) -> np.ndarray:
+        xy = xy_d.copy()
+        limit = self.max_projectable_radius
+        tolerance = UNDISTORT_TOLERANCE_PX / max(self.fx, self.fy)
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            for _ in range(_NEWTON_MAX_ITERATIONS):
+                distorted, J = _distorted_opencv(xy, *self.distortion, jacobian=True)
+                error = distorted - xy_d
+                if np.all(np.abs(error) <= tolerance):
+                    break
+                det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
+                step = np.column_stack([J[:, 1, 1] * error[:, 0] - J[:, 0, 1] * error[:, 1],
+                                        J[:, 0, 0] * error[:, 1] - J[:, 1, 0] * error[:, 0]]) / det[:, None]
+                trial = xy - step
+                beyond = np.hypot(trial[:, 0], trial[:, 1]) > limit  # past the fold: half the step
+                trial[beyond] = xy[beyond] - 0.5 * step[beyond]
+                xy = trial
+            error = _distorted_opencv(xy, *self.distortion) - xy_d
+            bad = ~np.all(np.abs(error) <= tolerance, axis=1) | ~(np.hypot(xy[:, 0], xy[:, 1]) <= limit)
+        xy[bad] = np.nan
+        return xy
 
     def unproject(self, uv) -> np.ndarray:
         """Unit bearing vectors (n, 3) in the camera frame of distorted pixels (n, 2)."""
@@ -191,12 +353,51 @@ class Camera:
         )
 
     def to_dict(self) -> dict:
-        return {k: (int(v) if k in ("width", "height") else float(v)) for k, v in asdict(self).items()}
+        """fx, fy, cx, cy, d, width, height for radial1 (the paper's files, unchanged); model,
+        fx, fy, cx, cy, k1, k2, p1, p2, k3, width, height for opencv."""
+        if self.model == "radial1":
+            values = {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy, "d": self.d}
+        else:
+            values = {"model": self.model, **dict(zip(self.parameter_names, map(float, self.parameters)))}
+        return {**{k: (v if k == "model" else float(v)) for k, v in values.items()},
+                "width": int(self.width), "height": int(self.height)}
 
     @classmethod
     def from_dict(cls, data: dict) -> "Camera":
-        return cls(**{k: data[k] for k in ("fx", "fy", "cx", "cy", "d", "width", "height")})
+        """The camera of a `to_dict` mapping (no "model": radial1)."""
+        model = data.get("model", "radial1")
+        if model not in PARAMETER_NAMES:
+            raise DmaisError(f"camera model {model!r} is not one of {', '.join(MODELS)}")
+        values = [data[k] for k in PARAMETER_NAMES[model]]
+        return cls(*values[:5], data["width"], data["height"], model,
+                   **dict(zip(("k2", "p1", "p2", "k3"), values[5:])))
+
+    def _half_diagonal(self) -> float:
+        """The image's half-diagonal in normalized units (distortion aside)."""
+        return float(np.hypot(max(self.cx + 0.5, self.width - 0.5 - self.cx) / self.fx,
+                              max(self.cy + 0.5, self.height - 0.5 - self.cy) / self.fy))
 
     def _normalized_from_pixel(self, uv) -> np.ndarray:
         uv = _as_points(uv, 2, "uv")
         return np.column_stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy])
+
+
+@functools.lru_cache(maxsize=256)
+def _opencv_fold_radius(distortion: tuple[float, ...], half_diagonal: float) -> float:
+    """The largest undistorted radius within which OpenCV's distortion (k1, k2, p1, p2, k3) keeps a
+    positive Jacobian determinant in every direction, searched out to _FOLD_REACH image
+    half-diagonals (inf if it does not fold there)."""
+    if not any(distortion):
+        return np.inf
+    reach = _FOLD_REACH * max(half_diagonal, 1e-6)
+    angle = np.linspace(0.0, 2.0 * np.pi, _FOLD_DIRECTIONS, endpoint=False)
+    radius = np.linspace(0.0, reach, _FOLD_SAMPLES + 1)[1:]
+    r, a = np.meshgrid(radius, angle)
+    xy = np.column_stack([(r * np.cos(a)).ravel(), (r * np.sin(a)).ravel()])
+    _, J = _distorted_opencv(xy, *distortion, jacobian=True)
+    folded = (np.linalg.det(J) <= 0).reshape(r.shape)
+    if not folded.any():
+        return np.inf
+    first = np.where(folded.any(axis=1), folded.argmax(axis=1), _FOLD_SAMPLES)
+    k = int(first.min())
+    return float(radius[k - 1]) if k > 0 else 0.0

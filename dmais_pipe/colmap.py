@@ -1,8 +1,9 @@
 """COLMAP round trip: the calibrated rig and the solved flight frames as a COLMAP sparse model.
 
 The model (`flight_reconstruction`) holds
-- cameras: one OPENCV camera per rig camera, (fx, fy, cx, cy, k1 = d, k2 = p1 = p2 = 0), which is
-  exactly our eq. 2-3 model (`calib.rig_ba.opencv_params`), with the principal point in COLMAP's
+- cameras: one camera per rig camera, exactly its model (`calib.rig_ba.opencv_params`): OPENCV
+  (fx, fy, cx, cy, k1, k2, p1, p2; radial1 is k1 = d, the rest 0) or, for an opencv camera with
+  k3 != 0, FULL_OPENCV (k4 = k5 = k6 = 0), with the principal point in COLMAP's
   pixel convention: COLMAP puts the centre of the top-left pixel at (0.5, 0.5), we at (0, 0);
 - rig 1: the reference camera as its reference sensor, every other camera with sensor_from_rig =
   cam_from_rig;

@@ -26,6 +26,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from .camera import MODELS
 from .errors import DatasetError, yaml_problem
 from .files import write_csv_atomic, write_yaml_atomic
 
@@ -56,7 +57,7 @@ OBSERVATION_COLUMNS = ("image", "point_id", "u", "v")
 RESULT_OBSERVATION_COLUMNS = ("image", "camera", "point_id", "u", "v")
 
 _MANIFEST_KEYS = ("name", "description", "reference_camera", "cameras", "marker_size_m")
-_CAMERA_KEYS = ("width", "height", "focal_px")
+_CAMERA_KEYS = ("width", "height", "focal_px", "model")
 _MIN_QUATERNION_NORM = 1e-6
 #: A control field is collinear when its RMS spread across its best-fit line is below both this
 #: fraction of the spread along it and COLLINEAR_SPREAD_M (survey noise of points on a line).
@@ -69,11 +70,13 @@ _PROGRESS_EVERY = 20
 
 @dataclass(frozen=True)
 class CameraSpec:
-    """A camera as the manifest declares it: image size in pixels and an optional nominal focal (px)."""
+    """A camera as the manifest declares it: image size in pixels, an optional nominal focal (px) and
+    its lens model (camera.MODELS: radial1, the paper's, by default; or opencv)."""
 
     width: int
     height: int
     focal_px: float | None
+    model: str = "radial1"
 
 
 # ------------------------------------------------------------------------------ dataset.yaml
@@ -137,10 +140,14 @@ def _parse_cameras(data, path: Path) -> dict[str, CameraSpec]:
             if key not in spec:
                 raise DatasetError(path, f"{where}: missing required key '{key}'")
         focal = spec.get("focal_px")
+        model = spec.get("model", "radial1")
+        if model not in MODELS:
+            raise DatasetError(path, f"{where}.model must be one of {', '.join(MODELS)}, got {model!r}")
         cameras[name] = CameraSpec(
             width=_positive(spec["width"], f"{where}.width", path, integer=True),
             height=_positive(spec["height"], f"{where}.height", path, integer=True),
             focal_px=None if focal is None else _positive(focal, f"{where}.focal_px", path),
+            model=model,
         )
     return cameras
 
@@ -175,6 +182,8 @@ def _manifest_dict(manifest: _Manifest) -> dict:
         cameras[name] = {"width": spec.width, "height": spec.height}
         if spec.focal_px is not None:
             cameras[name]["focal_px"] = spec.focal_px
+        if spec.model != "radial1":
+            cameras[name]["model"] = spec.model
     data = {"name": manifest.name}
     if manifest.description:
         data["description"] = manifest.description

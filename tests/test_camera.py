@@ -440,12 +440,11 @@ def test_project_unmasked_is_project_where_imaged_and_finite_elsewhere():
     formula's value (the mirrored point's pixel), not NaN."""
     camera = LONG_FOCAL["d=-3.0"]
     points = random_points_in_view(camera, 30, np.random.default_rng(12))
-    args = (camera.fx, camera.fy, camera.cx, camera.cy, camera.d)
-    for masked, unmasked in zip(camera.project(points, jacobian=True), project_unmasked(points, *args, jacobian=True)):
+    for masked, unmasked in zip(camera.project(points, jacobian=True), project_unmasked(points, camera, jacobian=True)):
         np.testing.assert_array_equal(unmasked, masked)
-    np.testing.assert_array_equal(project_unmasked(points, *args), camera.project(points))
+    np.testing.assert_array_equal(project_unmasked(points, camera), camera.project(points))
     behind = -points[:5]
-    np.testing.assert_allclose(project_unmasked(behind, *args), camera.project(points[:5]), rtol=1e-15)
+    np.testing.assert_allclose(project_unmasked(behind, camera), camera.project(points[:5]), rtol=1e-15)
     assert np.isnan(camera.project(behind)).all()
 
 
@@ -458,7 +457,7 @@ def test_project_unmasked_equals_the_removed_projection_module():
     ref = np.load(PROJECTION_REFERENCE)
     for k, intrinsics in enumerate(ref["intrinsics"]):
         points_cam = ref["points"][k] @ ref["R"][k].T + ref["t"][k]
-        uv, J_point, J_intrinsics = project_unmasked(points_cam, *intrinsics, jacobian=True)
+        uv, J_point, J_intrinsics = project_unmasked(points_cam, Camera(*intrinsics, 0, 0), jacobian=True)
         np.testing.assert_allclose(uv, ref["uv"][k], rtol=1e-12, atol=0)
         np.testing.assert_allclose(J_point, ref["J_cam"][k], rtol=1e-12, atol=0)
         np.testing.assert_allclose(J_intrinsics, ref["J_intr"][k], rtol=1e-12, atol=0)
@@ -469,7 +468,8 @@ def test_pose_jacobian_of_pixels_equals_the_removed_projection_module():
     for k, intrinsics in enumerate(ref["intrinsics"]):
         for phi, expected in zip(ref["phis"], ref["pose_jacobian"][k]):
             R = exp_so3(phi) @ ref["R"][k]
-            _, J_point, _ = project_unmasked(ref["points"][k] @ R.T + ref["t"][k], *intrinsics, jacobian=True)
+            _, J_point, _ = project_unmasked(ref["points"][k] @ R.T + ref["t"][k], Camera(*intrinsics, 0, 0),
+                                              jacobian=True)
             np.testing.assert_allclose(pose_jacobian(ref["points"][k], R, phi, J_point), expected, rtol=1e-12, atol=0)
 
 
@@ -483,14 +483,13 @@ def test_pose_jacobian_of_pixels_is_the_finite_differences(angle):
     phi = angle * np.array([0.6, 0.0, -0.8])
     t = np.array([1.0, -2.0, 3.0])
     X = (points_cam - t) @ exp_so3(phi) @ R0  # world points with exp(phi) R0 X + t = points_cam
-    args = (camera.fx, camera.fy, camera.cx, camera.cy, camera.d)
 
     def pixels(p):
-        return project_unmasked(X @ (exp_so3(p[:3]) @ R0).T + p[3:], *args)
+        return project_unmasked(X @ (exp_so3(p[:3]) @ R0).T + p[3:], camera)
 
     p0, h = np.concatenate([phi, t]), np.array([1e-7] * 3 + [1e-4] * 3)
     numeric = np.stack([(pixels(p0 + h[i] * e) - pixels(p0 - h[i] * e)) / (2.0 * h[i])
                         for i, e in enumerate(np.eye(6))], axis=2)
-    _, J_point, _ = project_unmasked(X @ (exp_so3(phi) @ R0).T + t, *args, jacobian=True)
+    _, J_point, _ = project_unmasked(X @ (exp_so3(phi) @ R0).T + t, camera, jacobian=True)
     J = pose_jacobian(X, exp_so3(phi) @ R0, phi, J_point)
     np.testing.assert_allclose(J, numeric, rtol=1e-5, atol=1e-6 * np.abs(J).max())

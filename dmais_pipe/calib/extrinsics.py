@@ -74,7 +74,8 @@ class ExtrinsicsResult:
         }
 
 
-#: The intrinsics of one camera, in the order of the calibration covariance's rows.
+#: The intrinsics of one camera, in the order of the calibration covariance's rows: an opencv
+#: camera's k1 is its "d" here, and its k2, p1, p2, k3 are not carried (docs/design.md).
 INTRINSICS = ("fx", "fy", "cx", "cy", "d")
 
 
@@ -98,9 +99,9 @@ def _intrinsics_parts(cameras: list[str], std: dict[str, dict], survey_effect: d
         rows = slice(5 * c, 5 * c + 5)
         for point, effect in (survey_effect.get(camera) or {}).items():
             k = points.index(point)
-            shared[rows, 3 * k:3 * k + 3] = np.asarray(effect, dtype=float)
+            shared[rows, 3 * k:3 * k + 3] = np.asarray(effect, dtype=float)[:5]  # an opencv camera's k2.. dropped
         given = std.get(camera) or {}
-        own[rows] = [float(given.get(name, 0.0)) ** 2 for name in INTRINSICS]
+        own[rows] = [float(given.get(name, given.get("k1", 0.0) if name == "d" else 0.0)) ** 2 for name in INTRINSICS]
     return np.clip(own - np.sum(shared**2, axis=1), 0.0, None), shared, points
 
 
@@ -341,8 +342,8 @@ def colmap_rig_config(rig: Rig, prefixes: dict[str, str] | None = None) -> list[
 
     One entry per camera, the reference first with "ref_sensor": true, the others with
     cam_from_rig as "cam_from_rig_rotation" (w, x, y, z) and "cam_from_rig_translation" (m); every
-    entry also carries the intrinsics as an OPENCV camera (fx, fy, cx, cy, k1 = d, k2 = p1 = p2 = 0,
-    exactly our model) with the principal point in COLMAP's pixel convention (ours + 0.5: COLMAP puts
+    entry also carries the intrinsics as the COLMAP camera exactly equal to ours (`opencv_params`:
+    OPENCV, or FULL_OPENCV for an opencv camera with k3 != 0) with the principal point in COLMAP's pixel convention (ours + 0.5: COLMAP puts
     the centre of the top-left pixel at (0.5, 0.5), we at (0, 0)). `prefixes`: image-name prefix per
     camera (default "<camera>/").
     """
@@ -357,8 +358,7 @@ def colmap_rig_config(rig: Rig, prefixes: dict[str, str] | None = None) -> list[
             cam_from_rig = rig.cam_from_rig[name]
             entry["cam_from_rig_rotation"] = [float(q) for q in cam_from_rig.quat]
             entry["cam_from_rig_translation"] = [float(t) for t in cam_from_rig.t]
-        entry["camera_model_name"] = "OPENCV"
-        entry["camera_params"] = opencv_params(rig.cameras[name])
+        entry["camera_model_name"], entry["camera_params"] = opencv_params(rig.cameras[name])
         cameras.append(entry)
     return [{"cameras": cameras}]
 

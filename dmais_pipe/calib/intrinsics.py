@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..camera import Camera, image_centre, project_unmasked
+from ..camera import PARAMETER_NAMES, Camera, image_centre, project_unmasked
 from ..errors import DmaisError
 from ..geometry import Rigid3, exp_so3, pose_jacobian
 from .pnpf import solve_pnpf
@@ -47,6 +47,11 @@ PNPF_AGREEMENT = 0.2
 INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "d")
 METHODS = ("ours", "opencv", "dlt_lm")
 TABLE_COLUMNS = ("method", "camera", "fx", "fy", "cx", "cy", "d", "eps_calib_px", "eps_eval_px")
+
+
+def table_columns(model: str = "radial1") -> tuple[str, ...]:
+    """The columns of <camera>.methods.csv for a camera of `model` (radial1: TABLE_COLUMNS)."""
+    return ("method", "camera", *PARAMETER_NAMES[model], "eps_calib_px", "eps_eval_px")
 
 
 @dataclass
@@ -157,14 +162,13 @@ def _rms(residuals: np.ndarray) -> float:
 def refine_pose(camera: Camera, X: np.ndarray, uv: np.ndarray, pose: Rigid3) -> tuple[Rigid3, np.ndarray]:
     """LM over one cam_from_world with intrinsics fixed; returns (pose, residuals (n, 2))."""
     R0 = pose.R
-    args = (camera.fx, camera.fy, camera.cx, camera.cy, camera.d)
 
     def fun(p):
-        return (project_unmasked(X @ (exp_so3(p[:3]) @ R0).T + p[3:], *args) - uv).ravel()
+        return (project_unmasked(X @ (exp_so3(p[:3]) @ R0).T + p[3:], camera) - uv).ravel()
 
     def jac(p):
         R = exp_so3(p[:3]) @ R0
-        _, J_cam, _ = project_unmasked(X @ R.T + p[3:], *args, jacobian=True)
+        _, J_cam, _ = project_unmasked(X @ R.T + p[3:], camera, jacobian=True)
         return pose_jacobian(X, R, p[:3], J_cam).reshape(-1, 6)
 
     sol = least_squares(fun, np.concatenate([np.zeros(3), pose.t]), jac=jac, method="lm",
@@ -201,56 +205,56 @@ def estimate_pose(camera: Camera, X: np.ndarray, uv: np.ndarray, guess: Rigid3 |
 
 def bundle_adjust(camera: Camera, poses: dict[str, Rigid3], data: dict[str, tuple[np.ndarray, np.ndarray]],
                   survey: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None):
-    """LM over (fx, fy, cx, cy, d) and every pose (eq. `refine`).
+    """LM over the camera model's parameters (radial1: fx, fy, cx, cy, d) and every pose (eq. `refine`).
 
     survey: {image: (point ids (n,), survey sigma per axis (n,) m)} of each image's points, for the
     covariance (`_covariance`); None or sigma 0: exact points. Returns (camera, poses, residuals
-    (N, 2), covariance of the intrinsics (5, 5), survey effect {point id: (5, 3)}: the change of
-    the intrinsics per one-sigma survey error of the point along x, y, z).
+    (N, 2), covariance of the intrinsics (P, P), survey effect {point id: (P, 3)}: the change of
+    the intrinsics per one-sigma survey error of the point along x, y, z; P parameters of the model).
     """
     names = list(data)
     R0 = [poses[k].R for k in names]
     sizes = [len(data[k][0]) for k in names]
     rows = np.cumsum([0] + [2 * s for s in sizes])
-    n_params = 5 + 6 * len(names)
-    x0 = np.concatenate([[camera.fx, camera.fy, camera.cx, camera.cy, camera.d]]
-                        + [np.concatenate([np.zeros(3), poses[k].t]) for k in names])
+    P = len(camera.parameter_names)
+    n_params = P + 6 * len(names)
+    x0 = np.concatenate([camera.parameters] + [np.concatenate([np.zeros(3), poses[k].t]) for k in names])
 
     def fun(p):
         out = np.empty(rows[-1])
         for i, k in enumerate(names):
             X, uv = data[k]
-            q = p[5 + 6 * i: 11 + 6 * i]
+            q = p[P + 6 * i: P + 6 + 6 * i]
             Xc = X @ (exp_so3(q[:3]) @ R0[i]).T + q[3:]
-            out[rows[i]:rows[i + 1]] = (project_unmasked(Xc, *p[:5]) - uv).ravel()
+            out[rows[i]:rows[i + 1]] = (project_unmasked(Xc, camera.with_parameters(p[:P])) - uv).ravel()
         return out
 
     def jac(p):
         J = np.zeros((rows[-1], n_params))
         for i, k in enumerate(names):
             X, _ = data[k]
-            q = p[5 + 6 * i: 11 + 6 * i]
+            q = p[P + 6 * i: P + 6 + 6 * i]
             R = exp_so3(q[:3]) @ R0[i]
-            _, J_cam, J_intr = project_unmasked(X @ R.T + q[3:], *p[:5], jacobian=True)
-            J[rows[i]:rows[i + 1], :5] = J_intr.reshape(-1, 5)
-            J[rows[i]:rows[i + 1], 5 + 6 * i: 11 + 6 * i] = pose_jacobian(X, R, q[:3], J_cam).reshape(-1, 6)
+            _, J_cam, J_intr = project_unmasked(X @ R.T + q[3:], camera.with_parameters(p[:P]), jacobian=True)
+            J[rows[i]:rows[i + 1], :P] = J_intr.reshape(-1, P)
+            J[rows[i]:rows[i + 1], P + 6 * i: P + 6 + 6 * i] = pose_jacobian(X, R, q[:3], J_cam).reshape(-1, 6)
         return J
 
     sol = least_squares(fun, x0, jac=jac, method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12,
                         max_nfev=200)
     p = sol.x
-    fitted = Camera(fx=p[0], fy=p[1], cx=p[2], cy=p[3], d=p[4], width=camera.width, height=camera.height)
-    new_poses = {k: Rigid3(exp_so3(p[5 + 6 * i: 8 + 6 * i]) @ R0[i], p[8 + 6 * i: 11 + 6 * i])
+    fitted = camera.with_parameters(p[:P])
+    new_poses = {k: Rigid3(exp_so3(p[P + 6 * i: P + 3 + 6 * i]) @ R0[i], p[P + 3 + 6 * i: P + 6 + 6 * i])
                  for i, k in enumerate(names)}
     J = jac(p)
-    ids, S = _survey_jacobian(p, names, R0, data, survey or {})
+    ids, S = _survey_jacobian(fitted, p[P:], names, R0, data, survey or {})
     cov, effect = _covariance(J, sol.fun, S)
-    return (fitted, new_poses, sol.fun.reshape(-1, 2), cov[:5, :5],
-            {str(point): effect[:5, 3 * k:3 * k + 3] for k, point in enumerate(ids) if point})  # "": exact points
+    return (fitted, new_poses, sol.fun.reshape(-1, 2), cov[:P, :P],
+            {str(point): effect[:P, 3 * k:3 * k + 3] for k, point in enumerate(ids) if point})  # "": exact points
 
 
-def _survey_jacobian(p: np.ndarray, names: list[str], R0: list[np.ndarray], data, survey
-                     ) -> tuple[np.ndarray, np.ndarray]:
+def _survey_jacobian(camera: Camera, pose_parameters: np.ndarray, names: list[str], R0: list[np.ndarray], data,
+                     survey) -> tuple[np.ndarray, np.ndarray]:
     """The surveyed points' ids (P,) and (2N, 3P) the residuals' change per one-sigma survey error of
     each along x, y, z (the same point in every image that sees it); no columns where no point has
     a survey sigma."""
@@ -265,9 +269,9 @@ def _survey_jacobian(p: np.ndarray, names: list[str], R0: list[np.ndarray], data
     ids, point = np.unique(np.where(sigma > 0, point_ids, ""), return_inverse=True)
     blocks = []
     for i, k in enumerate(names):
-        q = p[5 + 6 * i: 11 + 6 * i]
+        q = pose_parameters[6 * i: 6 + 6 * i]
         R = exp_so3(q[:3]) @ R0[i]
-        _, J_cam, _ = project_unmasked(data[k][0] @ R.T + q[3:], *p[:5], jacobian=True)
+        _, J_cam, _ = project_unmasked(data[k][0] @ R.T + q[3:], camera, jacobian=True)
         blocks.append(J_cam @ R)  # (n, 2, 3): d pixel / d world point
     S = np.zeros((2 * n, 3 * len(ids)))
     for row, (block, k) in enumerate(zip(np.concatenate(blocks), point)):
@@ -480,8 +484,7 @@ def calibrate_camera_opencv(points_world_per_image, uv_per_image, width: int, he
     camera = Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], d=float(dist.ravel()[0]), width=width,
                     height=height)
     poses = {k: Rigid3(cv2.Rodrigues(r)[0], t.ravel()) for k, r, t in zip(names, rvecs, tvecs)}
-    residuals = np.vstack([project_unmasked(poses[k].apply(calib[k][0]), camera.fx, camera.fy, camera.cx, camera.cy,
-                                            camera.d) - calib[k][1] for k in names])
+    residuals = np.vstack([project_unmasked(poses[k].apply(calib[k][0]), camera) - calib[k][1] for k in names])
     s = np.asarray(std_intr).ravel()
     cov = np.diag(np.array([s[0], s[1], s[2], s[3], s[4]]) ** 2)
     return _finish(name, "opencv", camera, poses, residuals, cov, calib, evals, centre, skipped)

@@ -69,7 +69,6 @@ def refine_pose_with_center_prior(camera: Camera, X: np.ndarray, uv: np.ndarray,
     uv = np.asarray(uv, dtype=float)
     prior = np.asarray(center_prior, dtype=float).reshape(3)
     R0 = pose.R
-    args = (camera.fx, camera.fy, camera.cx, camera.cy, camera.d)
     n = len(X)
 
     def unpack(p):
@@ -78,12 +77,12 @@ def refine_pose_with_center_prior(camera: Camera, X: np.ndarray, uv: np.ndarray,
 
     def fun(p):
         R, t = unpack(p)
-        r_pix = (project_unmasked(X @ R.T + t, *args) - uv).ravel() / pixel_sigma
+        r_pix = (project_unmasked(X @ R.T + t, camera) - uv).ravel() / pixel_sigma
         return np.concatenate([r_pix, (p[3:] - prior) / center_sigma])
 
     def jac(p):
         R, t = unpack(p)
-        _, J_cam, _ = project_unmasked(X @ R.T + t, *args, jacobian=True)
+        _, J_cam, _ = project_unmasked(X @ R.T + t, camera, jacobian=True)
         J_pose = pose_jacobian(X, R, p[:3], J_cam)  # d/d(phi, t) with t free
         # t = -R C: dt/dphi = [R C]x J_l (from d(R C) = -[R C]x J_l dphi), dt/dC = -R
         dt_dphi = skew(R @ p[3:]) @ left_jacobian_so3(p[:3])

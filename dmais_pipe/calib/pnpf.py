@@ -33,7 +33,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..errors import DmaisError
-from ..camera import project_unmasked
+from ..camera import Camera, project_unmasked
 from ..geometry import Rigid3, exp_so3, pose_jacobian
 
 MIN_POINTS_3D = 6
@@ -142,12 +142,12 @@ def _residuals_and_jacobian(Xs, x, R0):
     def fun(p):
         R = exp_so3(p[:3]) @ R0
         f = np.exp(p[6])
-        return (project_unmasked(Xs @ R.T + p[3:6], f, f, 0.0, 0.0, 0.0) - x).ravel()
+        return (project_unmasked(Xs @ R.T + p[3:6], Camera(f, f, 0.0, 0.0, 0.0, 0, 0)) - x).ravel()
 
     def jac(p):
         R = exp_so3(p[:3]) @ R0
         f = np.exp(p[6])
-        _, J_cam, J_intr = project_unmasked(Xs @ R.T + p[3:6], f, f, 0.0, 0.0, 0.0, jacobian=True)
+        _, J_cam, J_intr = project_unmasked(Xs @ R.T + p[3:6], Camera(f, f, 0.0, 0.0, 0.0, 0, 0), jacobian=True)
         J_pose = pose_jacobian(Xs, R, p[:3], J_cam)
         J_f = (J_intr[:, :, 0] + J_intr[:, :, 1]) * f  # d/d(log f)
         return np.concatenate([J_pose, J_f[:, :, None]], axis=2).reshape(-1, 7)

@@ -173,7 +173,7 @@ class _RigProblem:
             v = X_rig - c
             X_cam = v @ Rc  # rows of Rc^T v
             n2 = 2 * len(b.X)
-            out = project_unmasked(X_cam, cam.fx, cam.fy, cam.cx, cam.cy, cam.d, jacobian=jacobian)
+            out = project_unmasked(X_cam, cam, jacobian=jacobian)
             uv = out[0] if jacobian else out
             r[r0:r0 + n2] = (uv - b.uv).ravel() / s
             if prior:
@@ -271,7 +271,7 @@ class _RigProblem:
             _, Rc, c = self.camera_params(p, b.camera)
             _, Rj, Cj = self.placement_params(p, b.placement)
             X_cam = ((b.X - Cj) @ Rj.T - c) @ Rc
-            J_intrinsics = project_unmasked(X_cam, cam.fx, cam.fy, cam.cx, cam.cy, cam.d, jacobian=True)[2]
+            J_intrinsics = project_unmasked(X_cam, cam, jacobian=True)[2][:, :, :5]
             k = 5 * order.index(b.camera)
             J[r0:r0 + 2 * len(b.X), k:k + 5] = J_intrinsics.reshape(-1, 5) / self.sig[b.camera]
         return J
@@ -290,7 +290,7 @@ class _RigProblem:
             _, Rc, c = self.camera_params(p, b.camera)
             _, Rj, Cj = self.placement_params(p, b.placement)
             X_cam = ((b.X - Cj) @ Rj.T - c) @ Rc
-            J_cam = project_unmasked(X_cam, cam.fx, cam.fy, cam.cx, cam.cy, cam.d, jacobian=True)[1]
+            J_cam = project_unmasked(X_cam, cam, jacobian=True)[1]
             d_point = J_cam @ (Rc.T @ Rj) / self.sig[b.camera]  # (n, 2, 3): X_cam = R_c^T R_j (X - C_j) - ...
             for row, (point, sigma) in enumerate(zip(b.point_ids, b.point_sigma)):
                 if sigma > 0:
@@ -358,20 +358,24 @@ def colmap_pixels(uv: np.ndarray) -> np.ndarray:
     return np.asarray(uv, dtype=float) + COLMAP_PIXEL_OFFSET
 
 
-def opencv_params(camera: Camera, sigma: float = 1.0) -> list[float]:
-    """COLMAP OPENCV parameters (fx, fy, cx, cy, k1 = d, k2 = p1 = p2 = 0: exactly our model) in COLMAP's
-    pixel convention (cx, cy shifted by `colmap_pixels`), with the pixel-valued ones divided by sigma."""
+def opencv_params(camera: Camera, sigma: float = 1.0) -> tuple[str, list[float]]:
+    """The COLMAP model and parameters exactly equal to `camera`: OPENCV (fx, fy, cx, cy, k1, k2, p1,
+    p2; radial1 is k1 = d, the rest 0) or, for an opencv camera with k3 != 0, FULL_OPENCV (the same
+    then k3, k4 = k5 = k6 = 0); in COLMAP's pixel convention (cx, cy shifted by `colmap_pixels`), with
+    the pixel-valued ones divided by sigma."""
     cx, cy = colmap_pixels([camera.cx, camera.cy])
-    return [camera.fx / sigma, camera.fy / sigma, cx / sigma, cy / sigma, camera.d, 0.0, 0.0, 0.0]
+    k1, k2, p1, p2, k3 = camera.distortion
+    params = [camera.fx / sigma, camera.fy / sigma, cx / sigma, cy / sigma, k1, k2, p1, p2]
+    return ("OPENCV", params) if k3 == 0 else ("FULL_OPENCV", params + [k3, 0.0, 0.0, 0.0])
 
 
 def colmap_camera(camera: Camera, camera_id: int, sigma: float = 1.0):
-    """OPENCV camera equal to `camera` (k1 = d, k2 = p1 = p2 = 0; principal point + 0.5 px) with pixels
+    """The COLMAP camera equal to `camera` (`opencv_params`; principal point + 0.5 px) with pixels
     scaled by 1 / sigma, so that residuals are whitened (sigma 1: the camera itself)."""
     import pycolmap
 
-    params = opencv_params(camera, sigma)
-    return pycolmap.Camera(camera_id=camera_id, model="OPENCV", width=max(1, round(camera.width / sigma)),
+    model, params = opencv_params(camera, sigma)
+    return pycolmap.Camera(camera_id=camera_id, model=model, width=max(1, round(camera.width / sigma)),
                            height=max(1, round(camera.height / sigma)), params=params)
 
 

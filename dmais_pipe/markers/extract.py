@@ -185,7 +185,7 @@ def verify_with_pose(uv: np.ndarray, ids: np.ndarray, points: pd.DataFrame, prin
             ids[keep] = ""
             return ids
         # the nominal pinhole (d = 0); PnPf's pose has every point in front, where nothing is masked
-        uv_fit = project_unmasked(cam_from_world.apply(X), focal, focal, *principal_point, 0.0)
+        uv_fit = project_unmasked(cam_from_world.apply(X), Camera(focal, focal, *principal_point, 0.0, 0, 0))
         residual = np.hypot(*(uv_fit - uv[keep]).T)
         worst = int(np.argmax(residual))
         if residual[worst] <= gate_px:

@@ -492,8 +492,7 @@ def _forward(problem: _Problem, state: _State) -> _Forward:
     for c in np.unique(p.camera):
         rows = p.camera == c
         cam = _focal_changed(rig.cameras[p.names[c]], _focal(p, state, c))
-        predicted[rows], J_pixel[rows], by_intrinsic = project_unmasked(x[rows], cam.fx, cam.fy, cam.cx, cam.cy,
-                                                                        cam.d, True)
+        predicted[rows], J_pixel[rows], by_intrinsic = project_unmasked(x[rows], cam, True)
         unscaled = rig.cameras[p.names[c]]
         J_focal[rows] = by_intrinsic[:, :, 0] * unscaled.fx + by_intrinsic[:, :, 1] * unscaled.fy
     w = p.weight[:, None]
@@ -825,7 +824,7 @@ def _calibration_right_sides(problem: _Problem, state: _State) -> tuple[np.ndarr
     for c in np.unique(p.camera):
         rows = np.flatnonzero(p.camera == c)
         camera = _focal_changed(p.rig.cameras[p.names[c]], _focal(p, state, c))
-        by_parameter = project_unmasked(f.x[rows], camera.fx, camera.fy, camera.cx, camera.cy, camera.d, True)[2]
+        by_parameter = project_unmasked(f.x[rows], camera, True)[2][:, :, :5]  # fx, fy, cx, cy, k1
         by_parameter = by_parameter * p.weight[rows, None, None]
         parameters = [0, 1, 2, 3, 4]
         if p.focal_slot[c] >= 0:
