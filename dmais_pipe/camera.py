@@ -50,9 +50,10 @@ PARAMETER_NAMES = {
 MODELS = tuple(PARAMETER_NAMES)
 #: The fold search of the opencv model: directions, and radial samples out to this many times the
 #: image's normalized half-diagonal (a fold farther out never reaches an imaged point).
-_FOLD_DIRECTIONS = 256
-_FOLD_SAMPLES = 4096
+_FOLD_DIRECTIONS = 128
+_FOLD_SAMPLES = 256
 _FOLD_REACH = 8.0
+_FOLD_BISECTIONS = 30
 #: Undistortion converges to this many pixels (Newton's method; the issue asks for 1e-3 px).
 UNDISTORT_TOLERANCE_PX = 1e-9
 
@@ -386,18 +387,29 @@ class Camera:
 def _opencv_fold_radius(distortion: tuple[float, ...], half_diagonal: float) -> float:
     """The largest undistorted radius within which OpenCV's distortion (k1, k2, p1, p2, k3) keeps a
     positive Jacobian determinant in every direction, searched out to _FOLD_REACH image
-    half-diagonals (inf if it does not fold there)."""
+    half-diagonals (inf if it does not fold there): a grid of _FOLD_DIRECTIONS x _FOLD_SAMPLES,
+    then bisection between each direction's last positive and first non-positive sample."""
     if not any(distortion):
         return np.inf
-    reach = _FOLD_REACH * max(half_diagonal, 1e-6)
     angle = np.linspace(0.0, 2.0 * np.pi, _FOLD_DIRECTIONS, endpoint=False)
-    radius = np.linspace(0.0, reach, _FOLD_SAMPLES + 1)[1:]
-    r, a = np.meshgrid(radius, angle)
-    xy = np.column_stack([(r * np.cos(a)).ravel(), (r * np.sin(a)).ravel()])
-    _, J = _distorted_opencv(xy, *distortion, jacobian=True)
-    folded = (np.linalg.det(J) <= 0).reshape(r.shape)
-    if not folded.any():
+    direction = np.column_stack([np.cos(angle), np.sin(angle)])
+    radius = np.linspace(0.0, _FOLD_REACH * max(half_diagonal, 1e-6), _FOLD_SAMPLES + 1)[1:]
+
+    def folded(r: np.ndarray, towards: np.ndarray) -> np.ndarray:
+        """(m,) whether the determinant is <= 0 at radii r (m,) along unit directions (m, 2)."""
+        J = _distorted_opencv(r[:, None] * towards, *distortion, jacobian=True)[1]
+        return J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0] <= 0
+
+    grid = folded(np.tile(radius, len(angle)), np.repeat(direction, len(radius), axis=0)).reshape(len(angle), -1)
+    hit = grid.any(axis=1)
+    if not hit.any():
         return np.inf
-    first = np.where(folded.any(axis=1), folded.argmax(axis=1), _FOLD_SAMPLES)
-    k = int(first.min())
-    return float(radius[k - 1]) if k > 0 else 0.0
+    first = grid[hit].argmax(axis=1)
+    if (first == 0).any():
+        return 0.0
+    good, bad, towards = radius[first - 1], radius[first], direction[hit]
+    for _ in range(_FOLD_BISECTIONS):
+        middle = 0.5 * (good + bad)
+        fold = folded(middle, towards)
+        good, bad = np.where(fold, good, middle), np.where(fold, middle, bad)
+    return float(good.min())

@@ -13,9 +13,11 @@ import dataclasses
 import numpy as np
 import pytest
 
+from dmais_pipe.camera import Camera
 from dmais_pipe.geometry import Rigid3, exp_so3
 from dmais_pipe.pose import error_model as em
 from dmais_pipe.pose.uncertainty import pose_uncertainty
+from dmais_pipe.rig import Rig
 
 from pose_scenes import dmais_scene
 from test_pose_uncertainty import paper_rig
@@ -298,3 +300,41 @@ def test_a_prior_stands_in_for_a_component_the_residuals_cannot_tell():
     # not estimable (a single camera's focal change is a change of range): the prior whole
     alone = em.estimate(hover_geometry(7, cameras=[0]), {"calibration": 0.0}, priors={"focal": 50.0})
     assert (alone.sigma["focal"], alone.source["focal"]) == (50.0, "prior")
+
+
+def test_an_opencv_cameras_lens_parameters_enter_the_calibration_term_as_their_rays_move():
+    """With an opencv camera in the rig, C_i has columns for k2, p1, p2, k3 after the eleven: each
+    is the change of the residuals when that coefficient moves (the rig's rays recomputed)."""
+    rng = np.random.default_rng(30)
+    paper = paper_rig()
+    rig = Rig({n: Camera(c.fx, c.fy, c.cx, c.cy, c.d, c.width, c.height, "opencv", k2=50.0, p1=1e-3, p2=-1e-3)
+               for n, c in paper.cameras.items()}, paper.cam_from_rig, paper.reference_camera)
+    assert em.calibration_parameters(rig) == em.CALIBRATION_PARAMETERS + ("k2", "p1", "p2", "k3")
+    assert em.calibration_parameters(paper) == em.CALIBRATION_PARAMETERS
+    _, _, points, R, t = dmais_scene(rng, points_per_camera=POINTS)
+    cameras = np.repeat(rig.camera_names, POINTS)
+    uv = np.vstack([rig.project(name, Rigid3(R, t), points[c * POINTS:(c + 1) * POINTS])
+                    for c, name in enumerate(rig.camera_names)])
+    uv += rng.normal(0.0, 0.5, uv.shape)  # residuals not zero
+    K = len(em.calibration_parameters(rig))
+    covariance = np.diag(np.tile(np.r_[5.0, 5.0, 5.0, 5.0, 0.01, np.zeros(6), 10.0, 1e-4, 1e-4, 1e5], 5) ** 2)
+
+    def geometry(r: Rig) -> em.Geometry:
+        origins, directions = r.rays_of(cameras, uv)
+        return em.linearised_solve(r, cameras, uv, origins, directions, points, np.zeros(len(uv), int), R[None],
+                                   t[None], np.array(["g"]), np.arange(len(uv)).astype(str), True,
+                                   calibration_covariance=covariance)
+
+    base = geometry(rig)
+    assert base.calibration.shape == (len(uv), 2, K)
+    mine = cameras == "C2"
+    def moved(name: str, step: float) -> Rig:
+        camera = rig.cameras["C2"]
+        return Rig({**rig.cameras, "C2": dataclasses.replace(camera, **{name: getattr(camera, name) + step})},
+                   rig.cam_from_rig, rig.reference_camera)
+
+    for name, step in (("k2", 1.0), ("p1", 1e-5), ("p2", 1e-5), ("k3", 1e4), ("d", 1e-3)):
+        change = (geometry(moved(name, step)).residual - geometry(moved(name, -step)).residual) / (2 * step)
+        column = base.calibration[:, :, em.calibration_parameters(rig).index(name)]
+        assert np.abs(change[mine]).max() > 0
+        np.testing.assert_allclose(column[mine], change[mine], rtol=1e-4, atol=1e-4 * np.abs(change[mine]).max())

@@ -541,7 +541,8 @@ def test_the_rig_responds_to_its_control_points_survey_errors(calibrated):
             np.testing.assert_allclose(change, predicted, atol=0.05 * np.abs(predicted).max() + 1e-12)
     # the joint covariance is M M^T of the model: intrinsics -Z u + d, rig S (-Z u + d) + R u + e
     labels, matrix = calibration_covariance(base, std, survey)
-    own, Z, points = extrinsics_module._intrinsics_parts(base.intrinsics_cameras, std, survey, base.survey_points)
+    own, Z, points = extrinsics_module._intrinsics_parts(base.intrinsics_parameters, std, survey,
+                                                                base.survey_points)
     R = np.zeros((len(base.camera_parameters), len(points) * 3))
     for k, p in enumerate(base.survey_points):
         R[:, 3 * points.index(p):3 * points.index(p) + 3] = base.survey_response[:, 3 * k:3 * k + 3]

@@ -14,7 +14,8 @@ from scipy.optimize import least_squares
 from dmais_pipe import cli
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.geometry import Rigid3, exp_so3, rotation_error
-from dmais_pipe.pose.error_model import CALIBRATION_PARAMETERS
+from dmais_pipe.camera import Camera
+from dmais_pipe.pose.error_model import calibration_parameters
 from dmais_pipe.pose.mounting import RAD_PER_ARCMIN, TABLE_COLUMNS, adjust_group_rig, mounting_table
 from dmais_pipe.pose.solver import solve_generalized_pose
 from dmais_pipe.rig import Rig
@@ -278,13 +279,22 @@ def reference_solution(group: Group, pixel_sigma_px, jitter_sigma_arcmin, survey
 
 
 def focal_covariance(rig: Rig, sigma) -> np.ndarray:
-    """(11 C, 11 C) a calibration covariance of fx and fy alone, each camera's off together by its
-    relative sigma (C,) (its focal change's prior in the adjustment)."""
-    covariance = np.zeros((11 * len(rig.camera_names),) * 2)
+    """(K C, K C) a calibration covariance of fx and fy alone, each camera's off together by its
+    relative sigma (C,) (its focal change's prior in the adjustment); K = len(calibration_parameters)."""
+    K = len(calibration_parameters(rig))
+    covariance = np.zeros((K * len(rig.camera_names),) * 2)
     for c, name in enumerate(rig.camera_names):
         f = sigma[c] * np.array([rig.cameras[name].fx, rig.cameras[name].fy])
-        covariance[11 * c:11 * c + 2, 11 * c:11 * c + 2] = np.outer(f, f)
+        covariance[K * c:K * c + 2, K * c:K * c + 2] = np.outer(f, f)
     return covariance
+
+
+def with_opencv_lenses(group: Group) -> Group:
+    """The group with every camera's model opencv (k1 = its d, the other coefficients 0): the same
+    projection, with the opencv model's further parameters."""
+    cameras = {name: Camera(c.fx, c.fy, c.cx, c.cy, c.d, c.width, c.height, "opencv")
+               for name, c in group.rig.cameras.items()}
+    return replace(group, rig=Rig(cameras, group.rig.cam_from_rig, group.rig.reference_camera))
 
 
 def test_focal_changes_agree_with_scipy_least_squares():
@@ -331,7 +341,9 @@ def test_a_calibrated_focal_error_is_found_in_flight():
     ([("C2", "cx", 2.0)], False), ([("C0", "cy", 2.0)], False), ([("C3", "fy", 20.0), ("C3", "fx", -20.0)], False),
     ([("C3", "fy", 20.0), ("C3", "fx", -20.0)], True), ([("C1", "d", 0.05)], False), ([("C2", "ry", 2e-4)], False),
     ([("C4", "vz", 0.05)], False), ([("C1", "vx", 0.03), ("C1", "vy", -0.03)], False),
-    ([("C2", "cx", 2.0), ("C2", "ry", 2e-4), ("C0", "cx", -3.0), ("C1", "fx", 10.0), ("C1", "fy", -10.0)], False)])
+    ([("C2", "cx", 2.0), ("C2", "ry", 2e-4), ("C0", "cx", -3.0), ("C1", "fx", 10.0), ("C1", "fy", -10.0)], False),
+    ([("C1", "k2", 400.0)], "opencv"), ([("C2", "p1", 0.006), ("C2", "p2", -0.006)], "opencv"),
+    ([("C3", "k3", 2e5), ("C3", "d", 0.05), ("C0", "p2", 0.006)], "opencv")])
 def test_the_calibrations_share_is_what_re_adjusting_with_its_error_gives(changes, focal_held):
     """Calibration parameters off by their steps together: the deltas' change from adjusting again
     with the rig so changed (brute force) is the sigma the calibration's share gives with the
@@ -340,16 +352,22 @@ def test_the_calibrations_share_is_what_re_adjusting_with_its_error_gives(change
     unknown with a 200 ppm prior (as the pose stage has it), so fx and fy move by opposite relative
     steps (the aspect, which stays in the share); with focal_held, the focal lengths are held (no
     prior) and the aspect's share is fx's and fy's. A camera centre's error (m, in the rig) moves
-    its rays' origin."""
+    its rays' origin. With "opencv", every camera has the opencv model (focal lengths free) and its
+    further lens parameters (k2, p1, p2, k3) are in the share too."""
     group = make_group(7, frames=6, mount_arcmin=1.0)
+    if focal_held == "opencv":
+        group, focal_held = with_opencv_lenses(group), False
     rig = group.rig
-    focal = (lambda rig: np.zeros((55, 55))) if focal_held else (lambda rig: focal_covariance(rig, np.full(5, 2e-4)))
+    parameters = calibration_parameters(rig)
+    K = len(parameters)
+    focal = (lambda rig: np.zeros((K * 5, K * 5))) if focal_held else \
+        (lambda rig: focal_covariance(rig, np.full(5, 2e-4)))
     base = group.adjust(**noise(), calibration_covariance=focal(rig))
-    cameras, cam_from_rig, v = dict(rig.cameras), dict(rig.cam_from_rig), np.zeros(11 * 5)
+    cameras, cam_from_rig, v = dict(rig.cameras), dict(rig.cam_from_rig), np.zeros(K * 5)
     for camera, parameter, step in changes:
         if parameter in ("fx", "fy"):  # relative steps: fx / fx0 - 1 = step / 45,000
             step *= getattr(rig.cameras[camera], parameter) / 45_000.0
-        v[11 * rig.camera_names.index(camera) + CALIBRATION_PARAMETERS.index(parameter)] = step
+        v[K * rig.camera_names.index(camera) + parameters.index(parameter)] = step
         if parameter in ("rx", "ry", "rz"):
             w = np.zeros(3)
             w["xyz".index(parameter[1])] = step

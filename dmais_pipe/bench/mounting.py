@@ -105,6 +105,7 @@ from ..files import write_csv_atomic
 from ..frames import flight_observations_by_frame
 from ..geometry import Rigid3, average_rotations, log_so3, rotation_from_quat
 from ..pose.flight import estimate_poses
+from ..pose.error_model import calibration_parameters
 from ..pose.mounting import RAD_PER_ARCMIN, adjust_flight_groups, mounting_table
 from ..rig import Rig
 from ..stages.pose import _rig_record, calibration_covariance
@@ -173,7 +174,8 @@ def run_simulation(simulation: Simulation, folder: Path, pos: bool) -> tuple[pd.
         noise = {"pixel_sigma_px": simulation.pixel_px, "jitter_sigma_arcmin": simulation.vibration_arcmin,
                  "survey_sigma_m": [simulation.survey_m] * 3}
         if not simulation.truth_rig:  # the calibration's share, as the pose stage gives it (watch_rig)
-            noise["calibration_covariance"] = calibration_covariance(_rig_record(workspace), rig.camera_names)
+            noise["calibration_covariance"] = calibration_covariance(_rig_record(workspace), rig.camera_names,
+                                                               calibration_parameters(rig))
         variants = {"survey": {}}
         if pos:
             world_pos = workspace.dataset.frames.set_index("frame").loc[flight.frames, ["pos_x", "pos_y", "pos_z"]]

@@ -74,41 +74,40 @@ class ExtrinsicsResult:
         }
 
 
-#: The intrinsics of one camera, in the order of the calibration covariance's rows: an opencv
-#: camera's k1 is its "d" here, and its k2, p1, p2, k3 are not carried (docs/design.md).
-INTRINSICS = ("fx", "fy", "cx", "cy", "d")
-
-
-def intrinsics_covariance(cameras: list[str], std: dict[str, dict], survey_effect: dict[str, dict]) -> np.ndarray:
-    """(5 C, 5 C) the joint covariance of the cameras' INTRINSICS from their calibrations: each
-    camera's `std` (<camera>.json), of which the share of the control points' survey errors,
-    `survey_effect` ({point: (5, 3)} one-sigma effects), is common to every camera that saw the
-    same points; what a camera lacks counts as 0."""
-    own, shared, _ = _intrinsics_parts(cameras, std, survey_effect, [])
+def intrinsics_covariance(parameters: list[str], std: dict[str, dict], survey_effect: dict[str, dict]) -> np.ndarray:
+    """(n, n) the joint covariance of the cameras' intrinsics `parameters` ("<camera>.<name>", each
+    camera's in its model's order, Camera.parameter_names) from their calibrations: each camera's
+    `std` (<camera>.json), of which the share of the control points' survey errors, `survey_effect`
+    ({point: (P, 3)} one-sigma effects), is common to every camera that saw the same points; what a
+    camera lacks counts as 0."""
+    own, shared, _ = _intrinsics_parts(parameters, std, survey_effect, [])
     return np.diag(own) + shared @ shared.T
 
 
-def _intrinsics_parts(cameras: list[str], std: dict[str, dict], survey_effect: dict[str, dict],
+def _intrinsics_parts(parameters: list[str], std: dict[str, dict], survey_effect: dict[str, dict],
                       more_points: list[str]) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """`intrinsics_covariance` as diag(own) + shared shared^T: own (5 C,) the variances but the survey's,
-    shared (5 C, 3 P) the effects of the points (P,) (the survey_effect's and more_points, sorted)."""
+    """`intrinsics_covariance` as diag(own) + shared shared^T: own (n,) the variances but the survey's,
+    shared (n, 3 P) the effects of the points (P,) (the survey_effect's and more_points, sorted)."""
+    camera_of = np.array([label.rsplit(".", 1)[0] for label in parameters])
+    cameras = list(dict.fromkeys(camera_of))
     points = sorted({p for c in cameras for p in (survey_effect.get(c) or {})} | set(more_points))
-    shared = np.zeros((5 * len(cameras), 3 * len(points)))
-    own = np.zeros(5 * len(cameras))
-    for c, camera in enumerate(cameras):
-        rows = slice(5 * c, 5 * c + 5)
+    shared = np.zeros((len(parameters), 3 * len(points)))
+    own = np.zeros(len(parameters))
+    for camera in cameras:
+        rows = np.flatnonzero(camera_of == camera)
         for point, effect in (survey_effect.get(camera) or {}).items():
             k = points.index(point)
-            shared[rows, 3 * k:3 * k + 3] = np.asarray(effect, dtype=float)[:5]  # an opencv camera's k2.. dropped
+            shared[rows, 3 * k:3 * k + 3] = np.asarray(effect, dtype=float)
         given = std.get(camera) or {}
-        own[rows] = [float(given.get(name, given.get("k1", 0.0) if name == "d" else 0.0)) ** 2 for name in INTRINSICS]
+        own[rows] = [float(given.get(parameters[row].rsplit(".", 1)[1], 0.0)) ** 2 for row in rows]
     return np.clip(own - np.sum(shared**2, axis=1), 0.0, None), shared, points
 
 
 def calibration_covariance(ba: RigBAResult, std: dict[str, dict], survey_effect: dict[str, dict]
                            ) -> tuple[list[str], np.ndarray]:
-    """The calibration's parameters ("<camera>.fx" ... ".d" for every camera, then the rig
-    adjustment's "<camera>.rx" ... ".vz", rig_ba.RigBAResult.camera_parameters) and their joint
+    """The calibration's parameters (every camera's intrinsics, "<camera>.fx" ... ".d", or ... ".k3"
+    for an opencv camera, rig_ba.RigBAResult.intrinsics_parameters; then the rig adjustment's
+    "<camera>.rx" ... ".vz", rig_ba.RigBAResult.camera_parameters) and their joint
     covariance. The intrinsics' errors K = D + Z Z^T (`intrinsics_covariance`: Z the control
     points' survey share, one column per point and axis) are carried into the rig by the
     adjustment's sensitivity S (the rig is fitted with the intrinsics as they are), and the same
@@ -119,7 +118,7 @@ def calibration_covariance(ba: RigBAResult, std: dict[str, dict], survey_effect:
 
         cov(rig) = cov(e) + S D S^T + Z_rig Z_rig^T,   cov(rig, intrinsics) = S D + Z_rig Z^T."""
     response = ba.survey_response if ba.survey_response.size else np.zeros((len(ba.camera_parameters), 0))
-    own, Z, points = _intrinsics_parts(ba.intrinsics_cameras, std, survey_effect, ba.survey_points)
+    own, Z, points = _intrinsics_parts(ba.intrinsics_parameters, std, survey_effect, ba.survey_points)
     S = ba.intrinsics_sensitivity
     R = np.zeros((len(ba.camera_parameters), Z.shape[1]))
     for k, point in enumerate(ba.survey_points):
@@ -129,7 +128,7 @@ def calibration_covariance(ba: RigBAResult, std: dict[str, dict], survey_effect:
     cross = S * own + Z_rig @ Z.T
     rig = ba.camera_covariance + (S * own) @ S.T + Z_rig @ Z_rig.T
     matrix = np.block([[np.diag(own) + Z @ Z.T, cross.T], [cross, rig]])
-    labels = [f"{c}.{k}" for c in ba.intrinsics_cameras for k in INTRINSICS] + list(ba.camera_parameters)
+    labels = list(ba.intrinsics_parameters) + list(ba.camera_parameters)
     return labels, 0.5 * (matrix + matrix.T)
 
 

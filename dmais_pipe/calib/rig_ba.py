@@ -81,10 +81,12 @@ class RigBAResult:
     camera_parameters: list[str] = field(default_factory=list)
     #: (6 C', 6 C') their covariance with the intrinsics held at their values (the std above)
     camera_covariance: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
-    #: (6 C', 5 C) their change per unit change of each camera's (fx, fy, cx, cy, d) (the optimum's
-    #: first-order response, intrinsics_cameras' order), to carry the intrinsics' errors into them
+    #: (6 C', n) their change per unit change of each camera's intrinsics (the optimum's first-order
+    #: response), to carry the intrinsics' errors into them; n = len(intrinsics_parameters),
+    #: "<camera>.<name>" of every camera's model parameters (Camera.parameter_names), intrinsics_cameras' order
     intrinsics_sensitivity: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     intrinsics_cameras: list[str] = field(default_factory=list)
+    intrinsics_parameters: list[str] = field(default_factory=list)
     #: the surveyed control points (P,) (the blocks' points with a survey sigma) and (6 C', 3 P) the
     #: cameras' parameters' change per one-sigma survey error of each along x, y, z (the optimum's
     #: response: the control points are held fixed, so their errors are not in camera_covariance)
@@ -259,21 +261,24 @@ class _RigProblem:
                                               for k in ("rx", "ry", "rz", "vx", "vy", "vz")],
                            camera_covariance=cov[np.ix_(camera_rows, camera_rows)],
                            intrinsics_sensitivity=sensitivity[camera_rows], intrinsics_cameras=list(self.cameras),
+                           intrinsics_parameters=[f"{c}.{k}" for c, cam in self.cameras.items()
+                                                  for k in cam.parameter_names],
                            survey_points=survey_points, survey_response=survey_response[camera_rows])
 
     def intrinsics_jacobian(self, p: np.ndarray) -> np.ndarray:
-        """(n_res, 5 C) the whitened residuals' derivatives with respect to every camera's (fx, fy,
-        cx, cy, d), the cameras in self.cameras' order."""
-        order = list(self.cameras)
-        J = np.zeros((self.n_res, 5 * len(order)))
+        """(n_res, n) the whitened residuals' derivatives with respect to every camera's model
+        parameters (Camera.parameter_names), the cameras in self.cameras' order."""
+        sizes = [len(cam.parameter_names) for cam in self.cameras.values()]
+        start = dict(zip(self.cameras, np.cumsum([0] + sizes)))
+        J = np.zeros((self.n_res, sum(sizes)))
         for b, (r0, _) in zip(self.blocks, self.rows):
             cam = self.cameras[b.camera]
             _, Rc, c = self.camera_params(p, b.camera)
             _, Rj, Cj = self.placement_params(p, b.placement)
             X_cam = ((b.X - Cj) @ Rj.T - c) @ Rc
-            J_intrinsics = project_unmasked(X_cam, cam, jacobian=True)[2][:, :, :5]
-            k = 5 * order.index(b.camera)
-            J[r0:r0 + 2 * len(b.X), k:k + 5] = J_intrinsics.reshape(-1, 5) / self.sig[b.camera]
+            J_intrinsics = project_unmasked(X_cam, cam, jacobian=True)[2]
+            k, size = start[b.camera], J_intrinsics.shape[2]
+            J[r0:r0 + 2 * len(b.X), k:k + size] = J_intrinsics.reshape(-1, size) / self.sig[b.camera]
         return J
 
     def survey_jacobian(self, p: np.ndarray) -> tuple[list[str], np.ndarray]:

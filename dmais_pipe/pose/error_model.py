@@ -104,8 +104,18 @@ MIN_VISIBLE = 0.02
 SIGNIFICANCE = 2.0
 #: Floor of a statistic in the estimation's relative weights, as a share of their total.
 MIN_EFFECT = 1e-6
-#: The calibration parameters of one camera, in the order of the columns of C_i.
+#: The calibration parameters of one camera, in the order of the columns of C_i ("d": the first
+#: radial coefficient, an opencv camera's k1)...
 CALIBRATION_PARAMETERS = ("fx", "fy", "cx", "cy", "d", "rx", "ry", "rz", "vx", "vy", "vz")
+#: ... then, where the rig has an opencv camera, its further lens parameters.
+LENS_PARAMETERS = ("k2", "p1", "p2", "k3")
+
+
+def calibration_parameters(rig: Rig) -> tuple[str, ...]:
+    """The calibration parameters per camera of `rig` (the columns of C_i): CALIBRATION_PARAMETERS,
+    and LENS_PARAMETERS after them when a camera of the rig has the opencv model."""
+    richer = any(camera.model != "radial1" for camera in rig.cameras.values())
+    return CALIBRATION_PARAMETERS + (LENS_PARAMETERS if richer else ())
 
 
 @dataclass(frozen=True)
@@ -134,8 +144,8 @@ class Geometry:
     solve's weights; A_inverse (F, 6, 6); residual (N, 2) rad; focal (N,) px; frame (N,) ascending,
     starts (F,) its first rows; camera (N,) int; reference (N,) bool; group (N,) int; point (N,)
     int; survey (N, 2, 3) D_i; rotation (N, 2, 3) G_i; focal_effect (N, 2) h_i; calibration
-    (N, 2, 11) C_i (per CALIBRATION_PARAMETERS, zero where the calibration gives no variance);
-    calibration_covariance (11 C, 11 C) of the C rig cameras' CALIBRATION_PARAMETERS, camera by
+    (N, 2, K) C_i (per calibration_parameters, K of them, zero where the calibration gives no variance);
+    calibration_covariance (K C, K C) of the C rig cameras' calibration_parameters, camera by
     camera in the rig's order; point_sigma (N, 3) m along x, y, z, NaN where not given; t_centred
     (F, 3) the translations about each frame's point centroid (t + R m), R (F, 3, 3) the solved rotations,
     origins (N, 3) the rays' origins and points_centred (N, 3) the points less their frame's
@@ -182,7 +192,7 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     groups (F,) the frames' groups, point_ids (N,), object_space: the poses minimise the paper's
     eq. objfun (True) or the angular residuals (False); point_sigma_m (N, 3) or (N,) (all axes) the
     survey sigma of each observation's point along x, y, z (NaN where not given);
-    calibration_covariance (11 C, 11 C) of the rig cameras' CALIBRATION_PARAMETERS (Geometry;
+    calibration_covariance (K C, K C) of the rig cameras' calibration_parameters (Geometry;
     rotations rx, ry, rz in rad about the rig's axes, the camera centre vx, vy, vz in the rig, m),
     None: 0.
     """
@@ -214,7 +224,7 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     rotation = np.einsum("nki,nij->nkj", bases, skew(unit))
     group_codes = np.unique(np.asarray(groups).astype(str), return_inverse=True)[1]
     point_codes = np.unique(np.asarray(point_ids).astype(str), return_inverse=True)[1]
-    n_parameters = len(CALIBRATION_PARAMETERS) * len(names)
+    n_parameters = len(calibration_parameters(rig)) * len(names)
     calibration_covariance = np.zeros((n_parameters, n_parameters)) if calibration_covariance is None \
         else np.asarray(calibration_covariance, dtype=float)
     calibration = _calibration_effects(rig, names, cameras, uv, bases, unit, dr_dp, np.diag(calibration_covariance))
@@ -230,12 +240,14 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
 
 
 def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, dr_dp, variances) -> np.ndarray:
-    """C_i (N, 2, 11): the change of r_i per unit change of each of its camera's
-    CALIBRATION_PARAMETERS (intrinsics by central differences of the rays; a rotation w of the camera
+    """C_i (N, 2, K): the change of r_i per unit change of each of its camera's
+    calibration_parameters (intrinsics by central differences of the rays; a rotation w of the camera
     about the rig's axes rotates its rays by w; a move of its centre moves their origin), where its
-    variance (variances (11 C,)) is not 0; dr_dp (N, 2, 3) the residuals' change with the ray-to-point
+    variance (variances (K C,)) is not 0; dr_dp (N, 2, 3) the residuals' change with the ray-to-point
     vector."""
-    k_all = len(CALIBRATION_PARAMETERS)
+    parameters = calibration_parameters(rig)
+    k_all = len(parameters)
+    lens = [k for k, name in enumerate(parameters) if k < 5 or name in LENS_PARAMETERS]
     effects = np.zeros((len(uv), 2, k_all))
     for c, name in enumerate(names):
         rows = np.flatnonzero(np.asarray(cameras) == name)
@@ -243,7 +255,8 @@ def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, d
         if not len(rows) or not sigma.any():
             continue
         camera, rig_from_cam = rig.cameras[name], rig.cam_from_rig[name].R.T
-        for k, parameter in enumerate(CALIBRATION_PARAMETERS[:5]):
+        for k in lens:
+            parameter = parameters[k]
             if sigma[k] == 0:
                 continue
             step = 1e-3 * sigma[k]
@@ -253,7 +266,7 @@ def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, d
             effects[rows, :, k] = -np.einsum("nki,ni->nk", bases[rows], change)
         # d f / d w = -[f]x: r changes by -B df = B [f]x w; the origin by dv: p by -dv
         effects[rows, :, 5:8] = np.einsum("nki,nij->nkj", bases[rows], skew(unit[rows]))
-        effects[rows, :, 8:] = -dr_dp[rows]
+        effects[rows, :, 8:11] = -dr_dp[rows]
     return effects
 
 
@@ -481,12 +494,12 @@ def calibration_errors(geometry: Geometry) -> list[np.ndarray]:
     """Errors (N, 2) rad of the calibration along each principal axis of its covariance, scaled by its
     standard deviation: their statistics sum to the term's expectation (the axes are independent)."""
     g = geometry
-    k_all = len(CALIBRATION_PARAMETERS)
+    k_all = g.calibration.shape[2]
     values, vectors = np.linalg.eigh(g.calibration_covariance)
     out = []
     for value, vector in zip(values, vectors.T):
         if value > 1e-12 * max(values.max(), 0.0) and value > 0:
-            per_camera = (vector * np.sqrt(value)).reshape(-1, k_all)  # (C, 11)
+            per_camera = (vector * np.sqrt(value)).reshape(-1, k_all)  # (C, K)
             out.append(np.einsum("nkj,nj->nk", g.calibration, per_camera[g.camera]))
     return out
 
@@ -648,13 +661,13 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
     block_frame[frame_camera] = g.frame
     block_camera = np.zeros_like(block_frame)
     block_camera[frame_camera] = g.camera
-    k_all = len(CALIBRATION_PARAMETERS)
+    k_all = g.calibration.shape[2]
 
     def per_observation(effect, variance):  # sum_i (w J^T E_i) V_i (w J^T E_i)^T
         K = np.einsum("nki,nkj->nij", weighted, effect)
         return _sum_by(np.einsum("nij,n,nkj->nik", K, variance, K), g.frame, n_frames)
 
-    def calibration():  # L K L^T, L (F, 6, 11 C) the frame's sums of w J^T C_i in its camera's columns
+    def calibration():  # L K L^T, L (F, 6, K C) the frame's sums of w J^T C_i in its camera's columns
         blocks = _sum_by(np.einsum("nki,nkj->nij", weighted, g.calibration), frame_camera, len(block_frame))
         L = np.zeros((n_frames, 6, g.calibration_covariance.shape[0]))
         for c in np.unique(block_camera):

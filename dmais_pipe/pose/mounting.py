@@ -95,7 +95,7 @@ from ..frames import FlightObservations
 from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
 from ..rig import Rig
 from ..workspace import MOUNTING_COLUMNS
-from .error_model import CALIBRATION_PARAMETERS
+from .error_model import CALIBRATION_PARAMETERS, calibration_parameters
 
 log = logging.getLogger(__name__)
 
@@ -109,8 +109,10 @@ HELD_FOCAL_SIGMA = 1e-9
 #: `_calibration_right_sides`' parameter indices of the focal lengths' aspect, (fx / fx0 - fy / fy0) / 2,
 #: and of the mean of the focal change's prior.
 ASPECT, FOCAL_PRIOR = -1, -2
-#: CALIBRATION_PARAMETERS' index of the camera centre's x (then y, z).
+#: CALIBRATION_PARAMETERS' index of the camera centre's x (then y, z), and calibration_parameters'
+#: of an opencv camera's k2 (then p1, p2, k3: Camera.parameter_names' order after k1).
 CENTRE = CALIBRATION_PARAMETERS.index("vx")
+LENS = len(CALIBRATION_PARAMETERS)
 #: Levenberg-Marquardt: iteration limit, and stop when an accepted step lowers the cost by less than this fraction.
 MAX_ITERATIONS = 50
 COST_TOLERANCE = 1e-12
@@ -229,8 +231,8 @@ def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t
     center_prior_m (F, 3) (e.g. the POS positions less the lever arm) with per-axis sigma
     center_sigma_m (float, (3,) or (F, 3)): not in the model above; it pins the common outward tilt
     of the cameras, which the rig's height otherwise trades against (module docstring).
-    calibration_covariance (11 C, 11 C): the calibrated rig's joint covariance of its C cameras'
-    error_model.CALIBRATION_PARAMETERS, camera by camera in rig order (rig.json's): each camera's
+    calibration_covariance (K C, K C): the calibrated rig's joint covariance of its C cameras'
+    error_model.calibration_parameters (K each), camera by camera in rig order (rig.json's): each camera's
     focal change is then an unknown with its focal sigma as prior, and the covariance carries the
     share of the rest (`_calibration_share`). Raises DmaisError on inconsistent or
     degenerate input; a non-reference camera without observations gets a NaN row, with a warning.
@@ -407,13 +409,13 @@ def _centers(center_prior_m, center_sigma_m, n_frames: int) -> tuple[np.ndarray 
 
 
 def _focal_priors(rig: Rig, calibration_covariance) -> tuple[np.ndarray, np.ndarray]:
-    """The relative focal sigma (C',) of each camera the calibration's covariance (11 C, 11 C)
+    """The relative focal sigma (C',) of each camera the calibration's covariance (K C, K C)
     (`adjust_group_rig`) gives one (that of the mean of fx / fx0 and fy / fy0), and each camera's
     slot (C,) among them (-1: none, its focal length held); none without a covariance."""
     C = len(rig.camera_names)
     if calibration_covariance is None:
         return np.zeros(0), np.full(C, -1)
-    n_all = len(CALIBRATION_PARAMETERS)
+    n_all = len(calibration_parameters(rig))
     covariance = np.asarray(calibration_covariance, dtype=float)
     if covariance.shape != (n_all * C, n_all * C) or not np.isfinite(covariance).all():
         raise DmaisError(f"mounting: the calibration covariance must be finite, ({n_all * C}, {n_all * C}) for "
@@ -758,7 +760,7 @@ def _rig_covariance(problem: _Problem, state: _State, calibration_covariance=Non
 def _calibration_share(problem: _Problem, moved: np.ndarray, columns: list[tuple[int, int]],
                        calibration_covariance: np.ndarray) -> np.ndarray:
     """(3K + C', 3K + C') the rig's unknowns' covariance from the calibration's error: A Sigma A^T,
-    Sigma (11 C, 11 C) as `adjust_group_rig`'s; moved (3K + C', n): their change per unit change of
+    Sigma (K C, K C) as `adjust_group_rig`'s; moved (3K + C', n): their change per unit change of
     each parameter of `columns` (`_calibration_right_sides`). A: how a calibration error moves the
     estimates. Where the flight resolves the rig better than the calibration (a line of frames),
     this share is what keeps a calibration error from being flagged as a change.
@@ -780,7 +782,7 @@ def _calibration_share(problem: _Problem, moved: np.ndarray, columns: list[tuple
       calibration of 5 deg cameras places the centres to 2-5 cm along the rig's z axis, and 5 cm
       seen sideways from 500 m is 0.2-0.3 arc-min of a tilted camera's rx."""
     p = problem
-    n_all, n_intrinsics = len(CALIBRATION_PARAMETERS), 5  # fx, fy, cx, cy, d first
+    n_all, n_intrinsics = len(calibration_parameters(p.rig)), 5  # fx, fy, cx, cy, d first
     A = np.zeros((p.rig_size, n_all * len(p.names)))
     counted = np.zeros((p.rig_size, p.rig_size))  # the focal priors' own share, already in N^-1
     for j, (c, k) in enumerate(columns):
@@ -824,12 +826,12 @@ def _calibration_right_sides(problem: _Problem, state: _State) -> tuple[np.ndarr
     for c in np.unique(p.camera):
         rows = np.flatnonzero(p.camera == c)
         camera = _focal_changed(p.rig.cameras[p.names[c]], _focal(p, state, c))
-        by_parameter = project_unmasked(f.x[rows], camera, True)[2][:, :, :5]  # fx, fy, cx, cy, k1
+        by_parameter = project_unmasked(f.x[rows], camera, True)[2]  # the model's, fx, fy, cx, cy, d first
         by_parameter = by_parameter * p.weight[rows, None, None]
-        parameters = [0, 1, 2, 3, 4]
+        parameters = [0, 1, 2, 3, 4] + [LENS + k for k in range(by_parameter.shape[2] - 5)]
         if p.focal_slot[c] >= 0:
             aspect = by_parameter[:, :, :1] * camera.fx - by_parameter[:, :, 1:2] * camera.fy
-            by_parameter, parameters = np.concatenate([aspect, by_parameter[:, :, 2:]], axis=2), [ASPECT, 2, 3, 4]
+            by_parameter, parameters = np.concatenate([aspect, by_parameter[:, :, 2:]], axis=2), [ASPECT] + parameters[2:]
         by_parameter = np.concatenate([by_parameter, -d_rig[rows]], axis=2)
         for k, parameter in enumerate(parameters + [CENTRE, CENTRE + 1, CENTRE + 2]):
             sides.append(side_of(rows, by_parameter[:, :, k]))

@@ -69,14 +69,17 @@ def summary_table(dataset: Dataset) -> pd.DataFrame:
 
 
 def rig_table(rig: Rig) -> pd.DataFrame:
-    """Per camera of the rig: its intrinsics, rig_from_cam as ZYX Euler angles (deg), tilt (deg) and centre (m)."""
+    """Per camera of the rig: its intrinsics, rig_from_cam as ZYX Euler angles (deg), tilt (deg) and centre (m).
+    With an opencv camera in the rig, also each camera's model and k2, p1, p2, k3 (d is k1)."""
     rows = []
+    richer = any(camera.model != "radial1" for camera in rig.cameras.values())
     for name, camera in rig.cameras.items():
         rig_from_cam = rig.cam_from_rig[name].inverse()
         z, y, x = np.degrees(euler_zyx_from_rotation(rig_from_cam.R))
         tilt = np.degrees(np.arccos(np.clip(rig_from_cam.R[2, 2], -1.0, 1.0)))
+        lens = {"model": camera.model, **dict(zip(("k2", "p1", "p2", "k3"), camera.distortion[1:]))} if richer else {}
         rows.append({"camera": name, "fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy,
-                     "d": camera.d, "euler_zyx_deg": f"({z:.3f}, {y:.3f}, {x:.3f})", "tilt_deg": round(tilt, 3),
+                     "d": camera.d, **lens, "euler_zyx_deg": f"({z:.3f}, {y:.3f}, {x:.3f})", "tilt_deg": round(tilt, 3),
                      "center_m": "({:.3f}, {:.3f}, {:.3f})".format(*rig_from_cam.t)})
     return pd.DataFrame(rows)
 

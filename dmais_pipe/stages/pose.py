@@ -27,7 +27,7 @@ from ..dataset import Dataset, point_sigma
 from ..evaluate import POS
 from ..errors import DmaisError
 from ..geometry import rotation_from_quat
-from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS, survey_sigma
+from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS, calibration_parameters, survey_sigma
 from ..pose.flight import ROBUST_THRESHOLD_PX, FlightPoses, solve_flight
 from ..pose.mounting import GroupRig, adjust_group_rig, mounting_table
 from ..rig import Rig
@@ -75,7 +75,7 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
     chosen = _cameras(rig, cameras)
     prior = pos_prior(conf)
     record = _rig_record(workspace)
-    calibration = calibration_covariance(record, rig.camera_names)
+    calibration = calibration_covariance(record, rig.camera_names, calibration_parameters(rig))
     solved = _solve(workspace, conf, rig, record, calibration, chosen, groups)
     if set(chosen) == set(rig.camera_names) and len(solved.table):
         watched = watch_rig(workspace.dataset, rig, solved, calibrated_noise_px(record, chosen), *prior,
@@ -271,14 +271,16 @@ def error_settings(items: tuple, key: str) -> dict[str, float]:
     return settings
 
 
-def calibration_covariance(record: dict, cameras: list[str]) -> np.ndarray:
-    """(11 C, 11 C) the joint covariance of error_model.CALIBRATION_PARAMETERS of the rig's `cameras`
-    (in that order) from rig.json's `calibration_covariance` (calib.extrinsics.calibration_covariance:
-    parameters "<camera>.<name>" and their matrix); a parameter it lacks counts as 0, and one that is
-    not readable gives a warning and no calibration term."""
-    k_all = len(CALIBRATION_PARAMETERS)
+def calibration_covariance(record: dict, cameras: list[str], parameters=CALIBRATION_PARAMETERS) -> np.ndarray:
+    """(K C, K C) the joint covariance of `parameters` (K per camera, error_model.calibration_parameters)
+    of the rig's `cameras` (in that order) from rig.json's `calibration_covariance`
+    (calib.extrinsics.calibration_covariance: parameters "<camera>.<name>", an opencv camera's k1 for
+    "d", and their matrix); a parameter it lacks counts as 0, and one that is not readable gives a
+    warning and no calibration term."""
+    k_all = len(parameters)
     index = {f"{camera}.{name}": k_all * c + k for c, camera in enumerate(cameras)
-             for k, name in enumerate(CALIBRATION_PARAMETERS)}
+             for k, name in enumerate(parameters)}
+    index.update({f"{camera}.k1": k_all * c + parameters.index("d") for c, camera in enumerate(cameras)})
     covariance = np.zeros((k_all * len(cameras), k_all * len(cameras)))
     given = record.get("calibration_covariance")
     if not given:
