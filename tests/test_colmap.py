@@ -12,7 +12,9 @@ import pytest
 import yaml
 
 from dmais_pipe import cli
-from dmais_pipe.colmap import MODEL_FILES, camera_prefixes, colmap_image_names
+from dmais_pipe.calib.rig_ba import opencv_params
+from dmais_pipe.camera import Camera
+from dmais_pipe.colmap import FORMATS, MODEL_FILES, camera_prefixes, colmap_image_names
 from dmais_pipe.geometry import Rigid3
 from dmais_pipe.stages import export
 from dmais_pipe.workspace import POSE_COLUMNS, Workspace
@@ -111,6 +113,37 @@ def test_the_model_reads_back_with_every_pose_camera_and_track(results, fmt):
         image = model.images[element.image_id]
         point_id = observations[observations["image"] == image_of[image.name]]["point_id"].iloc[element.point2D_idx]
         np.testing.assert_array_equal(point.xyz, dataset.points.loc[point_id, ["x", "y", "z"]].to_numpy(float))
+
+
+def test_opencv_cameras_export_as_opencv_or_full_opencv_and_project_as_ours(results, tmp_path):
+    """A rig with an opencv camera with k3 != 0 (FULL_OPENCV), one with k3 = 0 (OPENCV) and radial1 ones (OPENCV):
+    the model's cameras and rig_config.json's are exactly ours, and COLMAP projects every ray over each image
+    as ours + 0.5 px (its pixel convention) within 1e-9 px."""
+    out = tmp_path / "results"
+    shutil.copytree(results.root, out, ignore=shutil.ignore_patterns("colmap"))
+    workspace = Workspace.open(results.dataset.root, out)
+    rig = workspace.load_rig()
+    order = rig.cameras_reference_first  # COLMAP camera ids 1, 2, ...
+    for name, k3 in zip(order[:2], (600.0, 0.0)):  # the long-focal cameras' normalized radius is <= 0.06
+        c = rig.cameras[name]
+        rig.cameras[name] = Camera(c.fx, c.fy, c.cx, c.cy, 3.0, c.width, c.height, "opencv", -40.0, 2e-4, -3e-4, k3)
+        assert not rig.cameras[name].folds_in_image
+    workspace.save_rig(rig)
+    export.run(workspace)
+    expected = {name: opencv_params(rig.cameras[name]) for name in order}
+    assert [expected[name][0] for name in order] == ["FULL_OPENCV"] + ["OPENCV"] * (len(order) - 1)
+    config = json.loads((workspace.colmap_dir / "rig_config.json").read_text())[0]["cameras"]
+    assert [(c["camera_model_name"], c["camera_params"]) for c in config] == [expected[name] for name in order]
+    for fmt in FORMATS:
+        model = pycolmap.Reconstruction(workspace.colmap_model_dir(fmt))
+        for camera_id, name in enumerate(order, start=1):
+            camera, ours = model.cameras[camera_id], rig.cameras[name]
+            assert (camera.model.name, list(camera.params)) == expected[name]
+            u, v = np.meshgrid(np.linspace(-0.5, ours.width - 0.5, 33), np.linspace(-0.5, ours.height - 0.5, 25))
+            rays = ours.unproject(np.column_stack([u.ravel(), v.ravel()]))
+            pixels = ours.project(rays)
+            assert not np.isnan(pixels).any()
+            assert np.abs(camera.img_from_cam(rays) - (pixels + 0.5)).max() <= 1e-9
 
 
 def test_rig_config_prefixes_match_the_image_names_and_bundle_adjustment_runs(results):

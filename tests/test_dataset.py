@@ -104,6 +104,24 @@ def test_round_trip_is_exact(root, tmp_path):
     assert yaml.safe_load((copy / "dataset.yaml").read_text()) == inputs["manifest"]
 
 
+def test_camera_model_round_trips_and_defaults_to_radial1(tmp_path):
+    """`model: opencv` is read, written back only where it is not the default, and re-reads the same."""
+    inputs = _inputs()
+    inputs["manifest"]["cameras"]["C1"]["model"] = "opencv"
+    root = _write(tmp_path / "ds", inputs)
+    ds = Dataset.load(root)
+    assert ds.cameras == {"C0": CameraSpec(W, H, 500.0, "radial1"), "C1": CameraSpec(W, H, None, "opencv")}
+    written = yaml.safe_load((root / "dataset.yaml").read_text())
+    assert written["cameras"] == {"C0": {"width": W, "height": H, "focal_px": 500.0},
+                                  "C1": {"width": W, "height": H, "model": "opencv"}}
+    copy = tmp_path / "copy"
+    write_dataset(copy, written, ds.control_points, ds.images, ground_points=ds.ground_points, frames=ds.frames,
+                  observations=ds.observations)
+    assert (copy / "dataset.yaml").read_bytes() == (root / "dataset.yaml").read_bytes()
+    (copy / "images").symlink_to(root / "images")
+    assert Dataset.load(copy).cameras == ds.cameras
+
+
 def test_optional_files_absent_and_extra_columns(tmp_path):
     inputs = _inputs()
     inputs["images"] = inputs["images"][inputs["images"]["stage"] != "flight"]
@@ -251,6 +269,9 @@ LOAD_ERRORS = {
     "bad width": (lambda r: _edit_manifest(r, cameras={"C0": {"width": 0, "height": H}, "C1": {"width": W,
                                                                                                "height": H}}),
                   "dataset.yaml", None, ["cameras.C0.width", "positive integer"]),
+    "unknown camera model": (lambda r: _edit_manifest(r, cameras={"C0": {"width": W, "height": H},
+                                                                  "C1": {"width": W, "height": H, "model": "fisheye"}}),
+                             "dataset.yaml", None, ["cameras.C1.model must be one of radial1, opencv, got 'fisheye'"]),
     "invalid yaml": (lambda r: (r / "dataset.yaml").write_text("name: [unclosed\n"), "dataset.yaml", 2,
                      ["invalid YAML"]),
     "no control points": (lambda r: (r / "control_points.csv").write_text("point_id,x,y,z\n"),
@@ -336,6 +357,11 @@ def test_validate_cli(root, capsys):
     assert main(["validate", str(root)]) == 2
     err = capsys.readouterr().err
     assert len(err.strip().splitlines()) == 1 and "unknown camera 'C9'" in err and "images.csv, line 4" in err
+    _set_cells(root, "images.csv", 2, camera="C1")
+    _edit_manifest(root, cameras={"C0": {"width": W, "height": H}, "C1": {"width": W, "height": H, "model": "OpenCV"}})
+    assert main(["validate", str(root)]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and "cameras.C1.model must be one of radial1, opencv" in err, err
 
 
 def test_truncated_png_is_one_line_without_the_decoders_own(root, capfd):

@@ -17,9 +17,11 @@ cornerSubPix) is matched to the detection at it (AT_CORNER_FRACTION). Per image:
 identified with their true id, wrong ids (an id on a detection that is not that point's corner),
 refused (detected but left without id, counted by reason), off_px (identified more than OFF_PX from
 cornerSubPix's corner: at the board's edge in steep views, where cornerSubPix is biased). Then
-`dmais intrinsics` (conf ours) beside cv2.calibrateCamera with the same one-coefficient model on the
-same calib split, once on the true corners (cornerSubPix) and once on our identified corners (the
-observations): the focal lengths' difference (%), the principal points' distance (px), both eps_calib.
+`dmais intrinsics` (conf ours) beside cv2.calibrateCamera with the same lens model (`model`: radial1,
+the one-coefficient model, by default; or opencv, OpenCV's default model) on the same calib split,
+once on the true corners (cornerSubPix) and once on our identified corners (the observations): the
+focal lengths' difference (%), the principal points' distance (px), the distortion coefficients,
+both eps_calib, and with model opencv both eps_eval.
 """
 
 from __future__ import annotations
@@ -35,6 +37,8 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from ..calib.intrinsics import evaluate, opencv_camera
+from ..camera import PARAMETER_NAMES
 from ..dataset import Dataset, write_dataset
 from ..errors import DmaisError
 from ..files import write_csv_atomic
@@ -116,8 +120,11 @@ def perturbed(pose: Rigid3, rng: np.random.Generator, shift_m: float = SHIFT_M, 
     return Rigid3(R, -R @ centre)
 
 
-def write_photo_dataset(photos: dict[str, dict], root: Path, seed: int) -> Dataset:
-    """The dataset of the photographs under `root` (images copied), priors perturbed with `seed`."""
+def write_photo_dataset(photos: dict[str, dict], root: Path, seed: int, model: str = "radial1",
+                        corners: bool = False) -> Dataset:
+    """The dataset of the photographs under `root` (images copied), priors perturbed with `seed`, its
+    cameras of lens model `model`; with `corners`, every photograph's true corners (cornerSubPix) are
+    the dataset's observations (so that `dmais intrinsics` runs without `dmais markers`)."""
     rng = np.random.default_rng(seed)
     poses = opencv_poses(photos)
     rows = []
@@ -131,12 +138,15 @@ def write_photo_dataset(photos: dict[str, dict], root: Path, seed: int) -> Datas
                      **dict(zip(("prior_x", "prior_y", "prior_z"), prior.center)),
                      **dict(zip(("prior_qw", "prior_qx", "prior_qy", "prior_qz"), prior.quat))})
     height, width = next(iter(photos.values()))["pixels"].shape
-    cameras = {c: {"width": width, "height": height, "focal_px": FOCAL_PX}
+    cameras = {c: {"width": width, "height": height, "focal_px": FOCAL_PX, "model": model}
                for c in dict.fromkeys(p["camera"] for p in photos.values())}
     points = pd.DataFrame(board_points(), columns=["x", "y", "z"], index=pd.Index(point_ids(), name="point_id"))
     manifest = {"name": "chessboard", "reference_camera": next(iter(cameras)), "cameras": cameras,
                 "marker_size_m": SQUARE_M}
-    write_dataset(root, manifest, points, pd.DataFrame(rows))
+    observations = pd.concat([pd.DataFrame({"image": name, "point_id": point_ids(), "u": photo["corners"][:, 0],
+                                            "v": photo["corners"][:, 1]}) for name, photo in photos.items()],
+                             ignore_index=True) if corners else None
+    write_dataset(root, manifest, points, pd.DataFrame(rows), observations=observations)
     return Dataset.load(root)
 
 
@@ -179,34 +189,59 @@ def extract_and_score(dataset: Dataset, workspace: Workspace, photos: dict[str, 
     return table
 
 
-def opencv_calibration(corners: list[np.ndarray], ids: list[np.ndarray], size: tuple[int, int]) -> dict:
-    """cv2.calibrateCamera with our model (k1 only) on corners (n_i, 2) of the board points `ids` (n_i,)."""
-    flags = cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
+def opencv_calibration(corners: list[np.ndarray], ids: list[np.ndarray], size: tuple[int, int],
+                       model: str = "radial1") -> dict:
+    """cv2.calibrateCamera on corners (n_i, 2) of the board points `ids` (n_i,) with our `model`:
+    radial1 k1 alone, opencv its default model. Returns the model's parameters by name, the Camera
+    ("camera") and eps_calib_px."""
+    flags = cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 if model == "radial1" else 0
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
-    index = {point: k for k, point in enumerate(point_ids())}
-    objects = [board_points()[[index[i] for i in names]].astype(np.float32) for names in ids]
+    objects = [_board_points_of(names).astype(np.float32) for names in ids]
     rms, K, dist, _, _ = cv2.calibrateCamera(objects, [c.astype(np.float32) for c in corners], size, None, None,
                                              flags=flags, criteria=criteria)
-    return {"fx": K[0, 0], "fy": K[1, 1], "cx": K[0, 2], "cy": K[1, 2], "d": dist.ravel()[0], "eps_calib_px": rms}
+    camera = opencv_camera(K, dist, size[0], size[1], model)
+    return {**dict(zip(camera.parameter_names, camera.parameters)), "camera": camera, "eps_calib_px": rms}
+
+
+def _board_points_of(names) -> np.ndarray:
+    """(n, 3) the board points of ids `names` (n,)."""
+    index = {point: k for k, point in enumerate(point_ids())}
+    return board_points()[[index[i] for i in names]]
 
 
 def compare_intrinsics(workspace: Workspace, photos: dict[str, dict]) -> pd.DataFrame:
     """Per camera and reference: `dmais intrinsics` (conf ours) beside cv2.calibrateCamera of the same
-    calib split, on the true corners (cornerSubPix) and on our identified corners (the observations)."""
+    calib split, with the camera's dataset.yaml model, on the true corners (cornerSubPix) and on our
+    identified corners (the observations). Beyond radial1 (whose table stays as it was) both
+    eps_eval too, OpenCV's by the same pose-only fit of the held-out images as ours
+    (calib.intrinsics.evaluate)."""
     rows, observations = [], workspace.load_observations()
     for camera in dict.fromkeys(p["camera"] for p in photos.values()):
-        names = [n for n, p in photos.items() if p["camera"] == camera and p["split"] == "calib"]
-        size = photos[names[0]]["pixels"].shape[::-1]
+        model = workspace.dataset.cameras[camera].model
+        size = next(p["pixels"] for p in photos.values() if p["camera"] == camera).shape[::-1]
         ours = _our_calibration(workspace, camera)
-        ours_obs = [observations[observations["image"] == n] for n in names]
-        ours_obs = [o for o in ours_obs if len(o) >= 6]
-        references = {"cornerSubPix corners": ([photos[n]["corners"] for n in names], [point_ids()] * len(names)),
-                      "our corners": ([o[["u", "v"]].to_numpy(float) for o in ours_obs],
-                                      [o["point_id"].to_numpy(object) for o in ours_obs])}
-        for reference, (corners, ids) in references.items():
-            theirs = opencv_calibration(corners, ids, size) if corners else {}
-            rows.append({"camera": camera, "opencv_on": reference, **_difference(ours, theirs)})
+        for reference, split in _references(photos, camera, observations).items():
+            corners, ids = split["calib"]
+            theirs = opencv_calibration(corners, ids, size, model) if corners else {}
+            if theirs and model != "radial1":
+                eval_corners, eval_ids = split["eval"]
+                theirs["eps_eval_px"] = evaluate(theirs["camera"], [_board_points_of(i) for i in eval_ids],
+                                                 eval_corners, camera)
+            rows.append({"camera": camera, "opencv_on": reference, **_difference(ours, theirs, model)})
     return pd.DataFrame(rows)
+
+
+def _references(photos: dict[str, dict], camera: str, observations: pd.DataFrame) -> dict[str, dict]:
+    """reference -> split -> (corners [(n_i, 2)], ids [(n_i,)]) of the camera's images: the true
+    corners, and our observations (images with at least 6)."""
+    out = {"cornerSubPix corners": {}, "our corners": {}}
+    for split in ("calib", "eval"):
+        names = [n for n, p in photos.items() if p["camera"] == camera and p["split"] == split]
+        out["cornerSubPix corners"][split] = ([photos[n]["corners"] for n in names], [point_ids()] * len(names))
+        ours = [o for o in (observations[observations["image"] == n] for n in names) if len(o) >= 6]
+        out["our corners"][split] = ([o[["u", "v"]].to_numpy(float) for o in ours],
+                                     [o["point_id"].to_numpy(object) for o in ours])
+    return out
 
 
 def _our_calibration(workspace: Workspace, camera: str) -> dict:
@@ -218,28 +253,33 @@ def _our_calibration(workspace: Workspace, camera: str) -> dict:
     return workspace.load_intrinsics(camera)[1]
 
 
-def _difference(ours: dict, theirs: dict) -> dict:
-    """Our calibration beside OpenCV's: focal length (%) and principal point (px) apart, both eps_calib."""
+def _difference(ours: dict, theirs: dict, model: str = "radial1") -> dict:
+    """Our calibration beside OpenCV's: focal length (%) and principal point (px) apart, each
+    distortion coefficient of the model, both eps_calib, and both eps_eval where `theirs` has one."""
     if "error" in ours or not theirs:
         return {"error": ours.get("error", "no observations")}
-    return {"fx": ours["fx"], "fx_opencv": theirs["fx"], "focal_pct": 100.0 * (ours["fx"] / theirs["fx"] - 1.0),
-            "principal_px": float(np.hypot(ours["cx"] - theirs["cx"], ours["cy"] - theirs["cy"])),
-            "d": ours["d"], "d_opencv": theirs["d"], "eps_calib_px": ours["eps_calib_px"],
-            "eps_calib_opencv_px": theirs["eps_calib_px"], "error": ""}
+    row = {"fx": ours["fx"], "fx_opencv": theirs["fx"], "focal_pct": 100.0 * (ours["fx"] / theirs["fx"] - 1.0),
+           "principal_px": float(np.hypot(ours["cx"] - theirs["cx"], ours["cy"] - theirs["cy"]))}
+    for name in PARAMETER_NAMES[model][4:]:
+        row.update({name: ours[name], f"{name}_opencv": theirs[name]})
+    row.update(eps_calib_px=ours["eps_calib_px"], eps_calib_opencv_px=theirs["eps_calib_px"])
+    if "eps_eval_px" in theirs:
+        row.update(eps_eval_px=ours["eps_eval_px"], eps_eval_opencv_px=theirs["eps_eval_px"])
+    return {**row, "error": ""}
 
 
 def bench_periodic(photos_dir: Path | None = None, csv: Path | None = None, seed: int = 0,
-                   work: Path | None = None) -> tuple[pd.DataFrame, pd.DataFrame]:
+                   work: Path | None = None, model: str = "radial1") -> tuple[pd.DataFrame, pd.DataFrame]:
     """(per-image table, intrinsics table) of one draw of the priors; written to `csv` and beside it
     (<stem>_intrinsics.csv) when given. photos_dir: default PHOTOS; work: folder for the dataset and
-    results (default: a temporary one)."""
+    results (default: a temporary one); model: the cameras' lens model (camera.MODELS)."""
     photos_dir = PHOTOS if photos_dir is None else photos_dir
     photos = photographs(photos_dir)
     if not photos:
         raise DmaisError(f"{photos_dir}: no photograph with a 9 x 6 chessboard found")
     with tempfile.TemporaryDirectory(prefix="dmais_periodic_") as scratch:
         root = Path(work) if work else Path(scratch)
-        dataset = write_photo_dataset(photos, root / "dataset", seed)
+        dataset = write_photo_dataset(photos, root / "dataset", seed, model)
         workspace = Workspace.open(root / "dataset", root / "results")
         images = extract_and_score(dataset, workspace, photos)
         calibration = compare_intrinsics(workspace, photos)

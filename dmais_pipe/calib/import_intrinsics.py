@@ -2,16 +2,21 @@
 
 Both describe a pinhole camera (fx, fy, cx, cy) with OpenCV's distortion coefficients (k1, k2, p1,
 p2, k3, k4, k5, k6, s1..s4, tau_x, tau_y; COLMAP's PINHOLE/RADIAL/OPENCV/FULL_OPENCV families are
-the same model with some coefficients held at zero). Our model (eq. 2-3) is that with k1 = d and
-every other coefficient zero. `one_coefficient_camera` fits d to the richer model's distortion:
-over a grid of pixels covering the image, the undistorted normalized points x of the richer model
-are taken and d minimizes sum |ours(x; d) - theirs(x)|^2, linear in d:
+the same model with some coefficients held at zero). `convert_camera` turns it into our Camera of
+the dataset camera's model (camera.py): radial1 is that model with k1 = d and every other
+coefficient zero, opencv with k1, k2, p1, p2, k3 and k4..tau_y zero. A file whose other
+coefficients are zero converts exactly (the model's coefficients copied; residual ~1e-12 px,
+rounding). A richer one is fitted: over a grid of pixels covering the image, the undistorted
+normalized points x of the richer model are taken and the model's coefficients c minimize
+sum |ours(x; c) - theirs(x)|^2, which is linear in c (the distortion is a sum of the coefficients
+times functions of x, the columns of `project_unmasked`'s parameter Jacobian), e.g. radial1's
 
     ours(x; d) - (fx x + cx) = d fx x |x|^2,  the same in v with fy, cy.
 
 The residual (max / RMS px over the grid) is the conversion's cost; above `max_residual_px` the
-camera is refused, naming the largest coefficient that our model cannot represent. A model that is
-ours (other coefficients zero) converts exactly (d = k1; residual ~1e-12 px, rounding).
+camera is refused, naming the largest coefficient that the model cannot represent. A converted
+opencv model that folds inside the image (`Camera.folds_in_image`) is refused too, as a calibration
+would be (`calib.intrinsics.Plausibility`).
 
 Pixel conventions: OpenCV's files use ours (centre of the top-left pixel at (0, 0)); COLMAP's put
 it at (0.5, 0.5), so its principal point is shifted by -0.5 px.
@@ -29,7 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera
+from ..camera import Camera, project_unmasked
 from ..errors import DmaisError
 from .rig_ba import COLMAP_PIXEL_OFFSET
 
@@ -37,6 +42,8 @@ from .rig_ba import COLMAP_PIXEL_OFFSET
 OPENCV_COEFFICIENTS = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
 DEFAULT_MAX_RESIDUAL_PX = 0.1
 GRID_STEPS = 33  # grid points per image side for the fit
+#: How a refusal names each of our models.
+MODEL_DESCRIPTIONS = {"radial1": "one-coefficient model", "opencv": "opencv model (k1, k2, p1, p2, k3)"}
 
 #: COLMAP models that are OpenCV's pinhole model with some coefficients: parameter names in
 #: COLMAP's order; "f" is fx = fy.
@@ -190,13 +197,40 @@ def _first_line(error: Exception) -> str:
 # ------------------------------------------------------------------------------ conversion
 
 
-def one_coefficient_camera(foreign: ForeignCamera, name: str,
-                           max_residual_px: float = DEFAULT_MAX_RESIDUAL_PX) -> Conversion:
-    """Our Camera closest to `foreign` (fx, fy, cx, cy kept, d fitted; see the module docstring).
+def convert_camera(foreign: ForeignCamera, name: str, model: str = "radial1",
+                   max_residual_px: float = DEFAULT_MAX_RESIDUAL_PX) -> Conversion:
+    """Our Camera of `model` closest to `foreign` (fx, fy, cx, cy kept; the model's distortion
+    coefficients copied when the file has no others, else fitted: see the module docstring).
 
     Raises DmaisError naming the camera and its largest non-representable coefficient when the fit
-    leaves more than `max_residual_px` anywhere on the grid.
+    leaves more than `max_residual_px` anywhere on the grid, or when the converted opencv model folds
+    inside the image.
     """
+    pinhole = Camera(foreign.fx, foreign.fy, foreign.cx, foreign.cy, 0.0, foreign.width, foreign.height, model)
+    own = OPENCV_COEFFICIENTS[:len(pinhole.parameter_names) - 4]  # the file's names of the model's coefficients
+    rays, theirs = _grid_projections(foreign)
+    # ours at zero distortion, and its derivatives by the distortion coefficients: the model is linear in them
+    linear, _, J = project_unmasked(rays, pinhole, jacobian=True)
+    columns = [np.ascontiguousarray(J[:, :, k]) for k in range(4, J.shape[2])]  # (n, 2) each
+    if not any(v for k, v in foreign.distortion.items() if k not in own):
+        values = [foreign.distortion.get(k, 0.0) for k in own]  # the model's own coefficients: exact
+    else:
+        values = _least_squares(columns, theirs - linear)
+    fitted = linear + sum(value * column for value, column in zip(values, columns))
+    residual = np.linalg.norm(fitted - theirs, axis=1)
+    camera = pinhole.with_parameters([foreign.fx, foreign.fy, foreign.cx, foreign.cy, *values])
+    conversion = Conversion(camera, float(residual.max()), float(np.sqrt(np.mean(residual**2))))
+    if conversion.residual_max_px > max_residual_px:
+        raise _not_representable(foreign, name, conversion, own, max_residual_px)
+    if camera.model != "radial1" and camera.folds_in_image:  # as calib.intrinsics.check_plausible
+        raise DmaisError(f"camera {name}: the imported {model} model folds inside the image (one-to-one only within "
+                         f"undistorted radius {camera.max_projectable_radius:.3g}); not a lens calibration")
+    return conversion
+
+
+def _grid_projections(foreign: ForeignCamera) -> tuple[np.ndarray, np.ndarray]:
+    """Rays (n, 3) (x, y, 1) of a GRID_STEPS x GRID_STEPS grid of pixels covering the image, undistorted
+    by `foreign`'s model, and their pixels (n, 2) by that model (OpenCV's projection)."""
     import cv2
 
     K = np.array([[foreign.fx, 0.0, foreign.cx], [0.0, foreign.fy, foreign.cy], [0.0, 0.0, 1.0]])
@@ -204,28 +238,43 @@ def one_coefficient_camera(foreign: ForeignCamera, name: str,
     u, v = np.meshgrid(np.linspace(-0.5, foreign.width - 0.5, GRID_STEPS),
                        np.linspace(-0.5, foreign.height - 0.5, GRID_STEPS))
     grid = np.column_stack([u.ravel(), v.ravel()])
-    # the richer model's undistorted points of the grid (OpenCV's iterative inverse, approximate: the fit
-    # compares both models at these points, so they need only cover the image)
+    # OpenCV's iterative inverse, approximate: the fit compares both models at these points, so they need
+    # only cover the image
     xy = cv2.undistortPoints(grid.reshape(-1, 1, 2), K, coefficients).reshape(-1, 2)
     rays = np.column_stack([xy, np.ones(len(xy))])
-    theirs = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, coefficients)[0].reshape(-1, 2)
-    linear = xy * [foreign.fx, foreign.fy] + [foreign.cx, foreign.cy]  # the pinhole part, ours at d = 0
-    slope = xy * [foreign.fx, foreign.fy] * np.sum(xy**2, axis=1, keepdims=True)  # d(ours) / dd
-    if not any(v for k, v in foreign.distortion.items() if k != "k1"):
-        d = foreign.distortion.get("k1", 0.0)  # our model already: exact
-    else:
-        d = float(np.sum(slope * (theirs - linear)) / np.sum(slope**2))
-    residual = np.linalg.norm(linear + d * slope - theirs, axis=1)
-    conversion = Conversion(Camera(foreign.fx, foreign.fy, foreign.cx, foreign.cy, d, foreign.width, foreign.height),
-                            float(residual.max()), float(np.sqrt(np.mean(residual**2))))
-    if conversion.residual_max_px > max_residual_px:
-        extra = {k: v for k, v in foreign.distortion.items() if k != "k1" and v != 0}
-        worst = max(extra, key=lambda k: abs(extra[k])) if extra else "k1"
-        extra.setdefault(worst, foreign.distortion.get(worst, 0.0))
-        raise DmaisError(f"camera {name}: {worst} = {extra[worst]:.6g} is not representable by the one-coefficient "
-                         f"model: the best d = {d:.6g} leaves {conversion.residual_max_px:.3g} px max, "
-                         f"{conversion.residual_rms_px:.3g} px RMS over the image (limit {max_residual_px:g} px)")
-    return conversion
+    return rays, cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, coefficients)[0].reshape(-1, 2)
+
+
+def _not_representable(foreign: ForeignCamera, name: str, conversion: Conversion, own: tuple[str, ...],
+                       max_residual_px: float) -> DmaisError:
+    """The refusal of a conversion that leaves too much, naming the file's largest coefficient that the
+    model lacks (`own`: the file's names of the model's coefficients)."""
+    extra = {k: v for k, v in foreign.distortion.items() if k not in own and v != 0}
+    worst = max(extra, key=lambda k: abs(extra[k])) if extra else own[0]
+    extra.setdefault(worst, foreign.distortion.get(worst, 0.0))
+    camera = conversion.camera
+    best = ", ".join(f"{k} = {v:.6g}" for k, v in zip(camera.parameter_names[4:], camera.parameters[4:]))
+    return DmaisError(f"camera {name}: {worst} = {extra[worst]:.6g} is not representable by the "
+                      f"{MODEL_DESCRIPTIONS[camera.model]}: the best {best} leaves {conversion.residual_max_px:.3g} "
+                      f"px max, {conversion.residual_rms_px:.3g} px RMS over the image (limit {max_residual_px:g} px)")
+
+
+def one_coefficient_camera(foreign: ForeignCamera, name: str,
+                           max_residual_px: float = DEFAULT_MAX_RESIDUAL_PX) -> Conversion:
+    """`convert_camera` into the radial1 model (the paper's one coefficient d)."""
+    return convert_camera(foreign, name, "radial1", max_residual_px)
+
+
+def _least_squares(columns: list[np.ndarray], target: np.ndarray) -> list[float]:
+    """The coefficients c (m,) minimizing |sum_j c_j columns[j] - target|^2; columns (n, 2) each,
+    target (n, 2)."""
+    if len(columns) == 1:  # the closed form (radial1's d, bit for bit as it always was)
+        return [float(np.sum(columns[0] * target) / np.sum(columns[0] ** 2))]
+    A = np.column_stack([column.ravel() for column in columns])
+    scale = np.linalg.norm(A, axis=0)  # r^2, r^4, r^6 differ by orders of magnitude on a narrow field
+    scale[scale == 0] = 1.0
+    solution = np.linalg.lstsq(A / scale, target.ravel(), rcond=None)[0] / scale
+    return [float(value) for value in solution]
 
 
 def imported_record(name: str, conversion: Conversion, foreign: ForeignCamera, source: Path) -> dict:
@@ -242,8 +291,9 @@ def imported_record(name: str, conversion: Conversion, foreign: ForeignCamera, s
 
 
 def write_opencv_file(camera: Camera, path: Path) -> Path:
-    """`camera` as an OpenCV calibration file (camera_matrix, distortion_coefficients (k1 = d, k2 =
-    p1 = p2 = k3 = 0), image_width, image_height), in the format of its suffix (.yaml, .xml, .json)."""
+    """`camera` as an OpenCV calibration file (camera_matrix, distortion_coefficients (k1, k2, p1, p2,
+    k3; radial1: k1 = d, the rest 0), image_width, image_height), in the format of its suffix
+    (.yaml, .xml, .json)."""
     import cv2
 
     path = Path(path)
@@ -254,7 +304,7 @@ def write_opencv_file(camera: Camera, path: Path) -> Path:
         storage.write("image_width", camera.width)
         storage.write("image_height", camera.height)
         storage.write("camera_matrix", camera.K)
-        storage.write("distortion_coefficients", np.array([[camera.d, 0.0, 0.0, 0.0, 0.0]]).T)
+        storage.write("distortion_coefficients", np.array([camera.distortion], dtype=float).T)
         storage.release()
         os.replace(partial, path)
     return path

@@ -9,14 +9,18 @@ Paper, section "Intrinsic Calibration" (eq. 2-3 model, eq. `refine`):
 4. Levenberg-Marquardt jointly over fx, fy, cx, cy, d and all image poses (eq. `refine`),
    scipy.optimize.least_squares with an analytic Jacobian.
 
+The same procedure calibrates a camera of OpenCV's model (`model="opencv"`, camera.py): its
+distortion (k1, k2, p1, p2, k3) starts at zero as d does and the LM runs over all nine parameters.
+
 Evaluation as the paper's tab:intrinsics: eps_calib is the RMS of the per-point reprojection
 distance over the calibration images; eps_eval the same over the held-out images after
 re-estimating only their poses with the intrinsics fixed. Parameter standard deviations come from
 the covariance (J^T J)^-1 sigma^2, sigma^2 = SSR / (2 n_obs - n_params).
 
 Baselines (the intrinsics stage writes them to tables/intrinsics.csv beside "ours"):
-- `opencv`: cv2.calibrateCamera with the one-coefficient model (k1 = d), seeded with the image
-  centre and a nominal focal length (a non-planar field needs CALIB_USE_INTRINSIC_GUESS);
+- `opencv`: cv2.calibrateCamera with the camera's model (radial1: k1 = d alone; opencv: its default
+  model), seeded with the image centre and a nominal focal length (a non-planar field needs
+  CALIB_USE_INTRINSIC_GUESS);
 - `dlt_lm`: Bouguet/Tsai-style, full intrinsics from a per-image normalized DLT (H&Z alg. 7.1,
   K from the RQ decomposition of P[:, :3], averaged over images), then the same LM.
 Every method's eps_eval is computed by the same pose-only estimation on the eval images.
@@ -44,9 +48,14 @@ MIN_CALIB_IMAGES = 2
 #: PnPf focal lengths within this fraction of their median count as agreeing (the rest are dropped
 #: from the mean); fewer than half agreeing means the mean would rest on outliers.
 PNPF_AGREEMENT = 0.2
-INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "d")
 METHODS = ("ours", "opencv", "dlt_lm")
 TABLE_COLUMNS = ("method", "camera", "fx", "fy", "cx", "cy", "d", "eps_calib_px", "eps_eval_px")
+#: cv2.calibrateCamera's flags that hold the coefficients a model lacks (radial1: all but k1).
+_OPENCV_FIXED = {
+    "radial1": (cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_K4
+                | cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6),
+    "opencv": 0,
+}
 
 
 def table_columns(model: str = "radial1") -> tuple[str, ...]:
@@ -75,8 +84,9 @@ class IntrinsicsResult:
     #: image -> (n, 2) residuals projected minus observed (px) of its usable observations, in input
     #: order: the calibration images' from the final LM, the held-out images' from their pose-only fit.
     image_residuals_px: dict[str, np.ndarray] = field(default_factory=dict)
-    #: point id -> (5, 3) the change of (fx, fy, cx, cy, d) per one-sigma survey error of the control
-    #: point along x, y, z (its share of the covariance behind `std`; empty where no sigma is given).
+    #: point id -> (P, 3) the change of the camera's P parameters (`Camera.parameter_names`) per
+    #: one-sigma survey error of the control point along x, y, z (its share of the covariance behind
+    #: `std`; empty where no sigma is given).
     survey_effect: dict[str, np.ndarray] = field(default_factory=dict)
 
     def worst_images(self, count: int = 3) -> list[tuple[str, float]]:
@@ -84,11 +94,13 @@ class IntrinsicsResult:
         return sorted(self.image_eps_px.items(), key=lambda item: -item[1])[:count]
 
     def to_dict(self) -> dict:
-        """The RESULTS/intrinsics/<camera>.json layout of docs/design.md."""
+        """The RESULTS/intrinsics/<camera>.json layout of docs/design.md: the camera's parameters as
+        `Camera.to_dict` names them (radial1: fx, fy, cx, cy, d; opencv: "model" and fx .. k3), so
+        that `Camera.from_dict` reads the record back."""
         cam = self.camera
+        model = {} if cam.model == "radial1" else {"model": cam.model}
         return {
-            "camera": self.name, "width": cam.width, "height": cam.height,
-            "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "d": cam.d,
+            "camera": self.name, **model, "width": cam.width, "height": cam.height, **self._parameters(),
             "std": {k: float(v) for k, v in self.std.items()},
             "survey_effect": {k: np.asarray(v, dtype=float).tolist() for k, v in self.survey_effect.items()},
             "eps_calib_px": float(self.eps_calib_px),
@@ -105,10 +117,13 @@ class IntrinsicsResult:
         }
 
     def table_row(self) -> dict:
-        cam = self.camera
-        return {"method": self.method, "camera": self.name, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
-                "cy": cam.cy, "d": cam.d, "eps_calib_px": self.eps_calib_px,
+        """The row of <camera>.methods.csv (`table_columns(camera.model)`)."""
+        return {"method": self.method, "camera": self.name, **self._parameters(), "eps_calib_px": self.eps_calib_px,
                 "eps_eval_px": np.nan if self.eps_eval_px is None else self.eps_eval_px}
+
+    def _parameters(self) -> dict[str, float]:
+        """The camera's parameters by name (`Camera.parameter_names`)."""
+        return dict(zip(self.camera.parameter_names, map(float, self.camera.parameters)))
 
 
 # ------------------------------------------------------------------------------ input checks
@@ -323,6 +338,15 @@ def _evaluate(camera: Camera, eval_data: dict, name: str
     return _rms(np.vstack(list(residuals.values()))), poses, residuals
 
 
+def evaluate(camera: Camera, points_world_per_image, uv_per_image, name: str = "camera") -> float | None:
+    """eps_eval of a fixed `camera` (e.g. another tool's calibration) on held-out images, computed as
+    `calibrate_camera` computes its own: each image's pose alone fitted, the RMS per-point distance
+    over all their points. points_world_per_image / uv_per_image: {image: (n, 3)} / {image: (n, 2)};
+    images with fewer than 5 observations are skipped; None when none is left."""
+    data = _prepare(points_world_per_image, uv_per_image, name, "eval", [])
+    return _evaluate(camera, _shift(data, _centre([data])), name)[0]
+
+
 def _centre(data_sets) -> np.ndarray:
     points = [X for data in data_sets for X, _ in data.values()]
     return np.vstack(points).mean(axis=0) if points else np.zeros(3)
@@ -355,7 +379,7 @@ def _load_inputs(points_world_per_image, uv_per_image, eval_points_world_per_ima
 def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, skipped, pnpf_focal=None,
             survey_effect=None):
     eps_eval, eval_poses, eval_residuals = _evaluate(camera, evals, name)
-    std = dict(zip(INTRINSIC_NAMES, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()))
+    std = dict(zip(camera.parameter_names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()))
     ends = np.cumsum([len(X) for X, _ in calib.values()])[:-1]  # residuals are stacked in calib's order
     calib_residuals = dict(zip(calib, np.split(np.asarray(residuals).reshape(-1, 2), ends)))
     return IntrinsicsResult(
@@ -370,8 +394,9 @@ def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, s
 
 def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: int, *,
                      eval_points_world_per_image=None, eval_uv_per_image=None, name: str = "camera",
-                     min_images: int = MIN_CALIB_IMAGES, survey=None) -> IntrinsicsResult:
-    """The paper's intrinsic calibration of one camera (priors, PnPf, mean f, PnP, LM over everything).
+                     min_images: int = MIN_CALIB_IMAGES, survey=None, model: str = "radial1") -> IntrinsicsResult:
+    """The paper's intrinsic calibration of one camera (priors, PnPf, mean f, PnP, LM over everything)
+    with the lens model `model` (camera.MODELS), whose distortion starts at zero.
 
     points_world_per_image / uv_per_image: {image: (n, 3)} and {image: (n, 2)} (or lists) of the
     calibration images; the eval_* pair likewise for held-out images (eps_eval; optional);
@@ -394,7 +419,7 @@ def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: i
     f0 = _mean_focal(focal, name)
     log.info("camera %s: PnPf focal lengths %s px, mean %.1f px", name,
              ", ".join(f"{v:.1f}" for v in focal.values()), f0)
-    camera0 = Camera(fx=f0, fy=f0, cx=principal[0], cy=principal[1], d=0.0, width=width, height=height)
+    camera0 = Camera(fx=f0, fy=f0, cx=principal[0], cy=principal[1], d=0.0, width=width, height=height, model=model)
     poses = {}
     for image, (X, uv) in calib.items():
         try:
@@ -403,10 +428,19 @@ def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: i
             raise DmaisError(f"camera {name}, image {image}: PnP failed") from None
     camera, poses, residuals, cov, effect = bundle_adjust(camera0, poses, calib, survey)
     result = _finish(name, "ours", camera, poses, residuals, cov, calib, evals, centre, skipped, focal, effect)
-    log.info("camera %s: fx %.1f fy %.1f cx %.1f cy %.1f d %.4f, eps_calib %.4f px, eps_eval %s px", name,
-             camera.fx, camera.fy, camera.cx, camera.cy, camera.d, result.eps_calib_px,
+    log.info("camera %s: %s, eps_calib %.4f px, eps_eval %s px", name, describe(camera), result.eps_calib_px,
              "n/a" if result.eps_eval_px is None else f"{result.eps_eval_px:.4f}")
     return result
+
+
+def describe(camera: Camera, first: int = 0) -> str:
+    """The camera's parameters from the `first`-th on, as the log shows them: focal lengths and
+    principal point to 0.1 px, radial1's d to 4 decimals (as ever), opencv's k1 .. k3 to 4
+    significant digits (the whole camera's text starts with its model)."""
+    distortion = ".4f" if camera.model == "radial1" else ".4g"
+    text = " ".join(f"{name} {value:{'.1f' if k < 4 else distortion}}"
+                    for k, (name, value) in enumerate(zip(camera.parameter_names, camera.parameters)) if k >= first)
+    return text if camera.model == "radial1" or first else f"model {camera.model}: {text}"
 
 
 def _mean_focal(focal: dict[str, float], name: str) -> float:
@@ -430,6 +464,10 @@ class Plausibility:
     max_eps_calib_px: RMS reprojection distance over the calibration images (the paper reaches
     0.2-0.45 px; tens of times the marker noise means wrong observations). max_focal_deviation:
     relative distance of fx and fy from the manifest's focal_px (when given) and of fx from fy.
+    Besides these bounds `check_plausible` refuses an opencv-model distortion that folds back inside
+    the image. radial1 is spared that check: its one coefficient cannot follow a wide-angle lens to
+    the image corners without turning there (OpenCV's left*.jpg sample fits to 0.45 px with d = -0.26
+    yet folds in the corners), and the paper's results must not change.
     """
 
     max_eps_calib_px: float = 5.0
@@ -448,6 +486,9 @@ def check_plausible(result: IntrinsicsResult, focal_px: float | None, limits: Pl
         faults.append(f"fx {cam.fx:.1f} and fy {cam.fy:.1f} px differ by more than {limits.max_focal_deviation:.0%}")
     if not (-0.5 <= cam.cx <= cam.width - 0.5 and -0.5 <= cam.cy <= cam.height - 0.5):
         faults.append(f"principal point ({cam.cx:.1f}, {cam.cy:.1f}) lies outside the image")
+    if cam.model != "radial1" and cam.folds_in_image:  # a real lens is one-to-one over its image
+        faults.append(f"its {cam.model} distortion ({describe(cam, first=4)}) folds back inside the image "
+                      f"(one-to-one only out to undistorted radius {cam.max_projectable_radius:.3g})")
     if faults:
         worst = ", ".join(f"{image} {eps:.3g} px" for image, eps in result.worst_images())
         raise DmaisError(f"camera {result.name}: calibration refused, {'; '.join(faults)} (worst images: {worst}); "
@@ -459,8 +500,11 @@ def check_plausible(result: IntrinsicsResult, focal_px: float | None, limits: Pl
 
 def calibrate_camera_opencv(points_world_per_image, uv_per_image, width: int, height: int, focal_guess: float, *,
                             eval_points_world_per_image=None, eval_uv_per_image=None, name: str = "camera",
-                            min_images: int = MIN_CALIB_IMAGES, warn_skipped: bool = True) -> IntrinsicsResult:
-    """OpenCV baseline: cv2.calibrateCamera with k1 only, seeded with the image centre and `focal_guess`."""
+                            min_images: int = MIN_CALIB_IMAGES, warn_skipped: bool = True,
+                            model: str = "radial1") -> IntrinsicsResult:
+    """OpenCV baseline: cv2.calibrateCamera seeded with the image centre and `focal_guess` (a
+    non-planar field needs CALIB_USE_INTRINSIC_GUESS), with `model`'s coefficients free: radial1
+    k1 only, opencv its default model (k1, k2, p1, p2, k3)."""
     calib, evals, centre, skipped = _load_inputs(points_world_per_image, uv_per_image,
                                                  eval_points_world_per_image, eval_uv_per_image, name, min_images,
                                                  warn_skipped)
@@ -469,8 +513,7 @@ def calibrate_camera_opencv(points_world_per_image, uv_per_image, width: int, he
     image_points = [calib[k][1].astype(np.float32).reshape(-1, 1, 2) for k in names]
     cx, cy = image_centre(width, height)
     K0 = np.array([[focal_guess, 0, cx], [0, focal_guess, cy], [0, 0, 1]], dtype=np.float64)
-    flags = (cv2.CALIB_USE_INTRINSIC_GUESS | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
-             | cv2.CALIB_FIX_K4 | cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6)
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | _OPENCV_FIXED[model]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # its threads' partial sums, added in the order they finish, moved the result by 1e-8
@@ -481,13 +524,20 @@ def calibrate_camera_opencv(points_world_per_image, uv_per_image, width: int, he
         raise DmaisError(f"camera {name}: OpenCV calibrateCamera failed: {str(error).strip()}") from None
     finally:
         cv2.setNumThreads(threads)
-    camera = Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], d=float(dist.ravel()[0]), width=width,
-                    height=height)
+    camera = opencv_camera(K, dist, width, height, model)
     poses = {k: Rigid3(cv2.Rodrigues(r)[0], t.ravel()) for k, r, t in zip(names, rvecs, tvecs)}
     residuals = np.vstack([project_unmasked(poses[k].apply(calib[k][0]), camera) - calib[k][1] for k in names])
-    s = np.asarray(std_intr).ravel()
-    cov = np.diag(np.array([s[0], s[1], s[2], s[3], s[4]]) ** 2)
+    # OpenCV's order is ours: fx, fy, cx, cy, k1, k2, p1, p2, k3
+    cov = np.diag(np.asarray(std_intr).ravel()[:len(camera.parameter_names)] ** 2)
     return _finish(name, "opencv", camera, poses, residuals, cov, calib, evals, centre, skipped)
+
+
+def opencv_camera(K: np.ndarray, distortion: np.ndarray, width: int, height: int, model: str) -> Camera:
+    """The Camera of OpenCV's intrinsic matrix K (3, 3) and distortion vector (k1, k2, p1, p2, k3, ...)
+    in `model` (radial1 takes k1 alone: calibrate with the others held at zero)."""
+    values = [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.asarray(distortion, dtype=float).ravel()[:5]]
+    return Camera.from_dict({"model": model, "width": width, "height": height,
+                             **dict(zip(PARAMETER_NAMES[model], values))})
 
 
 def _dlt_intrinsics(X: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
@@ -520,9 +570,9 @@ def _dlt_intrinsics(X: np.ndarray, uv: np.ndarray) -> np.ndarray | None:
 def calibrate_camera_dlt_lm(points_world_per_image, uv_per_image, width: int, height: int, *,
                             eval_points_world_per_image=None, eval_uv_per_image=None, name: str = "camera",
                             min_images: int = MIN_CALIB_IMAGES, warn_skipped: bool = True,
-                            survey=None) -> IntrinsicsResult:
+                            survey=None, model: str = "radial1") -> IntrinsicsResult:
     """Bouguet/Tsai-style baseline: full K from per-image DLT (median over images), PnP, then the same
-    LM (survey as `calibrate_camera`'s)."""
+    LM over `model`'s parameters, its distortion starting at zero (survey as `calibrate_camera`'s)."""
     calib, evals, centre, skipped = _load_inputs(points_world_per_image, uv_per_image,
                                                  eval_points_world_per_image, eval_uv_per_image, name, min_images,
                                                  warn_skipped)
@@ -530,7 +580,7 @@ def calibrate_camera_dlt_lm(points_world_per_image, uv_per_image, width: int, he
     if not Ks:
         raise DmaisError(f"camera {name}: the DLT failed on every calibration image")
     K = np.median(np.array(Ks), axis=0)
-    camera0 = Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], d=0.0, width=width, height=height)
+    camera0 = Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], d=0.0, width=width, height=height, model=model)
     poses = {k: estimate_pose(camera0, X, uv)[0] for k, (X, uv) in calib.items()}
     camera, poses, residuals, cov, effect = bundle_adjust(camera0, poses, calib, survey)
     return _finish(name, "dlt_lm", camera, poses, residuals, cov, calib, evals, centre, skipped, survey_effect=effect)

@@ -1,6 +1,7 @@
 """`dmais intrinsics`: calibrate every camera that has intrinsics images (calib.intrinsics).
 
-- `run_cameras` (the workflow's job: one camera): RESULTS/intrinsics/<camera>.json (ours),
+- `run_cameras` (the workflow's job: one camera), each camera with the lens model its dataset.yaml
+  entry names (`model:`, radial1 by default): RESULTS/intrinsics/<camera>.json (ours),
   <camera>.methods.csv (that camera's row of every method) and <camera>.residuals.csv (our
   calibration's residual per observation, calibration and held-out images). A calibration beyond the conf's
   plausibility bounds stops the job before anything of that camera is written;
@@ -21,9 +22,11 @@ import numpy as np
 import pandas as pd
 
 from ..calib.intrinsics import (METHODS, TABLE_COLUMNS, IntrinsicsResult, Plausibility, calibrate_camera,
-                                calibrate_camera_dlt_lm, calibrate_camera_opencv, check_plausible)
-from ..calib.import_intrinsics import (DEFAULT_MAX_RESIDUAL_PX, ForeignCamera, imported_record, one_coefficient_camera,
+                                calibrate_camera_dlt_lm, calibrate_camera_opencv, check_plausible,
+                                table_columns)
+from ..calib.import_intrinsics import (DEFAULT_MAX_RESIDUAL_PX, ForeignCamera, convert_camera, imported_record,
                                        read_colmap_cameras, read_opencv_file, split_pair)
+from ..camera import MODELS
 from ..dataset import largest_point_sigma
 from ..errors import DmaisError
 from ..workspace import CALIBRATION_RESIDUAL_COLUMNS, Workspace
@@ -43,7 +46,7 @@ class Conf:
                                          "refuse fx, fy further than this fraction from focal_px or from each other",
                                          above=0)
     max_import_residual_px: float = setting(
-        DEFAULT_MAX_RESIDUAL_PX, "refuse an imported camera whose distortion the one-coefficient model misses by "
+        DEFAULT_MAX_RESIDUAL_PX, "refuse an imported camera whose distortion its dataset.yaml model misses by "
                                  "more than this anywhere in the image (px)", above=0)
 
 
@@ -91,11 +94,29 @@ def write_table(workspace: Workspace) -> list[Path]:
     absent = [str(workspace.methods_path(c)) for c in cameras if not workspace.methods_path(c).is_file()]
     if absent:
         raise DmaisError(f"intrinsics table: missing {absent}; run `dmais intrinsics --camera` for those cameras")
-    table = pd.concat([workspace.load_methods(c) for c in cameras], ignore_index=True)
+    models = {c: workspace.dataset.cameras[c].model for c in cameras}
+    tables = [workspace.load_methods(c) for c in cameras]
+    for camera, methods in zip(cameras, tables):
+        if list(methods.columns) != list(table_columns(models[camera])):
+            raise DmaisError(f"intrinsics table: {workspace.methods_path(camera)} has the columns "
+                             f"{', '.join(methods.columns)}, not those of camera {camera}'s model {models[camera]} "
+                             f"in dataset.yaml; run `dmais intrinsics --camera {camera}` again")
+    table = pd.concat(tables, ignore_index=True)
     order = {m: i for i, m in enumerate(METHODS)}
     table = table.sort_values(["camera", "method"], key=lambda s: s.map(order) if s.name == "method" else s,
                               kind="stable")
-    return [workspace.save_table("intrinsics", table[list(TABLE_COLUMNS)])]
+    return [workspace.save_table("intrinsics", table[_table_columns(models.values())])]
+
+
+def _table_columns(models) -> list[str]:
+    """tables/intrinsics.csv's columns for cameras of `models`: TABLE_COLUMNS when all are radial1
+    (the paper's table, unchanged); else the parameters of every model present in
+    calib.intrinsics.table_columns' order (radial1's d, opencv's k1 .. k3), a camera's row empty
+    in the columns its model lacks."""
+    present = set(models)
+    columns = [c for model in MODELS if model in present for c in table_columns(model)]
+    parameters = [c for c in dict.fromkeys(columns) if c not in TABLE_COLUMNS[:2] + TABLE_COLUMNS[-2:]]
+    return [*TABLE_COLUMNS[:2], *parameters, *TABLE_COLUMNS[-2:]]
 
 
 def _calibrate(workspace: Workspace, name: str, conf: Conf, observations: pd.DataFrame
@@ -112,7 +133,7 @@ def _calibrate(workspace: Workspace, name: str, conf: Conf, observations: pd.Dat
     X, uv, survey = _per_image(observations, dataset.points, calib_images)
     eX, euv, _ = _per_image(observations, dataset.points, eval_images)
     spec = dataset.cameras[name]
-    common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name)
+    common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name, model=spec.model)
     ours = calibrate_camera(X, uv, spec.width, spec.height, survey=survey, **common)
     check_plausible(ours, spec.focal_px, Plausibility(conf.max_eps_calib_px, conf.max_focal_deviation))
     focal_guess = spec.focal_px or float(np.mean(list(ours.pnpf_focal_px.values())))
@@ -127,7 +148,7 @@ def _calibrate(workspace: Workspace, name: str, conf: Conf, observations: pd.Dat
         except DmaisError as error:
             log.warning("%s", error)
             rows.append({"method": method, "camera": name})
-    return ours, pd.DataFrame(rows, columns=list(TABLE_COLUMNS))
+    return ours, pd.DataFrame(rows, columns=list(table_columns(spec.model)))
 
 
 def import_cameras(workspace: Workspace, names: list[str], source: Path, conf: Conf = Conf()) -> list[Path]:
@@ -135,7 +156,9 @@ def import_cameras(workspace: Workspace, names: list[str], source: Path, conf: C
     `source`: an OpenCV calibration file (one camera; FILE:M<n> the pair M<n>, D<n> of a stereo
     calibration, whose image size is the dataset's) or a COLMAP cameras.txt / cameras.bin (its
     cameras in camera-id order, one per name). Every camera is checked and converted before anything
-    is written; the record's "method" says where it came from."""
+    is written. Each is converted into its dataset.yaml model (`convert_camera`); the record's
+    "method" says where it came from, its methods row holds the model's parameters
+    (`table_columns`)."""
     dataset, source = workspace.dataset, Path(source)
     unknown = [n for n in names if n not in dataset.cameras]
     if unknown:
@@ -151,15 +174,18 @@ def import_cameras(workspace: Workspace, names: list[str], source: Path, conf: C
             raise DmaisError(f"camera {name}: {source} is for {foreign[name].width}x{foreign[name].height} images, "
                              f"dataset.yaml says {spec.width}x{spec.height}")
         _check_nominal_focal(name, foreign[name], spec.focal_px, conf.max_focal_deviation, source)
-        conversions[name] = one_coefficient_camera(foreign[name], name, conf.max_import_residual_px)
+        conversions[name] = convert_camera(foreign[name], name, spec.model, conf.max_import_residual_px)
     written = []
     for name, conversion in conversions.items():
-        log.info("camera %s: imported from %s (%s): d = %.6g, fit residual %.3g px max, %.3g px RMS over the image",
-                 name, source, foreign[name].model, conversion.camera.d, conversion.residual_max_px,
+        camera = conversion.camera
+        distortion = ", ".join(f"{k} = {v:.6g}" for k, v in zip(camera.parameter_names[4:], camera.parameters[4:]))
+        log.info("camera %s: imported from %s (%s): %s, fit residual %.3g px max, %.3g px RMS over the image",
+                 name, source, foreign[name].model, distortion, conversion.residual_max_px,
                  conversion.residual_rms_px)
         record = imported_record(name, conversion, foreign[name], source)
-        row = {"method": "imported", **{k: record[k] for k in ("camera", "fx", "fy", "cx", "cy", "d")}}
-        written += workspace.save_intrinsics(name, record, pd.DataFrame([row], columns=list(TABLE_COLUMNS)))
+        columns = table_columns(camera.model)
+        row = {"method": "imported", **{k: record[k] for k in columns[1:-2]}}  # camera and the model's parameters
+        written += workspace.save_intrinsics(name, record, pd.DataFrame([row], columns=list(columns)))
     return written
 
 
