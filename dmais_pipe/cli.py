@@ -192,8 +192,15 @@ def _cmd_bench_campaign(args) -> None:
 def _cmd_bench_periodic(args) -> None:
     from .bench.periodic import bench_periodic, print_tables
 
-    images, calibration = bench_periodic(args.photos, args.csv, seed=args.seed, work=args.work)
+    images, calibration = bench_periodic(args.photos, args.csv, seed=args.seed, work=args.work, model=args.model)
     print_tables(images, calibration, args.csv)
+
+
+def _cmd_bench_stereo(args) -> None:
+    from .bench.stereo import bench_stereo, print_table
+
+    print_table(bench_stereo(args.photos, args.csv, model=args.model, work=args.work))
+    print(f"wrote {args.csv}")
 
 
 def _cmd_bench_sigma(args) -> None:
@@ -243,6 +250,7 @@ def _comma_separated(kind):
 
 
 def _parser() -> argparse.ArgumentParser:
+    from .camera import MODELS
     from .stages.intrinsics import Conf as IntrinsicsConf
 
     parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
@@ -405,9 +413,21 @@ def _parser() -> argparse.ArgumentParser:
                                                       "rightNN.jpg; default: tests/data/chessboard)")
     periodic.add_argument("--seed", type=int, default=0, help="seed of the priors' perturbation (default: %(default)s)")
     periodic.add_argument("--work", type=Path, help="folder for the dataset and results (default: a temporary one)")
+    periodic.add_argument("--model", choices=MODELS, default="radial1",
+                          help="the cameras' lens model, ours and OpenCV's (default: %(default)s)")
     periodic.add_argument("--csv", type=Path, default=Path("reports/bench/periodic.csv"),
                           help="per-image table; the intrinsics beside it, <stem>_intrinsics.csv (default: %(default)s)")
     periodic.set_defaults(run=_cmd_bench_periodic)
+    stereo = benches.add_parser("stereo", help="a real stereo pair through intrinsics, extrinsics and pose against "
+                                               "OpenCV's calibrateCamera, stereoCalibrate and solvePnP")
+    stereo.add_argument("--photos", type=Path, help="folder of OpenCV's stereo chessboard photographs (leftNN.jpg, "
+                                                    "rightNN.jpg; default: tests/data/chessboard)")
+    stereo.add_argument("--model", choices=MODELS, default="opencv",
+                        help="the cameras' lens model, ours and OpenCV's (default: %(default)s)")
+    stereo.add_argument("--work", type=Path, help="folder for the dataset and results (default: a temporary one)")
+    stereo.add_argument("--csv", type=Path, default=Path("reports/bench/stereo.csv"),
+                        help="output table (default: %(default)s)")
+    stereo.set_defaults(run=_cmd_bench_stereo)
     sigma = benches.add_parser("sigma", help="poses.csv's 1-sigma columns against the simulator's truth: "
                                              "RMS(error / sigma) and coverage per camera set and axis")
     sigma.add_argument("--results", type=Path, nargs="+", metavar="DIR",
