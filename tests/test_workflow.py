@@ -101,7 +101,8 @@ def test_workflow_runs_every_stage_and_reports(tmp_path):
                                "Intrinsics per camera", "Rig layout", "Fields of view on the ground",
                                "Reprojection residuals per camera", "Per-frame pose errors",
                                "Attitude error: the paper's proxy and the truth", "Camera subsets",
-                               "Error budget of the sigmas", "The rig watched in flight",
+                               "Pose accuracy beside other runs", "Error budget of the sigmas",
+                               "The rig watched in flight",
                                "Runtime versus number of points", "Processing time per stage", "Comparison with the paper"]
     assert "Not available" not in (tmp_path / "reports/tiny/report.html").read_text()
 

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import io
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
@@ -25,6 +25,7 @@ import pandas as pd
 from markupsafe import Markup
 from matplotlib.figure import Figure
 
+from ..camera import PARAMETER_NAMES
 from ..errors import DmaisError
 from ..evaluate import ALL_GROUPS, TRUE_ERROR_COLUMNS
 from ..files import write_bytes_atomic, write_text_atomic
@@ -51,13 +52,15 @@ SECTIONS = (
     ("frames", "Per-frame pose errors"),
     ("attitude", "Attitude error: the paper's proxy and the truth"),
     ("subsets", "Camera subsets"),
+    ("accuracy", "Pose accuracy beside other runs"),
     ("budget", "Error budget of the sigmas"),
     ("mounting", "The rig watched in flight"),
     ("runtime", "Runtime versus number of points"),
     ("stages", "Processing time per stage"),
     ("paper", "Comparison with the paper"),
 )
-INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "d")
+#: The intrinsics table's parameter columns: every model's (camera.PARAMETER_NAMES), radial1's first.
+INTRINSIC_NAMES = tuple(dict.fromkeys(name for names in PARAMETER_NAMES.values() for name in names))
 RATIO_LIMITS = (0.5, 2.0)
 _MAX_TABLE_ROWS = 400
 #: The figure files written beside the page (figures/<name>), removed first so none is left stale.
@@ -74,18 +77,20 @@ class MissingInput(Exception):
 
 
 def write_report(workspace: Workspace, out_html: str | Path, benchmarks_dir: str | Path | None = None,
-                 paper_dir: str | Path | None = None) -> Path:
+                 paper_dir: str | Path | None = None, compare_with: Sequence[str] = ()) -> Path:
     """Write the HTML report of the workspace's results to `out_html` atomically; returns its path.
 
     It renders what the stages wrote (the evaluate stage's statistics, the report stage's
     comparisons with the paper). benchmarks_dir: folder of snakemake benchmark files (*.tsv,
     searched recursively), optional. paper_dir: the published tables (default: the package's).
+    compare_with: other runs whose pose accuracy is shown beside this one's (`comparison_runs`).
     """
-    context = _Context(workspace, benchmarks_dir, paper_dir, Path(out_html).parent / "figures")
+    context = _Context(workspace, benchmarks_dir, paper_dir, Path(out_html).parent / "figures", compare_with)
     builders = {"dataset": _dataset_section, "markers": _markers_section, "extraction": _extraction_section,
                 "intrinsics": _intrinsics_section, "rig": _rig_section, "fov": _fov_section,
                 "residuals": _residuals_section, "frames": _frames_section, "attitude": _attitude_section,
-                "subsets": _subsets_section, "budget": _budget_section, "mounting": _mounting_section,
+                "subsets": _subsets_section, "accuracy": _accuracy_section, "budget": _budget_section,
+                "mounting": _mounting_section,
                 "runtime": _runtime_section,
                 "stages": _stages_section,
                 "paper": _paper_section}
@@ -108,10 +113,12 @@ class Section:
 class _Context:
     """Paths and lazily loaded inputs shared by the sections; loading raises MissingInput."""
 
-    def __init__(self, workspace: Workspace, benchmarks_dir, paper_dir, figures_dir: Path):
+    def __init__(self, workspace: Workspace, benchmarks_dir, paper_dir, figures_dir: Path,
+                 compare_with: Sequence[str] = ()):
         self.workspace, self.dataset, self.results = workspace, workspace.dataset, workspace.root
         self.benchmarks_dir = None if benchmarks_dir is None else Path(benchmarks_dir)
         self.paper_dir = paper_dir
+        self.compare_with = tuple(compare_with)
         self.figures_dir = figures_dir
         for name in FIGURE_FILES:
             (figures_dir / name).unlink(missing_ok=True)
@@ -259,10 +266,16 @@ def _intrinsics_section(ctx: _Context) -> dict:
         raise MissingInput(f"{workspace.root / 'intrinsics'} holds no <camera>.json (run `dmais intrinsics`).")
     truth = ctx.truth_rig
     methods = workspace.load_table("intrinsics")
-    return {"cameras": table_of(intrinsics_table(records)),
+    return {"cameras": table_of(intrinsics_table(records)), "models": _models_text(records),
             "versus_truth": None if truth is None else table_of(_intrinsics_vs_truth(records, truth)),
             **_calibration_residual_figures(ctx, records),
             "methods": None if methods is None else table_of(methods)}
+
+
+def _models_text(records: list[dict]) -> str:
+    """The lens models of the records, as the intrinsics section names them."""
+    names = {"radial1": "eq. 2-3 model", "opencv": "OpenCV's model: k1, k2, p1, p2, k3"}
+    return "; ".join(names[m] for m in sorted({_model(r) for r in records}, key=list(names).index))
 
 
 def _calibration_residual_figures(ctx: _Context, records: list[dict]) -> dict:
@@ -280,17 +293,27 @@ def _calibration_residual_figures(ctx: _Context, records: list[dict]) -> dict:
 
 
 def intrinsics_table(records: list[dict]) -> pd.DataFrame:
-    """One row per camera JSON record: value &plusmn; std of fx, fy, cx, cy, d, the errors and counts."""
+    """One row per camera JSON record: value &plusmn; std of its model's parameters, the errors and
+    counts; the columns of every model present (a "model" column once a camera is not radial1)."""
     rows = []
     for r in records:
         std = r.get("std") or {}
-        row = {"camera": r.get("camera", "?")}
-        for name in INTRINSIC_NAMES:
-            row[name] = _pm(r.get(name), std.get(name), 4 if name == "d" else 1)
+        row = {"camera": r.get("camera", "?"), "model": _model(r)}
+        for k, name in enumerate(PARAMETER_NAMES[_model(r)]):
+            row[name] = _pm(r.get(name), std.get(name), 1 if k < 4 else 4 if name == "d" else 5)
         row.update(eps_calib_px=r.get("eps_calib_px"), eps_eval_px=r.get("eps_eval_px"),
                    n_images=r.get("n_images"), n_observations=r.get("n_observations"))
         rows.append(row)
-    return pd.DataFrame(rows)
+    models = {_model(r) for r in records}
+    names = [n for n in INTRINSIC_NAMES if any(n in PARAMETER_NAMES[m] for m in models)]
+    columns = ["camera", *(["model"] if models - {"radial1"} else []), *names,
+               "eps_calib_px", "eps_eval_px", "n_images", "n_observations"]
+    return pd.DataFrame(rows, columns=columns)
+
+
+def _model(record: dict) -> str:
+    """The lens model of an intrinsics record (Camera.to_dict: none named is radial1)."""
+    return record.get("model", "radial1")
 
 
 def _pm(value, std, decimals: int) -> str:
@@ -301,12 +324,14 @@ def _pm(value, std, decimals: int) -> str:
 
 
 def _intrinsics_vs_truth(records: list[dict], truth: Rig) -> pd.DataFrame:
+    """Per calibrated camera with a true one: each parameter the two models share minus its truth."""
     rows = []
     for r in records:
         camera = truth.cameras.get(r.get("camera"))
         if camera is not None:
-            rows.append({"camera": r["camera"],
-                         **{f"{n} - truth": r[n] - getattr(camera, n) for n in INTRINSIC_NAMES if n in r}})
+            true = dict(zip(camera.parameter_names, camera.parameters))
+            shared = [n for n in PARAMETER_NAMES[_model(r)] if n in r and n in true]
+            rows.append({"camera": r["camera"], **{f"{n} - truth": r[n] - true[n] for n in shared}})
     return pd.DataFrame(rows)
 
 
@@ -450,6 +475,91 @@ def _lever_arm(ctx: _Context) -> dict:
 def _subsets_section(ctx: _Context) -> dict:
     conf = ctx.table("conf", "run `dmais pose --cameras ...` per subset, then `dmais evaluate`")
     return {"subset_figure": Image.inline(_svg(subset_figure(conf))), "conf": table_of(conf_wide(conf))}
+
+
+#: The accuracy comparison's metrics (conf.csv columns of the all-groups rows), the true errors where simulated.
+ACCURACY_METRICS = ("eps_pos_mean_m", "eps_ang_mean_arcmin", "eps_proj_mean_px", "true_pos_err_mean_m",
+                    "true_ang_err_mean_arcmin")
+#: How to make a run's tables that are not there yet (the embedded demo's config is config/config.yaml).
+_RUN_HINT = ("run the workflow with that run's config first (the DMAIS demo: `snakemake --cores 2 --configfile "
+             "config/config.yaml`), then this report again")
+
+
+def comparison_runs(results: Path, names: Sequence[str]) -> dict[str, Path]:
+    """label -> results folder of each run to compare with: a name is a sibling of `results` (the
+    workflow's results/<dataset>), a path (with a separator) is taken as given. The label is the
+    folder's name, or its path where that name is taken; `results` itself and repeats are left out."""
+    runs, seen = {}, {results.resolve()}
+    for name in names:
+        folder = Path(name) if ("/" in name or "\\" in name) else results.parent / name
+        if folder.resolve() in seen:
+            continue
+        seen.add(folder.resolve())
+        runs[str(folder) if folder.name in runs or folder.name == results.name else folder.name] = folder
+    return runs
+
+
+def accuracy_table(confs: Mapping[str, pd.DataFrame]) -> pd.DataFrame:
+    """Pose accuracy per camera subset of several runs side by side.
+
+    confs: run label -> its tables/conf.csv (subset labels as text), the first this run. Each run's
+    all-groups rows (group ALL_GROUPS); one row per subset label (the first run's order, then the
+    others'), for each of ACCURACY_METRICS that some run has one column per run, "<metric> [<run>]";
+    blank where a run lacks the subset or the metric.
+    """
+    rows = {label: _all_groups(conf) for label, conf in confs.items()}
+    subsets = list(dict.fromkeys(s for table in rows.values() for s in table.index))
+    table = pd.DataFrame({"subset": subsets})
+    for metric in ACCURACY_METRICS:
+        for label, run in rows.items():
+            if metric in run:
+                values = pd.to_numeric(run[metric], errors="coerce").reindex(subsets).to_numpy(float)
+                table[f"{metric} [{label}]"] = values
+    return table
+
+
+def _all_groups(conf: pd.DataFrame) -> pd.DataFrame:
+    """A conf table's all-groups rows, indexed by subset label (text)."""
+    rows = conf[conf["group"].astype(str) == ALL_GROUPS]
+    return rows.set_index(rows["subset"].astype(str))
+
+
+def run_description(label: str, rig: Rig | None) -> dict:
+    """One line of the compared runs' table: cameras, image size, mean focal length, lens model and
+    field of view of the run's rig.json (blank without one)."""
+    if rig is None:
+        return {"run": label, "cameras": "", "image_px": "", "focal_px": "", "model": "", "fov_deg": ""}
+    cams = [rig.cameras[c] for c in rig.camera_names]
+    sizes = sorted({f"{c.width}x{c.height}" for c in cams})
+    fov = np.degrees(2 * np.arctan([[c.width / 2 / c.fx, c.height / 2 / c.fy] for c in cams])).mean(axis=0)
+    return {"run": label, "cameras": len(cams), "image_px": ", ".join(sizes),
+            "focal_px": f"{np.mean([c.fx for c in cams]):.0f}", "model": ", ".join(sorted({c.model for c in cams})),
+            "fov_deg": f"{fov[0]:.1f} x {fov[1]:.1f}"}
+
+
+def _accuracy_section(ctx: _Context) -> dict:
+    """This run's pose accuracy per camera subset beside that of the runs named by compare_with."""
+    confs = {ctx.results.name: ctx.table("conf", "run `dmais pose --cameras ...` per subset, then `dmais evaluate`")}
+    rigs = {ctx.results.name: ctx.rig if ctx.workspace.has_rig() else None}
+    absent = []
+    for label, folder in comparison_runs(ctx.results, ctx.compare_with).items():
+        path = folder / "tables" / "conf.csv"
+        if not path.is_file():
+            absent.append(f"{path} is missing: {_RUN_HINT}.")
+            continue
+        confs[label] = pd.read_csv(path, dtype={"group": str, "subset": str})
+        rigs[label] = _rig_or_none(folder / "rig.json")
+    return {"runs": table_of(pd.DataFrame([run_description(label, rig) for label, rig in rigs.items()])),
+            "accuracy": table_of(accuracy_table(confs)), "absent": absent, "compared": len(confs) > 1}
+
+
+def _rig_or_none(path: Path) -> Rig | None:
+    """Another run's rig.json, None when it is absent or unreadable (its description stays blank)."""
+    try:
+        return Rig.load(path) if path.is_file() else None
+    except DmaisError as error:
+        log.warning("report: %s", error)
+        return None
 
 
 def _budget_section(ctx: _Context) -> dict:

@@ -135,6 +135,11 @@ DEFAULTS = {
 }
 
 
+#: A rig camera entry's keys besides its lens model's coefficients (all required but `model`).
+CAMERA_KEYS = ("model", "fx", "fy", "cx", "cy", "euler_zyx_deg", "center_m")
+#: Each lens model's coefficients in a rig camera entry: radial1's d is required, opencv's default to 0.
+LENS_COEFFICIENTS = {"radial1": ("d",), "opencv": ("k1", "k2", "p1", "p2", "k3")}
+
 #: flight.pattern's values (module docstring).
 FLIGHT_PATTERNS = ("hover", "line")
 #: The flight settings that only the line pattern uses, absent from a hover dataset's simulation.yaml.
@@ -152,6 +157,28 @@ def check_flight_pattern(config: dict) -> str:
     if isinstance(spacing, bool) or not isinstance(spacing, (int, float)) or not spacing > 0:
         raise ConfigError(f"simulator setting 'flight.line_spacing_m' must be a number above 0, got {spacing!r}")
     return pattern
+
+
+def check_camera_entry(name: str, entry) -> str:
+    """The lens model of the rig camera entry `name` (default radial1), after checking its keys
+    against it; ConfigError naming the camera and the unknown model, the key of the other model (or
+    unknown) or the missing key."""
+    where = f"simulator setting 'rig.cameras.{name}'"
+    if not isinstance(entry, dict):
+        raise ConfigError(f"{where} must be a mapping, got {entry!r}")
+    model = entry.get("model", "radial1")
+    if model not in LENS_COEFFICIENTS:
+        raise ConfigError(f"simulator setting 'rig.cameras.{name}.model' is {model!r}; expected one of "
+                          f"{', '.join(LENS_COEFFICIENTS)}")
+    coefficients = LENS_COEFFICIENTS[model]
+    unknown = sorted(set(entry) - set(CAMERA_KEYS) - set(coefficients))
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(map(str, unknown))} for model {model} "
+                          f"(its coefficients: {', '.join(coefficients)})")
+    missing = [key for key in CAMERA_KEYS[1:] + (("d",) if model == "radial1" else ()) if key not in entry]
+    if missing:
+        raise ConfigError(f"{where}: missing {', '.join(missing)}")
+    return model
 
 
 def settings_to_write(config: dict) -> dict:
@@ -192,6 +219,8 @@ def load_config(path: str | Path) -> dict:
     try:
         config = merge(DEFAULTS, data)
         check_flight_pattern(config)
+        for name, entry in config["rig"]["cameras"].items():
+            check_camera_entry(name, entry)
     except ConfigError as error:
         raise ConfigError(f"{path}: {error}") from None
     return config

@@ -17,7 +17,7 @@ are then split by the lines of the pattern's grid (cell lines and outline) that 
   coordinates; the only approximation is the distortion's curvature over one pixel (< 1e-3 px even
   for a strong wide-angle model);
 - anything else (several parallel lines in one pixel, cells smaller than a few pixels, the
-  horizon of a board crossing the camera plane, the fold of a d < 0 model): s x s rays per pixel
+  horizon of a board crossing the camera plane, where a lens model folds): s x s rays per pixel
   (`RenderSettings.supersampling`) in a multi-jittered pattern, area within ~1 / s^2.
 
 `coverage_image` is the noise-free, blur-free, vignetting-free rendering on a flat background;
@@ -257,8 +257,9 @@ def _image_normalized_bounds(camera: Camera) -> tuple[float, float, float, float
     ])
     xy = camera.undistort_normalized(border)
     if np.isnan(xy).any():
-        # The model folds inside the image: nothing beyond the turning radius is ever seen.
-        r_turn = 1.0 / np.sqrt(-3.0 * camera.d)
+        # The model folds inside the image: nothing beyond the radius where it stops being
+        # one-to-one is ever seen.
+        r_turn = camera.max_projectable_radius
         return -r_turn, r_turn, -r_turn, r_turn
     x_min, y_min = xy.min(axis=0)
     x_max, y_max = xy.max(axis=0)
@@ -309,11 +310,11 @@ def _visible_outline(camera: Camera, cam_from_world: Rigid3, board: MarkerBoard)
 
 
 def _distort_normalized_to_pixels(camera: Camera, xy: np.ndarray) -> np.ndarray:
-    """Distorted pixels (m, 2) of undistorted normalized points (m, 2); points beyond the turning
-    radius of a folding (d < 0) model are first pulled radially onto it."""
+    """Distorted pixels (m, 2) of undistorted normalized points (m, 2); points beyond a folding
+    model's `max_projectable_radius` are first pulled radially onto it."""
     xy = np.array(xy, dtype=float)
-    if camera.d < 0:
-        r_turn = 1.0 / np.sqrt(-3.0 * camera.d)
+    r_turn = camera.max_projectable_radius
+    if np.isfinite(r_turn):
         r = np.hypot(xy[:, 0], xy[:, 1])
         far = r > r_turn
         xy[far] *= (r_turn / r[far])[:, None]
@@ -483,7 +484,7 @@ def _paint_board(image: np.ndarray, camera: Camera, cam_from_world: Rigid3, plan
     coordinates, whose map from the pixel is affine up to the distortion's curvature over one pixel
     (< 1e-3 px even for strong wide-angle distortion); one line's area is closed-form, two lines'
     is a clipped square. The remaining mixed pixels (several parallel lines in one pixel, the
-    horizon, the fold of a d < 0 model) are supersampled with s x s rays.
+    horizon, where the lens model folds) are supersampled with s x s rays.
     """
     x0, y0, x1, y1 = bbox
     nx, ny = x1 - x0, y1 - y0

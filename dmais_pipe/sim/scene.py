@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from ..camera import Camera
 from ..geometry import Rigid3, exp_so3, rotation_from_euler_zyx
 from ..rig import Rig
-from .config import check_flight_pattern
+from .config import LENS_COEFFICIENTS, check_camera_entry, check_flight_pattern
 from .render import MarkerBoard
 
 
@@ -58,10 +58,21 @@ def build_rig(config: dict) -> Rig:
     """Truth rig from the `rig` settings (intrinsics, rig_from_cam Euler angles and centres)."""
     cameras, cam_from_rig = {}, {}
     for name, c in config["cameras"].items():
-        cameras[name] = Camera(c["fx"], c["fy"], c["cx"], c["cy"], c["d"], config["width"], config["height"])
+        cameras[name] = rig_camera(name, c, config["width"], config["height"])
         rig_from_cam = Rigid3(rotation_from_euler_zyx(np.radians(c["euler_zyx_deg"])), c["center_m"])
         cam_from_rig[name] = rig_from_cam.inverse()
     return Rig(cameras, cam_from_rig, config["reference_camera"])
+
+
+def rig_camera(name: str, entry: dict, width: int, height: int) -> Camera:
+    """The truth Camera of one `rig.cameras` entry (`check_camera_entry`): fx, fy, cx, cy and, by its
+    `model` (default radial1), d (radial1) or k1, k2, p1, p2, k3 (opencv, any left out is 0)."""
+    model = check_camera_entry(name, entry)
+    if model == "radial1":
+        return Camera(entry["fx"], entry["fy"], entry["cx"], entry["cy"], entry["d"], width, height)
+    k1, k2, p1, p2, k3 = (float(entry.get(key, 0.0)) for key in LENS_COEFFICIENTS[model])
+    return Camera(entry["fx"], entry["fy"], entry["cx"], entry["cy"], k1, width, height, model, k2=k2, p1=p1,
+                  p2=p2, k3=k3)
 
 
 def look_rotation(forward, down_hint=(0.0, 0.0, -1.0)) -> np.ndarray:

@@ -167,10 +167,12 @@ def write_world(config: dict, world: dict, root: Path, jobs: int) -> None:
 
 
 def _manifest(config: dict) -> dict:
+    """dataset.yaml's content; a camera's `model` only where it is not the default radial1."""
     rig = config["rig"]
     cameras = {
-        name: {"width": rig["width"], "height": rig["height"], "focal_px": rig["nominal_focal_px"]}
-        for name in rig["cameras"]
+        name: {"width": rig["width"], "height": rig["height"], "focal_px": rig["nominal_focal_px"],
+               **({"model": entry["model"]} if entry.get("model", "radial1") != "radial1" else {})}
+        for name, entry in rig["cameras"].items()
     }
     return {
         "name": config["name"],

@@ -18,10 +18,13 @@ from . import setting
 
 @dataclass(frozen=True)
 class Conf:
-    """Where the published tables come from."""
+    """Where the published tables come from, and the other runs to compare with."""
 
     paper_dir: str = setting("", "folder of the published tables to compare with ('': the package's "
                                  "transcription of the paper)")
+    compare_with: tuple = setting((), "other runs whose pose accuracy per camera subset (tables/conf.csv) the "
+                                      "report shows beside this run's: results folders beside this one "
+                                      "(results/<name>) by name, or paths")
 
 
 CONFS = {"default": Conf()}
@@ -34,6 +37,7 @@ def run(workspace: Workspace, html: Path, conf: Conf = Conf(), benchmarks: Path 
             if (table := workspace.load_table(name, spec.keys)) is not None}
     written = [workspace.save_table(f"{name}_vs_paper", table)
                for name, table in paper_comparisons(ours, paper_dir).items()]
-    written.append(write_report(workspace, html, benchmarks_dir=benchmarks, paper_dir=paper_dir))
+    written.append(write_report(workspace, html, benchmarks_dir=benchmarks, paper_dir=paper_dir,
+                                compare_with=conf.compare_with))
     written += [copy_atomic(table, Path(html).parent / "tables" / table.name) for table in workspace.table_paths()]
     return written

@@ -59,9 +59,19 @@ rule bench_pose:
         "--stage-frames {params.stage_frames} > {log} 2>&1"
 
 
+def compared_conf_tables(wildcards):
+    """tables/conf.csv of the runs the report compares with (report: compare_with) that exist, so that
+    the report is made again when one changes; one not made yet is named in the report, not built here."""
+    names = GIVEN_SETTINGS["report"].get("compare_with") or []
+    folders = [Path(name) if "/" in name else Path(RESULTS).parent / name for name in names]
+    return [str(folder / "tables" / "conf.csv") for folder in folders
+            if folder.resolve() != Path(RESULTS).resolve() and (folder / "tables" / "conf.csv").is_file()]
+
+
 rule report:
     input:
         manifest=lambda wildcards: dataset_ready(),
+        compared=compared_conf_tables,
         intrinsics=f"{RESULTS}/tables/intrinsics.csv",
         extrinsics=f"{RESULTS}/tables/extrinsics_R.csv",
         evaluation=f"{RESULTS}/evaluation.csv",
