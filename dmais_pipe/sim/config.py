@@ -27,6 +27,7 @@ from pathlib import Path
 
 import yaml
 
+from ..camera import PARAMETER_NAMES
 from ..errors import ConfigError, yaml_problem
 
 # Truth rig. Intrinsics: tab:intrinsics ("Ours" rows) for f and d, C3's fy raised to 43700 px;
@@ -137,8 +138,9 @@ DEFAULTS = {
 
 #: A rig camera entry's keys besides its lens model's coefficients (all required but `model`).
 CAMERA_KEYS = ("model", "fx", "fy", "cx", "cy", "euler_zyx_deg", "center_m")
-#: Each lens model's coefficients in a rig camera entry: radial1's d is required, opencv's default to 0.
-LENS_COEFFICIENTS = {"radial1": ("d",), "opencv": ("k1", "k2", "p1", "p2", "k3")}
+#: Each lens model's coefficients in a rig camera entry (its parameters after fx, fy, cx, cy):
+#: radial1's d is required, opencv's default to 0.
+LENS_COEFFICIENTS = {model: names[4:] for model, names in PARAMETER_NAMES.items()}
 
 #: flight.pattern's values (module docstring).
 FLIGHT_PATTERNS = ("hover", "line")
