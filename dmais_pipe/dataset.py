@@ -646,7 +646,8 @@ class Dataset:
         for name, spec in self.cameras.items():
             kinds.setdefault(spec, []).append(name)
         cameras = "; ".join(f"{', '.join(names)} {spec.width}x{spec.height}"
-                            + (f" f={spec.focal_px:g}px" if spec.focal_px else "") for spec, names in kinds.items())
+                            + (f" f={spec.focal_px:g}px" if spec.focal_px else "")
+                            + (f" model {spec.model}" if spec.model != "radial1" else "") for spec, names in kinds.items())
         lines = [f"dataset {self.name} ({self.root})"]
         if self.description:
             lines.append(f"  {self.description}")

@@ -120,6 +120,7 @@ def test_camera_model_round_trips_and_defaults_to_radial1(tmp_path):
     assert (copy / "dataset.yaml").read_bytes() == (root / "dataset.yaml").read_bytes()
     (copy / "images").symlink_to(root / "images")
     assert Dataset.load(copy).cameras == ds.cameras
+    assert f"C1 {W}x{H} model opencv" in ds.summary() and "C0 " in ds.summary()
 
 
 def test_optional_files_absent_and_extra_columns(tmp_path):
