@@ -4,14 +4,30 @@ intrinsics, extrinsics and pose, against cv2.calibrateCamera + stereoCalibrate +
 
 from __future__ import annotations
 
+import numpy as np
+import pandas as pd
 import pytest
 
 from dmais_pipe.bench.stereo import bench_stereo
 
 
 @pytest.fixture(scope="module")
-def table():
-    return bench_stereo(model="opencv").set_index("what")
+def run(tmp_path_factory):
+    work = tmp_path_factory.mktemp("stereo")
+    return work, bench_stereo(model="opencv", work=work).set_index("what")
+
+
+@pytest.fixture(scope="module")
+def table(run):
+    return run[1]
+
+
+def test_the_rig_is_watched_over_exact_control_points(run):
+    """The board's corners are exact (no sigma_m, the survey term 0): the watched rig's points are
+    held at WATCH_MIN_SURVEY_M instead of the group being left out."""
+    mounting = pd.read_csv(run[0] / "results" / "poses_stereo_both.mounting.csv")
+    assert list(mounting["camera"]) == ["left", "right"]
+    assert np.isfinite(mounting.loc[1, ["d_rx_arcmin", "sigma_rx_arcmin", "d_focal_ppm"]].to_numpy(float)).all()
 
 
 @pytest.mark.parametrize("side", ["left", "right"])

@@ -144,6 +144,9 @@ def _solve(workspace: Workspace, conf: Conf, rig: Rig, record: dict, calibration
 #: The least pixel noise the rig adjustment weighs the markers with (px): where the error model's
 #: pixel term is 0 (not told from the survey's) and rig.json has no calibration noise.
 WATCH_MIN_PIXEL_PX = 0.05
+#: The least survey sigma (m) of the rig adjustment's points, whose surveyed coordinates are priors:
+#: where the points are exact (sigma_m 0, a printed board) or the survey term is not significant.
+WATCH_MIN_SURVEY_M = 1e-4
 
 
 def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise: float,
@@ -154,7 +157,7 @@ def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise:
     WATCH_MIN_PIXEL_PX), its camera rotation per frame (jitter and mounting together: the model
     tells their sum far better than their split, and an adjustment without the vibration there is
     turns the cameras by tens of arc-min to fit it) and its survey sigma (a point's own `sigma_m`
-    where given); with a lever_arm (3,) m in the rig frame, the frames' centres held to their POS
+    where given; at least WATCH_MIN_SURVEY_M); with a lever_arm (3,) m in the rig frame, the frames' centres held to their POS
     positions less it, per-axis sigma pos_sigma (3,) m; with the calibration's joint covariance
     `calibration` (`calibration_covariance`), the changes' sigmas carry its share (a calibration error
     is not flagged as a change). A group it cannot adjust is left out with a warning naming it."""
@@ -167,7 +170,7 @@ def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise:
         pixel = max(model.sigma["pixel"], calibrated_noise if np.isfinite(calibrated_noise) else 0.0,
                     WATCH_MIN_PIXEL_PX)
         rotation = float(np.hypot(model.sigma["jitter"], model.sigma["mounting"]))
-        survey = survey_sigma(point_sigma(points, rows["point_id"]), model)
+        survey = np.maximum(survey_sigma(point_sigma(points, rows["point_id"]), model), WATCH_MIN_SURVEY_M)
         R = rotation_from_quat(frames[list(QUAT)].to_numpy(float))
         centres = {} if lever_arm is None else {
             "center_prior_m": pos.loc[frames["frame"]].to_numpy(float) - np.einsum("fji,j->fi", R, lever_arm),
