@@ -42,6 +42,10 @@ log = logging.getLogger(__name__)
 OBSERVATION_COLUMNS = ["image", "camera", "point_id", "u", "v"]
 PREDICTION_MARGIN_PX = 3000.0  # keep predictions this far outside the image (attitude prior errors)
 VERIFY_GATE_PX = 40.0
+#: `wide_field`: the prior attitude error it allows for (the simulator's calibration priors: 1 deg)
+#: and the keystone (px) beyond which identification models it (half of identify's 12 px gate).
+PRIOR_TURN_DEG = 1.0
+KEYSTONE_PX = 6.0
 
 
 def _nominal_camera(dataset: Dataset, camera: str, calibrated: Camera | None) -> Camera | None:
@@ -88,6 +92,15 @@ def _prediction_model(dataset: Dataset, image: str, rig: Rig | None = None, cali
                 f"focal_px; missing {' and '.join(missing)}")
     R = Rigid3.from_quat(q, np.zeros(3)).R
     return camera, Rigid3(R, -R @ centre), dataset.control_points
+
+
+def wide_field(camera: Camera) -> bool:
+    """Whether a turn of the prior's attitude by PRIOR_TURN_DEG about an image axis moves the
+    predictions of `camera` by more than KEYSTONE_PX beyond a similarity at the image's corners
+    (f w r^2 / f^2 for a corner r px from the centre): then `identify` fits that keystone too. A
+    DMAIS camera (5.4 deg) stays far below it, a 60 deg oblique far above."""
+    corner = 0.5 * np.hypot(camera.width, camera.height)
+    return np.radians(PRIOR_TURN_DEG) * corner**2 / camera.fx > KEYSTONE_PX
 
 
 def identification_gap(dataset: Dataset, image: str, rig: Rig | None = None,
@@ -149,7 +162,8 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
         height, width = pixels.shape
         named = identify_with_reasons(found[["u", "v"]].to_numpy(), uv, ids, (width, height),
                                       rejected=rejected[["u", "v"]].to_numpy(dtype=float), gate_px=identify_gate_px,
-                                      min_inliers=identify_min_inliers)
+                                      min_inliers=identify_min_inliers,
+                                      projective=wide_field(_prediction_model(dataset, image, rig, calibrated)[0]))
         found["point_id"], found["id_refusal"] = named.ids, named.reasons
         if dataset.images.loc[dataset.images["image"] == image, "stage"].iloc[0] != "flight":
             verified = verify_with_pose(found[["u", "v"]].to_numpy(), named.ids, dataset.points,

@@ -8,7 +8,10 @@ predicted set with the detected set robustly:
    within `max_shift`, scored by how many detections have a prediction within a coarse gate;
 2. the best few are refined by iterated least squares of a 2D similarity, then of a similarity
    plus a radial cubic term about the image centre (unmodelled distortion, focal error), with a
-   gate shrinking to `gate_px`; a match's gate is also at most PERIOD_GATE_FRACTION of its
+   gate shrinking to `gate_px`; with `projective` (a wide field of view, where a prior's attitude
+   error is not a similarity: a turn by w about an image axis moves a point by f w (1 + y^2 / f^2)
+   along it and f w x y / f^2 across), that model plus the two keystone terms of such a turn
+   (du, dv) = g1 (x^2, x y) + g2 (x y, y^2) about the image centre, once 8 pairs are matched; a match's gate is also at most PERIOD_GATE_FRACTION of its
    prediction's local period (the distance to the nearest other prediction);
 3. periodic patterns: the alignments shifted by one period of the pattern (every id moved to its
    neighbouring point along a period vector: the two shortest independent offsets between the
@@ -59,6 +62,8 @@ NEIGHBOURHOOD = 9
 #: How often the alignment may move to a cheaper one-period shift of itself (the hypotheses of a dense
 #: pattern start within a period or two of the priors, which may be that far off).
 MAX_PERIOD_MOVES = 4
+#: The fewest matched pairs the projective model (7 parameters) is fitted to.
+PROJECTIVE_PAIRS = 8
 
 TOO_FEW = "fewer detections or predicted points than the fewest matches"
 NO_ALIGNMENT = "no alignment of the predictions matches enough detections"
@@ -94,28 +99,32 @@ class _Alignment:
         return set(zip(self.pi.tolist(), self.di.tolist()))
 
 
-def _design(p: np.ndarray, centre: np.ndarray, radial: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Rows of the linear model u' = [a -b; b a] p + t (+ k (p - c) |p - c|^2) for points p (n, 2)."""
+def _design(p: np.ndarray, centre: np.ndarray, radial: bool, projective: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of the linear model u' = [a -b; b a] p + t (+ k (p - c) |p - c|^2, + with `projective`
+    the keystone g1 (q_x^2, q_x q_y) + g2 (q_x q_y, q_y^2), q = (p - c) / 1000) for points p (n, 2)."""
     n = len(p)
     x, y = p[:, 0], p[:, 1]
-    ax = np.zeros((2 * n, 5 if radial else 4))
+    ax = np.zeros((2 * n, 7 if projective else 5 if radial else 4))
     ax[0::2, 0], ax[0::2, 1], ax[0::2, 2] = x, -y, 1.0
     ax[1::2, 0], ax[1::2, 1], ax[1::2, 3] = y, x, 1.0
-    if radial:
+    if radial or projective:
         q = (p - centre) / 1000.0
         r2 = (q**2).sum(1)
         ax[0::2, 4], ax[1::2, 4] = q[:, 0] * r2, q[:, 1] * r2
+    if projective:
+        ax[0::2, 5], ax[1::2, 5] = q[:, 0] ** 2, q[:, 0] * q[:, 1]
+        ax[0::2, 6], ax[1::2, 6] = q[:, 0] * q[:, 1], q[:, 1] ** 2
     return ax, p
 
 
-def _fit(pred: np.ndarray, det: np.ndarray, centre: np.ndarray, radial: bool) -> np.ndarray:
-    a, _ = _design(pred, centre, radial)
+def _fit(pred: np.ndarray, det: np.ndarray, centre: np.ndarray, radial: bool, projective: bool = False) -> np.ndarray:
+    a, _ = _design(pred, centre, radial, projective)
     params, *_ = np.linalg.lstsq(a, det.reshape(-1), rcond=None)
     return params
 
 
 def _apply(params: np.ndarray, pred: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    a, _ = _design(pred, centre, len(params) == 5)
+    a, _ = _design(pred, centre, len(params) >= 5, len(params) == 7)
     return (a @ params).reshape(-1, 2)
 
 
@@ -155,6 +164,7 @@ class _Scene:
     hi: np.ndarray
     rejected: np.ndarray
     min_inliers: int
+    projective: bool = False
 
     def moved(self, params: np.ndarray) -> np.ndarray:
         return _apply(params, self.pred, self.centre)
@@ -190,7 +200,7 @@ def _refine_hypothesis(scene: _Scene, shift: np.ndarray) -> _Alignment | None:
                 radial = False
             else:
                 return None
-        params = _fit(pred[pi], det[di], centre, radial)
+        params = _fit(pred[pi], det[di], centre, radial, radial and scene.projective and len(pi) >= PROJECTIVE_PAIRS)
         if not _scale_ok(params):
             return None
     return _aligned(scene, params)
@@ -202,7 +212,8 @@ def _polish(scene: _Scene, pi: np.ndarray, di: np.ndarray) -> _Alignment | None:
     for _ in range(3):
         if len(pi) < max(scene.min_inliers, 2):
             return None
-        params = _fit(scene.pred[pi], scene.det[di], scene.centre, len(pi) >= 6)
+        params = _fit(scene.pred[pi], scene.det[di], scene.centre, len(pi) >= 6,
+                      scene.projective and len(pi) >= PROJECTIVE_PAIRS)
         if not _scale_ok(params):
             return None
         alignment = _aligned(scene, params)
@@ -298,7 +309,7 @@ def _local_shift_reason(scene: _Scene, best: _Alignment, k: int, matched_tree: c
 
 
 def identify(detections, predicted, point_ids, image_size=None, *, rejected=None, gate_px: float = GATE_PX,
-             max_shift: float = MAX_SHIFT_PX, min_inliers: int = MIN_INLIERS) -> np.ndarray:
+             max_shift: float = MAX_SHIFT_PX, min_inliers: int = MIN_INLIERS, projective: bool = False) -> np.ndarray:
     """Point ids (n,) object array for detections (n, 2); '' where not identified.
 
     predicted: (m, 2) projections of the known points from the priors (NaN rows are ignored);
@@ -307,15 +318,16 @@ def identify(detections, predicted, point_ids, image_size=None, *, rejected=None
     detector found but did not return (`detect`'s rejections, e.g. a corner a shadow edge crosses):
     a detection farther from its prediction than one of them is not named, for it is likely no
     marker but a "virtual" X beside the rejected one (an outline crossed by the same shadow edge).
-    `identify_with_reasons` gives the same ids with the reason for each one left empty.
+    projective: also fit the keystone of a turn about the image axes (step 2 of the module
+    docstring; a wide field of view). `identify_with_reasons` gives the same ids with the reason for each one left empty.
     """
     return identify_with_reasons(detections, predicted, point_ids, image_size, rejected=rejected, gate_px=gate_px,
-                                 max_shift=max_shift, min_inliers=min_inliers).ids
+                                 max_shift=max_shift, min_inliers=min_inliers, projective=projective).ids
 
 
 def identify_with_reasons(detections, predicted, point_ids, image_size=None, *, rejected=None,
                           gate_px: float = GATE_PX, max_shift: float = MAX_SHIFT_PX,
-                          min_inliers: int = MIN_INLIERS) -> Identification:
+                          min_inliers: int = MIN_INLIERS, projective: bool = False) -> Identification:
     """`identify`'s ids (n,) and, for each detection left without one, the reason (n,)."""
     det = np.asarray(detections, dtype=float).reshape(-1, 2)
     pred = np.asarray(predicted, dtype=float).reshape(-1, 2)
@@ -328,7 +340,7 @@ def identify_with_reasons(detections, predicted, point_ids, image_size=None, *, 
 
     if len(det) < min_inliers or len(pred) < min_inliers:
         return refused(TOO_FEW)
-    scene = _scene(det, pred, image_size, gate_px, min_inliers, rejected)
+    scene = _scene(det, pred, image_size, gate_px, min_inliers, rejected, projective)
     results = _hypotheses(scene, max_shift)
     if not results:
         return refused(NO_ALIGNMENT)
@@ -349,7 +361,8 @@ def identify_with_reasons(detections, predicted, point_ids, image_size=None, *, 
     return _name_matches(scene, best, ids, gate_px, rejected)
 
 
-def _scene(det: np.ndarray, pred: np.ndarray, image_size, gate_px: float, min_inliers: int, rejected) -> _Scene:
+def _scene(det: np.ndarray, pred: np.ndarray, image_size, gate_px: float, min_inliers: int, rejected,
+           projective: bool = False) -> _Scene:
     """The scene of detections det (n, 2), predictions pred (m, 2) and rejected X-corners (k, 2) (or None):
     gates, centre and view."""
     if image_size is not None:
@@ -358,7 +371,7 @@ def _scene(det: np.ndarray, pred: np.ndarray, image_size, gate_px: float, min_in
         lo, hi = det.min(0), det.max(0)
     gates = np.minimum(gate_px, PERIOD_GATE_FRACTION * _local_periods(pred))
     rejected = np.zeros((0, 2)) if rejected is None else np.asarray(rejected, dtype=float).reshape(-1, 2)
-    return _Scene(det, pred, gates, 0.5 * (lo + hi), lo, hi, rejected, min_inliers)
+    return _Scene(det, pred, gates, 0.5 * (lo + hi), lo, hi, rejected, min_inliers, projective)
 
 
 def _hypotheses(scene: _Scene, max_shift: float) -> list[_Alignment]:
