@@ -23,7 +23,7 @@ undistorted radius `Camera.max_projectable_radius`, the largest radius within wh
 determinant stays positive in every direction (radial1: r (1 + d r^2) turns at 1 / sqrt(-3 d) for
 d < 0; opencv: found numerically). `Camera.project` returns NaN beyond it, `Camera.undistort*` for
 pixels whose undistorted point lies beyond it, and `Camera.folds_in_image` says whether that disk
-leaves out part of the image (the dataset refuses such a camera).
+leaves out part of the image (an opencv calibration or import of such a camera is refused).
 
 `Camera.project` returns NaN for points the camera does not image; least-squares solvers use
 `project_unmasked`, the same formula for every point off the camera plane, so that a trial step
@@ -48,6 +48,8 @@ PARAMETER_NAMES = {
     "opencv": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"),
 }
 MODELS = tuple(PARAMETER_NAMES)
+#: The Camera fields of the opencv model's parameters after k1 (the field `d`).
+LENS_FIELDS = PARAMETER_NAMES["opencv"][5:]
 #: The fold search of the opencv model: directions, and radial samples out to this many times the
 #: image's normalized half-diagonal (a fold farther out never reaches an imaged point).
 _FOLD_DIRECTIONS = 128
@@ -117,10 +119,14 @@ def _distorted_opencv(xy: np.ndarray, k1: float, k2: float, p1: float, p2: float
     g = 2.0 * k1 + r2 * (4.0 * k2 + 6.0 * k3 * r2)  # d s / d x = g x, d s / d y = g y
     J = np.empty((len(xy), 2, 2))
     J[:, 0, 0] = s + g * x * x + 2.0 * p1 * y + 6.0 * p2 * x
-    J[:, 0, 1] = g * x * y + 2.0 * p1 * x + 2.0 * p2 * y
-    J[:, 1, 0] = g * x * y + 2.0 * p1 * x + 2.0 * p2 * y
+    J[:, 0, 1] = J[:, 1, 0] = g * x * y + 2.0 * p1 * x + 2.0 * p2 * y
     J[:, 1, 1] = s + g * y * y + 6.0 * p1 * y + 2.0 * p2 * x
     return distorted, J
+
+
+def _determinant(J: np.ndarray) -> np.ndarray:
+    """(n,) determinants of 2 x 2 matrices J (n, 2, 2)."""
+    return J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
 
 
 def _project_normalized(xy, z, camera: "Camera", jacobian: bool):
@@ -227,11 +233,17 @@ class Camera:
 
     def with_parameters(self, parameters) -> "Camera":
         """The camera of the same model and size with parameters (P,) (`parameter_names`' order)."""
+        return Camera.from_parameters(self.model, parameters, self.width, self.height)
+
+    @classmethod
+    def from_parameters(cls, model: str, parameters, width: int, height: int) -> "Camera":
+        """The camera of `model` and size with parameters (P,) in PARAMETER_NAMES[model]'s order."""
+        if model not in PARAMETER_NAMES:
+            raise DmaisError(f"camera model {model!r} is not one of {', '.join(MODELS)}")
         p = [float(v) for v in parameters]
-        if len(p) != len(self.parameter_names):
-            raise DmaisError(f"model {self.model} has {len(self.parameter_names)} parameters, got {len(p)}")
-        extra = dict(zip(("k2", "p1", "p2", "k3"), p[5:]))
-        return Camera(*p[:5], self.width, self.height, self.model, **extra)
+        if len(p) != len(PARAMETER_NAMES[model]):
+            raise DmaisError(f"model {model} has {len(PARAMETER_NAMES[model])} parameters, got {len(p)}")
+        return cls(*p[:5], width, height, model, **dict(zip(LENS_FIELDS, p[5:])))
 
     @property
     def max_projectable_radius(self) -> float:
@@ -325,9 +337,8 @@ class Camera:
                 error = distorted - xy_d
                 if np.all(np.abs(error) <= tolerance):
                     break
-                det = J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0]
                 step = np.column_stack([J[:, 1, 1] * error[:, 0] - J[:, 0, 1] * error[:, 1],
-                                        J[:, 0, 0] * error[:, 1] - J[:, 1, 0] * error[:, 0]]) / det[:, None]
+                                        J[:, 0, 0] * error[:, 1] - J[:, 1, 0] * error[:, 0]]) / _determinant(J)[:, None]
                 trial = xy - step
                 beyond = np.hypot(trial[:, 0], trial[:, 1]) > limit  # past the fold: half the step
                 trial[beyond] = xy[beyond] - 0.5 * step[beyond]
@@ -367,11 +378,8 @@ class Camera:
     def from_dict(cls, data: dict) -> "Camera":
         """The camera of a `to_dict` mapping (no "model": radial1)."""
         model = data.get("model", "radial1")
-        if model not in PARAMETER_NAMES:
-            raise DmaisError(f"camera model {model!r} is not one of {', '.join(MODELS)}")
-        values = [data[k] for k in PARAMETER_NAMES[model]]
-        return cls(*values[:5], data["width"], data["height"], model,
-                   **dict(zip(("k2", "p1", "p2", "k3"), values[5:])))
+        names = PARAMETER_NAMES.get(model, ())
+        return cls.from_parameters(model, [data[k] for k in names], data["width"], data["height"])
 
     def _half_diagonal(self) -> float:
         """The image's half-diagonal in normalized units (distortion aside)."""
@@ -397,8 +405,7 @@ def _opencv_fold_radius(distortion: tuple[float, ...], half_diagonal: float) -> 
 
     def folded(r: np.ndarray, towards: np.ndarray) -> np.ndarray:
         """(m,) whether the determinant is <= 0 at radii r (m,) along unit directions (m, 2)."""
-        J = _distorted_opencv(r[:, None] * towards, *distortion, jacobian=True)[1]
-        return J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0] <= 0
+        return _determinant(_distorted_opencv(r[:, None] * towards, *distortion, jacobian=True)[1]) <= 0
 
     grid = folded(np.tile(radius, len(angle)), np.repeat(direction, len(radius), axis=0)).reshape(len(angle), -1)
     hit = grid.any(axis=1)

@@ -37,7 +37,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from ..calib.intrinsics import evaluate, opencv_camera
+from ..calib.intrinsics import OPENCV_FIXED_FLAGS, evaluate, opencv_camera
 from ..camera import PARAMETER_NAMES
 from ..dataset import Dataset, write_dataset
 from ..errors import DmaisError
@@ -194,7 +194,7 @@ def opencv_calibration(corners: list[np.ndarray], ids: list[np.ndarray], size: t
     """cv2.calibrateCamera on corners (n_i, 2) of the board points `ids` (n_i,) with our `model`:
     radial1 k1 alone, opencv its default model. Returns the model's parameters by name, the Camera
     ("camera") and eps_calib_px."""
-    flags = cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 if model == "radial1" else 0
+    flags = OPENCV_FIXED_FLAGS[model]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     objects = [_board_points_of(names).astype(np.float32) for names in ids]
     rms, K, dist, _, _ = cv2.calibrateCamera(objects, [c.astype(np.float32) for c in corners], size, None, None,

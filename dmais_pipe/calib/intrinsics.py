@@ -49,9 +49,8 @@ MIN_CALIB_IMAGES = 2
 #: from the mean); fewer than half agreeing means the mean would rest on outliers.
 PNPF_AGREEMENT = 0.2
 METHODS = ("ours", "opencv", "dlt_lm")
-TABLE_COLUMNS = ("method", "camera", "fx", "fy", "cx", "cy", "d", "eps_calib_px", "eps_eval_px")
 #: cv2.calibrateCamera's flags that hold the coefficients a model lacks (radial1: all but k1).
-_OPENCV_FIXED = {
+OPENCV_FIXED_FLAGS = {
     "radial1": (cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3 | cv2.CALIB_FIX_K4
                 | cv2.CALIB_FIX_K5 | cv2.CALIB_FIX_K6),
     "opencv": 0,
@@ -61,6 +60,10 @@ _OPENCV_FIXED = {
 def table_columns(model: str = "radial1") -> tuple[str, ...]:
     """The columns of <camera>.methods.csv for a camera of `model` (radial1: TABLE_COLUMNS)."""
     return ("method", "camera", *PARAMETER_NAMES[model], "eps_calib_px", "eps_eval_px")
+
+
+#: The columns of a radial1 camera's methods.csv and of the paper's tables/intrinsics.csv.
+TABLE_COLUMNS = table_columns()
 
 
 @dataclass
@@ -513,7 +516,7 @@ def calibrate_camera_opencv(points_world_per_image, uv_per_image, width: int, he
     image_points = [calib[k][1].astype(np.float32).reshape(-1, 1, 2) for k in names]
     cx, cy = image_centre(width, height)
     K0 = np.array([[focal_guess, 0, cx], [0, focal_guess, cy], [0, 0, 1]], dtype=np.float64)
-    flags = cv2.CALIB_USE_INTRINSIC_GUESS | _OPENCV_FIXED[model]
+    flags = cv2.CALIB_USE_INTRINSIC_GUESS | OPENCV_FIXED_FLAGS[model]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # its threads' partial sums, added in the order they finish, moved the result by 1e-8
@@ -536,8 +539,7 @@ def opencv_camera(K: np.ndarray, distortion: np.ndarray, width: int, height: int
     """The Camera of OpenCV's intrinsic matrix K (3, 3) and distortion vector (k1, k2, p1, p2, k3, ...)
     in `model` (radial1 takes k1 alone: calibrate with the others held at zero)."""
     values = [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *np.asarray(distortion, dtype=float).ravel()[:5]]
-    return Camera.from_dict({"model": model, "width": width, "height": height,
-                             **dict(zip(PARAMETER_NAMES[model], values))})
+    return Camera.from_parameters(model, values[:len(PARAMETER_NAMES[model])], width, height)
 
 
 def _dlt_intrinsics(X: np.ndarray, uv: np.ndarray) -> np.ndarray | None:

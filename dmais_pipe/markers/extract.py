@@ -103,14 +103,6 @@ def wide_field(camera: Camera) -> bool:
     return np.radians(PRIOR_TURN_DEG) * corner**2 / camera.fx > KEYSTONE_PX
 
 
-def identification_gap(dataset: Dataset, image: str, rig: Rig | None = None,
-                       calibrated: Camera | None = None) -> str | None:
-    """Why the markers of `image` cannot be identified (docs/dataset.md, "What each stage needs"),
-    or None when the priors and camera model to predict them are there."""
-    model = _prediction_model(dataset, image, rig, calibrated)
-    return model if isinstance(model, str) else None
-
-
 def predicted_projections(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None,
                           margin_px: float = PREDICTION_MARGIN_PX):
     """(uv (m, 2), point ids (m,)) of the known points predicted in `image` from the priors, or None
@@ -118,8 +110,11 @@ def predicted_projections(dataset: Dataset, image: str, rig: Rig | None = None, 
     margin_px of the image are kept. rig: for flight images; calibrated: the image camera's
     calibrated intrinsics, used for extrinsics images."""
     model = _prediction_model(dataset, image, rig, calibrated)
-    if isinstance(model, str):
-        return None
+    return None if isinstance(model, str) else _projections(model, margin_px)
+
+
+def _projections(model, margin_px: float):
+    """(uv (m, 2), point ids (m,)) of `predicted_projections` from a `_prediction_model`."""
     camera, cam_from_world, points = model
     xyz = points[["x", "y", "z"]].to_numpy(dtype=float)
     uv = camera.project(cam_from_world.apply(xyz))
@@ -152,18 +147,16 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
     seconds["detect_s"] = time.perf_counter() - started - seconds["decode_s"]
     found["point_id"] = ""
     found["id_refusal"] = ""
-    prediction = predicted_projections(dataset, image, rig, calibrated, margin_px)
-    if prediction is None and len(found):
-        found["id_refusal"] = identification_gap(dataset, image, rig, calibrated)
-        log.warning("markers %s: %d detected, none can be identified: %s", image, len(found),
-                    found["id_refusal"].iloc[0])
-    if prediction is not None and len(found):
-        uv, ids = prediction
+    model = _prediction_model(dataset, image, rig, calibrated)  # a sentence: why there is none
+    if isinstance(model, str) and len(found):
+        found["id_refusal"] = model
+        log.warning("markers %s: %d detected, none can be identified: %s", image, len(found), model)
+    if not isinstance(model, str) and len(found):
+        uv, ids = _projections(model, margin_px)
         height, width = pixels.shape
         named = identify_with_reasons(found[["u", "v"]].to_numpy(), uv, ids, (width, height),
                                       rejected=rejected[["u", "v"]].to_numpy(dtype=float), gate_px=identify_gate_px,
-                                      min_inliers=identify_min_inliers,
-                                      projective=wide_field(_prediction_model(dataset, image, rig, calibrated)[0]))
+                                      min_inliers=identify_min_inliers, projective=wide_field(model[0]))
         found["point_id"], found["id_refusal"] = named.ids, named.reasons
         if dataset.images.loc[dataset.images["image"] == image, "stage"].iloc[0] != "flight":
             verified = verify_with_pose(found[["u", "v"]].to_numpy(), named.ids, dataset.points,

@@ -73,6 +73,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import nnls
 
+from ..camera import LENS_FIELDS
 from ..geometry import skew
 from ..rig import Rig
 from .refine import _jacobian, inverse_normal_matrices, tangent_bases
@@ -108,7 +109,7 @@ MIN_EFFECT = 1e-6
 #: radial coefficient, an opencv camera's k1)...
 CALIBRATION_PARAMETERS = ("fx", "fy", "cx", "cy", "d", "rx", "ry", "rz", "vx", "vy", "vz")
 #: ... then, where the rig has an opencv camera, its further lens parameters.
-LENS_PARAMETERS = ("k2", "p1", "p2", "k3")
+LENS_PARAMETERS = LENS_FIELDS
 
 
 def calibration_parameters(rig: Rig) -> tuple[str, ...]:
