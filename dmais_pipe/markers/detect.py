@@ -32,6 +32,8 @@
 
 from __future__ import annotations
 
+import time
+
 import cv2
 import numpy as np
 import pandas as pd
@@ -39,11 +41,17 @@ from scipy.spatial import cKDTree
 
 from .centring import seed
 from .refine import ASYMMETRIC, NO_CLEAN_X, refine_corners
-from .rings import as_float_image, clean_radius, ring_offsets, ring_quality, ring_stats, sample
+from .rings import RADII, as_float_image, clean_radius, ring_offsets, ring_quality, ring_stats, sample
 from .shadow import SHADOW_REASON, both_sides, line_ends, log_sample, shadowed_corners, step_masks
 
 COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
 REJECTED_COLUMNS = ["u", "v", "reason"]
+#: px: how far a detection or rejection lies from its candidate at most (the centring's 3 px, the fit's
+#: 3 px from that, the fit with a shadow edge's 4 + 8 px), with room.
+MOVE_PX = 24
+#: px: how far from a candidate its tests and fits read the image: the largest ring of `clean_radius`
+#: (`rings.RADII`) and its bilinear neighbour about any position the candidate moves to.
+REACH_PX = int(np.ceil(RADII[-1])) + 1 + MOVE_PX
 MIN_CONTRAST = 50.0  # DN (8-bit) between the bright and the dark sectors, at most
 MIN_CONTRAST_FLOOR = 25.0  # DN (8-bit): the threshold on the quietest images
 CLUTTER_FACTOR = 15.0  # threshold = factor x clutter, within [floor, MIN_CONTRAST]
@@ -80,20 +88,26 @@ def _dn_scale(image: np.ndarray) -> float:
 
 def clutter(level: np.ndarray) -> float:
     """Robust standard deviation (image units) of a band-pass (Gaussians of 1 and 2 px) of the
-    half-resolution level (h, w) on tiles spread over it (`_tiles`): pixel noise and fine ground
+    half-resolution level (h, w) on tiles spread over it (`tile_boxes`): pixel noise and fine ground
     texture, where the few markers and edges of an image do not move the median."""
+    return clutter_of_tiles([level[y0:y1, x0:x1] for y0, y1, x0, x1 in tile_boxes(level.shape)])
+
+
+def clutter_of_tiles(tiles: list[np.ndarray]) -> float:
+    """`clutter` of the level's tiles (each (80, 80), or the whole level)."""
     band = np.concatenate([(cv2.GaussianBlur(t, (0, 0), 1.0) - cv2.GaussianBlur(t, (0, 0), 2.0)).ravel()
-                           for t in _tiles(level)])
+                           for t in tiles])
     return float(1.4826 * np.median(np.abs(band)))  # a band-pass has zero mean
 
 
-def _tiles(level: np.ndarray, size: int = 80, count: int = 4) -> list[np.ndarray]:
-    """count x count square tiles (size px) spread evenly over the image (h, w), or the whole
-    image when it is not much larger: a sample of its texture at a fraction of the cost."""
-    height, width = level.shape
+def tile_boxes(shape: tuple[int, int], size: int = 80, count: int = 4) -> list[tuple[int, int, int, int]]:
+    """(y0, y1, x0, x1) of count x count square tiles (size px) spread evenly over an image of
+    `shape` (h, w), or the whole image when it is not much larger: a sample of its texture at a
+    fraction of the cost."""
+    height, width = shape
     if height * width <= 4 * count * count * size * size:
-        return [level]
-    return [level[y:y + size, x:x + size] for y in np.linspace(0, height - size, count).astype(int)
+        return [(0, height, 0, width)]
+    return [(y, y + size, x, x + size) for y in np.linspace(0, height - size, count).astype(int)
             for x in np.linspace(0, width - size, count).astype(int)]
 
 
@@ -133,6 +147,14 @@ def candidates(img: np.ndarray, min_contrast: float, level: np.ndarray | None = 
     if min(img.shape) < 8:
         return np.zeros((0, 2))
     level = cv2.pyrDown(img) if level is None else level
+    ys, xs, strength = saddle_peaks(saddle_response(level), min_contrast)
+    return strongest(2 * xs, 2 * ys, strength)
+
+
+def saddle_response(level: np.ndarray) -> np.ndarray:
+    """(h, w) float32 saddle response Ixy^2 - Ixx Iyy (> 0 at saddles) of the Gaussian-smoothed
+    half-resolution level (h, w). A pixel's value depends on the level's pixels within
+    RESPONSE_SUPPORT_PX of it (and on the level's border where that is nearer)."""
     smooth = cv2.GaussianBlur(level, (0, 0), 1.0)
     dxx = cv2.Sobel(smooth, cv2.CV_32F, 2, 0, ksize=3)
     dyy = cv2.Sobel(smooth, cv2.CV_32F, 0, 2, ksize=3)
@@ -140,18 +162,42 @@ def candidates(img: np.ndarray, min_contrast: float, level: np.ndarray | None = 
     dxx *= dyy
     dxy *= dxy
     dxy -= dxx  # saddle response, > 0 at saddles
-    del dxx, dyy
-    response = dxy
+    return dxy
+
+
+#: Half-resolution px a saddle peak depends on: the blur's kernel (sigma 1: 4), Sobel (1), the 3 x 3 maximum (1).
+RESPONSE_SUPPORT_PX = 6
+
+
+def saddle_peaks(response: np.ndarray, min_contrast: float):
+    """(ys (k,), xs (k,), strength (k,)) of the local 3 x 3 maxima of `response` (h, w) above the
+    threshold of `min_contrast`, in raster order."""
     threshold = np.float32((RESPONSE_FACTOR * min_contrast) ** 2 * 1e4)
     peaks = cv2.dilate(response, np.ones((3, 3), np.uint8))
     ys, xs = np.nonzero((response >= peaks) & (response > threshold))
-    strength = response[ys, xs]
-    order = np.argsort(-strength)[:MAX_CANDIDATES]
-    return np.column_stack([2.0 * xs[order], 2.0 * ys[order]]).astype(float)
+    return ys, xs, response[ys, xs]
+
+
+def strongest(x: np.ndarray, y: np.ndarray, strength: np.ndarray) -> np.ndarray:
+    """(k, 2) positions x, y (n,) ordered by strength (n,), strongest first, equal strengths in
+    raster order (y, then x): at most MAX_CANDIDATES."""
+    order = np.lexsort((x, y, -strength))[:MAX_CANDIDATES]
+    return np.column_stack([x[order], y[order]]).astype(float)
+
+
+def contrasts(raw: np.ndarray, texture: float | None, min_contrast: float | None = None):
+    """(contrast, lit contrast) in the units of the image `raw` (h, w): the ring tests' minimum
+    contrast (`min_contrast` in 8-bit DN, None: from the clutter `texture`, None where the image
+    has no half-resolution level) and that of a lit X (the candidates' threshold)."""
+    if min_contrast is not None or texture is None:
+        contrast = (MIN_CONTRAST if min_contrast is None else min_contrast) * _dn_scale(raw)
+    else:
+        contrast = _threshold(texture, _dn_scale(raw))
+    return contrast, MIN_CONTRAST * _dn_scale(raw) if min_contrast is None else contrast
 
 
 def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QUALITY,
-           refine_points: bool = True, with_rejected: bool = False):
+           refine_points: bool = True, with_rejected: bool = False, seconds: dict | None = None):
     """Every diagonal marker (X-corner) of a (h, w) 8/16-bit grayscale image.
 
     Returns a DataFrame with columns u, v (refined, OpenCV pixel convention), score in [0, 1]
@@ -168,20 +214,39 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
     shadow edge have the ring quality MIN_QUALITY in their score (their rings pass only with the
     shade divided out).
     """
+    seconds = {} if seconds is None else seconds
+    started = time.perf_counter()
     raw = np.asarray(image)
     img = as_float_image(raw)
     level = cv2.pyrDown(img) if min(img.shape) >= 8 else None
-    texture = clutter(level) if level is not None else 0.0
-    if min_contrast is not None or level is None:
-        contrast = (MIN_CONTRAST if min_contrast is None else min_contrast) * _dn_scale(raw)
-    else:
-        contrast = _threshold(texture, _dn_scale(raw))
-    lit_contrast = MIN_CONTRAST * _dn_scale(raw) if min_contrast is None else contrast
-    (cand, radius, quality), shadowed, shade = _verified(img, contrast, min_quality, level, lit_contrast)
+    texture = clutter(level) if level is not None else None
+    contrast, lit_contrast = contrasts(raw, texture, min_contrast)
+    # The saddle response threshold stays at the full contrast's: it is loose enough for markers in
+    # the shade (the same recall over the effects grid), and the candidates (the cost) stay few.
+    cand = candidates(img, max(contrast, lit_contrast), level)
+    del level
+    found = detections(img, cand, contrast, lit_contrast, 0.0 if texture is None else texture, min_quality,
+                       refine_points, seconds, started)
+    return found if with_rejected else found[0]
+
+
+def detections(img: np.ndarray, cand: np.ndarray, contrast: float, lit_contrast: float, texture: float,
+               min_quality: float = MIN_QUALITY, refine_points: bool = True, seconds: dict | None = None,
+               started: float | None = None):
+    """`detect`'s (detections, rejected) in the float image (h, w) from its candidates (k, 2)
+    (`candidates`: strongest first), its contrasts (`contrasts`) and clutter (image units).
+    Every test and fit reads only the image within `detect.REACH_PX` of a candidate. seconds, if
+    given, receives detect_s (since `started`, the verification's end) and refine_s (the rest)."""
+    seconds = {} if seconds is None else seconds
+    started = time.perf_counter() if started is None else started
+    (cand, radius, quality), shadowed, shade = _verified(img, cand, contrast, min_quality, lit_contrast)
+    verified = time.perf_counter()
+    seconds["detect_s"] = verified - started
     rejected = pd.DataFrame({"u": shadowed[:, 0], "v": shadowed[:, 1], "reason": SHADOW_REASON})
     rejected = rejected.astype({"reason": object})
     if len(cand) == 0 and len(shade[0]) == 0:
-        return (_empty(), rejected) if with_rejected else _empty()
+        seconds["refine_s"] = time.perf_counter() - verified
+        return _empty(), rejected
     sigma = fit = np.full(len(cand), np.nan)
     if refine_points:
         corners = refine_corners(img, cand)
@@ -223,11 +288,12 @@ def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QU
     keep = _dedupe(cand, score)
     frame = pd.DataFrame({"u": cand[keep, 0], "v": cand[keep, 1], "score": score[keep], "sigma_px": sigma[keep],
                           "fit_residual": fit[keep]}).sort_values(["v", "u"], ignore_index=True)
-    if with_rejected and len(rejected) and len(frame):
+    if len(rejected) and len(frame):
         # A second candidate of a detected X-corner (e.g. started as a shadowed X) is no rejection.
         distance = cKDTree(frame[["u", "v"]].to_numpy()).query(rejected[["u", "v"]].to_numpy(dtype=float))[0]
         rejected = rejected[distance >= DUPLICATE_PX].reset_index(drop=True)
-    return (frame, rejected) if with_rejected else frame
+    seconds["refine_s"] = time.perf_counter() - verified
+    return frame, rejected
 
 
 def _shadow_fits(img, uv, contrast, min_quality):
@@ -241,8 +307,7 @@ def _shadow_fits(img, uv, contrast, min_quality):
              found_fit[saved]), found_uv, why)
 
 
-def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.ndarray | None = None,
-              lit_contrast: float = 0.0):
+def _verified(img: np.ndarray, cand: np.ndarray, contrast: float, min_quality: float, lit_contrast: float = 0.0):
     """(candidates (k, 2), clean radius (k,), ring quality (k,)) of the X-corners that pass the
     ring tests, unrefined (centred by `seed`); the positions (j, 2) of candidates that fail them
     as X-corners crossed by a shadow edge near the centre whose fit with the edge did not confirm
@@ -251,10 +316,7 @@ def _verified(img: np.ndarray, contrast: float, min_quality: float, level: np.nd
     radius, ring quality MIN_QUALITY, sigma_px, fit_residual (m,) each)."""
     height, width = img.shape
     none = (np.zeros((0, 2)), np.zeros(0), np.zeros(0))
-    # The saddle response threshold stays at the full contrast's: it is loose enough for markers in
-    # the shade (the same recall over the effects grid), and the candidates (the cost) stay few.
     lit_contrast = max(contrast, lit_contrast)
-    cand = candidates(img, lit_contrast, level)
     if len(cand) == 0:
         return none, np.zeros((0, 2)), tuple(np.zeros((0, 2)) if i == 0 else np.zeros(0) for i in range(5))
     # Prefilter at the unrefined position: a ring of radius 4 px must already look like an X.

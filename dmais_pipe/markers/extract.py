@@ -13,6 +13,13 @@ Predicted projections for identification come from the priors:
 - flight images: frames.csv POS position + INS attitude (rig_from_world) and the calibrated rig;
   without a rig (before `dmais extrinsics`) flight detections stay unidentified.
 
+With priors, the markers are searched first in windows about their predicted pixels
+(`search_windows`): each as wide as the priors' error bounds (PRIOR_ATTITUDE_DEG, PRIOR_POSITION_M)
+can move the prediction, plus the identification's gate; `windows.detect_in_windows` finds there
+exactly what `detect` finds in the whole image. The whole image is searched instead where the
+windows would cover more than MAX_WINDOW_SHARE of it, where there are no priors, and after the
+windows where no detection in them is identified (a prior worse than its bound).
+
 Ids of calibration images are then verified with a pose: a PnPf fit (pose and focal length,
 principal point at the centre, no distortion) to the identified detections; ids whose residual
 exceeds the gate (VERIFY_GATE_PX) are dropped one at a time, worst first. The gate leaves room for
@@ -31,11 +38,12 @@ import pandas as pd
 from ..camera import Camera, image_centre, project_unmasked
 from ..dataset import Dataset
 from ..errors import DmaisError
-from ..geometry import Rigid3
+from ..geometry import Rigid3, exp_so3
 from ..rig import Rig
 from ..calib.pnpf import solve_pnpf
 from .detect import detect
 from .identify import GATE_PX, MIN_INLIERS, identify_with_reasons
+from .windows import detect_in_windows
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +54,13 @@ VERIFY_GATE_PX = 40.0
 #: and the keystone (px) beyond which identification models it (half of identify's 12 px gate).
 PRIOR_TURN_DEG = 1.0
 KEYSTONE_PX = 6.0
+#: The priors' error bounds the search windows allow for (`search_windows`): the attitude's (the
+#: simulator's INS: 0.5 deg per axis beside a 0.5 deg boresight; its calibration priors: 1 deg per
+#: axis) and the centre's (RTK or POS: cm, beside the rig's lever arm to the POS, 0.37 m there).
+PRIOR_ATTITUDE_DEG = 3.0
+PRIOR_POSITION_M = 0.5
+#: Windows covering more than this share of an image (summed) cost about as much as the whole image.
+MAX_WINDOW_SHARE = 0.5
 
 
 def _nominal_camera(dataset: Dataset, camera: str, calibrated: Camera | None) -> Camera | None:
@@ -124,30 +139,95 @@ def _projections(model, margin_px: float):
     return uv[keep], points.index.to_numpy(dtype=object)[keep]
 
 
+def prediction_radius(camera: Camera, xyz: np.ndarray, turn_deg: float, shift_m: float) -> np.ndarray:
+    """(n,) px: how far the projections of points xyz (n, 3) (camera frame) move when the camera turns
+    by turn_deg about any axis and moves by shift_m in any direction: the largest singular values of
+    the secants (2, 3) of such turns about, and moves along, its three axes, added; inf where a
+    point or a moved one is not projectable."""
+    uv = camera.project(xyz)
+    turns = [exp_so3(np.radians(turn_deg) * axis) for axis in np.eye(3)]
+    turned = np.stack([camera.project(xyz @ R.T) - uv for R in turns], axis=2)  # (n, 2, 3)
+    moved = np.stack([camera.project(xyz + shift_m * axis) - uv for axis in np.eye(3)], axis=2)
+    radius = np.full(len(xyz), np.inf)
+    ok = np.all(np.isfinite(turned), axis=(1, 2)) & np.all(np.isfinite(moved), axis=(1, 2))
+    radius[ok] = np.linalg.norm(turned[ok], ord=2, axis=(1, 2)) + np.linalg.norm(moved[ok], ord=2, axis=(1, 2))
+    return radius
+
+
+def search_windows(model, attitude_deg: float = PRIOR_ATTITUDE_DEG, position_m: float = PRIOR_POSITION_M,
+                   gate_px: float = GATE_PX, margin_px: float = PREDICTION_MARGIN_PX) -> np.ndarray | None:
+    """Windows (m, 4) x0, y0, x1, y1 (px) about the predicted pixel of every known point a
+    `_prediction_model` puts near its image (within margin_px, as `predicted_projections`): the
+    prediction's move under the priors' error bounds (`prediction_radius`) plus `gate_px`, only
+    those reaching into the image. None where they cover more than MAX_WINDOW_SHARE of the image
+    (summed): then it is searched whole."""
+    camera, cam_from_world, points = model
+    uv, ids = _projections(model, margin_px)
+    xyz = cam_from_world.apply(points.loc[ids, ["x", "y", "z"]].to_numpy(dtype=float))
+    reach = prediction_radius(camera, xyz, attitude_deg, position_m) + gate_px
+    boxes = np.column_stack([uv - reach[:, None], uv + reach[:, None]])
+    image = np.array([-0.5, -0.5, camera.width - 0.5, camera.height - 0.5])
+    clipped = np.column_stack([np.maximum(boxes[:, :2], image[:2]), np.minimum(boxes[:, 2:], image[2:])])
+    size = clipped[:, 2:] - clipped[:, :2]
+    seen = np.all(size > 0, axis=1)
+    if np.prod(size[seen], axis=1).sum() > MAX_WINDOW_SHARE * camera.width * camera.height:
+        return None
+    return clipped[seen]
+
+
 # ------------------------------------------------------------------------------ per image
 
 
 def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None,
                   margin_px: float = PREDICTION_MARGIN_PX, gate_px: float = VERIFY_GATE_PX,
                   identify_gate_px: float = GATE_PX, identify_min_inliers: int = MIN_INLIERS,
-                  seconds: dict | None = None) -> pd.DataFrame:
+                  seconds: dict | None = None, attitude_deg: float | None = PRIOR_ATTITUDE_DEG,
+                  position_m: float = PRIOR_POSITION_M) -> pd.DataFrame:
     """Detections of one image with ids: DataFrame of `detect`'s columns, point_id ('' when unidentified)
     and id_refusal (why a detection has no id, '' where it has one; not written to the markers file).
 
     rig, calibrated: as `predicted_projections`; margin_px: how far outside the image predictions
     are kept; gate_px: the pose verification's residual gate for calibration images;
     identify_gate_px, identify_min_inliers: `identify`'s final gate and fewest matches;
-    seconds: if given, receives the wall time of each phase (decode_s, detect_s, identify_s).
+    attitude_deg, position_m: the priors' error bounds of the search windows (`search_windows`;
+    attitude_deg None: the whole image is searched);
+    seconds: if given, receives the wall time of each phase (decode_s, detect_s, refine_s,
+    identify_s), the windows searched (0: none) and whole_image (1 where the whole image was).
     """
     seconds = {} if seconds is None else seconds
+    seconds.update(detect_s=0.0, refine_s=0.0, identify_s=0.0)
     started = time.perf_counter()
     pixels = dataset.read_image(image)
     seconds["decode_s"] = time.perf_counter() - started
-    found, rejected = detect(pixels, with_rejected=True)
-    seconds["detect_s"] = time.perf_counter() - started - seconds["decode_s"]
+    model = _prediction_model(dataset, image, rig, calibrated)  # a sentence: why there is none
+    windows = None if isinstance(model, str) or attitude_deg is None else search_windows(
+        model, attitude_deg, position_m, identify_gate_px, margin_px)
+    seconds["windows"], seconds["whole_image"] = 0 if windows is None else len(windows), 0
+    named = (margin_px, gate_px, identify_gate_px, identify_min_inliers)
+    if windows is not None and len(windows):
+        found = _identified(dataset, image, pixels, model, named, seconds, windows)
+        if (found["point_id"] != "").any():
+            return found
+        log.info("markers %s: nothing identified in the %d windows about the predictions: the whole image "
+                 "(are the priors within %g deg and %g m?)", image, len(windows), attitude_deg, position_m)
+    seconds["whole_image"] = 1
+    return _identified(dataset, image, pixels, model, named, seconds)
+
+
+def _identified(dataset: Dataset, image: str, pixels: np.ndarray, model, settings: tuple, seconds: dict,
+                windows: np.ndarray | None = None) -> pd.DataFrame:
+    """`process_image`'s detections of `image` (pixels (h, w)) in `windows` (m, 4) (None: the whole
+    image) named from the `_prediction_model` (or why there is none); settings: its margin_px, gate_px,
+    identify_gate_px and identify_min_inliers. Adds each phase's seconds to `seconds`."""
+    margin_px, gate_px, identify_gate_px, identify_min_inliers = settings
+    phases = {}
+    if windows is None:
+        found, rejected = detect(pixels, with_rejected=True, seconds=phases)
+    else:
+        found, rejected = detect_in_windows(pixels, windows, with_rejected=True, seconds=phases)
+    started = time.perf_counter()
     found["point_id"] = ""
     found["id_refusal"] = ""
-    model = _prediction_model(dataset, image, rig, calibrated)  # a sentence: why there is none
     if isinstance(model, str) and len(found):
         found["id_refusal"] = model
         log.warning("markers %s: %d detected, none can be identified: %s", image, len(found), model)
@@ -164,11 +244,13 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
             found.loc[(verified == "") & (named.ids != ""), "id_refusal"] = (
                 f"the pose fitted to the image's ids misses it by more than {gate_px:g} px")
             found["point_id"] = verified
-        if not (found["point_id"] != "").any():
+        if not (found["point_id"] != "").any() and windows is None:
             log.warning("markers %s: %d detected, none identified: the priors predict %d known point(s) near the "
                         "image and none matches a detection (check the prior centre and attitude, and focal_px)",
                         image, len(found), len(uv))
-    seconds["identify_s"] = time.perf_counter() - started - seconds["decode_s"] - seconds["detect_s"]
+    phases["identify_s"] = time.perf_counter() - started
+    for phase, value in phases.items():
+        seconds[phase] = seconds.get(phase, 0.0) + value
     return found
 
 

@@ -32,10 +32,11 @@ import pandas as pd
 
 from ..camera import Camera
 from ..errors import DmaisError
-from ..markers.extract import PREDICTION_MARGIN_PX, VERIFY_GATE_PX, observation_table, process_image
+from ..markers.extract import (PREDICTION_MARGIN_PX, PRIOR_ATTITUDE_DEG, PRIOR_POSITION_M, VERIFY_GATE_PX,
+                               observation_table, process_image)
 from ..markers.identify import GATE_PX, MIN_INLIERS
 from ..files import write_csv_atomic
-from ..plan import MARKERS_PER_JOB, marker_batches
+from ..plan import MARKERS_PER_JOB
 from . import setting
 from ..rig import Rig
 from ..workspace import Workspace
@@ -56,6 +57,15 @@ class Conf:
         GATE_PX, "final gate between a detection and the aligned prediction of its point (px)", above=0)
     identify_min_inliers: int = setting(
         MIN_INLIERS, "fewest one-to-one matches for an image's ids to be accepted", minimum=3)
+    prior_attitude_deg: float = setting(
+        PRIOR_ATTITUDE_DEG, "the largest error of an image's prior attitude (deg; a flight image's: the INS's and "
+                            "its boresight's): markers are searched in windows about their predictions as wide as "
+                            "this and prior_position_m move them, the whole image where nothing there is "
+                            "identified", minimum=0)
+    prior_position_m: float = setting(
+        PRIOR_POSITION_M, "the largest error of an image's prior centre (m; a flight image's: the POS's and its "
+                          "lever arm's)", minimum=0)
+    whole_image: bool = setting(False, "search every image whole, not first the windows about the predictions")
 
 
 CONFS = {"default": Conf()}
@@ -88,10 +98,13 @@ def run_image(workspace: Workspace, image: str, conf: Conf = Conf()) -> list[Pat
     return [workspace.save_markers(image, _extract(workspace, image, conf, rig))]
 
 
-#: RESULTS/markers/batches/<batch>.csv: per image, its detections and identified ones, the seconds of
-#: each phase (decode, detect, identify, write) and whether an earlier run of the batch had done it.
-_PHASE_COLUMNS = ("decode_s", "detect_s", "identify_s", "write_s")
-BATCH_COLUMNS = ("image", "camera", "detected", "identified", *_PHASE_COLUMNS, "resumed")
+#: RESULTS/markers/batches/<batch>.csv: per image, its detections and identified ones, the windows
+#: about the predictions searched (0: none) and whether the whole image was (1: no priors, windows
+#: covering most of it, or nothing identified in them), the seconds of each phase (decode, detect,
+#: refine, identify, write) and whether an earlier run of the batch had done it.
+_COUNT_COLUMNS = ("detected", "identified", "windows", "whole_image")
+_PHASE_COLUMNS = ("decode_s", "detect_s", "refine_s", "identify_s", "write_s")
+BATCH_COLUMNS = ("image", "camera", *_COUNT_COLUMNS, *_PHASE_COLUMNS, "resumed")
 #: <batch>.progress: an image, its inputs' digest, its markers file's size and mtime, then its batch row.
 _PROGRESS_COLUMNS = ("image", "key", "markers", *BATCH_COLUMNS[2:-1])
 
@@ -102,7 +115,7 @@ def run_batch(workspace: Workspace, batch: str, per_job: int = MARKERS_PER_JOB, 
     from the same inputs is not redone. An image that fails does not stop the others; the batch then
     fails naming the first, and its finished images are kept for the next run."""
     dataset = workspace.dataset
-    batches = marker_batches(dataset, per_job)
+    batches = workspace.marker_batches(per_job)
     if batch not in batches:
         raise DmaisError(f"markers: no batch {batch!r} among the {len(batches)} marker batches of {dataset.root} "
                          f"with {per_job} images per job (`dmais plan` lists them)")
@@ -186,8 +199,9 @@ def _finished(progress: Path, workspace: Workspace) -> dict[str, dict]:
     for cells in list(csv.reader(progress.read_text(errors="replace").splitlines()))[1:]:
         if len(cells) != len(_PROGRESS_COLUMNS) or cells[2] != _stamp(workspace.markers_path(cells[0])):
             continue
+        counted = 3 + len(_COUNT_COLUMNS)
         try:
-            counts, seconds = [int(c) for c in cells[3:5]], [float(c) for c in cells[5:]]
+            counts, seconds = [int(c) for c in cells[3:counted]], [float(c) for c in cells[counted:]]
         except ValueError:
             continue
         finished[cells[0]] = dict(zip(("image", "key", *_PROGRESS_COLUMNS[3:]), cells[:2] + counts + seconds))
@@ -233,7 +247,8 @@ def _extract(workspace: Workspace, image: str, conf: Conf, rig: Rig | None, prog
     started = time.perf_counter()
     found = process_image(workspace.dataset, image, rig, _calibrated(workspace, image),
                           conf.prediction_margin_px, conf.verify_gate_px, conf.identify_gate_px,
-                          conf.identify_min_inliers, seconds)
+                          conf.identify_min_inliers, seconds, None if conf.whole_image else conf.prior_attitude_deg,
+                          conf.prior_position_m)
     log.info("markers %s%s: %d detected, %d identified (%.2f s)", progress, image, len(found),
              int((found["point_id"] != "").sum()), time.perf_counter() - started)
     return found

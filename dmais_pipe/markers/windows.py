@@ -1,0 +1,130 @@
+"""Detection in windows of an image: exactly `detect`'s detections there, without the rest of it.
+
+`detect` makes a saddle response over the whole half-resolution level, then tests and fits each of
+its candidates on the float image about it. Both are local: a candidate depends on the level within
+`detect.RESPONSE_SUPPORT_PX` of it (and the pyramid's 5 taps at full resolution), the tests and fits
+of a candidate read the image within `detect.REACH_PX` of it, and a detection lies within
+`detect.MOVE_PX` of its candidate. So `detect_in_windows`:
+
+1. takes the image-wide numbers from the same pixels as `detect`: the 16-bit scale (a strided sample
+   of the whole image) and the clutter of the level's tiles (`detect.tile_boxes`), each tile's level
+   made from a crop about it;
+2. makes the saddle response of each window from a crop reaching CANDIDATE_PAD_PX beyond the area
+   whose candidates can give a detection in the window (MOVE_PX and DUPLICATE_PX about it), the
+   crop's left edge on a multiple of ALIGN_PX and its top on an even row: the pyramid's pixels are
+   the whole image's, and OpenCV's vector loops meet every column as in the whole image (at the
+   right edge of an image whose width is no multiple of the vector, its scalar tail falls on the
+   same columns);
+3. writes the float image only within REACH_PX of those areas, into a zero-filled array of the
+   image's size (numpy's zeros: the pages never written take no memory), so that the tests and fits
+   read the same values at the same coordinates as in `detect`;
+4. runs `detect.detections` on the windows' candidates together (strongest first, as `candidates`
+   orders them) and keeps the detections and rejections inside a window.
+
+The result is `detect`'s detections and rejections inside the windows, to the last bit, unless the
+whole image has more than MAX_CANDIDATES candidates (then `detect` drops its weakest, which a window
+may keep).
+"""
+
+from __future__ import annotations
+
+import time
+
+import cv2
+import numpy as np
+import pandas as pd
+
+from .detect import (DUPLICATE_PX, MOVE_PX, REACH_PX, RESPONSE_SUPPORT_PX, clutter_of_tiles, contrasts, detect,
+                     detections, saddle_peaks, saddle_response, strongest, tile_boxes)
+from .rings import as_float_image
+
+#: Crops start on a multiple of this many columns (OpenCV's widest vector is 16 floats of the level).
+ALIGN_PX = 64
+#: Full-resolution px a crop reaches beyond the candidates it gives: the response's support at half
+#: resolution, doubled, and the pyramid's 2 px, with room.
+CANDIDATE_PAD_PX = 2 * RESPONSE_SUPPORT_PX + 2 + 8
+#: px about a window whose candidates can give (or, 2 px apart, remove) a detection in it.
+AREA_PX = MOVE_PX + int(np.ceil(DUPLICATE_PX))
+
+
+def detect_in_windows(image, boxes: np.ndarray, with_rejected: bool = False, seconds: dict | None = None):
+    """`detect(image)`'s detections (and with `with_rejected` its rejections) whose u, v lie in one
+    of the windows `boxes` (m, 4): x0, y0, x1, y1 in pixels (OpenCV convention), bounds included.
+    image: (h, w) 8/16-bit grayscale. seconds, if given, receives detect_s and refine_s as `detect`'s.
+    """
+    seconds = {} if seconds is None else seconds
+    started = time.perf_counter()
+    raw = np.asarray(image)
+    as_float_image(raw[:1, :1])  # the shape check of `detect`
+    boxes = np.asarray(boxes, dtype=float).reshape(-1, 4)
+    if min(raw.shape) < 8:
+        return _inside(detect(raw, with_rejected=True, seconds=seconds), boxes, with_rejected)
+    texture = clutter_of_tiles([_level_tile(raw, box) for box in tile_boxes(_level_shape(raw.shape))])
+    contrast, lit_contrast = contrasts(raw, texture)
+    cand = _candidates(raw, boxes, max(contrast, lit_contrast))
+    canvas = _canvas(raw, boxes)
+    found = detections(canvas, cand, contrast, lit_contrast, texture, seconds=seconds, started=started)
+    return _inside(found, boxes, with_rejected)
+
+
+def _level_shape(shape: tuple[int, int]) -> tuple[int, int]:
+    """(h, w) of cv2.pyrDown's level of an image of `shape` (h, w)."""
+    return (shape[0] + 1) // 2, (shape[1] + 1) // 2
+
+
+def _crop_bounds(shape, x0: float, y0: float, x1: float, y1: float, pad: int) -> tuple[int, int, int, int]:
+    """(X0, Y0, X1, Y1): the columns X0..X1 - 1 and rows Y0..Y1 - 1 of an image of `shape` (h, w) that
+    reach `pad` px beyond x0..x1, y0..y1 (px), X0 on a multiple of ALIGN_PX and Y0 even."""
+    height, width = shape
+    left = max(0, (int(np.floor(x0)) - pad) // ALIGN_PX * ALIGN_PX)
+    top = max(0, (int(np.floor(y0)) - pad) // 2 * 2)
+    return left, top, min(width, int(np.ceil(x1)) + pad + 1), min(height, int(np.ceil(y1)) + pad + 1)
+
+
+def _level_tile(raw: np.ndarray, tile: tuple[int, int, int, int]) -> np.ndarray:
+    """The level's pixels (y1 - y0, x1 - x0) of `tile` (y0, y1, x0, x1: level px) of the image raw (h, w),
+    as cv2.pyrDown of the whole image has them."""
+    y0, y1, x0, x1 = tile
+    left, top, right, bottom = _crop_bounds(raw.shape, 2 * x0, 2 * y0, 2 * x1, 2 * y1, 4)
+    level = cv2.pyrDown(raw[top:bottom, left:right].astype(np.float32))
+    return level[y0 - top // 2:y1 - top // 2, x0 - left // 2:x1 - left // 2]
+
+
+def _candidates(raw: np.ndarray, boxes: np.ndarray, min_contrast: float) -> np.ndarray:
+    """(k, 2) `detect.candidates` of the image raw (h, w) within AREA_PX of the windows boxes (m, 4),
+    strongest first."""
+    xs, ys, strengths = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros(0, np.float32)]
+    for x0, y0, x1, y1 in boxes - [AREA_PX, AREA_PX, -AREA_PX, -AREA_PX]:
+        left, top, right, bottom = _crop_bounds(raw.shape, x0, y0, x1, y1, CANDIDATE_PAD_PX)
+        if right - left < 8 or bottom - top < 8:
+            continue
+        y, x, strength = saddle_peaks(saddle_response(cv2.pyrDown(raw[top:bottom, left:right].astype(np.float32))),
+                                      min_contrast)
+        x, y = left + 2 * x, top + 2 * y
+        keep = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+        xs.append(x[keep]), ys.append(y[keep]), strengths.append(strength[keep])
+    x, y, strength = np.concatenate(xs), np.concatenate(ys), np.concatenate(strengths)
+    _, first = np.unique(y * raw.shape[1] + x, return_index=True)  # windows overlap
+    return strongest(x[first], y[first], strength[first])
+
+
+def _canvas(raw: np.ndarray, boxes: np.ndarray) -> np.ndarray:
+    """(h, w) float32: the image raw (h, w) within AREA_PX + REACH_PX of the windows boxes (m, 4), 0
+    elsewhere (pages never written, which take no memory)."""
+    canvas = np.zeros(raw.shape, np.float32)
+    reach = AREA_PX + REACH_PX
+    for x0, y0, x1, y1 in boxes:
+        left, top, right, bottom = _crop_bounds(raw.shape, x0 - reach, y0 - reach, x1 + reach, y1 + reach, 0)
+        canvas[top:bottom, left:right] = raw[top:bottom, left:right]
+    return canvas
+
+
+def _inside(found: tuple[pd.DataFrame, pd.DataFrame], boxes: np.ndarray, with_rejected: bool):
+    """The detections (and rejections) of `found` whose u, v lie in one of the windows boxes (m, 4)."""
+    kept = []
+    for frame in found:
+        uv = frame[["u", "v"]].to_numpy(dtype=float)
+        inside = ((uv[:, None, 0] >= boxes[None, :, 0]) & (uv[:, None, 1] >= boxes[None, :, 1])
+                  & (uv[:, None, 0] <= boxes[None, :, 2]) & (uv[:, None, 1] <= boxes[None, :, 3])).any(axis=1)
+        kept.append(frame[inside].reset_index(drop=True))
+    return tuple(kept) if with_rejected else kept[0]

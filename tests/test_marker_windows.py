@@ -1,0 +1,144 @@
+"""Markers searched in windows about the priors' predictions: exactly what the whole image gives there."""
+
+from __future__ import annotations
+
+import copy
+import shutil
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from dmais_pipe.dataset import Dataset
+from dmais_pipe.markers.detect import detect
+from dmais_pipe.markers.extract import _prediction_model, process_image, search_windows
+from dmais_pipe.markers.windows import detect_in_windows
+from dmais_pipe.rig import Rig
+from dmais_pipe.sim.config import DEFAULTS
+
+SCALE = 0.25  # the paper's rig at 1024 x 768 px: the same fields of view, 2 m markers of ~65 px
+
+
+def _small_rig() -> dict:
+    rig = copy.deepcopy(DEFAULTS["rig"])
+    rig["width"], rig["height"] = int(rig["width"] * SCALE), int(rig["height"] * SCALE)
+    rig["nominal_focal_px"] *= SCALE
+    for entry in rig["cameras"].values():
+        for key in ("fx", "fy", "cx", "cy"):
+            entry[key] *= SCALE
+    return rig
+
+
+#: One rendered frame of the five cameras; an INS of 0.02 deg without boresight (the windows' test
+#: bound below is 0.2 deg), the calibration stages observation-only.
+FLIGHT = {
+    "name": "windows",
+    "seed": 4040,
+    "rig": _small_rig(),
+    "render": {"intrinsics": False, "extrinsics": False, "flight": True},
+    "intrinsics": {"calib_images_per_camera": 3, "eval_images_per_camera": 0},
+    "flight": {"sites": {"A": {"center_m": [1500.0, -800.0, 45.0], "groups": [1]}}, "frames_per_group": 1,
+               "ins_attitude_sigma_deg": 0.02, "ins_boresight_deg": [0.0, 0.0, 0.0]},
+}
+BOUND_DEG = 0.2
+QUAT = ["prior_qw", "prior_qx", "prior_qy", "prior_qz"]
+
+
+@pytest.fixture(scope="module")
+def flight(simulated_dataset):
+    root = simulated_dataset(FLIGHT)
+    dataset = Dataset.load(root)
+    return root, dataset, Rig.load(root / "truth" / "rig.json")
+
+
+def _in(frame: pd.DataFrame, boxes: np.ndarray) -> pd.DataFrame:
+    uv = frame[["u", "v"]].to_numpy(dtype=float)
+    inside = ((uv[:, None] >= boxes[None, :, :2]) & (uv[:, None] <= boxes[None, :, 2:])).all(axis=2).any(axis=1)
+    return frame[inside].reset_index(drop=True)
+
+
+def _flight_images(dataset: Dataset) -> list[str]:
+    return dataset.images_of("flight")["image"].tolist()
+
+
+def test_detection_in_windows_is_the_whole_image_s_there_8_and_16_bit(flight):
+    """Windows of every size, at the image's borders, overlapping, on 8- and 16-bit pixels: the same
+    detections and rejections to the last bit."""
+    _, dataset, _ = flight
+    image = dataset.read_image(_flight_images(dataset)[0])
+    height, width = image.shape
+    whole, rejected = detect(image, with_rejected=True)
+    assert len(whole) >= 4
+    uv = whole[["u", "v"]].to_numpy()
+    boxes = np.vstack([np.column_stack([uv[:3] - r, uv[:3] + r]) for r in (6.0, 40.0, 150.0)]
+                      + [[-0.5, -0.5, 200.0, 150.0], [width - 300.0, height - 90.0, width - 0.5, height - 0.5],
+                         [uv[3, 0] - 10.0, uv[3, 1] - 10.0, uv[3, 0] + 300.0, uv[3, 1] + 12.0]])
+    for pixels in (image, image.astype(np.uint16) * 257):
+        found, lost = detect_in_windows(pixels, boxes, with_rejected=True)
+        full, full_lost = detect(pixels, with_rejected=True)
+        pd.testing.assert_frame_equal(found, _in(full, boxes), check_exact=True)
+        pd.testing.assert_frame_equal(lost, _in(full_lost, boxes), check_exact=True)
+        assert len(found) >= 3
+
+
+def test_flight_images_windowed_equal_the_whole_image(flight):
+    """With priors, the windows about the predictions give every id of the whole image's search at the
+    same position, and the whole image's detections within the windows."""
+    _, dataset, rig = flight
+    identified = 0
+    for image in _flight_images(dataset):
+        phases = {}
+        windowed = process_image(dataset, image, rig, attitude_deg=BOUND_DEG, seconds=phases)
+        whole = process_image(dataset, image, rig, attitude_deg=None)
+        assert phases["windows"] > 0 and phases["whole_image"] == 0, image
+        boxes = search_windows(_prediction_model(dataset, image, rig), BOUND_DEG)
+        pd.testing.assert_frame_equal(windowed, _in(whole, boxes), check_exact=True)
+        named = whole[whole["point_id"] != ""].reset_index(drop=True)
+        pd.testing.assert_frame_equal(windowed[windowed["point_id"] != ""].reset_index(drop=True), named)
+        identified += len(named)
+    assert identified >= 20
+
+
+def _copy(root, tmp_path, frames_edit):
+    """The dataset at `root` copied to tmp_path with frames.csv changed by frames_edit(frames)."""
+    copied = shutil.copytree(root, tmp_path / "data")
+    frames = pd.read_csv(copied / "frames.csv", dtype={"frame": str, "group": str}, keep_default_na=False)
+    frames_edit(frames)
+    frames.to_csv(copied / "frames.csv", index=False)
+    return Dataset.load(copied)
+
+
+def test_a_prior_beyond_its_bound_falls_back_to_the_whole_image(flight, tmp_path):
+    """An INS 1.5 deg off (the bound 0.2 deg): nothing in the windows is identified, the whole image is
+    searched, and its result is the whole image's."""
+    root, _, rig = flight
+
+    def turned(frames):
+        q = frames[QUAT].to_numpy(dtype=float)
+        from scipy.spatial.transform import Rotation
+        off = Rotation.from_rotvec(np.radians([1.0, -1.1, 0.3])) * Rotation.from_quat(q[:, [1, 2, 3, 0]])
+        frames[QUAT] = off.as_quat()[:, [3, 0, 1, 2]]
+
+    dataset = _copy(root, tmp_path, turned)
+    image = _flight_images(dataset)[0]
+    phases = {}
+    found = process_image(dataset, image, rig, attitude_deg=BOUND_DEG, seconds=phases)
+    assert phases["windows"] > 0 and phases["whole_image"] == 1
+    pd.testing.assert_frame_equal(found, process_image(dataset, image, rig, attitude_deg=None), check_exact=True)
+    assert (found["point_id"] != "").sum() >= 4
+
+
+def test_without_priors_the_whole_image_is_searched(flight, tmp_path):
+    root, _, rig = flight
+
+    def no_attitude(frames):
+        frames[QUAT] = ""
+
+    dataset = _copy(root, tmp_path, no_attitude)
+    image = _flight_images(dataset)[0]
+    phases = {}
+    found = process_image(dataset, image, rig, attitude_deg=BOUND_DEG, seconds=phases)
+    assert phases["windows"] == 0 and phases["whole_image"] == 1
+    assert (found["point_id"] == "").all() and len(found) >= 4
+    pd.testing.assert_frame_equal(found[["u", "v", "score", "sigma_px", "fit_residual"]],
+                                  detect(dataset.read_image(image)), check_exact=True)
