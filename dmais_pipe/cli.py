@@ -41,7 +41,20 @@ def _cmd_plan(args) -> None:
     from .files import write_json_atomic
     from .plan import workflow_plan
 
-    plan = workflow_plan(Dataset.load(args.dataset), args.per_job)
+    if args.slices and args.out is None:
+        raise DmaisError(f"plan: --slices {args.slices} needs --out RESULTS, the results folder they go to")
+    if args.slices == "pose":  # once the observations are collected: no plan
+        from .slices import write_group_slices
+        from .workspace import Workspace
+
+        write_group_slices(Workspace.open(args.dataset, args.out))
+        return
+    dataset = Dataset.load(args.dataset)
+    plan = workflow_plan(dataset, args.per_job)
+    if args.slices == "markers":  # before the plan file, whose presence tells the workflow all is written
+        from .slices import write_marker_slices
+
+        write_marker_slices(dataset, args.out, args.per_job)
     if args.json is None:
         print(json.dumps(plan, indent=1))
     else:
@@ -100,13 +113,17 @@ def _cmd_markers(args) -> None:
     from .stages import markers
 
     conf = _conf(args, markers)
+    if args.batch:  # a workflow job: its slice of the dataset, where the plan cut one (slices.py)
+        from .slices import batch_workspace
+
+        _print(markers.run_batch(batch_workspace(args.dataset, args.out, args.batch, args.per_job), args.batch,
+                                 args.per_job, conf))
+        return
     workspace = _workspace(args)
     if args.collect:
         _print(markers.collect(workspace, args.collect))
     elif args.image:
         _print(markers.run_image(workspace, args.image, conf))
-    elif args.batch:
-        _print(markers.run_batch(workspace, args.batch, args.per_job, conf))
     else:
         _print(markers.run(workspace, conf))
 
@@ -142,7 +159,12 @@ def _cmd_pose(args) -> None:
     cameras = [c for c in args.cameras.split(",") if c] if args.cameras else None
     groups = [g for g in args.groups.split(",") if g] if args.groups else None
     conf = _conf(args, pose, ("robust", args.robust or None), ("refine", args.refine or None))
-    workspace = _workspace(args)
+    if groups is not None and len(groups) == 1 and not args.merge:  # a workflow job: its group's slice (slices.py)
+        from .slices import group_workspace
+
+        workspace = group_workspace(args.dataset, args.out, groups[0])
+    else:
+        workspace = _workspace(args)
     if args.merge:
         _print(pose.merge(workspace, args.merge, cameras=cameras, out=args.csv))
         return
@@ -274,6 +296,10 @@ def _parser() -> argparse.ArgumentParser:
     plan.add_argument("--per-job", type=_positive_int, default=MARKERS_PER_JOB,
                       help="images per marker batch (default: %(default)s)")
     plan.add_argument("--json", type=Path, help="write the plan to this file (atomically) instead of printing it")
+    plan.add_argument("--out", type=Path, help="results folder of the --slices")
+    plan.add_argument("--slices", choices=("markers", "pose"),
+                      help="also cut what each marker batch's job reads (markers), or, without a plan, once "
+                           "the observations are collected, each flight group's (pose) into RESULTS/slices/")
     plan.set_defaults(run=_cmd_plan)
 
     markers = commands.add_parser("markers", help="detect, refine and identify the markers of every image")

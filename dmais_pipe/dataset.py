@@ -18,7 +18,7 @@ import os
 import re
 import tempfile
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -464,7 +464,11 @@ def _check_paths(table: Table, root: Path) -> None:
     table.check([p != "" and Path(p).is_absolute() for p in path],
                 lambda row: f"image {image[row]!r}: path {path[row]!r} must be relative to the dataset folder")
     table.check([p != "" and not (root / p).is_file() for p in path],
-                lambda row: f"image {image[row]!r}: file {path[row]!r} does not exist")
+                lambda row: f"image {image[row]!r}: {_no_file(path[row])}")
+
+
+def _no_file(path: str) -> str:
+    return f"file {path!r} does not exist"
 
 
 def _read_frames(path: Path) -> pd.DataFrame:
@@ -521,6 +525,17 @@ def _empty_observations() -> pd.DataFrame:
     return pd.DataFrame({"image": _strings([]), "point_id": _strings([]), "u": np.zeros(0), "v": np.zeros(0)})
 
 
+def table_stamps(root: Path) -> str:
+    """The dataset folder's tables (its *.csv files and the manifest) by name, size and modification
+    time: what a load of `root` reads, so that a copy cut from a load (slices.py) is known stale when
+    one of them changes, appears or goes."""
+    stamps = []
+    for path in sorted(root.glob("*.csv")) + [root / MANIFEST]:
+        stat = path.stat() if path.is_file() else None
+        stamps.append(f"{path.name}:{stat and (stat.st_size, stat.st_mtime_ns)}")
+    return ";".join(stamps)
+
+
 # ------------------------------------------------------------------------------ Dataset
 
 
@@ -534,6 +549,8 @@ class Dataset:
     frames: frame, group (str), pos_x, pos_y, pos_z, prior_qw..prior_qz (float) + extras.
     observations: image, point_id (str), u, v (float, pixels) + extras.
     Extra columns of the CSV files are kept as strings after the documented ones.
+    stamps: the tables as they were when the load began (`table_stamps`); part: '' for the whole
+    dataset, else what of it a job's slice holds (`restricted`, slices.py).
     """
 
     root: Path
@@ -548,6 +565,8 @@ class Dataset:
     frames: pd.DataFrame
     observations: pd.DataFrame
     image_lines: dict[str, int] = field(default_factory=dict)  # image id -> its line in images.csv
+    stamps: str = ""
+    part: str = ""
 
     @classmethod
     def load(cls, path: str | Path) -> Dataset:
@@ -555,6 +574,7 @@ class Dataset:
         root = Path(path).absolute()
         if not root.is_dir():
             raise DatasetError(root, "is not a dataset directory")
+        stamps = table_stamps(root)  # before reading: a table changed meanwhile makes the stamps stale
         manifest = _read_manifest(root / MANIFEST)
         control, control_table = _read_points(root / CONTROL_POINTS)
         if control.empty:
@@ -577,8 +597,27 @@ class Dataset:
             root=root, name=manifest.name, reference_camera=manifest.reference_camera, cameras=manifest.cameras,
             marker_size_m=manifest.marker_size_m, description=manifest.description,
             control_points=control, ground_points=ground, images=images, frames=frames, observations=observations,
-            image_lines=dict(zip(images["image"], image_table.lines.tolist())),
+            image_lines=dict(zip(images["image"], image_table.lines.tolist())), stamps=stamps,
         )
+
+    def restricted(self, images, frames=None, part: str = "") -> Dataset:
+        """The dataset with only the rows of `images` (ids) in images, image_lines and observations,
+        and of `frames` (ids; default: the placements of those images that are flight images) in
+        frames; the manifest and the points whole. Rows keep their order and index: these tables
+        are the whole load's filtered. part: what the slice is (a job's, slices.py)."""
+        chosen = self.images[self.images["image"].isin(pd.Index(images))]
+        if frames is None:
+            frames = chosen.loc[chosen["stage"] == "flight", "placement"]
+        return replace(self, images=chosen, frames=self.frames[self.frames["frame"].isin(pd.Index(frames))],
+                       observations=self.observations[self.observations["image"].isin(chosen["image"])],
+                       image_lines={image: self.image_lines[image] for image in chosen["image"]}, part=part)
+
+    def check_image_files(self) -> None:
+        """Each image's file still exists: the one check of the load that does not read a table (a
+        slice's dataset runs it on its own images)."""
+        for image, path in zip(self.images["image"], self.images["path"]):
+            if path and not (self.root / path).is_file():
+                raise self._image_error(image, _no_file(path))
 
     def __repr__(self) -> str:
         return f"Dataset({self.name!r}, root={str(self.root)!r})"
@@ -681,7 +720,7 @@ class Dataset:
     def _read_pixels(self, image: str, camera: str, path: str) -> np.ndarray:
         file = self.root / path
         if not file.is_file():
-            raise self._image_error(image, f"file {path!r} does not exist")
+            raise self._image_error(image, _no_file(path))
         pixels, messages = _decode(file)
         if pixels is None or _CORRUPT.search(messages):
             said = f" ({'; '.join(messages.split(chr(10)))})" if messages else ""

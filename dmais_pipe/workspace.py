@@ -24,6 +24,7 @@ from .dataset import STAGES, Dataset, Table, read_observation_table, read_table
 from .errors import DatasetError, DmaisError
 from .files import csv_text, write_csv_atomic, write_json_atomic, write_text_atomic
 from .geometry import Rigid3
+from .plan import marker_batches
 from .rig import Rig
 
 log = logging.getLogger(__name__)
@@ -71,11 +72,16 @@ class ResultsError(DatasetError):
 
 
 class Workspace:
-    """The results folder `root` of `dataset`."""
+    """The results folder `root` of `dataset`. A job's workspace (slices.py) holds the slice of the
+    dataset it needs (`Dataset.restricted`) with, as the slice was cut from the whole load, its
+    `observations` (those load_observations gives of its images) and its marker `batches`."""
 
-    def __init__(self, dataset: Dataset, root: str | Path):
+    def __init__(self, dataset: Dataset, root: str | Path, observations: pd.DataFrame | None = None,
+                 batches: dict[str, dict] | None = None):
         self.dataset = dataset
         self.root = Path(root)
+        self._observations = observations
+        self._batches = batches
 
     @classmethod
     def open(cls, dataset_dir: str | Path, results_dir: str | Path) -> Workspace:
@@ -187,10 +193,14 @@ class Workspace:
            collects each stage's per-image markers there, `dmais markers --collect STAGE`);
         2. RESULTS/observations.csv, written by `dmais markers` over the whole dataset;
         3. the dataset's own observations, with `camera` taken from images.csv.
+        A job's workspace gives those of its slice (slices.py).
         """
+        if self._observations is not None:
+            return self._observations.copy()
+        self._check_whole("observations")
         dataset = self.dataset
-        paths = [p for p in (self.observations_path(s) for s in STAGES) if p.exists()]
-        whole = self.observations_path()
+        *per_stage, whole = observation_files(self.root)
+        paths = [p for p in per_stage if p.exists()]
         if paths and whole.exists():
             log.warning("%s is ignored: the per-stage files %s take precedence", whole, [str(p) for p in paths])
         if not paths and whole.exists():
@@ -202,6 +212,19 @@ class Workspace:
         camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
         observations.insert(1, "camera", observations["image"].map(camera_of).astype(str))
         return observations
+
+    def marker_batches(self, per_job: int) -> dict[str, dict]:
+        """plan.marker_batches of the dataset with `per_job` images a job; a job's workspace gives
+        the batch its slice was cut for (slices.py)."""
+        if self._batches is not None:
+            return self._batches
+        self._check_whole("marker batches")
+        return marker_batches(self.dataset, per_job)
+
+    def _check_whole(self, what: str) -> None:
+        """A slice's dataset lacks the other images: what is made from all of them is not made from it."""
+        if self.dataset.part:
+            raise ValueError(f"{self!r} holds only {self.dataset.part} of the dataset, not its {what}")
 
     # -------------------------------------------------------------- intrinsics and rig
 
@@ -376,6 +399,12 @@ class Workspace:
     def table_paths(self) -> list[Path]:
         """Every tables/*.csv written so far, by name."""
         return sorted((self.root / "tables").glob("*.csv"))
+
+
+def observation_files(root: Path) -> list[Path]:
+    """Every file Workspace.load_observations may read in the results folder `root`: the per-stage
+    ones (RESULTS/observations/<stage>.csv, in STAGES order), then RESULTS/observations.csv."""
+    return [root / "observations" / f"{stage}.csv" for stage in STAGES] + [root / "observations.csv"]
 
 
 def pose_file_beside(poses_path: str | Path, kind: str) -> Path:

@@ -51,8 +51,9 @@ def dataset_ready():
     return dataset_manifest()
 
 
-#: Bumped when `dmais plan`'s JSON changes, so that a plan file of an older layout is not read.
-PLAN_FORMAT = 2
+#: Bumped when `dmais plan`'s JSON or what it writes changes, so that a plan file of an older layout
+#: is not read (3: the plan also cuts the marker batches' slices, RESULTS/slices/).
+PLAN_FORMAT = 3
 
 
 def _plan_file(dataset_dir):
@@ -70,10 +71,12 @@ def _plan_file(dataset_dir):
 @functools.lru_cache(maxsize=None)
 def _plan(dataset_dir):
     """`dmais plan DATASET`: the dataset as the stages see it (validated by the same loader; a
-    faulty dataset stops here with its one-line error), from its plan file when one is there."""
+    faulty dataset stops here with its one-line error), from its plan file when one is there. Making
+    it also cuts each marker batch's slice of the dataset, which its job reads (slices.py)."""
     path = _plan_file(dataset_dir)
     if not path.is_file():
-        command = ["dmais", "plan", dataset_dir, "--per-job", str(MARKERS_PER_JOB), "--json", str(path)]
+        command = ["dmais", "plan", dataset_dir, "--per-job", str(MARKERS_PER_JOB), "--json", str(path),
+                   "--out", RESULTS, "--slices", "markers"]
         done = subprocess.run(command, capture_output=True, text=True)
         if done.returncode != 0:
             sys.exit(done.stderr.strip() or f"dmais plan {dataset_dir} failed")

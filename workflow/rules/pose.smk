@@ -1,8 +1,28 @@
+rule pose_slices:
+    input:
+        manifest=lambda wildcards: dataset_ready(),
+        observations=f"{RESULTS}/observations/flight.csv",
+    output:
+        json=f"{RESULTS}/slices/pose.json",
+    params:
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
+    log:
+        f"{LOGS}/pose_slices.log",
+    benchmark:
+        f"{BENCHMARKS}/pose_slices.tsv"
+    conda:
+        DMAIS_ENV
+    shell:
+        "dmais plan {params.dataset_dir} --out {params.results} --slices pose > {log} 2>&1"
+
+
 rule pose_group:
     input:
         manifest=lambda wildcards: dataset_ready(),
         rig=f"{RESULTS}/rig.json",
         observations=f"{RESULTS}/observations/flight.csv",
+        slices=f"{RESULTS}/slices/pose.json",
     output:
         csv=f"{RESULTS}/poses/{{subset}}/{{group}}.csv",
         observations=f"{RESULTS}/poses/{{subset}}/{{group}}.observations.csv",
