@@ -42,18 +42,20 @@ def log_so3(R) -> np.ndarray:
 
 
 def left_jacobian_so3(phi) -> np.ndarray:
-    """(3, 3) left Jacobian J_l of SO(3) at a rotation vector phi (3,): exp(phi + dphi) ~ exp(J_l dphi) exp(phi).
+    """(..., 3, 3) left Jacobians J_l of SO(3) at rotation vectors phi (..., 3), e.g. (3,) or (n, 3):
+    exp(phi + dphi) ~ exp(J_l dphi) exp(phi).
 
     J_l = I + (1 - cos theta) / theta^2 [phi]x + (theta - sin theta) / theta^3 [phi]x^2, theta = |phi|;
     its Taylor series to second order below theta = 1e-6.
     """
     phi = np.asarray(phi, dtype=float)
-    theta = float(np.linalg.norm(phi))
-    K = skew(phi)
-    if theta < 1e-6:
-        return np.eye(3) + 0.5 * K + K @ K / 6.0
-    return (np.eye(3) + (1.0 - np.cos(theta)) / theta**2 * K
-            + (theta - np.sin(theta)) / theta**3 * K @ K)
+    theta = np.linalg.norm(phi, axis=-1)[..., None, None]
+    K = skew(phi.reshape(-1, 3)).reshape(phi.shape + (3,))
+    small = theta < 1e-6
+    safe = np.where(small, 1.0, theta)
+    first = np.where(small, 0.5, (1.0 - np.cos(safe)) / safe**2)
+    second = np.where(small, 1.0 / 6.0, (safe - np.sin(safe)) / safe**3)
+    return np.eye(3) + first * K + second * (K @ K)
 
 
 def pose_jacobian(points, R, phi, J_point) -> np.ndarray:

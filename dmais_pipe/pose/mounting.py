@@ -85,7 +85,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
-from scipy import sparse
 from scipy.stats import chi2 as chi2_distribution
 
 from ..blas import single_threaded_blas
@@ -95,7 +94,9 @@ from ..frames import FlightObservations
 from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
 from ..rig import Rig
 from ..workspace import MOUNTING_COLUMNS
+from . import group_normal
 from .error_model import CALIBRATION_PARAMETERS, calibration_parameters
+from .group_normal import GroupNormal, GroupStructure
 
 log = logging.getLogger(__name__)
 
@@ -183,6 +184,7 @@ class _Problem:
     prior: float
     focal_prior: np.ndarray
     focal_slot: np.ndarray
+    structure: GroupStructure | None = None
 
     @property
     def local_size(self) -> int:
@@ -312,10 +314,13 @@ def _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px
         raise DmaisError("mounting: prior_sigma_arcmin must be above 0")
     sums = np.column_stack([np.bincount(frame, points[:, k], minlength=n_frames) for k in range(3)])
     centroid = sums / np.bincount(frame, minlength=n_frames)[:, None]
-    return _Problem(rig, rig.camera_names, free, frame, camera, slot, point, uv,
-                    1.0 / _pixel_sigmas(cameras, pixel_sigma_px), surveyed, survey_sigma, centroid, n_frames,
-                    *_centers(center_prior_m, center_sigma_m, n_frames), jitter, prior,
-                    *_focal_priors(rig, calibration_covariance))
+    problem = _Problem(rig, rig.camera_names, free, frame, camera, slot, point, uv,
+                       1.0 / _pixel_sigmas(cameras, pixel_sigma_px), surveyed, survey_sigma, centroid, n_frames,
+                       *_centers(center_prior_m, center_sigma_m, n_frames), jitter, prior,
+                       *_focal_priors(rig, calibration_covariance))
+    local_cols, rig_cols = _columns(problem)
+    return replace(problem, structure=group_normal.group_structure(
+        frame, point, local_cols, rig_cols, n_frames, problem.local_size, problem.rig_size, len(surveyed)))
 
 
 def _checked_observations(rig: Rig, cameras, uv, point_ids, points, frame_index):
@@ -453,11 +458,6 @@ def _non_negative(value, name: str) -> float:
 # ------------------------------------------------------------------------------ residuals and Jacobians
 
 
-def _left_jacobians(phi: np.ndarray) -> np.ndarray:
-    """(n, 3, 3) left Jacobians of rotation vectors phi (n, 3)."""
-    return np.array([left_jacobian_so3(v) for v in phi.reshape(-1, 3)]).reshape(-1, 3, 3)
-
-
 @dataclass(frozen=True)
 class _Forward:
     """The model at a state, per observation: e (N, 2) whitened pixel residuals; J_e (N, 2, 3) d e /
@@ -512,29 +512,41 @@ def _focal_changed(camera: Camera, focal: float) -> Camera:
     return replace(camera, fx=camera.fx * (1.0 + focal), fy=camera.fy * (1.0 + focal)) if focal else camera
 
 
-def _jacobians(problem: _Problem, state: _State, f: _Forward):
-    """The compact Jacobians of e: local (N, 2, L) with its columns (N, L) in the frame's block (pose
-    0:6, then the camera's jitter) and global (N, 2, g) with its columns (N, g) in the vector of the
-    deltas, focal changes and points (g = 6, 7 with the focal changes); an observation of the
-    reference camera has zeros for delta and jitter."""
+def _columns(problem: _Problem) -> tuple[np.ndarray, np.ndarray]:
+    """Each observation's columns: local (N, l) in its frame's block (the pose 0:6, then its camera's
+    jitter) and rig (N, r) in the rig's unknowns (its camera's delta, then its focal change, where the
+    problem has focal changes); an observation of the reference camera, or of a camera whose focal
+    length is held, takes slot 0's, with zeros in its Jacobian (`_jacobians`)."""
     p, K = problem, len(problem.free)
-    has, slot = (problem.slot >= 0)[:, None, None], np.maximum(problem.slot, 0)
+    slot, n = np.maximum(p.slot, 0), len(p.slot)
+    local = np.broadcast_to(np.arange(6), (n, 6))
+    if p.local_size > 6:
+        local = np.concatenate([local, 6 + 3 * slot[:, None] + np.arange(3)], axis=1)
+    rig = 3 * slot[:, None] + np.arange(3)
+    if len(p.focal_prior):
+        rig = np.concatenate([rig, 3 * K + np.maximum(p.focal_slot[p.camera], 0)[:, None]], axis=1)
+    return local, rig
+
+
+def _jacobians(problem: _Problem, state: _State, f: _Forward):
+    """The compact Jacobians of e: local (N, 2, l) with its columns (N, l) in the frame's block and
+    global (N, 2, g) with its columns (N, g) in the vector of the rig's unknowns and the points
+    (`_columns`; g = 6, 7 with the focal changes, the point's 3 last); an observation of the reference
+    camera has zeros for delta and jitter."""
+    p = problem
+    has = (problem.slot >= 0)[:, None, None]
+    local_cols, rig_cols = p.structure.local_cols, p.structure.rig_cols
     cal_R = np.array([p.rig.cam_from_rig[c].R for c in p.names])[p.camera]
     d_rig = f.J_e @ f.J @ f.D @ cal_R  # d e / d x_rig
     pose = np.concatenate([-d_rig @ skew(f.q), d_rig], axis=2)
-    d_delta = np.where(has, -(f.J_e @ f.J) @ skew(f.z) @ _left_jacobians(f.deltas)[p.slot], 0.0)
-    focal_slot = p.focal_slot[p.camera]
-    focal = [np.where(focal_slot[:, None] >= 0, f.J_focal, 0.0)[:, :, None]] if len(p.focal_prior) else []
-    focal_cols = [3 * K + np.maximum(focal_slot, 0)[:, None]] if len(p.focal_prior) else []
+    d_delta = np.where(has, -(f.J_e @ f.J) @ skew(f.z) @ left_jacobian_so3(f.deltas)[p.slot], 0.0)
+    focal = [np.where(p.focal_slot[p.camera][:, None] >= 0, f.J_focal, 0.0)[:, :, None]] if len(p.focal_prior) else []
     global_J = np.concatenate([d_delta, *focal, d_rig @ state.R[p.frame]], axis=2)
-    global_cols = np.concatenate([3 * slot[:, None] + np.arange(3), *focal_cols,
-                                  p.rig_size + 3 * p.point[:, None] + np.arange(3)], axis=1)
-    pose_cols = np.broadcast_to(np.arange(6), (len(slot), 6))
+    global_cols = np.concatenate([rig_cols, p.rig_size + 3 * p.point[:, None] + np.arange(3)], axis=1)
     if p.local_size == 6:
-        return pose, pose_cols, global_J, global_cols
-    jitter_J_l = _left_jacobians(f.jitters).reshape(f.jitters.shape + (3,))[p.frame, p.slot]
+        return pose, local_cols, global_J, global_cols
+    jitter_J_l = left_jacobian_so3(f.jitters)[p.frame, p.slot]
     d_jitter = np.where(has, -f.J_e @ skew(f.x) @ jitter_J_l, 0.0)
-    local_cols = np.concatenate([pose_cols, 6 + 3 * slot[:, None] + np.arange(3)], axis=1)
     return np.concatenate([pose, d_jitter], axis=2), local_cols, global_J, global_cols
 
 
@@ -565,53 +577,27 @@ def _cost(problem: _Problem, state: _State) -> float:
 # ------------------------------------------------------------------------------ normal equations
 
 
-#: The share of non-zeros above which the Schur complement's coupling block is handled dense.
-DENSE_SHARE = 0.25
-
-
-@dataclass(frozen=True)
-class _Normal:
-    """The normal equations in blocks: A (F, L, L) per frame, W (F L, G) frames x globals and H (G, G)
-    sparse, gradients b_local (F, L), b_global (G,) (J^T e with the priors')."""
-
-    A: np.ndarray
-    W: np.ndarray
-    H: np.ndarray
-    b_local: np.ndarray
-    b_global: np.ndarray
-
-
-def _scatter(values: np.ndarray, rows: np.ndarray, cols: np.ndarray, shape: tuple[int, int]) -> sparse.csr_array:
-    """The sparse (shape) sum of values at (rows, cols), all broadcast to one shape."""
-    values, rows, cols = np.broadcast_arrays(values, rows, cols)
-    return sparse.coo_array((values.ravel(), (rows.ravel(), cols.ravel())), shape=shape).tocsr()
-
-
-def _normal_equations(problem: _Problem, state: _State) -> _Normal:
-    """J^T J and J^T e of the pixel residuals, accumulated per frame and globally, then the priors'."""
+def _normal_equations(problem: _Problem, state: _State) -> GroupNormal:
+    """J^T J and J^T e of the pixel residuals in blocks (pose.group_normal), then the priors'."""
     p = problem
-    F, L, G = p.n_frames, p.local_size, p.global_size
     forward = _forward(p, state)
-    local_J, local_cols, global_J, global_cols = _jacobians(p, state, forward)
-    rows = p.frame[:, None] * L + local_cols  # (N, l) rows of the stacked frame blocks
-    local_T, global_T = np.swapaxes(local_J, 1, 2), np.swapaxes(global_J, 1, 2)
-    A = _scatter(local_T @ local_J, rows[:, :, None], local_cols[:, None, :], (F * L, L)).toarray().reshape(F, L, L)
-    W = _scatter(local_T @ global_J, rows[:, :, None], global_cols[:, None, :], (F * L, G))
-    H = _scatter(global_T @ global_J, global_cols[:, :, None], global_cols[:, None, :], (G, G))
-    b_local = _scatter((local_T @ forward.e[:, :, None])[..., 0], rows, 0, (F * L, 1)).toarray().reshape(F, L)
-    b_global = _scatter((global_T @ forward.e[:, :, None])[..., 0], global_cols, 0, (G, 1)).toarray().ravel()
-    H = _add_priors(p, state, A, H, b_local, b_global)
-    return _Normal(A, W, H, b_local, b_global)
+    local_J, _, global_J, _ = _jacobians(p, state, forward)
+    normal = group_normal.assemble(p.structure, local_J, global_J[:, :, :-3], global_J[:, :, -3:], forward.e)
+    _add_priors(p, state, normal)
+    return normal
 
 
-def _add_priors(problem: _Problem, state: _State, A, H, b_local, b_global) -> sparse.csr_array:
-    """Add the priors' terms to the normal equations' blocks (A, b_local, b_global in place; H
-    returned): the deltas', focal changes' and points' to H and b_global, the jitters' and rig
-    centres' to A and b_local."""
+def _add_priors(problem: _Problem, state: _State, normal: GroupNormal) -> None:
+    """Add the priors' terms to the normal equations' blocks in place: the deltas' and focal changes'
+    to Hrr and b_rig, the points' to Hpp and b_point, the jitters' and rig centres' to A and b_local."""
     p, K = problem, len(problem.free)
-    weights = np.concatenate([np.full(3 * K, p.prior**-2), p.focal_prior**-2, (p.survey_sigma**-2).ravel()])
-    H = (H + sparse.diags_array(weights)).tocsr()
-    b_global += weights * np.concatenate([state.delta.ravel(), state.focal, (state.points - p.surveyed).ravel()])
+    rig_weights = np.concatenate([np.full(3 * K, p.prior**-2), p.focal_prior**-2])
+    normal.Hrr[np.diag_indices(len(rig_weights))] += rig_weights
+    normal.b_rig[:] += rig_weights * np.concatenate([state.delta.ravel(), state.focal])
+    point_weights = p.survey_sigma**-2
+    normal.Hpp[:, np.arange(3), np.arange(3)] += point_weights
+    normal.b_point[:] += point_weights * (state.points - p.surveyed)
+    A, b_local = normal.A, normal.b_local
     if p.center is not None:
         residuals, J = _center_residuals(p, state)
         A[:, :6, :6] += np.swapaxes(J, 1, 2) @ J
@@ -620,90 +606,12 @@ def _add_priors(problem: _Problem, state: _State, A, H, b_local, b_global) -> sp
         jitter = np.arange(6, p.local_size)
         A[:, jitter, jitter] += p.jitter**-2
         b_local[:, 6:] += state.jitter.reshape(p.n_frames, -1) / p.jitter**2
-    return H
 
 
-def _damped(normal: _Normal, damping: float) -> _Normal:
-    """The normal equations with their diagonal raised by damping x itself (Levenberg-Marquardt)."""
-    if not damping:
-        return normal
-    A = normal.A.copy()
-    L = A.shape[1]
-    A[:, np.arange(L), np.arange(L)] *= 1.0 + damping
-    H = (normal.H + sparse.diags_array(normal.H.diagonal() * damping)).tocsr()
-    return _Normal(A, normal.W, H, normal.b_local, normal.b_global)
-
-
-def _solved(normal: _Normal, n_deltas: int, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The solution of the normal equations for right sides (F L + G, k) (the frames' unknowns, then
-    the globals), and the block (n_deltas, n_deltas) of their inverse of the rig's unknowns (the
-    globals before the points), by the Schur complement
-    of whichever blocks make the smaller dense system: the frames' (F blocks of L: hovering, few
-    points, many frames) or the points' (P blocks of 3: a line, thousands of points each seen by a
-    few frames; eliminating the frames there left a dense 3P system, 9.5 s for 30 frames over 1,173
-    points)."""
-    F, L, _ = normal.A.shape
-    n_points = (normal.H.shape[0] - n_deltas) // 3
-    if 3 * n_points <= F * L:  # the frames' blocks eliminated: the deltas and points kept
-        order = np.arange(F * L + normal.H.shape[0])
-        blocks, coupling, kept = normal.A, normal.W, normal.H.toarray()
-        deltas = np.arange(n_deltas)
-    else:  # the points' blocks eliminated: the frames and deltas kept
-        d = n_deltas
-        order = np.concatenate([F * L + d + np.arange(3 * n_points), np.arange(F * L + d)])
-        blocks = _point_blocks(normal.H[d:, d:], n_points)
-        coupling = sparse.vstack([normal.W[:, d:], normal.H[:d, d:]]).T.tocsr()
-        kept = sparse.block_array([[sparse.block_diag(list(normal.A)), normal.W[:, :d]],
-                                   [normal.W[:, :d].T, normal.H[:d, :d]]]).toarray()
-        deltas = F * L + np.arange(d)
-    solution, inverse = _schur_solved(blocks, coupling, kept, right[order], deltas)
-    out = np.empty_like(solution)
-    out[order] = solution
-    return out, inverse
-
-
-def _point_blocks(H_points: sparse.csr_array, n_points: int) -> np.ndarray:
-    """(P, 3, 3) the diagonal blocks of the points' part of H (3P, 3P), which has no others."""
-    coo = H_points.tocoo()
-    blocks = np.zeros((n_points, 3, 3))
-    np.add.at(blocks, (coo.row // 3, coo.row % 3, coo.col % 3), coo.data)
-    return blocks
-
-
-def _schur_solved(blocks: np.ndarray, coupling: sparse.csr_array, kept: np.ndarray, right: np.ndarray,
-                  deltas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Solve [[E, C], [C^T, K]] x = right for E block-diagonal (n, b, b) `blocks`, C (n b, m)
-    `coupling`, K (m, m) `kept`, right (n b + m, k): x (n b + m, k), and the rows and columns
-    `deltas` of the kept part of the inverse (the inverse of the Schur complement K - C^T E^-1 C).
-    C is taken dense where it is mostly filled (hovering: every frame sees every point)."""
-    try:
-        E_inv = np.linalg.inv(blocks)
-    except np.linalg.LinAlgError:
-        raise DmaisError("mounting: a frame's pose or a point is not determined by its observations (too few "
-                         "or collinear points)") from None
-    n, b, _ = blocks.shape
-    if coupling.nnz > DENSE_SHARE * np.prod(coupling.shape):
-        coupling = coupling.toarray()
-        E_inv_C = (E_inv @ coupling.reshape(n, b, -1)).reshape(n * b, -1)
-        schur = kept - coupling.T @ E_inv_C
-    else:
-        E_inv_C = sparse.block_diag(list(E_inv)).tocsr() @ coupling
-        schur = kept - (coupling.T @ E_inv_C).toarray()
-    try:
-        inverse = np.linalg.inv(schur)
-    except np.linalg.LinAlgError:
-        raise DmaisError("mounting: the group's normal equations are singular") from None
-    E_inv_right = (E_inv @ right[:n * b].reshape(n, b, -1)).reshape(n * b, -1)
-    x_kept = inverse @ (right[n * b:] - coupling.T @ E_inv_right)
-    x_eliminated = E_inv_right - E_inv_C @ x_kept
-    return np.concatenate([x_eliminated, x_kept]), inverse[np.ix_(deltas, deltas)]
-
-
-def _step(problem: _Problem, normal: _Normal, damping: float) -> tuple[np.ndarray, np.ndarray]:
+def _step(problem: _Problem, normal: GroupNormal, damping: float) -> tuple[np.ndarray, np.ndarray]:
     """The (damped) Gauss-Newton step: local (F, L), global (G,)."""
-    F, L, _ = normal.A.shape
-    right = -np.concatenate([normal.b_local.ravel(), normal.b_global])[:, None]
-    step = _solved(_damped(normal, damping), problem.rig_size, right)[0][:, 0]
+    F, L = problem.n_frames, problem.local_size
+    step = group_normal.solve(normal.damped(damping), -normal.gradient[:, None])[0][:, 0]
     return step[:F * L].reshape(F, L), step[F * L:]
 
 
@@ -746,12 +654,11 @@ def _rig_covariance(problem: _Problem, state: _State, calibration_covariance=Non
     their block of the inverse normal matrix, plus, given the calibration's covariance
     (`adjust_group_rig`), its share (`_calibration_share`); one solve gives both."""
     normal = _normal_equations(problem, state)
-    size = normal.A.shape[0] * normal.A.shape[1] + normal.H.shape[0]
     right, columns = _calibration_right_sides(problem, state) if calibration_covariance is not None \
-        else (np.zeros((size, 0)), [])
-    moved, covariance = _solved(normal, problem.rig_size, -right)
+        else (np.zeros((problem.structure.size, 0)), [])
+    moved, covariance = group_normal.solve(normal, -right)
     if calibration_covariance is not None:
-        first = normal.A.shape[0] * normal.A.shape[1]
+        first = problem.n_frames * problem.local_size
         covariance = covariance + _calibration_share(problem, moved[first:first + problem.rig_size], columns,
                                                      np.asarray(calibration_covariance, float))
     return covariance

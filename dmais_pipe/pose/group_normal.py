@@ -1,0 +1,354 @@
+"""The normal equations of a flight group's rig adjustment (pose.mounting) in blocks, solved in time linear in the frames.
+
+Unknowns, in the order of the flat vectors: F frames of L each (a frame's pose and jitters), the rig's R
+(deltas, focal changes), P points of 3. Each of the N observations' residuals (2) depends on l <= L of its
+frame's unknowns (`local_cols`), r <= R of the rig's (`rig_cols`) and on its point. The normal matrix
+
+    [[A,    Wr,   Wp ],
+     [Wr^T, Hrr,  Hrp],
+     [Wp^T, Hpr,  Hpp]]
+
+has A block diagonal (F blocks L x L) and Hpp block diagonal (P blocks 3 x 3): a point is tied to
+other unknowns only through the frames that see it. It is kept as those blocks, Wp as one (l, 3)
+block per observation, and solved by eliminating one block-diagonal set and then the rest:
+
+- the frames first (`FRAMES_FIRST`), leaving a dense system of the points and the rig (3P + R): a
+  group hovering over the same few markers, where every frame sees every point;
+- the points first (`POINTS_FIRST`), leaving the frames and the rig: the frames are tied only where
+  they share a point, so that system is block diagonal where no point is seen by two frames and
+  banded along a line of frames; it is factorised by blocks (no sharing) or by a sparse LU
+  (scipy's SuperLU, a fill-reducing order), and the rig's R unknowns last by their Schur complement.
+
+`elimination` picks the cheaper by counting the work each needs. Both are exact: the solution and the
+rig's block of the inverse equal those of a dense solve of the whole matrix to rounding
+(tests/test_group_normal.py). The cost is linear in the frames for a fixed number of points per frame
+and frames per point; the dense system of the frames-first order is of the points alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import linalg, sparse
+from scipy.sparse import linalg as sparse_linalg
+
+from ..errors import DmaisError
+
+FRAMES_FIRST, POINTS_FIRST = "frames first", "points first"
+#: Above this size the frames' system of the points-first order is factorised sparse, not dense.
+DENSE_FRAMES_SIZE = 2000
+#: Numbers per chunk of frames where the frames-first order builds its dense system (chunk x L x (R + 3P)).
+CHUNK_NUMBERS = 4_000_000
+#: Observation pairs per chunk where the points-first order accumulates the frames' coupling blocks.
+PAIR_CHUNK = 200_000
+
+
+@dataclass(frozen=True)
+class GroupStructure:
+    """Which unknowns each observation touches, fixed for one adjustment, and the order of elimination.
+
+    frame (N,) in [0, F); point (N,) in [0, P); local_cols (N, l) in [0, L); rig_cols (N, r) in [0, R);
+    method: FRAMES_FIRST or POINTS_FIRST (`elimination`). For the points first only: pair_left,
+    pair_right (M,) every ordered pair of observations of one point (each with itself too);
+    pair_block (M,) the index of the pair's frames (frame of left, frame of right) in frame_pairs
+    (B, 2), the self pairs (f, f) first, in frame order."""
+
+    n_frames: int
+    local_size: int
+    rig_size: int
+    n_points: int
+    frame: np.ndarray
+    point: np.ndarray
+    local_cols: np.ndarray
+    rig_cols: np.ndarray
+    method: str
+    pair_left: np.ndarray
+    pair_right: np.ndarray
+    pair_block: np.ndarray
+    frame_pairs: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return self.n_frames * self.local_size + self.rig_size + 3 * self.n_points
+
+    @property
+    def frames_tied(self) -> bool:
+        """Whether some point is seen by two frames (the points-first frames' system is not block diagonal)."""
+        return len(self.frame_pairs) > self.n_frames
+
+
+def group_structure(frame, point, local_cols, rig_cols, n_frames: int, local_size: int, rig_size: int,
+                    n_points: int, method: str | None = None) -> GroupStructure:
+    """The GroupStructure of N observations (its docstring), by `method` or `elimination`'s choice."""
+    frame, point = np.asarray(frame, dtype=np.int64), np.asarray(point, dtype=np.int64)
+    local_cols, rig_cols = np.asarray(local_cols, dtype=np.int64), np.asarray(rig_cols, dtype=np.int64)
+    counts = np.bincount(point, minlength=n_points)
+    tied = len(np.unique(point * n_frames + frame)) > n_points  # a point seen by two frames
+    method = method or elimination(n_frames, local_size, rig_size, n_points, local_cols.shape[1],
+                                   int(np.sum(counts.astype(float)**2)), tied)
+    if method not in (FRAMES_FIRST, POINTS_FIRST):
+        raise ValueError(f"unknown elimination {method!r}")
+    if method == FRAMES_FIRST:
+        none = np.zeros(0, dtype=np.int64)
+        pairs = (none, none, none, np.column_stack([np.arange(n_frames)] * 2))
+    else:
+        pairs = _observation_pairs(frame, point, counts, n_frames)
+    return GroupStructure(n_frames, local_size, rig_size, n_points, frame, point, local_cols, rig_cols, method,
+                          *pairs)
+
+
+def elimination(n_frames: int, local_size: int, rig_size: int, n_points: int, l: int, n_pairs: int,
+                tied: bool) -> str:
+    """FRAMES_FIRST or POINTS_FIRST, whichever needs fewer operations (module docstring): the frames
+    first build a dense (3P + R) system from every frame's L x (3P + R) block and factorise it; the
+    points first build one l x l block per pair of observations of a point (n_pairs of them), and a
+    sparse factorisation where frames share points (`tied`) costs a few times that."""
+    dense = 3 * n_points + rig_size
+    frames_first = float(n_frames) * local_size * dense**2 + dense**3 / 3.0
+    points_first = n_pairs * 3.0 * l**2 * (4.0 if tied else 1.0)
+    return FRAMES_FIRST if frames_first < points_first else POINTS_FIRST
+
+
+def _observation_pairs(frame: np.ndarray, point: np.ndarray, counts: np.ndarray, n_frames: int):
+    """GroupStructure's pair_left, pair_right, pair_block and frame_pairs."""
+    order = np.argsort(point, kind="stable")
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    repeat = counts[point[order]]
+    left = np.repeat(order, repeat)
+    within = np.arange(len(left)) - np.repeat(np.cumsum(repeat) - repeat, repeat)
+    right = order[starts[point[left]] + within]
+    tied = frame[left] != frame[right]
+    others, block = np.unique(frame[left[tied]] * n_frames + frame[right[tied]], return_inverse=True)
+    pair_block = frame[left].copy()
+    pair_block[tied] = n_frames + block
+    keys = np.concatenate([np.arange(n_frames) * (n_frames + 1), others])
+    return left, right, pair_block, np.column_stack(np.divmod(keys, n_frames))
+
+
+@dataclass(frozen=True)
+class GroupNormal:
+    """The normal equations in blocks (module docstring): A (F, L, L), Wr (F, L, R), Hrr (R, R), Hpp (P, 3,
+    3), Hpr (P, 3, R), Wp (N, l, 3) one block per observation (rows: its local_cols); the gradient b_local
+    (F, L), b_rig (R,), b_point (P, 3)."""
+
+    structure: GroupStructure
+    A: np.ndarray
+    Wr: np.ndarray
+    Hrr: np.ndarray
+    Hpp: np.ndarray
+    Hpr: np.ndarray
+    Wp: np.ndarray
+    b_local: np.ndarray
+    b_rig: np.ndarray
+    b_point: np.ndarray
+
+    @property
+    def gradient(self) -> np.ndarray:
+        """(F L + R + 3P,) the flat gradient."""
+        return np.concatenate([self.b_local.ravel(), self.b_rig, self.b_point.ravel()])
+
+    def damped(self, damping: float) -> GroupNormal:
+        """The equations with every diagonal raised by damping x itself (Levenberg-Marquardt)."""
+        if not damping:
+            return self
+        A, Hrr, Hpp = self.A.copy(), self.Hrr.copy(), self.Hpp.copy()
+        for M in (A, Hpp):
+            n = M.shape[1]
+            M[:, np.arange(n), np.arange(n)] *= 1.0 + damping
+        Hrr[np.diag_indices(len(Hrr))] *= 1.0 + damping
+        return GroupNormal(self.structure, A, self.Wr, Hrr, Hpp, self.Hpr, self.Wp, self.b_local, self.b_rig,
+                           self.b_point)
+
+    def dense(self) -> np.ndarray:
+        """(n, n) the whole normal matrix, n = F L + R + 3P: for tests and small groups only."""
+        s = self.structure
+        F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
+        n, first = s.size, F * L
+        N = np.zeros((n, n))
+        frames = np.arange(F)[:, None] * L + np.arange(L)
+        N[frames[:, :, None], frames[:, None, :]] = self.A
+        N[frames[:, :, None], first + np.arange(R)] = self.Wr
+        points = first + R + 3 * np.arange(P)[:, None] + np.arange(3)
+        N[points[:, :, None], points[:, None, :]] = self.Hpp
+        N[first:first + R, points.ravel()] = self.Hpr.reshape(3 * P, R).T
+        N[first:first + R, first:first + R] = self.Hrr
+        rows = s.frame[:, None] * L + s.local_cols
+        np.add.at(N, (rows[:, :, None], points[s.point][:, None, :]), self.Wp)
+        upper = np.triu(N, 1)
+        return np.triu(N) + upper.T
+
+
+def assemble(structure: GroupStructure, local_J, rig_J, point_J, e) -> GroupNormal:
+    """J^T J and J^T e of N observations' whitened residuals e (N, 2) with the compact Jacobians local_J
+    (N, 2, l), rig_J (N, 2, r) and point_J (N, 2, 3) (columns: structure's local_cols, rig_cols, the
+    point's 3); the priors are the caller's to add."""
+    s = structure
+    F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
+    local_T, rig_T, point_T = (np.swapaxes(J, 1, 2) for J in (local_J, rig_J, point_J))
+    lc, rc = s.local_cols, s.rig_cols
+    frame_rows = s.frame[:, None] * L + lc  # (N, l) rows of the stacked frame blocks
+    A = _summed(local_T @ local_J, frame_rows[:, :, None] * L + lc[:, None, :], F * L * L).reshape(F, L, L)
+    Wr = _summed(local_T @ rig_J, frame_rows[:, :, None] * R + rc[:, None, :], F * L * R).reshape(F, L, R)
+    Hrr = _summed(rig_T @ rig_J, rc[:, :, None] * R + rc[:, None, :], R * R).reshape(R, R)
+    point_rows = 3 * s.point[:, None] + np.arange(3)  # (N, 3)
+    Hpp = _summed(point_T @ point_J, point_rows[:, :, None] * 3 + np.arange(3), P * 9).reshape(P, 3, 3)
+    Hpr = _summed(point_T @ rig_J, point_rows[:, :, None] * R + rc[:, None, :], P * 3 * R).reshape(P, 3, R)
+    e = e[:, :, None]
+    b_local = _summed((local_T @ e)[..., 0], frame_rows, F * L).reshape(F, L)
+    b_rig = _summed((rig_T @ e)[..., 0], rc, R)
+    b_point = _summed((point_T @ e)[..., 0], point_rows, 3 * P).reshape(P, 3)
+    return GroupNormal(s, A, Wr, Hrr, Hpp, Hpr, local_T @ point_J, b_local, b_rig, b_point)
+
+
+def _summed(values: np.ndarray, index: np.ndarray, size: int) -> np.ndarray:
+    """(size,) the sums of `values` at their flat `index` (both broadcast to one shape)."""
+    values, index = np.broadcast_arrays(values, index)
+    return np.bincount(index.ravel(), weights=values.ravel(), minlength=size)
+
+
+# ------------------------------------------------------------------------------ the solution
+
+
+def solve(normal: GroupNormal, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The solution (F L + R + 3P, k) of the normal equations for right sides `right` (F L + R + 3P, k),
+    and the rig's block (R, R) of the inverse normal matrix, in the structure's order of elimination. DmaisError where a frame, a point or the whole is not determined."""
+    s = normal.structure
+    F, L, R = s.n_frames, s.local_size, s.rig_size
+    right = np.asarray(right, dtype=float).reshape(s.size, -1 if np.size(right) else 0)
+    k = right.shape[1]
+    if k == 0:  # the rig's inverse alone: one zero right side keeps every shape
+        right = np.zeros((s.size, 1))
+    r_local = right[:F * L].reshape(F, L, -1)
+    r_rig, r_point = right[F * L:F * L + R], right[F * L + R:].reshape(s.n_points, 3, -1)
+    solver = _frames_first if s.method == FRAMES_FIRST else _points_first
+    x_local, x_rig, x_point, rig_inverse = solver(normal, r_local, r_rig, r_point)
+    x = np.concatenate([x_local.reshape(F * L, -1), x_rig, x_point.reshape(3 * s.n_points, -1)])
+    return x[:, :k], rig_inverse
+
+
+def _inverted(blocks: np.ndarray, what: str) -> np.ndarray:
+    """(n, b, b) the inverses of SPD blocks; DmaisError naming `what` where one is singular."""
+    try:
+        return np.linalg.inv(blocks)
+    except np.linalg.LinAlgError:
+        raise DmaisError(f"mounting: {what} is not determined by its observations (too few or collinear "
+                         "points)") from None
+
+
+def _cho_factor(matrix: np.ndarray):
+    try:
+        return linalg.cho_factor(matrix)
+    except linalg.LinAlgError:
+        raise DmaisError("mounting: the group's normal equations are singular") from None
+
+
+def _frames_first(normal: GroupNormal, r_local, r_rig, r_point):
+    """Eliminate the frames' blocks, solve the dense (R + 3P) system of the rig and the points."""
+    s = normal.structure
+    F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
+    A_inv = _inverted(normal.A, "a frame's pose")
+    G = R + 3 * P
+    system = np.zeros((G, G))
+    system[:R, :R] = normal.Hrr
+    points = R + 3 * np.arange(P)[:, None] + np.arange(3)
+    system[points[:, :, None], points[:, None, :]] = normal.Hpp
+    system[points.ravel()[:, None], np.arange(R)] = normal.Hpr.reshape(3 * P, R)
+    system[:R, R:] = system[R:, :R].T
+    y = np.concatenate([r_rig, r_point.reshape(3 * P, -1)])
+    chunks = np.array_split(np.arange(F), min(F, -(-F * L * G // CHUNK_NUMBERS)))
+    for chunk in chunks:
+        W = _dense_coupling(normal, chunk)  # (c, L, G)
+        A_inv_W = A_inv[chunk] @ W
+        system -= W.reshape(-1, G).T @ A_inv_W.reshape(-1, G)
+        y -= A_inv_W.reshape(-1, G).T @ r_local[chunk].reshape(len(chunk) * L, -1)
+    factor = _cho_factor(system)
+    x_global = linalg.cho_solve(factor, y)
+    rig_inverse = linalg.cho_solve(factor, np.eye(G)[:, :R])[:R]
+    x_local = np.empty_like(r_local)
+    for chunk in chunks:
+        W = _dense_coupling(normal, chunk)
+        x_local[chunk] = A_inv[chunk] @ (r_local[chunk] - W @ x_global)
+    return x_local, x_global[:R], x_global[R:].reshape(P, 3, -1), rig_inverse
+
+
+def _dense_coupling(normal: GroupNormal, chunk: np.ndarray) -> np.ndarray:
+    """(c, L, R + 3P) the frames' rows of the normal matrix beside their own blocks, of the frames
+    `chunk` (c,) (consecutive)."""
+    s = normal.structure
+    L, R = s.local_size, s.rig_size
+    W = np.zeros((len(chunk), L, R + 3 * s.n_points))
+    W[:, :, :R] = normal.Wr[chunk]
+    rows = np.flatnonzero((s.frame >= chunk[0]) & (s.frame <= chunk[-1]))
+    index = (s.frame[rows][:, None, None] - chunk[0], s.local_cols[rows][:, :, None],
+             R + 3 * s.point[rows][:, None, None] + np.arange(3))
+    np.add.at(W, index, normal.Wp[rows])
+    return W
+
+
+def _points_first(normal: GroupNormal, r_local, r_rig, r_point):
+    """Eliminate the points' blocks, then solve the frames' and the rig's system (module docstring)."""
+    s = normal.structure
+    F, L, R = s.n_frames, s.local_size, s.rig_size
+    Hpp_inv = _inverted(normal.Hpp, "a point")
+    V = normal.Wp @ Hpp_inv[s.point]  # (N, l, 3)
+    Hpp_inv_Hpr = Hpp_inv @ normal.Hpr  # (P, 3, R)
+    Hpp_inv_r = Hpp_inv @ r_point  # (P, 3, k)
+    blocks = _frame_blocks(normal, V)
+    S_fr = normal.Wr.copy()
+    np.add.at(S_fr, (s.frame[:, None], s.local_cols), -(normal.Wp @ Hpp_inv_Hpr[s.point]))
+    S_rr = normal.Hrr - np.einsum("pir,pis->rs", normal.Hpr, Hpp_inv_Hpr)
+    y_local = r_local.copy()
+    np.add.at(y_local, (s.frame[:, None], s.local_cols), -(normal.Wp @ Hpp_inv_r[s.point]))
+    y_rig = r_rig - np.einsum("pir,pik->rk", normal.Hpr, Hpp_inv_r)
+    frames = _frames_factor(blocks, s)
+    Z = frames(S_fr)  # (F, L, R)
+    T = S_rr - np.einsum("flr,fls->rs", S_fr, Z)
+    factor = _cho_factor(T)
+    frames_y = frames(y_local)
+    x_rig = linalg.cho_solve(factor, y_rig - np.einsum("flr,flk->rk", S_fr, frames_y))
+    x_local = frames_y - Z @ x_rig
+    moved = normal.Wp.transpose(0, 2, 1) @ x_local[s.frame[:, None], s.local_cols]  # (N, 3, k)
+    back = r_point - normal.Hpr @ x_rig
+    np.add.at(back, s.point, -moved)
+    return x_local, x_rig, Hpp_inv @ back, linalg.cho_solve(factor, np.eye(R))
+
+
+def _frame_blocks(normal: GroupNormal, V: np.ndarray) -> np.ndarray:
+    """(B, L, L) the frames' system's blocks of the frame pairs (structure.frame_pairs): A on the self
+    pairs less, for every pair of observations (i, j) of one point, V_i Wp_j^T at the rows of i's and
+    the columns of j's local unknowns."""
+    s = normal.structure
+    L, B = s.local_size, len(s.frame_pairs)
+    flat = np.zeros(B * L * L)
+    flat[:s.n_frames * L * L] = normal.A.ravel()
+    lc = s.local_cols
+    for start in range(0, len(s.pair_left), PAIR_CHUNK):
+        i, j = s.pair_left[start:start + PAIR_CHUNK], s.pair_right[start:start + PAIR_CHUNK]
+        products = V[i] @ normal.Wp[j].transpose(0, 2, 1)  # (m, l, l)
+        index = (s.pair_block[start:start + PAIR_CHUNK, None, None] * L + lc[i][:, :, None]) * L + lc[j][:, None, :]
+        flat -= np.bincount(index.ravel(), weights=products.ravel(), minlength=len(flat))
+    return flat.reshape(B, L, L)
+
+
+def _frames_factor(blocks: np.ndarray, structure: GroupStructure):
+    """A function solving the frames' system (its blocks (B, L, L) of structure.frame_pairs) for right
+    sides (F, L, k): by the blocks' inverses where no frames are tied, else a dense Cholesky or a
+    sparse LU of the whole."""
+    F, L = structure.n_frames, structure.local_size
+    if not structure.frames_tied:
+        inverse = _inverted(blocks, "a frame's pose")
+        return lambda right: inverse @ right
+    pairs = structure.frame_pairs
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    matrix = sparse.bsr_array((blocks[order], pairs[order, 1], np.searchsorted(pairs[order, 0], np.arange(F + 1))),
+                              shape=(F * L, F * L))
+    if F * L <= DENSE_FRAMES_SIZE:
+        factor = _cho_factor(matrix.toarray())
+        return lambda right: linalg.cho_solve(factor, right.reshape(F * L, -1)).reshape(F, L, -1)
+    try:
+        lu = sparse_linalg.splu(matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                                options={"SymmetricMode": True})
+    except RuntimeError:  # SuperLU: "Factor is exactly singular"
+        raise DmaisError("mounting: the group's normal equations are singular") from None
+    return lambda right: lu.solve(right.reshape(F * L, -1)).reshape(F, L, -1)

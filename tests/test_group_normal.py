@@ -1,0 +1,105 @@
+"""pose.group_normal: the blocks equal J^T J of the whole Jacobian, and both orders of elimination (and the
+block-diagonal, dense and sparse factorisations of the frames) solve as a dense solve of the whole matrix."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from dmais_pipe.errors import DmaisError
+from dmais_pipe.pose import group_normal
+from dmais_pipe.pose.group_normal import FRAMES_FIRST, POINTS_FIRST, assemble, group_structure, solve
+
+L, R = 9, 5  # a frame's pose (6) and one camera's jitter (3); the rig's unknowns
+
+
+def observations(rng, kind: str, n_frames: int):
+    """(frame, point, n_points) of a group: `shared` every frame sees the same 6 points, `own` each frame
+    its own 5, `line` each frame 3 new points and the 3 of each of the two frames before."""
+    if kind == "shared":
+        frame, point = np.divmod(np.arange(n_frames * 6), 6)
+        return frame, point, 6
+    if kind == "own":
+        frame = np.repeat(np.arange(n_frames), 5)
+        return frame, np.arange(5 * n_frames), 5 * n_frames
+    frame = np.repeat(np.arange(n_frames), 9)
+    back = np.tile(np.repeat([0, 1, 2], 3), n_frames)
+    point = 3 * np.maximum(frame - back, 0) + np.tile(np.arange(3), 3 * n_frames)
+    keep = frame - back >= 0
+    return frame[keep], point[keep], 3 * n_frames
+
+
+def random_normal(kind: str, n_frames: int, method: str | None, seed: int = 0):
+    """A GroupNormal of random Jacobians with priors on every unknown, and the whole Jacobian (2N + n, n)."""
+    rng = np.random.default_rng(seed)
+    frame, point, n_points = observations(rng, kind, n_frames)
+    n = len(frame)
+    camera = rng.integers(0, 2, n)  # which of two jitter/rig column sets an observation uses
+    local_cols = np.concatenate([np.broadcast_to(np.arange(6), (n, 6)), 6 + np.zeros((n, 3), int) + np.arange(3)],
+                                axis=1)
+    rig_cols = np.where(camera[:, None] == 0, [0, 1, 2], [2, 3, 4])
+    structure = group_structure(frame, point, local_cols, rig_cols, n_frames, L, R, n_points, method)
+    local_J, rig_J, point_J = (rng.normal(size=(n, 2, k)) for k in (9, 3, 3))
+    e = rng.normal(size=(n, 2))
+    normal = assemble(structure, local_J, rig_J, point_J, e)
+    size = structure.size
+    J = np.zeros((2 * n, size))
+    rows = np.arange(2 * n).reshape(n, 2)
+    first, points = n_frames * L, n_frames * L + R + 3 * point[:, None] + np.arange(3)
+    np.add.at(J, (rows[:, :, None], (frame[:, None] * L + local_cols)[:, None, :]), local_J)
+    np.add.at(J, (rows[:, :, None], (first + rig_cols)[:, None, :]), rig_J)
+    np.add.at(J, (rows[:, :, None], points[:, None, :]), point_J)
+    return structure, normal, J, e
+
+
+def with_priors(normal, weight: float = 2.0):
+    """`normal` with `weight` added to every diagonal (a prior on every unknown)."""
+    damped = normal.damped(0.0)
+    A, Hpp, Hrr = normal.A.copy(), normal.Hpp.copy(), normal.Hrr.copy()
+    A[:, np.arange(L), np.arange(L)] += weight
+    Hpp[:, np.arange(3), np.arange(3)] += weight
+    Hrr[np.diag_indices(R)] += weight
+    return type(damped)(normal.structure, A, normal.Wr, Hrr, Hpp, normal.Hpr, normal.Wp, normal.b_local,
+                        normal.b_rig, normal.b_point)
+
+
+@pytest.mark.parametrize("kind", ["shared", "own", "line"])
+def test_the_blocks_are_those_of_the_whole_jacobian(kind):
+    _, normal, J, e = random_normal(kind, 7, None)
+    np.testing.assert_allclose(normal.dense(), J.T @ J, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(normal.gradient, J.T @ e.ravel(), rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("method", [FRAMES_FIRST, POINTS_FIRST])
+@pytest.mark.parametrize("kind, n_frames", [("shared", 9), ("own", 9), ("line", 9), ("line", 120)])
+def test_each_elimination_solves_as_the_dense_matrix(kind, n_frames, method, monkeypatch):
+    monkeypatch.setattr(group_normal, "DENSE_FRAMES_SIZE", 100)  # the line of 9 frames dense, of 300 sparse
+    monkeypatch.setattr(group_normal, "PAIR_CHUNK", 50)  # several chunks of observation pairs
+    monkeypatch.setattr(group_normal, "CHUNK_NUMBERS", 2000)  # several chunks of frames
+    structure, normal, _, _ = random_normal(kind, n_frames, method)
+    normal = with_priors(normal)
+    right = np.random.default_rng(1).normal(size=(structure.size, 3))
+    x, rig_inverse = solve(normal, right)
+    dense = normal.dense()
+    np.testing.assert_allclose(x, np.linalg.solve(dense, right), rtol=1e-9, atol=1e-12)
+    first = structure.n_frames * L
+    np.testing.assert_allclose(rig_inverse, np.linalg.inv(dense)[first:first + R, first:first + R], rtol=1e-9,
+                               atol=1e-14)
+
+
+def test_the_cheaper_order_is_chosen():
+    assert random_normal("shared", 50, None)[0].method == FRAMES_FIRST
+    assert random_normal("own", 50, None)[0].method == POINTS_FIRST
+    line = random_normal("line", 200, None)[0]
+    assert line.method == POINTS_FIRST and line.frames_tied
+    assert not random_normal("own", 50, None)[0].frames_tied
+
+
+@pytest.mark.parametrize("method", [FRAMES_FIRST, POINTS_FIRST])
+def test_an_undetermined_frame_is_refused(method):
+    structure, normal, _, _ = random_normal("own", 4, method)
+    normal = with_priors(normal)
+    normal.A[2], normal.Wr[2] = 0.0, 0.0  # frame 2 seen by nothing
+    normal.Wp[structure.frame == 2] = 0.0
+    with pytest.raises(DmaisError, match="not determined"):
+        solve(normal, np.ones((structure.size, 1)))
