@@ -2,7 +2,7 @@
 
 The targets (docs/design.md, "Marker batches"): such a flight plans in <= 30 s (`snakemake -n`, with and without the
 SLURM profile), runs at most one cluster job per 50 images, costs <= 0.25 s of detection work per 12 MP
-image (decode + detect + identify + write) and <= 0.1 s of cluster overhead per image.
+image (decode + detect + refine + identify + write) and <= 0.1 s of cluster overhead per image.
 
 - `campaign_dataset`: a dataset whose flight repeats the frames of a simulated one (the demo's 30 frames
   of 5 cameras) up to `frames` frames, its calibration images as they are;
@@ -14,7 +14,10 @@ image (decode + detect + identify + write) and <= 0.1 s of cluster overhead per 
      demo's: seconds per image of each phase, and what the process costs besides (its start, imports,
      loading the dataset);
   3. with `slurm`, a few flight batches run through the SLURM profile: per job its images, elapsed
-     time, detection work, overhead and peak memory (sacct, the job's Snakemake benchmark file).
+     time, detection work, overhead and peak memory (sacct, the job's Snakemake benchmark file);
+  4. marker extraction per phase at 12 MP and 140 MP, JPEG and 16-bit TIFF, windowed about the
+     priors' predictions beside the whole image on the same images, and a job's peak memory
+     (`bench.marker_costs`: rendered once into results/bench_marker_phases/), <csv>_marker_phases.csv.
 """
 
 from __future__ import annotations
@@ -36,13 +39,14 @@ from ..dataset import FRAMES, IMAGES, MANIFEST, OBSERVATIONS, Dataset
 from ..errors import DmaisError
 from ..files import copy_atomic, write_csv_atomic, write_yaml_atomic
 from ..plan import MARKERS_PER_JOB
+from .marker_costs import marker_phase_table, write_marker_phase_table
 
 log = logging.getLogger(__name__)
 
 #: The workflow's name of the campaign: results/campaign/, logs/campaign/, benchmarks/campaign/.
 NAME = "campaign"
 PROFILE = ("--workflow-profile", "workflow/profiles/slurm")
-PHASES = ("decode_s", "detect_s", "identify_s", "write_s")
+PHASES = ("decode_s", "detect_s", "refine_s", "identify_s", "write_s")
 COLUMNS = ("metric", "value", "unit", "note")
 #: Files a campaign dataset is made of besides its links to the source's image folders.
 _OWN_FILES = (MANIFEST, "control_points.csv", "ground_points.csv", IMAGES, FRAMES, OBSERVATIONS)
@@ -185,6 +189,8 @@ def bench_campaign(source: Path, out: Path, csv: Path, frames: int = 10_000, fra
     table = pd.DataFrame(rows, columns=COLUMNS, dtype=object)  # counts stay integers
     print(table.to_string(index=False, formatters={"value": _shown}))
     write_csv_atomic(csv, table)
+    phases = marker_phase_table(root / "config" / "simulate", root / "results" / "bench_marker_phases")
+    write_marker_phase_table(phases, csv.with_name(f"{csv.stem}_marker_phases.csv"))
     if jobs is not None:
         print(jobs.to_string(index=False, float_format=lambda x: f"{x:.3f}"))
         write_csv_atomic(csv.with_name(f"{csv.stem}_slurm_jobs.csv"), jobs.round(4))
@@ -323,7 +329,7 @@ def _one_core(root: Path, dataset: Path, demo: Path, results: Path, plan: dict) 
     images, work = len(phases), float(phases.to_numpy().sum())
     note = f"{batch}: {images} images, mean per image"
     return [*(_row(f"one_core_{phase}", float(phases[phase].mean()), "s", note) for phase in PHASES),
-            _row("one_core_per_image_s", work / images, "s", "decode+detect+identify+write; target: <= 0.25 s"),
+            _row("one_core_per_image_s", work / images, "s", "decode+detect+refine+identify+write; target: <= 0.25 s"),
             _row("one_core_batch_wall_s", wall, "s", f"`dmais markers --batch {batch}` as a process"),
             _row("one_core_overhead_per_image_s", (wall - work) / images, "s",
                  "(wall - phases) / images: interpreter start, imports, loading the dataset, planning its "

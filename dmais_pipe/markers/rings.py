@@ -15,25 +15,104 @@ RING_SAMPLES = 48
 RADII = 3.0 * 1.35 ** np.arange(14)  # ring radii probed by clean_radius: 3 ... ~150 px
 
 
-def as_float_image(image) -> np.ndarray:
-    """(h, w) float32 copy/view of an 8- or 16-bit (or float) grayscale image."""
+class ImageParts:
+    """Parts of a float32 image, read in the whole image's pixel coordinates: part k (h_k, w_k) holds
+    the rows tops[k].. and columns lefts[k].. of an image of `shape` (h, w), all parts in one flat
+    buffer. Indexing with integer arrays (`parts[ys, xs]`) and `sample` give the whole image's
+    values (the same arithmetic, to the last bit) wherever a part has them; a position beyond every
+    part reads the nearest part's border (replicated)."""
+
+    dtype = np.dtype(np.float32)
+    ndim = 2
+    #: px: the cells of the map of which part holds a position; parts must lie further apart.
+    CELL_PX = 64
+
+    def __init__(self, bounds: list[tuple[int, int, int, int]], shape: tuple[int, int]):
+        """bounds: per part (left, top, right, bottom), its columns left..right - 1 and rows top..bottom - 1.
+        The pixels are written by the caller into `pixels[k]` (views of one buffer)."""
+        self.shape = tuple(shape)
+        box = np.array(bounds, dtype=int).reshape(-1, 4)
+        self.lefts, self.tops = box[:, 0], box[:, 1]
+        self.widths, self.heights = box[:, 2] - box[:, 0], box[:, 3] - box[:, 1]
+        self.bases = np.concatenate([[0], np.cumsum(self.widths * self.heights)])
+        self.buffer = np.empty(int(self.bases[-1]), dtype=np.float32)
+        self.pixels = [self.buffer[b:b + h * w].reshape(h, w)
+                       for b, h, w in zip(self.bases, self.heights, self.widths)]
+        self._cells = self._owner_map() if len(box) > 1 else None
+
+    def _owner_map(self) -> np.ndarray:
+        """(h / CELL_PX, w / CELL_PX) the part that holds each cell's pixels (parts CELL_PX apart
+        never share a cell), or the part nearest the cell."""
+        rows, cols = (-(-np.asarray(self.shape) // self.CELL_PX)).tolist()
+        centre_y, centre_x = np.meshgrid((np.arange(rows) + 0.5) * self.CELL_PX, (np.arange(cols) + 0.5) * self.CELL_PX,
+                                         indexing="ij")
+        reach = 0.5 * self.CELL_PX  # a cell's centre this near a part (per axis): the cell has pixels of it
+        rights, bottoms = self.lefts + self.widths - 1, self.tops + self.heights - 1
+        dx = np.maximum(np.maximum(self.lefts - reach - centre_x[..., None], centre_x[..., None] - rights - reach), 0)
+        dy = np.maximum(np.maximum(self.tops - reach - centre_y[..., None], centre_y[..., None] - bottoms - reach), 0)
+        return np.argmin(dx + dy, axis=2)
+
+    def owners(self, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+        """(n,) the part that holds each position xs, ys (n,), or the nearest."""
+        if self._cells is None:
+            return np.zeros(len(xs), dtype=int)
+        rows, cols = self._cells.shape
+        row = np.minimum(np.maximum(np.floor_divide(ys, self.CELL_PX).astype(int), 0), rows - 1)
+        return self._cells[row, np.minimum(np.maximum(np.floor_divide(xs, self.CELL_PX).astype(int), 0), cols - 1)]
+
+    def __getitem__(self, key):
+        ys, xs = np.broadcast_arrays(*key)
+        owner = self.owners(xs.ravel(), ys.ravel()).reshape(xs.shape)
+        height, width = self.heights[owner], self.widths[owner]
+        row = np.minimum(np.maximum(ys - self.tops[owner], 0), height - 1)
+        column = np.minimum(np.maximum(xs - self.lefts[owner], 0), width - 1)
+        return self.buffer[self.bases[owner] + row * width + column]
+
+    def sample(self, xy: np.ndarray) -> np.ndarray:
+        """`sample` at float32 positions xy (n, 2): each part's cv2.remap at its own. Exact: in
+        float32, x - left is exact wherever x >= left (|x| < 2^24), and cv2.remap's fixed point
+        (1/32 px) moves by whole pixels with it."""
+        owner = self.owners(xy[:, 0], xy[:, 1])
+        if self._cells is None or np.all(owner == owner[:1]):
+            k = int(owner[0]) if len(owner) else 0
+            return _remap(self.pixels[k], xy - np.array([self.lefts[k], self.tops[k]], dtype=np.float32))
+        out = np.empty(len(xy), dtype=np.float32)
+        order = np.argsort(owner, kind="stable")
+        ends = np.searchsorted(owner[order], np.arange(len(self.pixels) + 1))
+        for k in np.flatnonzero(np.diff(ends)):
+            mine = order[ends[k]:ends[k + 1]]
+            out[mine] = _remap(self.pixels[k], xy[mine] - np.array([self.lefts[k], self.tops[k]], dtype=np.float32))
+        return out
+
+
+def as_float_image(image) -> np.ndarray | ImageParts:
+    """(h, w) float32 copy/view of an 8- or 16-bit (or float) grayscale image (ImageParts as they are)."""
+    if isinstance(image, ImageParts):
+        return image
     image = np.asarray(image)
     if image.ndim != 2:
         raise ValueError(f"expected a (height, width) grayscale image, got shape {image.shape}")
     return image.astype(np.float32, copy=False)
 
 
-def sample(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Bilinear samples of float32 `image` at pixel positions xy (..., 2); replicated border."""
+def sample(image: np.ndarray | ImageParts, xy: np.ndarray) -> np.ndarray:
+    """Bilinear samples of float32 `image` (or ImageParts) at pixel positions xy (..., 2);
+    replicated border."""
     xy = np.asarray(xy, dtype=np.float32)
-    shape = xy.shape[:-1]
+    flat = xy.reshape(-1, 2)
+    values = image.sample(flat) if isinstance(image, ImageParts) else _remap(image, flat)
+    return values.reshape(xy.shape[:-1])
+
+
+def _remap(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(n,) cv2.remap's bilinear samples of float32 `image` (h, w) at float32 positions xy (n, 2)."""
     flat = xy.reshape(-1, 1, 2)
     # cv2.remap is limited to SHRT_MAX rows per call.
     out = np.empty(len(flat), dtype=np.float32)
     for s in range(0, len(flat), 30000):
         out[s:s + 30000] = cv2.remap(image, flat[s:s + 30000, :, 0].copy(), flat[s:s + 30000, :, 1].copy(),
                                      cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
-    return out.reshape(shape)
+    return out
 
 
 def ring_quality(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

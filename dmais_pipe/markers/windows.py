@@ -9,21 +9,23 @@ of a candidate read the image within `detect.REACH_PX` of it, and a detection li
 1. takes the image-wide numbers from the same pixels as `detect`: the 16-bit scale (a strided sample
    of the whole image) and the clutter of the level's tiles (`detect.tile_boxes`), each tile's level
    made from a crop about it;
-2. makes the saddle response of each window from a crop reaching CANDIDATE_PAD_PX beyond the area
-   whose candidates can give a detection in the window (MOVE_PX and DUPLICATE_PX about it), the
-   crop's left edge on a multiple of ALIGN_PX and its top on an even row: the pyramid's pixels are
-   the whole image's, and OpenCV's vector loops meet every column as in the whole image (at the
-   right edge of an image whose width is no multiple of the vector, its scalar tail falls on the
-   same columns);
-3. writes the float image only within REACH_PX of those areas, into a zero-filled array of the
-   image's size (numpy's zeros: the pages never written take no memory), so that the tests and fits
-   read the same values at the same coordinates as in `detect`;
-4. runs `detect.detections` on the windows' candidates together (strongest first, as `candidates`
-   orders them) and keeps the detections and rejections inside a window.
+2. groups the windows whose parts of the image would overlap (`groups`), and converts for each
+   group one part to float: READ_PX about its windows (the area whose candidates can give or, 2 px
+   apart, remove a detection in a window, AREA_PX, and the reach of their tests and fits), its left
+   edge on a multiple of ALIGN_PX and its top on an even row, so that the pyramid's pixels are the
+   whole image's and OpenCV's vector loops meet every column as in the whole image (at the right
+   edge of an image whose width is no multiple of the vector, its scalar tail falls on the same
+   columns): the saddle response there is the whole image's, and so are the candidates;
+3. runs `detect.detections` on the candidates of every group together (strongest first, as
+   `candidates` orders them) on the parts as `rings.ImageParts`, read in the whole image's
+   coordinates: every test and fit computes with the same values at the same coordinates
+   (cv2.remap's samples too: a part's offset is exact in float32);
+4. keeps the detections and rejections inside a window.
 
-The result is `detect`'s detections and rejections inside the windows, to the last bit, unless the
-whole image has more than MAX_CANDIDATES candidates (then `detect` drops its weakest, which a window
-may keep).
+The result is `detect`'s detections and rejections inside the windows, to the last bit (the
+rejections in another order), unless the whole image has more than MAX_CANDIDATES candidates
+(then `detect` drops its weakest, which a window may keep). Only the parts are converted to float
+(no full-image copy), and the work is that of the parts' candidates.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import pandas as pd
 
 from .detect import (DUPLICATE_PX, MOVE_PX, REACH_PX, RESPONSE_SUPPORT_PX, clutter_of_tiles, contrasts, detect,
                      detections, saddle_peaks, saddle_response, strongest, tile_boxes)
-from .rings import as_float_image
+from .rings import ImageParts, as_float_image
 
 #: Crops start on a multiple of this many columns (OpenCV's widest vector is 16 floats of the level).
 ALIGN_PX = 64
@@ -45,6 +47,11 @@ ALIGN_PX = 64
 CANDIDATE_PAD_PX = 2 * RESPONSE_SUPPORT_PX + 2 + 8
 #: px about a window whose candidates can give (or, 2 px apart, remove) a detection in it.
 AREA_PX = MOVE_PX + int(np.ceil(DUPLICATE_PX))
+#: px about a window that its candidates' tests and fits read.
+READ_PX = AREA_PX + REACH_PX
+#: px between two groups' windows at least: their parts (READ_PX about them, the left edge moved to
+#: the alignment) stay ImageParts.CELL_PX apart.
+APART_PX = 2 * READ_PX + ALIGN_PX + ImageParts.CELL_PX
 
 
 def detect_in_windows(image, boxes: np.ndarray, with_rejected: bool = False, seconds: dict | None = None):
@@ -61,10 +68,32 @@ def detect_in_windows(image, boxes: np.ndarray, with_rejected: bool = False, sec
         return _inside(detect(raw, with_rejected=True, seconds=seconds), boxes, with_rejected)
     texture = clutter_of_tiles([_level_tile(raw, box) for box in tile_boxes(_level_shape(raw.shape))])
     contrast, lit_contrast = contrasts(raw, texture)
-    cand = _candidates(raw, boxes, max(contrast, lit_contrast))
-    canvas = _canvas(raw, boxes)
-    found = detections(canvas, cand, contrast, lit_contrast, texture, seconds=seconds, started=started)
+    members = groups(boxes)
+    parts = _parts(raw, members)
+    cand = _candidates(parts, members, max(contrast, lit_contrast))
+    found = detections(parts, cand, contrast, lit_contrast, texture, seconds=seconds, started=started)
     return _inside(found, boxes, with_rejected)
+
+
+def groups(boxes: np.ndarray) -> list[np.ndarray]:
+    """The windows boxes (m, 4) in groups (k, 4) that one part of the image serves: those whose
+    parts (READ_PX about them) would overlap share one, and the parts of two groups are apart."""
+    parts = [box[None] for box in boxes]
+    merged = True
+    while merged:
+        merged = False
+        for i, j in ((i, j) for i in range(len(parts)) for j in range(i + 1, len(parts))):
+            a, b = _bounds(parts[i]), _bounds(parts[j])
+            if np.all(a[:2] - APART_PX <= b[2:]) and np.all(b[:2] - APART_PX <= a[2:]):
+                parts[i] = np.vstack([parts[i], parts.pop(j)])
+                merged = True
+                break
+    return parts
+
+
+def _bounds(boxes: np.ndarray) -> np.ndarray:
+    """(4,) the bounding box x0, y0, x1, y1 of boxes (m, 4)."""
+    return np.concatenate([boxes[:, :2].min(axis=0), boxes[:, 2:].max(axis=0)])
 
 
 def _level_shape(shape: tuple[int, int]) -> tuple[int, int]:
@@ -90,33 +119,27 @@ def _level_tile(raw: np.ndarray, tile: tuple[int, int, int, int]) -> np.ndarray:
     return level[y0 - top // 2:y1 - top // 2, x0 - left // 2:x1 - left // 2]
 
 
-def _candidates(raw: np.ndarray, boxes: np.ndarray, min_contrast: float) -> np.ndarray:
-    """(k, 2) `detect.candidates` of the image raw (h, w) within AREA_PX of the windows boxes (m, 4),
-    strongest first."""
+def _parts(raw: np.ndarray, members: list[np.ndarray]) -> ImageParts:
+    """The float image of raw (h, w) READ_PX about each group of windows (k, 4): ImageParts."""
+    parts = ImageParts([_crop_bounds(raw.shape, *_bounds(boxes), READ_PX) for boxes in members], raw.shape)
+    for pixels, top, left in zip(parts.pixels, parts.tops, parts.lefts):
+        pixels[...] = raw[top:top + pixels.shape[0], left:left + pixels.shape[1]]
+    return parts
+
+
+def _candidates(parts: ImageParts, members: list[np.ndarray], min_contrast: float) -> np.ndarray:
+    """(k, 2) `detect.candidates` within AREA_PX of the windows, each group's (k_i, 4) from its part
+    (there the saddle response is the whole image's: a part reaches READ_PX >= CANDIDATE_PAD_PX
+    beyond its windows), strongest first."""
     xs, ys, strengths = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros(0, np.float32)]
-    for x0, y0, x1, y1 in boxes - [AREA_PX, AREA_PX, -AREA_PX, -AREA_PX]:
-        left, top, right, bottom = _crop_bounds(raw.shape, x0, y0, x1, y1, CANDIDATE_PAD_PX)
-        if right - left < 8 or bottom - top < 8:
-            continue
-        y, x, strength = saddle_peaks(saddle_response(cv2.pyrDown(raw[top:bottom, left:right].astype(np.float32))),
-                                      min_contrast)
+    for pixels, top, left, boxes in zip(parts.pixels, parts.tops, parts.lefts, members):
+        y, x, strength = saddle_peaks(saddle_response(cv2.pyrDown(pixels)), min_contrast)
         x, y = left + 2 * x, top + 2 * y
-        keep = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+        area = boxes + [-AREA_PX, -AREA_PX, AREA_PX, AREA_PX]
+        keep = ((x[:, None] >= area[None, :, 0]) & (y[:, None] >= area[None, :, 1])
+                & (x[:, None] <= area[None, :, 2]) & (y[:, None] <= area[None, :, 3])).any(axis=1)
         xs.append(x[keep]), ys.append(y[keep]), strengths.append(strength[keep])
-    x, y, strength = np.concatenate(xs), np.concatenate(ys), np.concatenate(strengths)
-    _, first = np.unique(y * raw.shape[1] + x, return_index=True)  # windows overlap
-    return strongest(x[first], y[first], strength[first])
-
-
-def _canvas(raw: np.ndarray, boxes: np.ndarray) -> np.ndarray:
-    """(h, w) float32: the image raw (h, w) within AREA_PX + REACH_PX of the windows boxes (m, 4), 0
-    elsewhere (pages never written, which take no memory)."""
-    canvas = np.zeros(raw.shape, np.float32)
-    reach = AREA_PX + REACH_PX
-    for x0, y0, x1, y1 in boxes:
-        left, top, right, bottom = _crop_bounds(raw.shape, x0 - reach, y0 - reach, x1 + reach, y1 + reach, 0)
-        canvas[top:bottom, left:right] = raw[top:bottom, left:right]
-    return canvas
+    return strongest(np.concatenate(xs), np.concatenate(ys), np.concatenate(strengths))
 
 
 def _inside(found: tuple[pd.DataFrame, pd.DataFrame], boxes: np.ndarray, with_rejected: bool):
