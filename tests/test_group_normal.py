@@ -15,13 +15,17 @@ L, R = 9, 5  # a frame's pose (6) and one camera's jitter (3); the rig's unknown
 
 def observations(rng, kind: str, n_frames: int):
     """(frame, point, n_points) of a group: `shared` every frame sees the same 6 points, `own` each frame
-    its own 5, `line` each frame 3 new points and the 3 of each of the two frames before."""
+    its own 5, `own_twice` its own 3 each seen twice (by two cameras), `line` each frame 3 new points and
+    the 3 of each of the two frames before."""
     if kind == "shared":
         frame, point = np.divmod(np.arange(n_frames * 6), 6)
         return frame, point, 6
     if kind == "own":
         frame = np.repeat(np.arange(n_frames), 5)
         return frame, np.arange(5 * n_frames), 5 * n_frames
+    if kind == "own_twice":
+        frame = np.repeat(np.arange(n_frames), 6)
+        return frame, 3 * frame + np.tile([0, 1, 2, 2, 0, 1], n_frames), 3 * n_frames
     frame = np.repeat(np.arange(n_frames), 9)
     back = np.tile(np.repeat([0, 1, 2], 3), n_frames)
     point = 3 * np.maximum(frame - back, 0) + np.tile(np.arange(3), 3 * n_frames)
@@ -63,7 +67,7 @@ def with_priors(normal, weight: float = 2.0):
                         normal.b_rig, normal.b_point)
 
 
-@pytest.mark.parametrize("kind", ["shared", "own", "line"])
+@pytest.mark.parametrize("kind", ["shared", "own", "own_twice", "line"])
 def test_the_blocks_are_those_of_the_whole_jacobian(kind):
     _, normal, J, e = random_normal(kind, 7, None)
     np.testing.assert_allclose(normal.dense(), J.T @ J, rtol=0, atol=1e-10)
@@ -71,7 +75,8 @@ def test_the_blocks_are_those_of_the_whole_jacobian(kind):
 
 
 @pytest.mark.parametrize("method", [FRAMES_FIRST, POINTS_FIRST])
-@pytest.mark.parametrize("kind, n_frames", [("shared", 9), ("own", 9), ("line", 9), ("line", 120)])
+@pytest.mark.parametrize("kind, n_frames", [("shared", 9), ("own", 9), ("own_twice", 9), ("line", 9),
+                                           ("line", 120)])
 def test_each_elimination_solves_as_the_dense_matrix(kind, n_frames, method, monkeypatch):
     monkeypatch.setattr(group_normal, "DENSE_FRAMES_SIZE", 100)  # the line of 9 frames dense, of 300 sparse
     monkeypatch.setattr(group_normal, "PAIR_CHUNK", 50)  # several chunks of observation pairs
@@ -93,6 +98,7 @@ def test_the_cheaper_order_is_chosen():
     line = random_normal("line", 200, None)[0]
     assert line.method == POINTS_FIRST and line.frames_tied
     assert not random_normal("own", 50, None)[0].frames_tied
+    assert random_normal("own_twice", 50, None)[0].method == POINTS_FIRST
 
 
 @pytest.mark.parametrize("method", [FRAMES_FIRST, POINTS_FIRST])

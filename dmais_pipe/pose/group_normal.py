@@ -49,10 +49,13 @@ class GroupStructure:
     """Which unknowns each observation touches, fixed for one adjustment, and the order of elimination.
 
     frame (N,) in [0, F); point (N,) in [0, P); local_cols (N, l) in [0, L); rig_cols (N, r) in [0, R);
-    method: FRAMES_FIRST or POINTS_FIRST (`elimination`). For the points first only: pair_left,
-    pair_right (M,) every ordered pair of observations of one point (each with itself too);
-    pair_block (M,) the index of the pair's frames (frame of left, frame of right) in frame_pairs
-    (B, 2), the self pairs (f, f) first, in frame order."""
+    by_frame (N,) the observations in frame order, frame_starts (F + 1,) each frame's first in it,
+    slot (N,) an observation's place among its frame's (fewer than n_slots); method: FRAMES_FIRST or
+    POINTS_FIRST (`elimination`). For the points first: point_frame (P,) the frame of a point seen by
+    one frame only (-1 where tied) and point_slot (P,) its place among that frame's points (fewer than
+    n_point_slots); where frames are tied (a point seen by two), pair_left, pair_right (M,) every
+    ordered pair of observations of one point (each with itself too), pair_block (M,) the index of the
+    pair's frames (frame of left, frame of right) in frame_pairs (B, 2), the self pairs (f, f) first."""
 
     n_frames: int
     local_size: int
@@ -62,7 +65,14 @@ class GroupStructure:
     point: np.ndarray
     local_cols: np.ndarray
     rig_cols: np.ndarray
+    by_frame: np.ndarray
+    frame_starts: np.ndarray
+    slot: np.ndarray
+    n_slots: int
     method: str
+    point_frame: np.ndarray
+    point_slot: np.ndarray
+    n_point_slots: int
     pair_left: np.ndarray
     pair_right: np.ndarray
     pair_block: np.ndarray
@@ -75,7 +85,7 @@ class GroupStructure:
     @property
     def frames_tied(self) -> bool:
         """Whether some point is seen by two frames (the points-first frames' system is not block diagonal)."""
-        return len(self.frame_pairs) > self.n_frames
+        return bool(len(self.point_frame)) and bool((self.point_frame < 0).any())
 
 
 def group_structure(frame, point, local_cols, rig_cols, n_frames: int, local_size: int, rig_size: int,
@@ -83,19 +93,37 @@ def group_structure(frame, point, local_cols, rig_cols, n_frames: int, local_siz
     """The GroupStructure of N observations (its docstring), by `method` or `elimination`'s choice."""
     frame, point = np.asarray(frame, dtype=np.int64), np.asarray(point, dtype=np.int64)
     local_cols, rig_cols = np.asarray(local_cols, dtype=np.int64), np.asarray(rig_cols, dtype=np.int64)
+    by_frame = np.argsort(frame, kind="stable")
+    frame_starts = np.searchsorted(frame[by_frame], np.arange(n_frames + 1))
+    slot = np.empty(len(frame), dtype=np.int64)
+    slot[by_frame] = np.arange(len(frame)) - frame_starts[frame[by_frame]]
+    n_slots = int(np.diff(frame_starts).max(initial=0))
     counts = np.bincount(point, minlength=n_points)
-    tied = len(np.unique(point * n_frames + frame)) > n_points  # a point seen by two frames
+    first_frame = np.full(n_points, -1)
+    first_frame[point[::-1]] = frame[::-1]
+    tied = (frame != first_frame[point]).any()  # a point seen by two frames
     method = method or elimination(n_frames, local_size, rig_size, n_points, local_cols.shape[1],
-                                   int(np.sum(counts.astype(float)**2)), tied)
+                                   float(np.sum(counts.astype(float)**2)), tied)
     if method not in (FRAMES_FIRST, POINTS_FIRST):
         raise ValueError(f"unknown elimination {method!r}")
-    if method == FRAMES_FIRST:
-        none = np.zeros(0, dtype=np.int64)
-        pairs = (none, none, none, np.column_stack([np.arange(n_frames)] * 2))
-    else:
-        pairs = _observation_pairs(frame, point, counts, n_frames)
-    return GroupStructure(n_frames, local_size, rig_size, n_points, frame, point, local_cols, rig_cols, method,
-                          *pairs)
+    none = np.zeros(0, dtype=np.int64)
+    points, pairs = (none, none, 0), (none, none, none, np.zeros((0, 2), dtype=np.int64))
+    if method == POINTS_FIRST and tied:
+        point_frame = np.full(n_points, -1)
+        points, pairs = (point_frame, point_frame, 0), _observation_pairs(frame, point, counts, n_frames)
+    elif method == POINTS_FIRST:
+        points = _points_by_frame(first_frame, n_frames)
+    return GroupStructure(n_frames, local_size, rig_size, n_points, frame, point, local_cols, rig_cols, by_frame,
+                          frame_starts, slot, n_slots, method, *points, *pairs)
+
+
+def _points_by_frame(point_frame: np.ndarray, n_frames: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """GroupStructure's point_frame, point_slot and n_point_slots of points each seen by one frame."""
+    order = np.argsort(point_frame, kind="stable")
+    starts = np.searchsorted(point_frame[order], np.arange(n_frames + 1))
+    point_slot = np.empty(len(point_frame), dtype=np.int64)
+    point_slot[order] = np.arange(len(order)) - starts[point_frame[order]]
+    return point_frame, point_slot, int(np.diff(starts).max(initial=0))
 
 
 def elimination(n_frames: int, local_size: int, rig_size: int, n_points: int, l: int, n_pairs: int,
@@ -182,23 +210,45 @@ class GroupNormal:
 def assemble(structure: GroupStructure, local_J, rig_J, point_J, e) -> GroupNormal:
     """J^T J and J^T e of N observations' whitened residuals e (N, 2) with the compact Jacobians local_J
     (N, 2, l), rig_J (N, 2, r) and point_J (N, 2, 3) (columns: structure's local_cols, rig_cols, the
-    point's 3); the priors are the caller's to add."""
+    point's 3); the priors are the caller's to add. A frame's blocks are products of its observations'
+    rows stacked (zeros up to n_slots), in chunks of frames."""
     s = structure
     F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
-    local_T, rig_T, point_T = (np.swapaxes(J, 1, 2) for J in (local_J, rig_J, point_J))
-    lc, rc = s.local_cols, s.rig_cols
-    frame_rows = s.frame[:, None] * L + lc  # (N, l) rows of the stacked frame blocks
-    A = _summed(local_T @ local_J, frame_rows[:, :, None] * L + lc[:, None, :], F * L * L).reshape(F, L, L)
-    Wr = _summed(local_T @ rig_J, frame_rows[:, :, None] * R + rc[:, None, :], F * L * R).reshape(F, L, R)
-    Hrr = _summed(rig_T @ rig_J, rc[:, :, None] * R + rc[:, None, :], R * R).reshape(R, R)
+    A, Wr, b_local = np.empty((F, L, L)), np.empty((F, L, R)), np.empty((F, L))
+    Hrr = np.zeros((R, R))
+    for frames, rows in _frame_chunks(s, 2 * s.n_slots * (L + R)):
+        J_local = _stacked(s, frames, rows, local_J, s.local_cols, L)  # (c, 2 n_slots, L)
+        J_rig = _stacked(s, frames, rows, rig_J, s.rig_cols, R)
+        e_rows = _stacked(s, frames, rows, e[:, :, None], np.zeros((len(e), 1), dtype=np.int64), 1)
+        J_local_T = J_local.transpose(0, 2, 1)
+        A[frames], Wr[frames], b_local[frames] = J_local_T @ J_local, J_local_T @ J_rig, (J_local_T @ e_rows)[..., 0]
+        Hrr += J_rig.reshape(-1, R).T @ J_rig.reshape(-1, R)
+    point_T, rc = np.swapaxes(point_J, 1, 2), s.rig_cols
     point_rows = 3 * s.point[:, None] + np.arange(3)  # (N, 3)
     Hpp = _summed(point_T @ point_J, point_rows[:, :, None] * 3 + np.arange(3), P * 9).reshape(P, 3, 3)
     Hpr = _summed(point_T @ rig_J, point_rows[:, :, None] * R + rc[:, None, :], P * 3 * R).reshape(P, 3, R)
-    e = e[:, :, None]
-    b_local = _summed((local_T @ e)[..., 0], frame_rows, F * L).reshape(F, L)
-    b_rig = _summed((rig_T @ e)[..., 0], rc, R)
-    b_point = _summed((point_T @ e)[..., 0], point_rows, 3 * P).reshape(P, 3)
-    return GroupNormal(s, A, Wr, Hrr, Hpp, Hpr, local_T @ point_J, b_local, b_rig, b_point)
+    b_rig = _summed(np.einsum("nkr,nk->nr", rig_J, e), rc, R)
+    b_point = _summed(np.einsum("nki,nk->ni", point_J, e), point_rows, 3 * P).reshape(P, 3)
+    return GroupNormal(s, A, Wr, Hrr, Hpp, Hpr, np.swapaxes(local_J, 1, 2) @ point_J, b_local, b_rig, b_point)
+
+
+def _frame_chunks(structure: GroupStructure, numbers_per_frame: int):
+    """(frames (c,), rows (n,)) consecutive frames and their observations, about CHUNK_NUMBERS numbers a chunk."""
+    s = structure
+    n_chunks = min(s.n_frames, max(1, -(-s.n_frames * numbers_per_frame // CHUNK_NUMBERS)))
+    for frames in np.array_split(np.arange(s.n_frames), n_chunks):
+        yield frames, s.by_frame[s.frame_starts[frames[0]]:s.frame_starts[frames[-1] + 1]]
+
+
+def _stacked(structure: GroupStructure, frames: np.ndarray, rows: np.ndarray, J: np.ndarray, cols: np.ndarray,
+             width: int) -> np.ndarray:
+    """(c, 2 n_slots, width) the observations' `rows` Jacobians J (N, 2, j) at their columns cols (N, j),
+    stacked per frame of `frames` (c,) in their slots, zeros elsewhere."""
+    s = structure
+    out = np.zeros((len(frames), s.n_slots, J.shape[1], width))
+    out[(s.frame[rows] - frames[0])[:, None, None], s.slot[rows][:, None, None], np.arange(J.shape[1])[:, None],
+        cols[rows][:, None, :]] = J[rows]
+    return out.reshape(len(frames), -1, width)
 
 
 def _summed(values: np.ndarray, index: np.ndarray, size: int) -> np.ndarray:
@@ -229,11 +279,27 @@ def solve(normal: GroupNormal, right: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 def _inverted(blocks: np.ndarray, what: str) -> np.ndarray:
     """(n, b, b) the inverses of SPD blocks; DmaisError naming `what` where one is singular."""
+    if blocks.shape[1:] == (3, 3):
+        return _inverted_3x3(blocks, what)
     try:
         return np.linalg.inv(blocks)
     except np.linalg.LinAlgError:
-        raise DmaisError(f"mounting: {what} is not determined by its observations (too few or collinear "
-                         "points)") from None
+        raise _undetermined(what) from None
+
+
+def _inverted_3x3(blocks: np.ndarray, what: str) -> np.ndarray:
+    """(n, 3, 3) inverses of symmetric 3 x 3 blocks by their adjugates (rows: cross products of columns)."""
+    c0, c1, c2 = blocks[:, :, 0], blocks[:, :, 1], blocks[:, :, 2]
+    adjugate = np.stack([np.cross(c1, c2), np.cross(c2, c0), np.cross(c0, c1)], axis=1)
+    determinant = np.einsum("ni,ni->n", c0, adjugate[:, 0])
+    scale = np.abs(blocks).max(axis=(1, 2))
+    if not (np.abs(determinant) > 1e-13 * scale**3).all():
+        raise _undetermined(what)
+    return adjugate / determinant[:, None, None]
+
+
+def _undetermined(what: str) -> DmaisError:
+    return DmaisError(f"mounting: {what} is not determined by its observations (too few or collinear points)")
 
 
 def _cho_factor(matrix: np.ndarray):
@@ -276,42 +342,81 @@ def _dense_coupling(normal: GroupNormal, chunk: np.ndarray) -> np.ndarray:
     """(c, L, R + 3P) the frames' rows of the normal matrix beside their own blocks, of the frames
     `chunk` (c,) (consecutive)."""
     s = normal.structure
-    L, R = s.local_size, s.rig_size
-    W = np.zeros((len(chunk), L, R + 3 * s.n_points))
+    L, R, G = s.local_size, s.rig_size, s.rig_size + 3 * s.n_points
+    rows = s.by_frame[s.frame_starts[chunk[0]]:s.frame_starts[chunk[-1] + 1]]
+    index = ((s.frame[rows] - chunk[0])[:, None, None] * L + s.local_cols[rows][:, :, None]) * G \
+        + R + 3 * s.point[rows][:, None, None] + np.arange(3)
+    W = _summed(normal.Wp[rows], index, len(chunk) * L * G).reshape(len(chunk), L, G)
     W[:, :, :R] = normal.Wr[chunk]
-    rows = np.flatnonzero((s.frame >= chunk[0]) & (s.frame <= chunk[-1]))
-    index = (s.frame[rows][:, None, None] - chunk[0], s.local_cols[rows][:, :, None],
-             R + 3 * s.point[rows][:, None, None] + np.arange(3))
-    np.add.at(W, index, normal.Wp[rows])
     return W
 
 
 def _points_first(normal: GroupNormal, r_local, r_rig, r_point):
     """Eliminate the points' blocks, then solve the frames' and the rig's system (module docstring)."""
     s = normal.structure
-    F, L, R = s.n_frames, s.local_size, s.rig_size
+    F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
     Hpp_inv = _inverted(normal.Hpp, "a point")
-    V = normal.Wp @ Hpp_inv[s.point]  # (N, l, 3)
     Hpp_inv_Hpr = Hpp_inv @ normal.Hpr  # (P, 3, R)
     Hpp_inv_r = Hpp_inv @ r_point  # (P, 3, k)
-    blocks = _frame_blocks(normal, V)
-    S_fr = normal.Wr.copy()
-    np.add.at(S_fr, (s.frame[:, None], s.local_cols), -(normal.Wp @ Hpp_inv_Hpr[s.point]))
-    S_rr = normal.Hrr - np.einsum("pir,pis->rs", normal.Hpr, Hpp_inv_Hpr)
-    y_local = r_local.copy()
-    np.add.at(y_local, (s.frame[:, None], s.local_cols), -(normal.Wp @ Hpp_inv_r[s.point]))
-    y_rig = r_rig - np.einsum("pir,pik->rk", normal.Hpr, Hpp_inv_r)
-    frames = _frames_factor(blocks, s)
+    S_rr = normal.Hrr - normal.Hpr.reshape(3 * P, R).T @ Hpp_inv_Hpr.reshape(3 * P, R)
+    y_rig = r_rig - normal.Hpr.reshape(3 * P, R).T @ Hpp_inv_r.reshape(3 * P, -1)
+    if s.frames_tied:
+        blocks, S_fr, y_local, W_point = _tied_reduction(normal, Hpp_inv, Hpp_inv_Hpr, Hpp_inv_r, r_local)
+        frames = _frames_factor(blocks, s)
+    else:
+        blocks, S_fr, y_local, W_point = _untied_reduction(normal, Hpp_inv, r_point, r_local)
+        inverse = _inverted(blocks, "a frame's pose")
+        frames = lambda right: inverse @ right  # noqa: E731
     Z = frames(S_fr)  # (F, L, R)
-    T = S_rr - np.einsum("flr,fls->rs", S_fr, Z)
-    factor = _cho_factor(T)
+    factor = _cho_factor(S_rr - S_fr.reshape(F * L, R).T @ Z.reshape(F * L, R))
     frames_y = frames(y_local)
-    x_rig = linalg.cho_solve(factor, y_rig - np.einsum("flr,flk->rk", S_fr, frames_y))
+    x_rig = linalg.cho_solve(factor, y_rig - S_fr.reshape(F * L, R).T @ frames_y.reshape(F * L, -1))
     x_local = frames_y - Z @ x_rig
-    moved = normal.Wp.transpose(0, 2, 1) @ x_local[s.frame[:, None], s.local_cols]  # (N, 3, k)
-    back = r_point - normal.Hpr @ x_rig
-    np.add.at(back, s.point, -moved)
+    back = r_point - normal.Hpr @ x_rig - W_point(x_local)
     return x_local, x_rig, Hpp_inv @ back, linalg.cho_solve(factor, np.eye(R))
+
+
+def _untied_reduction(normal: GroupNormal, Hpp_inv, r_point, r_local):
+    """The frames' system with the points eliminated where each point is seen by one frame: its
+    diagonal blocks (F, L, L), its coupling to the rig S_fr (F, L, R), the right sides y (F, L, k), and
+    the function x_local (F, L, k) -> (P, 3, k) of the points' coupling Wp^T x. Each frame's points
+    are stacked in their slots (zeros up to n_point_slots): products of (L, 3 n_point_slots) blocks."""
+    s = normal.structure
+    F, L, P, slots = s.n_frames, s.local_size, s.n_points, s.n_point_slots
+    index = (s.point[:, None, None] * L + s.local_cols[:, :, None]) * 3 + np.arange(3)
+    W = _summed(normal.Wp, index, P * L * 3).reshape(P, L, 3)  # each point's coupling to its frame
+
+    def stacked(values):  # (P, a, b) -> (F, slots, a, b)
+        out = np.zeros((F, slots) + values.shape[1:])
+        out[s.point_frame, s.point_slot] = values
+        return out
+
+    W_stack = stacked(W).transpose(0, 2, 1, 3).reshape(F, L, 3 * slots)
+    V_stack = stacked(W @ Hpp_inv).transpose(0, 2, 1, 3).reshape(F, L, 3 * slots)
+    blocks = normal.A - V_stack @ W_stack.transpose(0, 2, 1)
+    S_fr = normal.Wr - V_stack @ stacked(normal.Hpr).reshape(F, 3 * slots, -1)
+    y_local = r_local - V_stack @ stacked(r_point).reshape(F, 3 * slots, -1)
+    return blocks, S_fr, y_local, lambda x_local: W.transpose(0, 2, 1) @ x_local[s.point_frame]
+
+
+def _tied_reduction(normal: GroupNormal, Hpp_inv, Hpp_inv_Hpr, Hpp_inv_r, r_local):
+    """As `_untied_reduction` where frames share points: the frames' system's blocks (B, L, L) of the
+    structure's frame_pairs, one product per pair of observations of a point (`_frame_blocks`)."""
+    s = normal.structure
+    F, L, P = s.n_frames, s.local_size, s.n_points
+    rows = s.frame[:, None] * L + s.local_cols  # (N, l)
+    S_fr = normal.Wr - _summed(normal.Wp @ Hpp_inv_Hpr[s.point], rows[:, :, None] * s.rig_size
+                               + np.arange(s.rig_size), F * L * s.rig_size).reshape(F, L, -1)
+    k = r_local.shape[2]
+    y_local = r_local - _summed(normal.Wp @ Hpp_inv_r[s.point], rows[:, :, None] * k + np.arange(k),
+                                F * L * k).reshape(F, L, k)
+
+    def W_point(x_local):
+        moved = normal.Wp.transpose(0, 2, 1) @ x_local[s.frame[:, None], s.local_cols]  # (N, 3, k)
+        index = (3 * s.point[:, None, None] + np.arange(3)[:, None]) * k + np.arange(k)
+        return _summed(moved, index, P * 3 * k).reshape(P, 3, k)
+
+    return _frame_blocks(normal, normal.Wp @ Hpp_inv[s.point]), S_fr, y_local, W_point
 
 
 def _frame_blocks(normal: GroupNormal, V: np.ndarray) -> np.ndarray:

@@ -107,7 +107,7 @@ PRIOR_SIGMA_ARCMIN = 30.0
 RAD_PER_ARCMIN = np.pi / (180.0 * 60.0)
 #: A relative focal sigma of the calibration below this holds the camera's focal length.
 HELD_FOCAL_SIGMA = 1e-9
-#: `_calibration_right_sides`' parameter indices of the focal lengths' aspect, (fx / fx0 - fy / fy0) / 2,
+#: `_calibration_moved`'s parameter indices of the focal lengths' aspect, (fx / fx0 - fy / fy0) / 2,
 #: and of the mean of the focal change's prior.
 ASPECT, FOCAL_PRIOR = -1, -2
 #: CALIBRATION_PARAMETERS' index of the camera centre's x (then y, z), and calibration_parameters'
@@ -652,23 +652,23 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
 def _rig_covariance(problem: _Problem, state: _State, calibration_covariance=None) -> np.ndarray:
     """(3K + C', 3K + C') covariance of the rig's unknowns (the deltas, rad^2, then C' focal changes):
     their block of the inverse normal matrix, plus, given the calibration's covariance
-    (`adjust_group_rig`), its share (`_calibration_share`); one solve gives both."""
+    (`adjust_group_rig`), its share (`_calibration_share`), from the inverse's rig columns."""
     normal = _normal_equations(problem, state)
-    right, columns = _calibration_right_sides(problem, state) if calibration_covariance is not None \
-        else (np.zeros((problem.structure.size, 0)), [])
-    moved, covariance = group_normal.solve(normal, -right)
-    if calibration_covariance is not None:
-        first = problem.n_frames * problem.local_size
-        covariance = covariance + _calibration_share(problem, moved[first:first + problem.rig_size], columns,
-                                                     np.asarray(calibration_covariance, float))
-    return covariance
+    first, R = problem.n_frames * problem.local_size, problem.rig_size
+    if calibration_covariance is None:
+        return group_normal.solve(normal, np.zeros((problem.structure.size, 0)))[1]
+    unit = np.zeros((problem.structure.size, R))
+    unit[first + np.arange(R), np.arange(R)] = 1.0
+    rig_columns, covariance = group_normal.solve(normal, unit)
+    moved, columns = _calibration_moved(problem, state, rig_columns, covariance)
+    return covariance + _calibration_share(problem, moved, columns, np.asarray(calibration_covariance, float))
 
 
 def _calibration_share(problem: _Problem, moved: np.ndarray, columns: list[tuple[int, int]],
                        calibration_covariance: np.ndarray) -> np.ndarray:
     """(3K + C', 3K + C') the rig's unknowns' covariance from the calibration's error: A Sigma A^T,
     Sigma (K C, K C) as `adjust_group_rig`'s; moved (3K + C', n): their change per unit change of
-    each parameter of `columns` (`_calibration_right_sides`). A: how a calibration error moves the
+    each parameter of `columns` (`_calibration_moved`). A: how a calibration error moves the
     estimates. Where the flight resolves the rig better than the calibration (a line of frames),
     this share is what keeps a calibration error from being flagged as a change.
 
@@ -708,28 +708,26 @@ def _calibration_share(problem: _Problem, moved: np.ndarray, columns: list[tuple
     return A @ calibration_covariance @ A.T - counted
 
 
-def _calibration_right_sides(problem: _Problem, state: _State) -> tuple[np.ndarray, list[tuple[int, int]]]:
-    """J^T (d e / d x) (F L + G, n): per observed camera c and calibration parameter k (`columns`, n
-    pairs (c, k)), the gradient's change per unit change of that camera's CALIBRATION_PARAMETERS[k]:
-    the intrinsics (k < 5) and the centre (k = CENTRE + axis, m in the rig frame); of a camera whose
-    focal change is an unknown, in place of fx and fy its aspect (k = ASPECT: fx and fy scaled by
-    1 + a and 1 - a) and its prior's mean (k = FOCAL_PRIOR)."""
+def _calibration_moved(problem: _Problem, state: _State, rig_columns: np.ndarray,
+                       rig_inverse: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
+    """(3K + C', n) how the rig's unknowns move per unit change of each calibration parameter of `columns`
+    (n pairs (c, k)): per observed camera c, that camera's CALIBRATION_PARAMETERS[k], the intrinsics (k <
+    5) and the centre (k = CENTRE + axis, m in the rig frame); of a camera whose focal change is an
+    unknown, in place of fx and fy its aspect (k = ASPECT: fx and fy scaled by 1 + a and 1 - a) and
+    its prior's mean (k = FOCAL_PRIOR). rig_columns (F L + G, 3K + C'): the inverse normal matrix's
+    columns of the rig's unknowns, rig_inverse their rows of them.
+
+    A change x moving the whitened residuals by (d e / d x) x moves the minimum by -N^-1 J^T (d e / d x) x,
+    the rig's part of which is -(J N^-1 E_rig)^T (d e / d x) x: the residuals' change per unit of each
+    rig unknown's column of the inverse, U = J rig_columns, against the parameter's effect."""
     p = problem
     f = _forward(p, state)
     local_J, local_cols, global_J, global_cols = _jacobians(p, state, f)
-    F, L, G = p.n_frames, p.local_size, p.global_size
-    local_rows, global_rows = p.frame[:, None] * L + local_cols, F * L + global_cols
+    first = p.n_frames * p.local_size
+    U = local_J @ rig_columns[p.frame[:, None] * p.local_size + local_cols] + global_J @ rig_columns[first + global_cols]
     # d e / d x_rig is the pose's translation columns; x_cam = C (x_rig - centre): d e / d centre = -d_rig
     d_rig = local_J[:, :, 3:6]
-
-    def side_of(rows: np.ndarray, change: np.ndarray) -> np.ndarray:
-        """J^T change (F L + G,) of a change (n, 2) of the whitened residuals of `rows` (n,)."""
-        side = np.zeros(F * L + G)
-        np.add.at(side, local_rows[rows].ravel(), np.einsum("nkl,nk->nl", local_J[rows], change).ravel())
-        np.add.at(side, global_rows[rows].ravel(), np.einsum("nkl,nk->nl", global_J[rows], change).ravel())
-        return side
-
-    sides, columns = [], []
+    moved, columns = [], []
     for c in np.unique(p.camera):
         rows = np.flatnonzero(p.camera == c)
         camera = _focal_changed(p.rig.cameras[p.names[c]], _focal(p, state, c))
@@ -740,15 +738,13 @@ def _calibration_right_sides(problem: _Problem, state: _State) -> tuple[np.ndarr
             aspect = by_parameter[:, :, :1] * camera.fx - by_parameter[:, :, 1:2] * camera.fy
             by_parameter, parameters = np.concatenate([aspect, by_parameter[:, :, 2:]], axis=2), [ASPECT] + parameters[2:]
         by_parameter = np.concatenate([by_parameter, -d_rig[rows]], axis=2)
-        for k, parameter in enumerate(parameters + [CENTRE, CENTRE + 1, CENTRE + 2]):
-            sides.append(side_of(rows, by_parameter[:, :, k]))
-            columns.append((int(c), parameter))
-        if p.focal_slot[c] >= 0:  # the prior's residual (s - m) / sigma_s: d gradient / d m
-            side = np.zeros(F * L + G)
-            side[F * L + 3 * len(p.free) + p.focal_slot[c]] = -p.focal_prior[p.focal_slot[c]]**-2
-            sides.append(side)
+        moved.append(-np.einsum("nkr,nkj->rj", U[rows], by_parameter))
+        columns += [(int(c), parameter) for parameter in parameters + [CENTRE, CENTRE + 1, CENTRE + 2]]
+        if p.focal_slot[c] >= 0:  # the prior's residual (s - m) / sigma_s: the gradient moves by -e_s / sigma_s^2 per m
+            slot = 3 * len(p.free) + p.focal_slot[c]
+            moved.append(rig_inverse[:, slot:slot + 1] * p.focal_prior[p.focal_slot[c]]**-2)
             columns.append((int(c), FOCAL_PRIOR))
-    return np.column_stack(sides), columns
+    return np.hstack(moved), columns
 
 
 def _result(problem: _Problem, state: _State, covariance: np.ndarray, iterations: int, cost: float) -> GroupRig:
