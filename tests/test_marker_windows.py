@@ -67,7 +67,7 @@ def _flight_images(dataset: Dataset) -> list[str]:
 
 def test_detection_in_windows_is_the_whole_image_s_there_8_and_16_bit(flight):
     """Windows of every size, at the image's borders, overlapping, on 8- and 16-bit pixels: the same
-    detections and rejections (in another order) to the last bit."""
+    detections and rejections (compared as sets) to the last bit."""
     _, dataset, _ = flight
     image = dataset.read_image(_flight_images(dataset)[0])
     height, width = image.shape

@@ -111,7 +111,7 @@ def survey_ins(source: Path, seed: int = 40) -> Path:
         return out
     out.mkdir()
     for item in source.iterdir():
-        (out / item.name).symlink_to(item.resolve())
+        (out / item.name).symlink_to(Path("..") / source.name / item.name)  # the cache may move
     (out / FRAMES).unlink()
     frames = pd.read_csv(source / FRAMES, dtype={"frame": str, "group": str}, keep_default_na=False)
     truth = pd.read_csv(source / "truth" / FRAMES, dtype={"frame": str}).set_index("frame")
