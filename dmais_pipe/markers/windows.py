@@ -128,18 +128,21 @@ def _parts(raw: np.ndarray, members: list[np.ndarray]) -> ImageParts:
 
 
 def _candidates(parts: ImageParts, members: list[np.ndarray], min_contrast: float) -> np.ndarray:
-    """(k, 2) `detect.candidates` within AREA_PX of the windows, each group's (k_i, 4) from its part
-    (there the saddle response is the whole image's: a part reaches READ_PX >= CANDIDATE_PAD_PX
-    beyond its windows), strongest first."""
+    """(k, 2) `detect.candidates` within AREA_PX of the windows (each group's (k_i, 4) served by its
+    part), strongest first: each window's from the part's pixels CANDIDATE_PAD_PX about that area,
+    where the saddle response is the whole image's."""
     xs, ys, strengths = [np.zeros(0, int)], [np.zeros(0, int)], [np.zeros(0, np.float32)]
     for pixels, top, left, boxes in zip(parts.pixels, parts.tops, parts.lefts, members):
-        y, x, strength = saddle_peaks(saddle_response(cv2.pyrDown(pixels)), min_contrast)
-        x, y = left + 2 * x, top + 2 * y
-        area = boxes + [-AREA_PX, -AREA_PX, AREA_PX, AREA_PX]
-        keep = ((x[:, None] >= area[None, :, 0]) & (y[:, None] >= area[None, :, 1])
-                & (x[:, None] <= area[None, :, 2]) & (y[:, None] <= area[None, :, 3])).any(axis=1)
-        xs.append(x[keep]), ys.append(y[keep]), strengths.append(strength[keep])
-    return strongest(np.concatenate(xs), np.concatenate(ys), np.concatenate(strengths))
+        for x0, y0, x1, y1 in boxes + [-AREA_PX, -AREA_PX, AREA_PX, AREA_PX]:
+            a, b, c, d = _crop_bounds(parts.shape, x0, y0, x1, y1, CANDIDATE_PAD_PX)  # within the part
+            y, x, strength = saddle_peaks(saddle_response(cv2.pyrDown(pixels[b - top:d - top, a - left:c - left])),
+                                          min_contrast)
+            x, y = a + 2 * x, b + 2 * y
+            keep = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+            xs.append(x[keep]), ys.append(y[keep]), strengths.append(strength[keep])
+    x, y, strength = np.concatenate(xs), np.concatenate(ys), np.concatenate(strengths)
+    _, first = np.unique(y * parts.shape[1] + x, return_index=True)  # windows overlap
+    return strongest(x[first], y[first], strength[first])
 
 
 def _inside(found: tuple[pd.DataFrame, pd.DataFrame], boxes: np.ndarray, with_rejected: bool):
