@@ -567,6 +567,7 @@ class Dataset:
     image_lines: dict[str, int] = field(default_factory=dict)  # image id -> its line in images.csv
     stamps: str = ""
     part: str = ""
+    _positions: dict = field(default_factory=dict, init=False, repr=False)  # `_rows`' groups, made once
 
     @classmethod
     def load(cls, path: str | Path) -> Dataset:
@@ -605,18 +606,31 @@ class Dataset:
         and of `frames` (ids; default: the placements of those images that are flight images) in
         frames; the manifest and the points whole. Rows keep their order and index: these tables
         are the whole load's filtered. part: what the slice is (a job's, slices.py)."""
-        chosen = self.images[self.images["image"].isin(pd.Index(images))]
+        chosen = self.images.iloc[self._rows("images", "image", images)]
+        names = chosen["image"].to_numpy(dtype=object)
         if frames is None:
             frames = chosen.loc[chosen["stage"] == "flight", "placement"]
-        return replace(self, images=chosen, frames=self.frames[self.frames["frame"].isin(pd.Index(frames))],
-                       observations=self.observations[self.observations["image"].isin(chosen["image"])],
-                       image_lines={image: self.image_lines[image] for image in chosen["image"]}, part=part)
+        return replace(self, images=chosen, frames=self.frames.iloc[self._rows("frames", "frame", frames)],
+                       observations=self.observations.iloc[self._rows("observations", "image", names)],
+                       image_lines={image: self.image_lines[image] for image in names}, part=part)
+
+    def _rows(self, table: str, column: str, ids) -> np.ndarray:
+        """Ascending positions of the rows of the `table` whose `column` is one of `ids`. Its rows are
+        grouped by that column once, so that each of many slices costs only its own rows."""
+        groups = self._positions.get((table, column))
+        if groups is None:
+            groups = self._positions[(table, column)] = getattr(self, table).groupby(column, sort=False).indices
+        found = [groups[key] for key in pd.unique(np.asarray(ids, dtype=object).ravel()) if key in groups]
+        return np.sort(np.concatenate(found)) if found else np.zeros(0, dtype=int)
 
     def check_image_files(self) -> None:
         """Each image's file still exists: the one check of the load that does not read a table (a
-        slice's dataset runs it on its own images)."""
-        for image, path in zip(self.images["image"], self.images["path"]):
-            if path and not (self.root / path).is_file():
+        slice's dataset runs it on its own images; a file that several images name is asked once)."""
+        root, found = str(self.root), {}
+        for image, path in zip(self.images["image"].to_numpy(object), self.images["path"].to_numpy(object)):
+            if path and path not in found:
+                found[path] = os.path.isfile(os.path.join(root, path))
+            if path and not found[path]:
                 raise self._image_error(image, _no_file(path))
 
     def __repr__(self) -> str:

@@ -88,11 +88,14 @@ def write_group_slices(workspace: Workspace) -> list[Path]:
     stamps = _observation_stamps(workspace.root)  # before the files are read
     observations = workspace.load_observations()
     flight = dataset.images[dataset.images["stage"] == "flight"]
+    group_of = flight["placement"].map(dict(zip(dataset.frames["frame"], dataset.frames["group"])))
+    images_of = flight.groupby(group_of, sort=False)["image"]
+    rows_of = observations.groupby(observations["image"].map(dict(zip(flight["image"], group_of))), sort=False).indices
     parts = {}
     for group, frames in dataset.frames.groupby("group", sort=False)["frame"]:
-        images = flight.loc[flight["placement"].isin(frames), "image"]
+        images = images_of.get_group(group) if group in images_of.groups else []
         parts[group] = {"dataset": dataset.restricted(images, frames, part=f"flight group {group}"),
-                        "observations": observations[observations["image"].isin(images)]}
+                        "observations": observations.iloc[rows_of.get(group, [])]}
     return _write(workspace.root, "pose", _pose_key(dataset.root, dataset.stamps, stamps), parts)
 
 

@@ -26,10 +26,12 @@ import json
 import logging
 import os
 import re
+import resource
 import shutil
 import subprocess
 import sys
 import time
+from contextlib import contextmanager
 from datetime import datetime, timedelta
 from pathlib import Path
 
@@ -178,6 +180,7 @@ def bench_campaign(source: Path, out: Path, csv: Path, frames: int = 10_000, fra
     config = write_yaml_atomic(results / f"{NAME}.yaml", {"dataset": NAME, "dataset_dir": str(dataset)})
     rows, plan = _dry_runs(root, config, results)
     rows += _one_core(root, dataset, demo, results, plan)
+    rows += _job_reads(root, source, demo, out, dataset, results, plan, frames, frames_per_group)
     jobs = None
     if slurm and shutil.which("sbatch") is None:
         print("slurm: skipped: sbatch is not on PATH")
@@ -467,3 +470,150 @@ def _slurm_rows(jobs: pd.DataFrame) -> list[dict]:
                  "(shell command - work): the dmais process besides its phases"),
             _row("slurm_max_rss_mb", float(jobs["max_rss_mb"].max()), "MB",
                  "largest over the jobs (sacct's steps, the rule's benchmark file)")]
+
+
+# ------------------------------------------------------------------------------ what a job reads
+
+
+#: `_job_reads`' jobs: a Python importing what `dmais <stage>` imports, and that also reads what the job
+#: of one marker batch or flight group reads (slices.batch_workspace, group_workspace: its slice where
+#: one is current, else the whole dataset), and does nothing else.
+_JOB_START = "from dmais_pipe import cli\nfrom dmais_pipe.stages import {stage}\n"
+_JOB_READS = {
+    "markers": "import sys\nfrom dmais_pipe.slices import batch_workspace\n"
+               "dataset, results, batch, per_job = sys.argv[1:]\n"
+               "workspace = batch_workspace(dataset, results, batch, int(per_job))\n"
+               "workspace.marker_batches(int(per_job))[batch], workspace.load_rig()\n",
+    "pose": "import sys\nfrom dmais_pipe.slices import group_workspace\n"
+            "workspace = group_workspace(*sys.argv[1:])\n"
+            "workspace.load_observations(), workspace.load_rig()\n",
+}
+
+
+def _job_reads(root: Path, source: Path, demo: Path, out: Path, dataset: Path, results: Path, plan: dict,
+               frames: int, frames_per_group: int, repeats: int = 3) -> list[dict]:
+    """Rows of what a job costs besides its work when it reads the whole dataset and when it reads
+    its slice (slices.py), side by side: every measurement `repeats` times, the two ways in turn,
+    their medians. The whole dataset is read where the slices are moved aside.
+
+    - the plan (`dmais plan`) with and without cutting the marker batches' slices;
+    - a marker job: a Python importing the markers stage, and reading what the first flight batch's
+      job reads (its batch, its images and frames, the rig);
+    - a pose job, on the campaign whose flight observations are given (`given_flight_source`),
+      collected into observations/flight.csv and cut (`dmais plan --slices pose`) as the workflow
+      does: a Python importing the pose stage, and reading what the first group's job reads (its
+      frames, images and observations, the rig); and that group's `dmais pose` with the first
+      camera, whose files must be equal both ways."""
+    rows = _plan_rows(root, dataset, results, str(MARKERS_PER_JOB), repeats)
+    batch = next(iter(plan["batches"]["flight"]))
+    reads = [str(dataset), str(results), batch, str(MARKERS_PER_JOB)]
+    rows += _reads_rows(root, results, "markers", reads, f"batch {batch}'s job reads (its images, the rig)", repeats)
+    return rows + _pose_job_rows(root, source, demo, out, results, plan, frames, frames_per_group, repeats)
+
+
+def _reads_rows(root: Path, results: Path, stage: str, arguments: list[str], what: str, repeats: int) -> list[dict]:
+    """Rows of a Python importing `stage`, and of one reading besides what a job reads (`_JOB_READS`
+    with `arguments`) both ways: wall and CPU (user + system) seconds."""
+    start = _medians([_timed([sys.executable, "-c", _JOB_START.format(stage=stage)], root) for _ in range(repeats)])
+    reads = [sys.executable, "-c", _JOB_START.format(stage=stage) + _JOB_READS[stage], *arguments]
+    ways = _both_ways(root, results, reads, repeats)
+    rows = []
+    for kind, k in (("", 0), ("_cpu", 1)):
+        rows += [_row(f"{stage}_job_start{kind}_s", start[k], "s", f"a Python importing the {stage} stage"),
+                 _row(f"{stage}_job_reads_whole{kind}_s", ways["whole"][k], "s",
+                      f"that, reading what {what}: the whole dataset"),
+                 _row(f"{stage}_job_reads_slice{kind}_s", ways["slice"][k], "s",
+                      f"that, reading what {what}: its slice" + ("; target: <= 1 s" if not kind else ""))]
+    return rows
+
+
+def _plan_rows(root: Path, dataset: Path, results: Path, per_job: str, repeats: int) -> list[dict]:
+    """Rows of `dmais plan` of the campaign without and with the marker batches' slices (medians)."""
+    plan = [_tool("dmais"), "plan", str(dataset), "--per-job", per_job, "--json", str(results / "plan" / "bench.json")]
+    seconds = {"": [], "slices": []}
+    for _ in range(repeats):
+        seconds[""].append(_run(plan, root, timeout=1800)[0])
+        seconds["slices"].append(_run([*plan, "--out", str(results), "--slices", "markers"], root, timeout=1800)[0])
+    (results / "plan" / "bench.json").unlink()
+    batches = len(json.loads((results / "slices" / "markers.json").read_text())["slices"])
+    return [_row("plan_s", _median(seconds[""]), "s", "`dmais plan`: the whole dataset loaded, its batches"),
+            _row("plan_slices_s", _median(seconds["slices"]), "s",
+                 f"`dmais plan --slices markers`: and the {batches} marker batches' slices cut (once per run)")]
+
+
+def _pose_job_rows(root: Path, source: Path, demo: Path, out: Path, results: Path, plan: dict, frames: int,
+                   frames_per_group: int, repeats: int) -> list[dict]:
+    """The pose job's rows of `_job_reads`, on a campaign with given flight observations."""
+    given = given_flight_source(source, demo, out.with_name(f"{out.name}_jobs_source"))
+    dataset = campaign_dataset(given, out.with_name(f"{out.name}_jobs"), frames, frames_per_group)
+    results = results / "pose_jobs"
+    for name in ("rig.json", "observations/intrinsics.csv", "observations/extrinsics.csv"):
+        copy_atomic(_needed(demo / name), results / name)
+    dmais, group = _tool("dmais"), plan["groups"][0]
+    _run([dmais, "markers", str(dataset), "--out", str(results), "--collect", "flight"], root, timeout=1800)
+    cut, _ = _run([dmais, "plan", str(dataset), "--out", str(results), "--slices", "pose"], root, timeout=1800)
+    with open(results / "observations" / "flight.csv") as handle:
+        observations = sum(1 for _ in handle) - 1
+    what = f"group {group}'s job reads (its images, its share of {observations} flight observations, the rig)"
+    rows = _reads_rows(root, results, "pose", [str(dataset), str(results), group], what, repeats)
+    cameras = ",".join(plan["cameras"][1:])  # the subset of the tilted cameras, whose solves are quick
+    jobs = {way: [dmais, "pose", str(dataset), "--out", str(results), "--cameras", cameras, "--groups", group,
+                  "--csv", str(results / way / f"{group}.csv")] for way in ("whole", "slice")}
+    ways = _both_ways(root, results, jobs["whole"], 1, jobs["slice"])
+    _check_equal_parts(results / "whole", results / "slice")
+    return [_row("pose_slices_s", cut, "s", "`dmais plan --slices pose` (rule pose_slices): every group's slice "
+                 "cut, once per run"), *rows,
+            _row("pose_job_whole_s", ways["whole"][0], "s", f"`dmais pose --cameras {cameras} --groups {group}`, "
+                 "the whole dataset read"),
+            _row("pose_job_slice_s", ways["slice"][0], "s", "the same job reading its slice; its files equal but "
+                 "time_ms")]
+
+
+def _both_ways(root: Path, results: Path, command: list[str], repeats: int,
+               sliced: list[str] | None = None) -> dict[str, tuple[float, float]]:
+    """Median (wall, CPU) seconds (`_timed`) of `command` reading the whole dataset (RESULTS/slices moved
+    aside) and of `sliced` (default: the same command) reading its slice, run in turn `repeats` times
+    each: {"whole": ..., "slice": ...}."""
+    seconds = {"whole": [], "slice": []}
+    for _ in range(repeats):
+        with _slices_aside(results):
+            seconds["whole"].append(_timed(command, root))
+        seconds["slice"].append(_timed(sliced or command, root))
+    return {way: _medians(values) for way, values in seconds.items()}
+
+
+def _timed(command: list[str], root: Path) -> tuple[float, float]:
+    """(wall, CPU: user + system) seconds of `command` (`_run`)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    wall, _ = _run(command, root, timeout=3600)
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
+
+
+@contextmanager
+def _slices_aside(results: Path):
+    """RESULTS/slices renamed for the block, so that its jobs find no slice and read the whole dataset."""
+    aside = results / ".slices-aside"
+    os.replace(results / "slices", aside)
+    try:
+        yield
+    finally:
+        os.replace(aside, results / "slices")
+
+
+def _check_equal_parts(whole: Path, sliced: Path) -> None:
+    """The pose part files written reading the whole dataset and reading the slice are equal but for time_ms."""
+    for path in sorted(whole.glob("*.csv")):
+        a, b = (pd.read_csv(p, dtype=str, keep_default_na=False) for p in (path, sliced / path.name))
+        if not a.drop(columns="time_ms", errors="ignore").equals(b.drop(columns="time_ms", errors="ignore")):
+            raise DmaisError(f"campaign: {path.name} differs between the pose job reading the whole dataset and "
+                             "reading its slice")
+
+
+def _median(values: list[float]) -> float:
+    return float(pd.Series(values).median())
+
+
+def _medians(values: list[tuple[float, float]]) -> tuple[float, float]:
+    """The median of each element of `values`' tuples."""
+    return tuple(_median(list(column)) for column in zip(*values))

@@ -6,7 +6,7 @@ rule pose_slices:
         json=f"{RESULTS}/slices/pose.json",
     params:
         dataset_dir=DATASET_DIR,
-        results=RESULTS,
+        results=lambda wildcards, output: Path(output.json).parent.parent,
     log:
         f"{LOGS}/pose_slices.log",
     benchmark:
@@ -32,7 +32,7 @@ rule pose_group:
         subset=r"all|\d+",
     params:
         dataset_dir=DATASET_DIR,
-        results=RESULTS,
+        results=lambda wildcards, input: Path(input.rig).parent,
         cameras=lambda wildcards: ",".join(subset_cameras(wildcards.subset)),
         settings=stage_settings("pose"),
     log:
