@@ -17,7 +17,9 @@ image (decode + detect + refine + identify + write) and <= 0.1 s of cluster over
      time, detection work, overhead and peak memory (sacct, the job's Snakemake benchmark file);
   4. marker extraction per phase at 12 MP and 140 MP, JPEG and 16-bit TIFF, windowed about the
      priors' predictions beside the whole image on the same images, and a job's peak memory
-     (`bench.marker_costs`: rendered once into results/bench_marker_phases/), <csv>_marker_phases.csv.
+     (`bench.marker_costs`: rendered once into results/bench_marker_phases/), <csv>_marker_phases.csv;
+  5. what a marker job and a pose job cost besides their work when they read the whole dataset and
+     when they read their slice of it (slices.py), side by side (`_job_reads`).
 """
 
 from __future__ import annotations
