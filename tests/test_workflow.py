@@ -268,6 +268,8 @@ def test_the_plan_is_made_once_per_state_of_the_dataset(tmp_path):
     (made,) = (tmp_path / "results/site/plan").glob("*.json")
     plan = json.loads(made.read_text())
     assert plan == workflow_plan(Dataset.load(site), 7)
+    slices = json.loads((tmp_path / "results/site/slices/markers.json").read_text())["slices"]  # each job's part
+    assert set(slices) == {batch for stage in plan["batches"].values() for batch in stage}
     plan["batches"]["flight"] = {"flight-C1-9": {"camera": "C1", "images": 1}}  # read from the file, not remade
     made.write_text(json.dumps(plan))
     dry = snakemake(tmp_path, "--configfile", "site.yaml", "--cores", "1", "-n")
