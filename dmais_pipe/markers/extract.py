@@ -202,6 +202,7 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
     model = _prediction_model(dataset, image, rig, calibrated)  # a sentence: why there is none
     windows = None if isinstance(model, str) or attitude_deg is None else search_windows(
         model, attitude_deg, position_m, identify_gate_px, margin_px)
+    seconds["detect_s"] = time.perf_counter() - started - seconds["decode_s"]  # the windows are detection's
     seconds["windows"], seconds["whole_image"] = 0 if windows is None else len(windows), 0
     named = (margin_px, gate_px, identify_gate_px, identify_min_inliers)
     if windows is not None and len(windows):
