@@ -195,7 +195,12 @@ def _cmd_report(args) -> None:
 def _cmd_bench_pose(args) -> None:
     from .bench.pose import bench_pose
 
-    bench_pose(args.csv, repeats=args.repeats, batch_frames=args.batch_frames, stage_frames=args.stage_frames)
+    if not args.whole_stage_only:
+        bench_pose(args.csv, repeats=args.repeats, batch_frames=args.batch_frames, stage_frames=args.stage_frames)
+    if args.whole_stage or args.whole_stage_only:
+        from .bench.pose_stage import bench_whole_stage
+
+        bench_whole_stage(args.csv.with_name(args.csv.stem + "_whole_stage.csv"), args.work)
 
 
 def _cmd_bench_pose_hard(args) -> None:
@@ -404,6 +409,13 @@ def _parser() -> argparse.ArgumentParser:
     bench_pose.add_argument("--stage-frames", type=int, default=10_000,
                             help="frames of the generated flight in the pose-stage throughput run (0: skip it; "
                                  "default: %(default)s)")
+    bench_pose.add_argument("--whole-stage", action="store_true",
+                            help="also time the whole dmais pose stage (error model and watched rig included) on "
+                                 "generated flights of up to 10,000 frames per group, against a dense reference "
+                                 "(bench/pose_stage.py; several minutes)")
+    bench_pose.add_argument("--whole-stage-only", action="store_true", help="only the --whole-stage rows")
+    bench_pose.add_argument("--work", type=Path, default=Path("results/bench/pose_stage"),
+                            help="work folder of --whole-stage (default: %(default)s)")
     bench_pose.set_defaults(run=_cmd_bench_pose)
     pose_hard = benches.add_parser(
         "pose-hard", help="pose solver on hard narrow-field scenes against a multi-start reference, with and "

@@ -262,19 +262,41 @@ def _summed(values: np.ndarray, index: np.ndarray, size: int) -> np.ndarray:
 
 def solve(normal: GroupNormal, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The solution (F L + R + 3P, k) of the normal equations for right sides `right` (F L + R + 3P, k),
-    and the rig's block (R, R) of the inverse normal matrix, in the structure's order of elimination. DmaisError where a frame, a point or the whole is not determined."""
+    and the rig's block (R, R) of the inverse normal matrix, in the structure's order of elimination;
+    DmaisError where a frame, a point or the whole is not determined. The equations are first scaled
+    to a unit diagonal by powers of two (`_equilibrated`: exact, and a group's mix of radians, metres
+    and a long focal length gives condition numbers of 1e13 unscaled)."""
     s = normal.structure
     F, L, R = s.n_frames, s.local_size, s.rig_size
     right = np.asarray(right, dtype=float).reshape(s.size, -1 if np.size(right) else 0)
     k = right.shape[1]
     if k == 0:  # the rig's inverse alone: one zero right side keeps every shape
         right = np.zeros((s.size, 1))
+    normal, scale = _equilibrated(normal)
+    right = right * scale[:, None]
     r_local = right[:F * L].reshape(F, L, -1)
     r_rig, r_point = right[F * L:F * L + R], right[F * L + R:].reshape(s.n_points, 3, -1)
     solver = _frames_first if s.method == FRAMES_FIRST else _points_first
     x_local, x_rig, x_point, rig_inverse = solver(normal, r_local, r_rig, r_point)
-    x = np.concatenate([x_local.reshape(F * L, -1), x_rig, x_point.reshape(3 * s.n_points, -1)])
-    return x[:, :k], rig_inverse
+    x = np.concatenate([x_local.reshape(F * L, -1), x_rig, x_point.reshape(3 * s.n_points, -1)]) * scale[:, None]
+    rig_scale = scale[F * L:F * L + R]
+    return x[:, :k], rig_inverse * np.outer(rig_scale, rig_scale)
+
+
+def _equilibrated(normal: GroupNormal) -> tuple[GroupNormal, np.ndarray]:
+    """The normal equations D N D with D (F L + R + 3P,) the powers of two nearest 1 / sqrt(diag N), and D."""
+    s = normal.structure
+    F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
+    diagonal = np.concatenate([np.diagonal(normal.A, axis1=1, axis2=2).ravel(), np.diag(normal.Hrr),
+                               np.diagonal(normal.Hpp, axis1=1, axis2=2).ravel()])
+    scale = np.exp2(-np.round(0.5 * np.log2(np.where(diagonal > 0, diagonal, 1.0))))
+    local, rig, point = scale[:F * L].reshape(F, L), scale[F * L:F * L + R], scale[F * L + R:].reshape(P, 3)
+    scaled = GroupNormal(
+        s, normal.A * local[:, :, None] * local[:, None, :], normal.Wr * local[:, :, None] * rig,
+        normal.Hrr * np.outer(rig, rig), normal.Hpp * point[:, :, None] * point[:, None, :],
+        normal.Hpr * point[:, :, None] * rig, normal.Wp * local[s.frame[:, None], s.local_cols][:, :, None]
+        * point[s.point][:, None, :], normal.b_local * local, normal.b_rig * rig, normal.b_point * point)
+    return scaled, scale
 
 
 def _inverted(blocks: np.ndarray, what: str) -> np.ndarray:

@@ -114,9 +114,12 @@ ASPECT, FOCAL_PRIOR = -1, -2
 #: of an opencv camera's k2 (then p1, p2, k3: Camera.parameter_names' order after k1).
 CENTRE = CALIBRATION_PARAMETERS.index("vx")
 LENS = len(CALIBRATION_PARAMETERS)
-#: Levenberg-Marquardt: iteration limit, and stop when an accepted step lowers the cost by less than this fraction.
+#: Levenberg-Marquardt: iteration limit, and converged where the next step is shorter than this, in standard
+#: deviations of the unknowns (in the normal matrix's metric).
 MAX_ITERATIONS = 50
-COST_TOLERANCE = 1e-12
+STEP_TOLERANCE = 1e-7
+#: A trial cost above the current one by less than this fraction is its rounding, not an increase.
+COST_ROUNDING = 1e-13
 #: The mounting CSV's columns (`mounting_table`).
 TABLE_COLUMNS = list(MOUNTING_COLUMNS)
 
@@ -159,8 +162,10 @@ class GroupRig:
 class _Problem:
     """The checked inputs. Per observation (N): frame (N,) in [0, F); camera (N,) index into rig
     order; slot (N,) the camera's delta slot in [0, K) or -1 (reference); point (N,) in [0, P);
-    uv (N, 2); weight (N,) 1 / pixel sigma. surveyed, survey_sigma (P, 3); centroid (F, 3) each frame's
-    surveyed points' mean, about which its pose turns; free (K,) the cameras with a delta; jitter,
+    uv (N, 2); weight (N,) 1 / pixel sigma. origin (3,): the surveyed points' mean, which the problem's
+    world coordinates (surveyed, centroid, center) are taken from, so that their rounding is of metres,
+    not of the kilometres of a map grid (it sets how closely the minimum can be told); surveyed,
+    survey_sigma (P, 3); centroid (F, 3) each frame's surveyed points' mean, about which its pose turns; free (K,) the cameras with a delta; jitter,
     prior: sigmas in rad (jitter 0: no jitter unknowns); focal_prior (C',): the prior sigma of the
     relative focal change of each camera with a focal slot, focal_slot (C,) in [0, C') or -1 (its
     focal length held)."""
@@ -174,6 +179,7 @@ class _Problem:
     point: np.ndarray
     uv: np.ndarray
     weight: np.ndarray
+    origin: np.ndarray
     surveyed: np.ndarray
     survey_sigma: np.ndarray
     centroid: np.ndarray
@@ -243,11 +249,13 @@ def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t
                        survey_sigma_m, prior_sigma_arcmin, center_prior_m, center_sigma_m, calibration_covariance)
     R, t = _checked_poses(R, t, problem.n_frames)
     K = len(problem.free)
-    state = _State(R.copy(), t.copy(), np.zeros((K, 3)), np.zeros((problem.n_frames, K, 3)),
+    t_local = t + R @ problem.origin  # rig_from_local: x_rig = R (X - origin) + t_local
+    state = _State(R.copy(), t_local, np.zeros((K, 3)), np.zeros((problem.n_frames, K, 3)),
                    np.zeros(len(problem.focal_prior)), problem.surveyed.copy())
     with single_threaded_blas():  # small matrices: threads only add hand-offs (2x slower on 2 busy cores)
         state, iterations, cost = _levenberg_marquardt(problem, state)
         covariance = _rig_covariance(problem, state, calibration_covariance)
+    state = replace(state, t=state.t - state.R @ problem.origin)
     return _result(problem, state, covariance, iterations, cost)
 
 
@@ -308,15 +316,18 @@ def _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px
     free, camera, slot = _camera_slots(rig, cameras)
     ids, point = np.unique(point_ids, return_inverse=True)
     surveyed, survey_sigma = _points(ids, point, points, survey_sigma_m)
+    origin = surveyed.mean(axis=0)
+    surveyed, points = surveyed - origin, points - origin
     jitter = _non_negative(jitter_sigma_arcmin, "jitter_sigma_arcmin") * RAD_PER_ARCMIN
     prior = _non_negative(prior_sigma_arcmin, "prior_sigma_arcmin") * RAD_PER_ARCMIN
     if prior <= 0:
         raise DmaisError("mounting: prior_sigma_arcmin must be above 0")
     sums = np.column_stack([np.bincount(frame, points[:, k], minlength=n_frames) for k in range(3)])
     centroid = sums / np.bincount(frame, minlength=n_frames)[:, None]
+    center, center_sigma = _centers(center_prior_m, center_sigma_m, n_frames)
     problem = _Problem(rig, rig.camera_names, free, frame, camera, slot, point, uv,
-                       1.0 / _pixel_sigmas(cameras, pixel_sigma_px), surveyed, survey_sigma, centroid, n_frames,
-                       *_centers(center_prior_m, center_sigma_m, n_frames), jitter, prior,
+                       1.0 / _pixel_sigmas(cameras, pixel_sigma_px), origin, surveyed, survey_sigma, centroid,
+                       n_frames, None if center is None else center - origin, center_sigma, jitter, prior,
                        *_focal_priors(rig, calibration_covariance))
     local_cols, rig_cols = _columns(problem)
     return replace(problem, structure=group_normal.group_structure(
@@ -626,22 +637,25 @@ def _moved(problem: _Problem, state: _State, d_local: np.ndarray, d_global: np.n
 
 
 def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int, float]:
-    """The minimum of the cost from `state`: (state, iterations, cost)."""
+    """The minimum of the cost from `state`: (state, iterations, cost). Converged where the next step
+    is shorter than STEP_TOLERANCE in standard deviations: its length, -gradient . step, is computed
+    from the gradient, exact where the difference of two costs is lost in their rounding."""
     cost, damping = _cost(problem, state), 1e-6
     for iteration in range(1, MAX_ITERATIONS + 1):
         normal = _normal_equations(problem, state)
         while True:
-            trial = _moved(problem, state, *_step(problem, normal, damping))
+            d_local, d_global = _step(problem, normal, damping)
+            if -normal.gradient @ np.concatenate([d_local.ravel(), d_global]) <= STEP_TOLERANCE**2:
+                return state, iteration, cost
+            trial = _moved(problem, state, d_local, d_global)
             trial_cost = _cost(problem, trial)
-            if np.isfinite(trial_cost) and trial_cost <= cost:
+            if np.isfinite(trial_cost) and trial_cost <= cost * (1.0 + COST_ROUNDING):
                 break
             damping *= 10.0
             if damping > 1e8:
                 return state, iteration, cost
-        state, decrease, cost = trial, cost - trial_cost, trial_cost
+        state, cost = trial, trial_cost
         damping = max(damping / 10.0, 1e-9)
-        if decrease <= COST_TOLERANCE * max(cost, 1.0):
-            return state, iteration, cost
     log.warning("mounting: the group adjustment stopped at %d iterations before converging", MAX_ITERATIONS)
     return state, MAX_ITERATIONS, cost
 
