@@ -71,7 +71,7 @@ def generated_flight(rng, rig, kind: str, n_groups: int, frames_per_group: int):
 
     frames, points, observations = [], [], []
     for g in range(n_groups):
-        site = np.array([5e5 + 3e3 * g, 4e6, 100.0])
+        site = np.array([1500.0 + 3e3 * g, -800.0, 45.0])  # the simulator's site A, groups 3 km apart
         nominal = look_rotation([0.0, 0.0, -1.0], down_hint=[np.cos(g), np.sin(g), 0.0])  # world_from_rig
         along = nominal @ [0.0, -1.0, 0.0] * (LINE_SPACING_M if kind == "line" else 0.0)
         k = np.arange(frames_per_group)

@@ -471,45 +471,62 @@ def _non_negative(value, name: str) -> float:
 
 @dataclass(frozen=True)
 class _Forward:
-    """The model at a state, per observation: e (N, 2) whitened pixel residuals; J_e (N, 2, 3) d e /
-    d x; x (N, 3) the point in the (jittered) camera frame, z (N, 3) before the jitter, q (N, 3) the
-    point less its frame's centroid, turned into the rig frame; D, J (N, 3, 3) exp of delta and
-    jitter; deltas (K + 1, 3) and jitters (F, K + 1, 3) with a zero row for the slot -1; J_focal (N,
-    2) d e / d (the camera's relative focal change)."""
+    """The model at a state, per observation: e (N, 2) whitened pixel residuals; with the Jacobians'
+    factors: J_e (N, 2, 3) d e / d x; J_focal (N, 2) d e / d (the camera's relative focal change); x
+    (N, 3) the point in the (jittered) camera frame; q (N, 3) the point less its frame's centroid,
+    turned into the rig frame; image (N,) its image, frame F x C + camera (rig order); per image (F C,
+    3, 3): cam_from_rig the rotation exp([j]) exp([delta]) C_c, delta_turn exp([j]) J_l(delta) and
+    jitter_turn J_l(j) (identities for the reference camera, whose delta and jitter are 0)."""
 
     e: np.ndarray
-    J_e: np.ndarray
-    J_focal: np.ndarray
-    x: np.ndarray
-    z: np.ndarray
-    q: np.ndarray
-    D: np.ndarray
-    J: np.ndarray
-    deltas: np.ndarray
-    jitters: np.ndarray
+    J_e: np.ndarray | None = None
+    J_focal: np.ndarray | None = None
+    x: np.ndarray | None = None
+    q: np.ndarray | None = None
+    image: np.ndarray | None = None
+    cam_from_rig: np.ndarray | None = None
+    delta_turn: np.ndarray | None = None
+    jitter_turn: np.ndarray | None = None
 
 
-def _forward(problem: _Problem, state: _State) -> _Forward:
+def _forward(problem: _Problem, state: _State, jacobians: bool = True) -> _Forward:
+    """The model at `state` (_Forward); without `jacobians`, its residuals alone."""
     p, rig = problem, problem.rig
-    cal_R = np.array([rig.cam_from_rig[c].R for c in p.names])[p.camera]
-    cal_t = np.array([rig.cam_from_rig[c].t for c in p.names])[p.camera]
-    deltas = np.vstack([state.delta, np.zeros((1, 3))])
-    jitters = np.concatenate([state.jitter, np.zeros((p.n_frames, 1, 3))], axis=1)
-    D, J = exp_so3(deltas[p.slot]), exp_so3(jitters[p.frame, p.slot])
-    R, X = state.R[p.frame], state.points[p.point]
-    q = np.einsum("nij,nj->ni", R, X - p.centroid[p.frame])
-    y = np.einsum("nij,nj->ni", cal_R, np.einsum("nij,nj->ni", R, X) + state.t[p.frame]) + cal_t
-    z = np.einsum("nij,nj->ni", D, y)
-    x = np.einsum("nij,nj->ni", J, z)
-    predicted, J_pixel, J_focal = np.empty((len(x), 2)), np.empty((len(x), 2, 3)), np.empty((len(x), 2))
+    C = len(p.names)
+    per_camera = np.array([p.names.index(name) for name in p.free], dtype=int)  # the slots' cameras
+    deltas, jitters = np.zeros((C, 3)), np.zeros((p.n_frames, C, 3))
+    deltas[per_camera] = state.delta
+    if p.local_size > 6:
+        jitters[:, per_camera] = state.jitter
+    cal_R = np.array([rig.cam_from_rig[c].R for c in p.names])
+    cal_t = np.array([rig.cam_from_rig[c].t for c in p.names])
+    D, Jm = exp_so3(deltas), exp_so3(jitters.reshape(-1, 3)).reshape(p.n_frames, C, 3, 3)
+    turn = Jm @ D  # (F, C, 3, 3) exp(j) exp(delta)
+    cam_from_rig = (turn @ cal_R).reshape(-1, 3, 3)
+    cam_t = (turn @ cal_t[:, :, None])[..., 0].reshape(-1, 3)
+    image = p.frame * C + p.camera
+    x_rig = np.einsum("nij,nj->ni", state.R[p.frame], state.points[p.point]) + state.t[p.frame]
+    x = np.einsum("nij,nj->ni", cam_from_rig[image], x_rig) + cam_t[image]
+    predicted = np.empty((len(x), 2))
+    J_pixel, J_focal = (np.empty((len(x), 2, 3)), np.empty((len(x), 2))) if jacobians else (None, None)
     for c in np.unique(p.camera):
         rows = p.camera == c
         cam = _focal_changed(rig.cameras[p.names[c]], _focal(p, state, c))
-        predicted[rows], J_pixel[rows], by_intrinsic = project_unmasked(x[rows], cam, True)
+        projected = project_unmasked(x[rows], cam, jacobians)
+        if not jacobians:
+            predicted[rows] = projected
+            continue
+        predicted[rows], J_pixel[rows], by_intrinsic = projected
         unscaled = rig.cameras[p.names[c]]
         J_focal[rows] = by_intrinsic[:, :, 0] * unscaled.fx + by_intrinsic[:, :, 1] * unscaled.fy
     w = p.weight[:, None]
-    return _Forward((predicted - p.uv) * w, J_pixel * w[:, :, None], J_focal * w, x, z, q, D, J, deltas, jitters)
+    e = (predicted - p.uv) * w
+    if not jacobians:
+        return _Forward(e)
+    centre = np.einsum("fij,fj->fi", state.R, p.centroid) + state.t  # R m + t: q = x_rig - it
+    delta_turn = (Jm @ left_jacobian_so3(deltas)).reshape(-1, 3, 3)
+    return _Forward(e, J_pixel * w[:, :, None], J_focal * w, x, x_rig - centre[p.frame], image, cam_from_rig,
+                    delta_turn, left_jacobian_so3(jitters).reshape(-1, 3, 3))
 
 
 def _focal(problem: _Problem, state: _State, camera: int) -> float:
@@ -543,21 +560,21 @@ def _jacobians(problem: _Problem, state: _State, f: _Forward):
     """The compact Jacobians of e: local (N, 2, l) with its columns (N, l) in the frame's block and
     global (N, 2, g) with its columns (N, g) in the vector of the rig's unknowns and the points
     (`_columns`; g = 6, 7 with the focal changes, the point's 3 last); an observation of the reference
-    camera has zeros for delta and jitter."""
+    camera has zeros for delta and jitter. With a^T [v]x = (a x v)^T: d x / d omega = -[x_rig - s]x
+    through the pose turned about its centroid, and exp([j]) [z]x = [x]x exp([j])."""
     p = problem
     has = (problem.slot >= 0)[:, None, None]
     local_cols, rig_cols = p.structure.local_cols, p.structure.rig_cols
-    cal_R = np.array([p.rig.cam_from_rig[c].R for c in p.names])[p.camera]
-    d_rig = f.J_e @ f.J @ f.D @ cal_R  # d e / d x_rig
-    pose = np.concatenate([-d_rig @ skew(f.q), d_rig], axis=2)
-    d_delta = np.where(has, -(f.J_e @ f.J) @ skew(f.z) @ left_jacobian_so3(f.deltas)[p.slot], 0.0)
+    d_rig = f.J_e @ f.cam_from_rig[f.image]  # d e / d x_rig
+    pose = np.concatenate([np.cross(f.q[:, None, :], d_rig), d_rig], axis=2)
+    e_cross_x = np.cross(f.J_e, f.x[:, None, :])  # J_e [x]x
+    d_delta = np.where(has, -e_cross_x @ f.delta_turn[f.image], 0.0)
     focal = [np.where(p.focal_slot[p.camera][:, None] >= 0, f.J_focal, 0.0)[:, :, None]] if len(p.focal_prior) else []
     global_J = np.concatenate([d_delta, *focal, d_rig @ state.R[p.frame]], axis=2)
     global_cols = np.concatenate([rig_cols, p.rig_size + 3 * p.point[:, None] + np.arange(3)], axis=1)
     if p.local_size == 6:
         return pose, local_cols, global_J, global_cols
-    jitter_J_l = left_jacobian_so3(f.jitters)[p.frame, p.slot]
-    d_jitter = np.where(has, -f.J_e @ skew(f.x) @ jitter_J_l, 0.0)
+    d_jitter = np.where(has, -e_cross_x @ f.jitter_turn[f.image], 0.0)
     return np.concatenate([pose, d_jitter], axis=2), local_cols, global_J, global_cols
 
 
@@ -575,7 +592,7 @@ def _center_residuals(problem: _Problem, state: _State) -> tuple[np.ndarray, np.
 def _cost(problem: _Problem, state: _State) -> float:
     """The whitened cost (module docstring)."""
     p = problem
-    e = _forward(p, state).e
+    e = _forward(p, state, jacobians=False).e
     priors = [((state.points - p.surveyed) / p.survey_sigma).ravel(), state.delta.ravel() / p.prior,
               state.focal / p.focal_prior]
     if p.jitter > 0:
