@@ -481,12 +481,14 @@ def _slurm_rows(jobs: pd.DataFrame) -> list[dict]:
 #: of one marker batch or flight group reads (slices.batch_workspace, group_workspace: its slice where
 #: one is current, else the whole dataset), and does nothing else.
 _JOB_START = "from dmais_pipe import cli\nfrom dmais_pipe.stages import {stage}\n"
-_JOB_READS = {
-    "markers": "import sys\nfrom dmais_pipe.slices import batch_workspace\n"
+_JOB_READS = {  # logging as `dmais` logs, so that the log says whether the slice was read
+    "markers": "import logging, sys\nlogging.basicConfig(level=logging.INFO)\n"
+               "from dmais_pipe.slices import batch_workspace\n"
                "dataset, results, batch, per_job = sys.argv[1:]\n"
                "workspace = batch_workspace(dataset, results, batch, int(per_job))\n"
                "workspace.marker_batches(int(per_job))[batch], workspace.load_rig()\n",
-    "pose": "import sys\nfrom dmais_pipe.slices import group_workspace\n"
+    "pose": "import logging, sys\nlogging.basicConfig(level=logging.INFO)\n"
+            "from dmais_pipe.slices import group_workspace\n"
             "workspace = group_workspace(*sys.argv[1:])\n"
             "workspace.load_observations(), workspace.load_rig()\n",
 }
@@ -579,16 +581,20 @@ def _both_ways(root: Path, results: Path, command: list[str], repeats: int,
     seconds = {"whole": [], "slice": []}
     for _ in range(repeats):
         with _slices_aside(results):
-            seconds["whole"].append(_timed(command, root))
-        seconds["slice"].append(_timed(sliced or command, root))
+            seconds["whole"].append(_timed(command, root, sliced=False))
+        seconds["slice"].append(_timed(sliced or command, root, sliced=True))
     return {way: _medians(values) for way, values in seconds.items()}
 
 
-def _timed(command: list[str], root: Path) -> tuple[float, float]:
-    """(wall, CPU: user + system) seconds of `command` (`_run`)."""
+def _timed(command: list[str], root: Path, sliced: bool | None = None) -> tuple[float, float]:
+    """(wall, CPU: user + system) seconds of `command` (`_run`); with `sliced`, its log must say that
+    it read its slice (True) or the whole dataset (False), slices.py's lines."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    wall, _ = _run(command, root, timeout=3600)
+    wall, done = _run(command, root, timeout=3600)
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if sliced is not None and (re.search(r"slices: (marker batch|flight group) ", done.stderr) is None) == sliced:
+        raise DmaisError(f"campaign: `{' '.join(command)}` read " + ("the whole dataset, not its slice (cut for "
+                         "other inputs?)" if sliced else "a slice where none was"))
     return wall, after.ru_utime - before.ru_utime + after.ru_stime - before.ru_stime
 
 
