@@ -40,6 +40,8 @@ FRAMES_FIRST, POINTS_FIRST = "frames first", "points first"
 DENSE_FRAMES_SIZE = 2000
 #: Numbers per chunk of frames where the frames-first order builds its dense system (chunk x L x (R + 3P)).
 CHUNK_NUMBERS = 4_000_000
+#: Up to this many numbers, the frames-first order keeps the frames' couplings between its two passes.
+KEPT_NUMBERS = 30_000_000
 #: Observation pairs per chunk where the points-first order accumulates the frames' coupling blocks.
 PAIR_CHUNK = 200_000
 
@@ -345,17 +347,20 @@ def _frames_first(normal: GroupNormal, r_local, r_rig, r_point):
     system[:R, R:] = system[R:, :R].T
     y = np.concatenate([r_rig, r_point.reshape(3 * P, -1)])
     chunks = np.array_split(np.arange(F), min(F, -(-F * L * G // CHUNK_NUMBERS)))
+    kept = [] if F * L * G <= KEPT_NUMBERS else None  # the couplings, built once where they fit
     for chunk in chunks:
         W = _dense_coupling(normal, chunk)  # (c, L, G)
         A_inv_W = A_inv[chunk] @ W
         system -= W.reshape(-1, G).T @ A_inv_W.reshape(-1, G)
         y -= A_inv_W.reshape(-1, G).T @ r_local[chunk].reshape(len(chunk) * L, -1)
+        if kept is not None:
+            kept.append(W)
     factor = _cho_factor(system)
     x_global = linalg.cho_solve(factor, y)
     rig_inverse = linalg.cho_solve(factor, np.eye(G)[:, :R])[:R]
     x_local = np.empty_like(r_local)
-    for chunk in chunks:
-        W = _dense_coupling(normal, chunk)
+    for k, chunk in enumerate(chunks):
+        W = kept[k] if kept is not None else _dense_coupling(normal, chunk)
         x_local[chunk] = A_inv[chunk] @ (r_local[chunk] - W @ x_global)
     return x_local, x_global[:R], x_global[R:].reshape(P, 3, -1), rig_inverse
 

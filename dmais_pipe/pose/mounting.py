@@ -589,10 +589,10 @@ def _center_residuals(problem: _Problem, state: _State) -> tuple[np.ndarray, np.
     return residuals, J
 
 
-def _cost(problem: _Problem, state: _State) -> float:
-    """The whitened cost (module docstring)."""
+def _cost(problem: _Problem, state: _State, forward: _Forward | None = None) -> float:
+    """The whitened cost (module docstring); forward: the model at `state`, if made already."""
     p = problem
-    e = _forward(p, state, jacobians=False).e
+    e = (forward or _forward(p, state, jacobians=False)).e
     priors = [((state.points - p.surveyed) / p.survey_sigma).ravel(), state.delta.ravel() / p.prior,
               state.focal / p.focal_prior]
     if p.jitter > 0:
@@ -605,10 +605,11 @@ def _cost(problem: _Problem, state: _State) -> float:
 # ------------------------------------------------------------------------------ normal equations
 
 
-def _normal_equations(problem: _Problem, state: _State) -> GroupNormal:
-    """J^T J and J^T e of the pixel residuals in blocks (pose.group_normal), then the priors'."""
+def _normal_equations(problem: _Problem, state: _State, forward: _Forward | None = None) -> GroupNormal:
+    """J^T J and J^T e of the pixel residuals in blocks (pose.group_normal), then the priors'; forward:
+    the model at `state` with its Jacobians' factors, if made already."""
     p = problem
-    forward = _forward(p, state)
+    forward = forward or _forward(p, state)
     local_J, _, global_J, _ = _jacobians(p, state, forward)
     normal = group_normal.assemble(p.structure, local_J, global_J[:, :, :-3], global_J[:, :, -3:], forward.e)
     _add_priors(p, state, normal)
@@ -657,21 +658,23 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
     """The minimum of the cost from `state`: (state, iterations, cost). Converged where the next step
     is shorter than STEP_TOLERANCE in standard deviations: its length, -gradient . step, is computed
     from the gradient, exact where the difference of two costs is lost in their rounding."""
-    cost, damping = _cost(problem, state), 1e-6
+    forward = _forward(problem, state)
+    cost, damping = _cost(problem, state, forward), 1e-6
     for iteration in range(1, MAX_ITERATIONS + 1):
-        normal = _normal_equations(problem, state)
+        normal = _normal_equations(problem, state, forward)
         while True:
             d_local, d_global = _step(problem, normal, damping)
             if -normal.gradient @ np.concatenate([d_local.ravel(), d_global]) <= STEP_TOLERANCE**2:
                 return state, iteration, cost
             trial = _moved(problem, state, d_local, d_global)
-            trial_cost = _cost(problem, trial)
+            trial_forward = _forward(problem, trial)  # with the Jacobians: most steps are taken
+            trial_cost = _cost(problem, trial, trial_forward)
             if np.isfinite(trial_cost) and trial_cost <= cost * (1.0 + COST_ROUNDING):
                 break
             damping *= 10.0
             if damping > 1e8:
                 return state, iteration, cost
-        state, cost = trial, trial_cost
+        state, cost, forward = trial, trial_cost, trial_forward
         damping = max(damping / 10.0, 1e-9)
     log.warning("mounting: the group adjustment stopped at %d iterations before converging", MAX_ITERATIONS)
     return state, MAX_ITERATIONS, cost
