@@ -529,11 +529,13 @@ def table_stamps(root: Path) -> str:
     """The dataset folder's tables (its *.csv files and the manifest) by name, size and modification
     time: what a load of `root` reads, so that a copy cut from a load (slices.py) is known stale when
     one of them changes, appears or goes."""
-    stamps = []
-    for path in sorted(root.glob("*.csv")) + [root / MANIFEST]:
-        stat = path.stat() if path.is_file() else None
-        stamps.append(f"{path.name}:{stat and (stat.st_size, stat.st_mtime_ns)}")
-    return ";".join(stamps)
+    return ";".join(f"{path.name}:{file_stamp(path)}" for path in sorted(root.glob("*.csv")) + [root / MANIFEST])
+
+
+def file_stamp(path: Path) -> str:
+    """A file's size and modification time (ns), 'None' where there is no such file."""
+    stat = path.stat() if path.is_file() else None
+    return str(stat and (stat.st_size, stat.st_mtime_ns))
 
 
 # ------------------------------------------------------------------------------ Dataset

@@ -33,7 +33,7 @@ import shutil
 from dataclasses import replace
 from pathlib import Path
 
-from .dataset import Dataset, table_stamps
+from .dataset import Dataset, file_stamp, table_stamps
 from .files import write_bytes_atomic, write_json_atomic
 from .plan import marker_batches
 from .workspace import Workspace, observation_files
@@ -117,15 +117,12 @@ def _key(kind: str, root: Path, stamps: str, inputs: str) -> str:
 
 def _observation_stamps(results: str | Path) -> str:
     """The observation files load_observations may read, by name, size and modification time."""
-    stamps = []
-    for path in observation_files(Path(results)):
-        stat = path.stat() if path.is_file() else None
-        stamps.append(f"{path.parent.name}/{path.name}:{stat and (stat.st_size, stat.st_mtime_ns)}")
-    return ";".join(stamps)
+    return ";".join(f"{path.parent.name}/{path.name}:{file_stamp(path)}" for path in observation_files(Path(results)))
 
 
 @functools.lru_cache(maxsize=1)
 def _code_digest() -> str:
+    """A digest of the source of the modules that load and cut (_SOURCES): other code, other slices."""
     package = Path(__file__).resolve().parent
     return hashlib.sha256(b"".join((package / name).read_bytes() for name in _SOURCES)).hexdigest()
 
