@@ -109,3 +109,11 @@ def test_an_undetermined_frame_is_refused(method):
     normal.Wp[structure.frame == 2] = 0.0
     with pytest.raises(DmaisError, match="not determined"):
         solve(normal, np.ones((structure.size, 1)))
+
+
+def test_a_group_whose_frames_system_would_not_fit_is_refused(monkeypatch):
+    monkeypatch.setattr(group_normal, "DENSE_FRAMES_SIZE", 100)
+    structure, normal, _, _ = random_normal("line", 120, POINTS_FIRST)
+    monkeypatch.setattr(group_normal, "FACTOR_BYTES", 2.0 * 120 * L * 3 * L * 8 * 0.9)  # a band of 2 frames needs more
+    with pytest.raises(DmaisError, match="too large to adjust at once: its frames are tied over 2 frames"):
+        solve(with_priors(normal), np.ones((structure.size, 1)))

@@ -25,8 +25,8 @@ Rows:
    `own_points`); frames per second of the difference (2,200 frames less 200: the process's start and
    imports cancel). The simulator's flights, not generated ones: on these the solver's certificate fails
    and its global fallback runs on ~9% of the frames, on the simulator's on ~0.5%;
-2. scaling: one group of 200 and one of 10,000 frames, `hover` and `line`: seconds per frame and
-   their ratio, peak memory;
+2. scaling: one group of 200 and one of 10,000 frames hovering, 200 and 3,000 along a line
+   (`SCALING_FRAMES`): seconds per frame and their ratio, peak memory;
 3. dense reference: 2 groups of 40 frames of each kind through the stage in this process, once as it
    is and once with every solve of the group adjustment's normal equations replaced by a dense solve of
    the whole matrix (`dense_solve`): the largest relative difference of mounting.csv's numbers, of
@@ -64,7 +64,11 @@ PIXEL_NOISE_PX, VIBRATION_ARCMIN, SURVEY_M = 0.5, 0.3, (0.015, 0.015, 0.025)
 #: A line's markers placed for frames this many before and after a frame are looked for in its images
 #: (the tilted cameras look ~350 m ahead and behind: 18 frames at 20 m).
 LINE_REACH_FRAMES = 25
-THROUGHPUT_FRAMES, SCALING_FRAMES, REFERENCE_FRAMES = (100, 1100), (200, 10_000), 40
+THROUGHPUT_FRAMES, REFERENCE_FRAMES = (100, 1100), 40
+#: Frames of the scaling rows' two groups per kind: a line's frames are tied over ~38 frames (C0 sees the
+#: markers the forward camera saw 17 frames before, the backward camera 18 after), and the LU of 10,000
+#: such frames would need ~1.7 GiB (group_normal.FACTOR_BYTES refuses it).
+SCALING_FRAMES = {"hover": (200, 10_000), "line": (200, 3000)}
 
 
 def generated_flight(rng, rig, kind: str, n_groups: int, frames_per_group: int):
@@ -331,8 +335,8 @@ def bench_whole_stage(csv: Path, work: Path, seed: int = 0) -> pd.DataFrame:
         frames = large["frames"] - small["frames"]
         rows += [dict(small, measure="throughput"), dict(large, measure="throughput", marginal_frames_per_s=frames / (
             large["seconds"] - small["seconds"]), marginal_frames_per_cpu_s=frames / (large["cpu_seconds"] - small["cpu_seconds"]))]
-    for kind in ("hover", "line"):
-        small, large = (run(kind, 1, n) for n in SCALING_FRAMES)
+    for kind, sizes in SCALING_FRAMES.items():
+        small, large = (run(kind, 1, n) for n in sizes)
         per_frame = [r["seconds"] / r["frames"] for r in (small, large)]
         rows += [dict(small, measure="scaling", s_per_frame=per_frame[0]),
                  dict(large, measure="scaling", s_per_frame=per_frame[1], per_frame_ratio=per_frame[1] / per_frame[0])]

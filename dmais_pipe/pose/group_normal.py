@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import linalg, sparse
+from scipy.sparse import csgraph
 from scipy.sparse import linalg as sparse_linalg
 
 from ..errors import DmaisError
@@ -42,6 +43,8 @@ DENSE_FRAMES_SIZE = 2000
 CHUNK_NUMBERS = 4_000_000
 #: Up to this many numbers, the frames-first order keeps the frames' couplings between its two passes.
 KEPT_NUMBERS = 30_000_000
+#: The most memory the sparse LU of a points-first frames' system may take (bytes; `_check_factor_memory`).
+FACTOR_BYTES = 1.0 * 2**30
 #: Observation pairs per chunk where the points-first order accumulates the frames' coupling blocks.
 PAIR_CHUNK = 200_000
 
@@ -478,9 +481,34 @@ def _frames_factor(blocks: np.ndarray, structure: GroupStructure):
     if F * L <= DENSE_FRAMES_SIZE:
         factor = _cho_factor(matrix.toarray())
         return lambda right: linalg.cho_solve(factor, right.reshape(F * L, -1)).reshape(F, L, -1)
+    _check_factor_memory(structure)
     try:
         lu = sparse_linalg.splu(matrix.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                                 options={"SymmetricMode": True})
     except RuntimeError:  # SuperLU: "Factor is exactly singular"
         raise DmaisError("mounting: the group's normal equations are singular") from None
+    except MemoryError:
+        raise _too_large(structure, "its factorization ran out of memory") from None
     return lambda right: lu.solve(right.reshape(F * L, -1)).reshape(F, L, -1)
+
+
+def _check_factor_memory(structure: GroupStructure) -> None:
+    """DmaisError where the frames' system's LU would need more than FACTOR_BYTES: frames tied over a
+    band of b frames (in their own order or the reverse Cuthill-McKee order of their pairs, whichever is
+    narrower) fill about 2 F L (b + 1) L numbers."""
+    F, L = structure.n_frames, structure.local_size
+    pairs = structure.frame_pairs
+    graph = sparse.csr_array((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(F, F))
+    order = np.empty(F, dtype=np.int64)
+    order[csgraph.reverse_cuthill_mckee(graph, symmetric_mode=True)] = np.arange(F)
+    band = int(min(np.abs(pairs[:, 0] - pairs[:, 1]).max(initial=0),
+                   np.abs(order[pairs[:, 0]] - order[pairs[:, 1]]).max(initial=0)))
+    needed = 2.0 * F * L * (band + 1) * L * 8
+    if needed > FACTOR_BYTES:
+        raise _too_large(structure, f"its frames are tied over {band} frames (points seen {band} frames apart), and "
+                                    f"the LU of their system would need ~{needed / 2**30:.1f} GiB")
+
+
+def _too_large(structure: GroupStructure, why: str) -> DmaisError:
+    return DmaisError(f"mounting: a group of {structure.n_frames} frames is too large to adjust at once: {why}; "
+                      "split it into groups of fewer frames (frames.csv's group)")
