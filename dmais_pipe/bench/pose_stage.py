@@ -99,8 +99,8 @@ def generated_flight(rng, rig, kind: str, n_groups: int, frames_per_group: int):
         placed = [_on_terrain(markers, site) for markers in placed]
         points.append(pd.concat(placed))
         for i in k:
-            seen = placed[0] if kind == "hover" else (
-                placed[i] if kind == "own" else pd.concat(placed[max(0, i - LINE_REACH_FRAMES):i + LINE_REACH_FRAMES + 1]))
+            nearby = slice(max(0, i - LINE_REACH_FRAMES), i + LINE_REACH_FRAMES + 1)
+            seen = placed[0] if kind == "hover" else placed[i] if kind == "own" else pd.concat(placed[nearby])
             observations.append(_observed(rng, rig, world_from_rig[i], centres[i], seen, names[i]))
     points = pd.concat(points)
     surveyed = points[["x", "y", "z"]].to_numpy() + rng.normal(0, SURVEY_M, (len(points), 3))
@@ -333,8 +333,9 @@ def bench_whole_stage(csv: Path, work: Path, seed: int = 0) -> pd.DataFrame:
             shutil.rmtree(out)
         small, large = timings
         frames = large["frames"] - small["frames"]
-        rows += [dict(small, measure="throughput"), dict(large, measure="throughput", marginal_frames_per_s=frames / (
-            large["seconds"] - small["seconds"]), marginal_frames_per_cpu_s=frames / (large["cpu_seconds"] - small["cpu_seconds"]))]
+        marginal = {"marginal_frames_per_s": frames / (large["seconds"] - small["seconds"]),
+                    "marginal_frames_per_cpu_s": frames / (large["cpu_seconds"] - small["cpu_seconds"])}
+        rows += [dict(small, measure="throughput"), dict(large, measure="throughput", **marginal)]
     for kind, sizes in SCALING_FRAMES.items():
         small, large = (run(kind, 1, n) for n in sizes)
         per_frame = [r["seconds"] / r["frames"] for r in (small, large)]

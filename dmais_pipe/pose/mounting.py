@@ -165,7 +165,8 @@ class _Problem:
     uv (N, 2); weight (N,) 1 / pixel sigma. origin (3,): the surveyed points' mean, which the problem's
     world coordinates (surveyed, centroid, center) are taken from, so that their rounding is of metres,
     not of the kilometres of a map grid (it sets how closely the minimum can be told); surveyed,
-    survey_sigma (P, 3); centroid (F, 3) each frame's surveyed points' mean, about which its pose turns; free (K,) the cameras with a delta; jitter,
+    survey_sigma (P, 3); centroid (F, 3) each frame's surveyed points' mean, about which its pose turns;
+    free (K,) the cameras with a delta; jitter,
     prior: sigmas in rad (jitter 0: no jitter unknowns); focal_prior (C',): the prior sigma of the
     relative focal change of each camera with a focal slot, focal_slot (C,) in [0, C') or -1 (its
     focal length held)."""
@@ -758,7 +759,8 @@ def _calibration_moved(problem: _Problem, state: _State, rig_columns: np.ndarray
     f = _forward(p, state)
     local_J, local_cols, global_J, global_cols = _jacobians(p, state, f)
     first = p.n_frames * p.local_size
-    U = local_J @ rig_columns[p.frame[:, None] * p.local_size + local_cols] + global_J @ rig_columns[first + global_cols]
+    U = (local_J @ rig_columns[p.frame[:, None] * p.local_size + local_cols]
+         + global_J @ rig_columns[first + global_cols])  # (N, 2, 3K + C')
     # d e / d x_rig is the pose's translation columns; x_cam = C (x_rig - centre): d e / d centre = -d_rig
     d_rig = local_J[:, :, 3:6]
     moved, columns = [], []
