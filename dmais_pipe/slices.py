@@ -142,7 +142,7 @@ def _write(results: str | Path, kind: str, key: str, parts: dict[str, dict]) -> 
     folder = Path(results) / SLICES / kind
     written.append(write_json_atomic(folder.with_suffix(".json"), {
         "key": key, "slices": {name: str(path.relative_to(folder)) for name, path in zip(parts, written)}}))
-    for old in folder.iterdir():
+    for old in folder.glob("*"):  # none where nothing was cut
         if old.is_dir() and old.name != key:
             shutil.rmtree(old, ignore_errors=True)
     log.info("slices: %d %s slices in %s", len(parts), kind, folder / key)

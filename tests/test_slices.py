@@ -4,6 +4,7 @@ a slice; and a job gives the same results from its slice as from the whole datas
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
@@ -91,6 +92,14 @@ def test_a_group_slice_is_the_whole_load_filtered(root, tmp_path):
         images = flight.loc[flight["placement"].isin(frames), "image"]
         _same_dataset(workspace.dataset, whole.dataset, images, frames)
         pd.testing.assert_frame_equal(workspace.load_observations(), observations[observations["image"].isin(images)])
+
+
+def test_a_dataset_without_batches_has_no_slices(simulated_dataset, tmp_path):
+    whole = Dataset.load(simulated_dataset(SIM))  # every image's observations given: nothing to extract
+    assert not marker_batches(whole, SLICE_PER_JOB)
+    (listed,) = write_marker_slices(whole, tmp_path / "results", SLICE_PER_JOB)
+    assert listed == tmp_path / "results" / "slices" / "markers.json"
+    assert json.loads(listed.read_text())["slices"] == {}
 
 
 def _touch_later(path: Path) -> None:
