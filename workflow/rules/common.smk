@@ -1,5 +1,6 @@
 import functools
 import hashlib
+import importlib.util
 import json
 import os
 import shlex
@@ -57,15 +58,29 @@ PLAN_FORMAT = 3
 
 
 def _plan_file(dataset_dir):
-    """RESULTS/plan/<key>.json, the key a digest of the dataset's tables (name, size, mtime) and the
-    batch size: the plan is made once per run of the workflow and read by every job's own Snakemake
-    (on a cluster, each job parses the workflow again), and made anew when the dataset changes."""
+    """RESULTS/plan/<key>.json, the key a digest of the dataset's tables (name, size, mtime), the
+    batch size and the package's source: the plan is made once per run of the workflow and read by
+    every job's own Snakemake (on a cluster, each job parses the workflow again), and made anew when
+    the dataset or the package changes (the slices it cuts are only read by the code that cut them)."""
     root = Path(dataset_dir)
-    digest = hashlib.sha256(f"{PLAN_FORMAT}|{root.resolve()}|{MARKERS_PER_JOB}".encode())
+    digest = hashlib.sha256(f"{PLAN_FORMAT}|{root.resolve()}|{MARKERS_PER_JOB}|{_package_digest()}".encode())
     for path in sorted(root.glob("*.csv")) + [root / "dataset.yaml"]:
         stat = path.stat() if path.is_file() else None  # none: `dmais plan` names what is missing
         digest.update(f"{path.name}:{stat and (stat.st_size, stat.st_mtime_ns)};".encode())
     return Path(RESULTS) / "plan" / f"{digest.hexdigest()[:16]}.json"
+
+
+@functools.lru_cache(maxsize=1)
+def _package_digest():
+    """A digest of the source of the dmais_pipe that this Python finds ('' where it finds none: the
+    rules' dmais is installed elsewhere), without importing it."""
+    spec = importlib.util.find_spec("dmais_pipe")
+    if spec is None or spec.origin is None:
+        return ""
+    digest = hashlib.sha256()
+    for path in sorted(Path(spec.origin).parent.rglob("*.py")):
+        digest.update(path.read_bytes())
+    return digest.hexdigest()
 
 
 @functools.lru_cache(maxsize=None)
