@@ -85,7 +85,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
-from scipy.stats import chi2 as chi2_distribution
+from scipy.special import chdtri
 
 from ..blas import single_threaded_blas
 from ..camera import Camera, project_unmasked
@@ -798,7 +798,8 @@ def _result(problem: _Problem, state: _State, covariance: np.ndarray, iterations
         chi2[c] = state.delta[k] @ np.linalg.solve(cov[c], state.delta[k])
         cam_from_rig[name] = Rigid3(exp_so3(state.delta[k]), np.zeros(3)) * rig.cam_from_rig[name]
     focal, sigma_focal, cameras = _focal_changes(problem, state, covariance)
-    significant = np.nan_to_num(chi2, nan=0.0) > chi2_distribution.ppf(1.0 - SIGNIFICANCE, 3)
+    # chi-square's upper quantile by scipy.special: scipy.stats took 0.35-0.7 s of a pose job's start
+    significant = np.nan_to_num(chi2, nan=0.0) > chdtri(3, SIGNIFICANCE)
     sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2)) / RAD_PER_ARCMIN
     return GroupRig(tuple(names), delta / RAD_PER_ARCMIN, sigma, cov / RAD_PER_ARCMIN**2, chi2, significant,
                     focal, sigma_focal, Rig(cameras, cam_from_rig, rig.reference_camera), state.R, state.t,
