@@ -8,7 +8,7 @@ import pytest
 
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.pose import group_normal
-from dmais_pipe.pose.group_normal import FRAMES_FIRST, POINTS_FIRST, assemble, group_structure, solve
+from dmais_pipe.pose.group_normal import FRAMES_FIRST, POINTS_FIRST, GroupNormal, assemble, group_structure, solve
 
 L, R = 9, 5  # a frame's pose (6) and one camera's jitter (3); the rig's unknowns
 
@@ -58,13 +58,12 @@ def random_normal(kind: str, n_frames: int, method: str | None, seed: int = 0):
 
 def with_priors(normal, weight: float = 2.0):
     """`normal` with `weight` added to every diagonal (a prior on every unknown)."""
-    damped = normal.damped(0.0)
     A, Hpp, Hrr = normal.A.copy(), normal.Hpp.copy(), normal.Hrr.copy()
     A[:, np.arange(L), np.arange(L)] += weight
     Hpp[:, np.arange(3), np.arange(3)] += weight
     Hrr[np.diag_indices(R)] += weight
-    return type(damped)(normal.structure, A, normal.Wr, Hrr, Hpp, normal.Hpr, normal.Wp, normal.b_local,
-                        normal.b_rig, normal.b_point)
+    return GroupNormal(normal.structure, A, normal.Wr, Hrr, Hpp, normal.Hpr, normal.Wp, normal.b_local,
+                       normal.b_rig, normal.b_point)
 
 
 @pytest.mark.parametrize("kind", ["shared", "own", "own_twice", "line"])
