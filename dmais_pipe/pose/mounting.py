@@ -36,16 +36,16 @@ Observations: the markers' distorted pixels uv with a per-axis pixel sigma (per 
 
 ((C_c, t_c) the calibrated cam_from_rig; project_c with the focal change, and sum_c |s_c /
 sigma_s|^2 with it) is minimised by Levenberg-Marquardt; delta and j are
-additive rotation vectors (exact Jacobians through geometry.left_jacobian_so3). Each frame's
-pose and jitters (6 + 3K unknowns) touch only that frame's observations, and each point's 3 only
-its own, so either set is eliminated by the Schur complement, whichever leaves the smaller dense
-system: the frames when hovering (the 3K + 3P system of the deltas and points: 0.06 s for 30
-frames x 5 cameras x 8 points, 0.4 s for 200 frames), the points on a line (the F (6 + 3K) + 3K
-system of the frames and deltas: 0.26 s for 30 frames over 1,173 points, where eliminating the
-frames took 9.5 s).
+additive rotation vectors (exact Jacobians through geometry.left_jacobian_so3), the problem taken
+about its points' mean. Each frame's pose and jitters (6 + 3K unknowns) touch only that frame's
+observations, and each point's 3 only its own: pose.group_normal keeps the normal equations in
+those blocks and eliminates the frames or the points first, whichever costs less (the frames when
+hovering over the same markers, the points where frames see points of their own or along a line),
+in time linear in the frames. LM stops where the next step is shorter than STEP_TOLERANCE standard
+deviations.
 
-Covariance: the inverse normal matrix at the minimum; the deltas' block of it is that of the
-inverse of either Schur complement (the others marginalised); given the calibration's joint
+Covariance: the inverse normal matrix at the minimum; the rig's block of it is the inverse of the
+rig's Schur complement (the others marginalised); given the calibration's joint
 covariance, plus its share (`_calibration_share`): the calibrated rig is a measurement too, and a
 flight that resolves the rig better than the calibration did would flag its error as a change.
 sigma: the square roots of its diagonal, in arc-min. chi2_c = delta_c^T cov_c^-1 delta_c;
