@@ -129,11 +129,16 @@ def test_a_changed_input_is_never_read_from_a_slice(root, tmp_path):
     # a table broken after the slices were cut: the job stops with the whole load's error
     lines = (root / "images.csv").read_text().splitlines()
     (root / "images.csv").write_text("\n".join([*lines, lines[-1]]) + "\n")
+    assert_the_job_stops_as_the_load(root, results, name, "duplicate image id")
+
+
+def assert_the_job_stops_as_the_load(root, results, name: str, message: str) -> None:
+    """The marker batch `name`'s job stops with the whole load's error, which says `message`."""
     with pytest.raises(DatasetError) as from_load:
         Dataset.load(root)
     with pytest.raises(DatasetError) as from_job:
         batch_workspace(root, results, name, SLICE_PER_JOB)
-    assert "duplicate image id" in str(from_job.value) and str(from_job.value) == str(from_load.value)
+    assert message in str(from_job.value) and str(from_job.value) == str(from_load.value)
 
 
 def test_a_slice_checks_the_files_of_its_images(root, tmp_path):
@@ -143,11 +148,7 @@ def test_a_slice_checks_the_files_of_its_images(root, tmp_path):
     first = whole.images.loc[whole.images["path"] != "", "image"].iloc[0]  # the load names it first
     name = next(name for name, batch in batches.items() if first in batch["images"])
     (root / "images" / "blank.png").unlink()  # no table changes: the slices stay current
-    with pytest.raises(DatasetError) as from_load:
-        Dataset.load(root)
-    with pytest.raises(DatasetError) as from_job:
-        batch_workspace(root, results, name, SLICE_PER_JOB)
-    assert "does not exist" in str(from_job.value) and str(from_job.value) == str(from_load.value)
+    assert_the_job_stops_as_the_load(root, results, name, "does not exist")
 
 
 def test_the_plan_never_writes_into_the_dataset(root, capsys):
