@@ -58,10 +58,11 @@ class GroupStructure:
 
     frame (N,) in [0, F); point (N,) in [0, P); local_cols (N, l) in [0, L); rig_cols (N, r) in [0, R);
     by_frame (N,) the observations in frame order, frame_starts (F + 1,) each frame's first in it,
-    slot (N,) an observation's place among its frame's (fewer than n_slots); method: FRAMES_FIRST or
-    POINTS_FIRST (`elimination`). For the points first: point_frame (P,) the frame of a point seen by
-    one frame only (-1 where tied) and point_slot (P,) its place among that frame's points (fewer than
-    n_point_slots); where frames are tied (a point seen by two), pair_left, pair_right (M,) every
+    slot (N,) an observation's place among its frame's (fewer than n_slots); frames_tied: whether some
+    point is seen by two frames (the points-first frames' system is then not block diagonal); method:
+    FRAMES_FIRST or POINTS_FIRST (`elimination`). For the points first, untied: point_frame (P,) the
+    frame of each point and point_slot (P,) its place among that frame's points (fewer than
+    n_point_slots); tied: pair_left, pair_right (M,) every
     ordered pair of observations of one point (each with itself too), pair_block (M,) the index of the
     pair's frames (frame of left, frame of right) in frame_pairs (B, 2), the self pairs (f, f) first."""
 
@@ -77,6 +78,7 @@ class GroupStructure:
     frame_starts: np.ndarray
     slot: np.ndarray
     n_slots: int
+    frames_tied: bool
     method: str
     point_frame: np.ndarray
     point_slot: np.ndarray
@@ -89,11 +91,6 @@ class GroupStructure:
     @property
     def size(self) -> int:
         return self.n_frames * self.local_size + self.rig_size + 3 * self.n_points
-
-    @property
-    def frames_tied(self) -> bool:
-        """Whether some point is seen by two frames (the points-first frames' system is not block diagonal)."""
-        return bool(len(self.point_frame)) and bool((self.point_frame < 0).any())
 
 
 def group_structure(frame, point, local_cols, rig_cols, n_frames: int, local_size: int, rig_size: int,
@@ -109,7 +106,7 @@ def group_structure(frame, point, local_cols, rig_cols, n_frames: int, local_siz
     counts = np.bincount(point, minlength=n_points)
     first_frame = np.full(n_points, -1)
     first_frame[point[::-1]] = frame[::-1]
-    tied = (frame != first_frame[point]).any()  # a point seen by two frames
+    tied = bool((frame != first_frame[point]).any())  # a point seen by two frames
     method = method or elimination(n_frames, local_size, rig_size, n_points, local_cols.shape[1],
                                    float(np.sum(counts.astype(float)**2)), tied)
     if method not in (FRAMES_FIRST, POINTS_FIRST):
@@ -117,12 +114,11 @@ def group_structure(frame, point, local_cols, rig_cols, n_frames: int, local_siz
     none = np.zeros(0, dtype=np.int64)
     points, pairs = (none, none, 0), (none, none, none, np.zeros((0, 2), dtype=np.int64))
     if method == POINTS_FIRST and tied:
-        point_frame = np.full(n_points, -1)
-        points, pairs = (point_frame, point_frame, 0), _observation_pairs(frame, point, counts, n_frames)
+        pairs = _observation_pairs(frame, point, counts, n_frames)
     elif method == POINTS_FIRST:
         points = _points_by_frame(first_frame, n_frames)
     return GroupStructure(n_frames, local_size, rig_size, n_points, frame, point, local_cols, rig_cols, by_frame,
-                          frame_starts, slot, n_slots, method, *points, *pairs)
+                          frame_starts, slot, n_slots, tied, method, *points, *pairs)
 
 
 def _points_by_frame(point_frame: np.ndarray, n_frames: int) -> tuple[np.ndarray, np.ndarray, int]:
@@ -470,14 +466,11 @@ def _frame_blocks(normal: GroupNormal, V: np.ndarray) -> np.ndarray:
 
 
 def _frames_factor(blocks: np.ndarray, structure: GroupStructure):
-    """A function solving the frames' system (its blocks (B, L, L) of structure.frame_pairs) for right
-    sides (F, L, k): by the blocks' inverses where no frames are tied, else a dense Cholesky or a
-    sparse LU of the whole, its frames in the order of the narrowest band (`_banded_order`) and
-    factorised in that order (a fill-reducing order spreads a line's band: 2.6 GB for 3,000 frames)."""
+    """A function solving the tied frames' system (its blocks (B, L, L) of structure.frame_pairs) for
+    right sides (F, L, k): a dense Cholesky or a sparse LU of the whole, its frames in the order of the
+    narrowest band (`_banded_order`) and factorised in that order (a fill-reducing order spreads a
+    line's band: 2.6 GB for 3,000 frames)."""
     F, L = structure.n_frames, structure.local_size
-    if not structure.frames_tied:
-        inverse = _inverted(blocks, "a frame's pose")
-        return lambda right: inverse @ right
     rank = _banded_order(structure)  # rank (F,): a frame's place in the order
     pairs = rank[structure.frame_pairs]
     order = np.lexsort((pairs[:, 1], pairs[:, 0]))
