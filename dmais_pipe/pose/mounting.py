@@ -254,8 +254,8 @@ def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t
     state = _State(R.copy(), t_local, np.zeros((K, 3)), np.zeros((problem.n_frames, K, 3)),
                    np.zeros(len(problem.focal_prior)), problem.surveyed.copy())
     with single_threaded_blas():  # small matrices: threads only add hand-offs (2x slower on 2 busy cores)
-        state, iterations, cost = _levenberg_marquardt(problem, state)
-        covariance = _rig_covariance(problem, state, calibration_covariance)
+        state, iterations, cost, forward = _levenberg_marquardt(problem, state)
+        covariance = _rig_covariance(problem, state, forward, calibration_covariance)
     state = replace(state, t=state.t - state.R @ problem.origin)
     return _result(problem, state, covariance, iterations, cost)
 
@@ -606,12 +606,13 @@ def _cost(problem: _Problem, state: _State, forward: _Forward | None = None) -> 
 # ------------------------------------------------------------------------------ normal equations
 
 
-def _normal_equations(problem: _Problem, state: _State, forward: _Forward | None = None) -> GroupNormal:
+def _normal_equations(problem: _Problem, state: _State, forward: _Forward | None = None,
+                      jacobians: tuple | None = None) -> GroupNormal:
     """J^T J and J^T e of the pixel residuals in blocks (pose.group_normal), then the priors'; forward:
-    the model at `state` with its Jacobians' factors, if made already."""
+    the model at `state` with its Jacobians' factors, and jacobians its `_jacobians`, if made already."""
     p = problem
     forward = forward or _forward(p, state)
-    local_J, _, global_J, _ = _jacobians(p, state, forward)
+    local_J, _, global_J, _ = jacobians or _jacobians(p, state, forward)
     normal = group_normal.assemble(p.structure, local_J, global_J[:, :, :-3], global_J[:, :, -3:], forward.e)
     _add_priors(p, state, normal)
     return normal
@@ -655,8 +656,9 @@ def _moved(problem: _Problem, state: _State, d_local: np.ndarray, d_global: np.n
                   state.points + d_global[n_rig:].reshape(-1, 3))
 
 
-def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int, float]:
-    """The minimum of the cost from `state`: (state, iterations, cost). Converged where the next step
+def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int, float, _Forward]:
+    """The minimum of the cost from `state`: (state, iterations, cost, the model there with its
+    Jacobians' factors). Converged where the next step
     is shorter than STEP_TOLERANCE in standard deviations: its length, -gradient . step, is computed
     from the gradient, exact where the difference of two costs is lost in their rounding."""
     forward = _forward(problem, state)
@@ -666,7 +668,7 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
         while True:
             d_local, d_global = _step(problem, normal, damping)
             if -normal.gradient @ np.concatenate([d_local.ravel(), d_global]) <= STEP_TOLERANCE**2:
-                return state, iteration, cost
+                return state, iteration, cost, forward
             trial = _moved(problem, state, d_local, d_global)
             trial_forward = _forward(problem, trial)  # with the Jacobians: most steps are taken
             trial_cost = _cost(problem, trial, trial_forward)
@@ -674,28 +676,30 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
                 break
             damping *= 10.0
             if damping > 1e8:
-                return state, iteration, cost
+                return state, iteration, cost, forward
         state, cost, forward = trial, trial_cost, trial_forward
         damping = max(damping / 10.0, 1e-9)
     log.warning("mounting: the group adjustment stopped at %d iterations before converging", MAX_ITERATIONS)
-    return state, MAX_ITERATIONS, cost
+    return state, MAX_ITERATIONS, cost, forward
 
 
 # ------------------------------------------------------------------------------ the result
 
 
-def _rig_covariance(problem: _Problem, state: _State, calibration_covariance=None) -> np.ndarray:
+def _rig_covariance(problem: _Problem, state: _State, forward: _Forward, calibration_covariance=None) -> np.ndarray:
     """(3K + C', 3K + C') covariance of the rig's unknowns (the deltas, rad^2, then C' focal changes):
     their block of the inverse normal matrix, plus, given the calibration's covariance
-    (`adjust_group_rig`), its share (`_calibration_share`), from the inverse's rig columns."""
-    normal = _normal_equations(problem, state)
+    (`adjust_group_rig`), its share (`_calibration_share`), from the inverse's rig columns; forward:
+    the model at `state` with its Jacobians' factors."""
+    jacobians = _jacobians(problem, state, forward)
+    normal = _normal_equations(problem, state, forward, jacobians)
     first, R = problem.n_frames * problem.local_size, problem.rig_size
     if calibration_covariance is None:
         return group_normal.solve(normal, np.zeros((problem.structure.size, 0)))[1]
     unit = np.zeros((problem.structure.size, R))
     unit[first + np.arange(R), np.arange(R)] = 1.0
     rig_columns, covariance = group_normal.solve(normal, unit)
-    moved, columns = _calibration_moved(problem, state, rig_columns, covariance)
+    moved, columns = _calibration_moved(problem, state, forward, jacobians, rig_columns, covariance)
     return covariance + _calibration_share(problem, moved, columns, np.asarray(calibration_covariance, float))
 
 
@@ -743,21 +747,21 @@ def _calibration_share(problem: _Problem, moved: np.ndarray, columns: list[tuple
     return A @ calibration_covariance @ A.T - counted
 
 
-def _calibration_moved(problem: _Problem, state: _State, rig_columns: np.ndarray,
+def _calibration_moved(problem: _Problem, state: _State, f: _Forward, jacobians: tuple, rig_columns: np.ndarray,
                        rig_inverse: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
     """(3K + C', n) how the rig's unknowns move per unit change of each calibration parameter of `columns`
     (n pairs (c, k)): per observed camera c, that camera's CALIBRATION_PARAMETERS[k], the intrinsics (k <
     5) and the centre (k = CENTRE + axis, m in the rig frame); of a camera whose focal change is an
     unknown, in place of fx and fy its aspect (k = ASPECT: fx and fy scaled by 1 + a and 1 - a) and
-    its prior's mean (k = FOCAL_PRIOR). rig_columns (F L + G, 3K + C'): the inverse normal matrix's
-    columns of the rig's unknowns, rig_inverse their rows of them.
+    its prior's mean (k = FOCAL_PRIOR). f, jacobians: the model at `state` and its `_jacobians`;
+    rig_columns (F L + G, 3K + C'): the inverse normal matrix's columns of the rig's unknowns,
+    rig_inverse their rows of them.
 
     A change x moving the whitened residuals by (d e / d x) x moves the minimum by -N^-1 J^T (d e / d x) x,
     the rig's part of which is -(J N^-1 E_rig)^T (d e / d x) x: the residuals' change per unit of each
     rig unknown's column of the inverse, U = J rig_columns, against the parameter's effect."""
     p = problem
-    f = _forward(p, state)
-    local_J, local_cols, global_J, global_cols = _jacobians(p, state, f)
+    local_J, local_cols, global_J, global_cols = jacobians
     first = p.n_frames * p.local_size
     U = (local_J @ rig_columns[p.frame[:, None] * p.local_size + local_cols]
          + global_J @ rig_columns[first + global_cols])  # (N, 2, 3K + C')
