@@ -102,7 +102,7 @@ class Workspace:
 
     def observations_path(self, stage: str | None = None) -> Path:
         """RESULTS/observations/<stage>.csv (the workflow's), or RESULTS/observations.csv (None)."""
-        return self.root / "observations.csv" if stage is None else self.root / "observations" / f"{stage}.csv"
+        return observations_file(self.root, stage)
 
     def intrinsics_path(self, camera: str) -> Path:
         return self.root / "intrinsics" / f"{camera}.json"
@@ -403,8 +403,13 @@ class Workspace:
 
 def observation_files(root: Path) -> list[Path]:
     """Every file Workspace.load_observations may read in the results folder `root`: the per-stage
-    ones (RESULTS/observations/<stage>.csv, in STAGES order), then RESULTS/observations.csv."""
-    return [root / "observations" / f"{stage}.csv" for stage in STAGES] + [root / "observations.csv"]
+    ones (`observations_file`, in STAGES order), then RESULTS/observations.csv."""
+    return [observations_file(root, stage) for stage in STAGES] + [observations_file(root)]
+
+
+def observations_file(root: Path, stage: str | None = None) -> Path:
+    """RESULTS/observations/<stage>.csv (the workflow's), or RESULTS/observations.csv (None)."""
+    return root / "observations.csv" if stage is None else root / "observations" / f"{stage}.csv"
 
 
 def pose_file_beside(poses_path: str | Path, kind: str) -> Path:
