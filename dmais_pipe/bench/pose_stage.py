@@ -141,13 +141,19 @@ def _observed(rng, rig, world_from_rig: np.ndarray, centre: np.ndarray, markers:
 
 def calibrated(work: Path) -> tuple[Path, Path]:
     """(dataset, results) of the simulated and calibrated `CALIBRATION` under `work`, made once."""
-    dataset, results = work / "calibration" / "dataset", work / "calibration" / "results"
+    return _simulated_and_calibrated(work, "calibration", CALIBRATION)
+
+
+def _simulated_and_calibrated(work: Path, name: str, config: dict) -> tuple[Path, Path]:
+    """(dataset, results) under work/name: the simulator's dataset of `config`, calibrated by dmais
+    intrinsics and extrinsics; made once (kept while its rig.json is there)."""
+    dataset, results = work / name / "dataset", work / name / "results"
     if (results / "rig.json").is_file():
         return dataset, results
-    shutil.rmtree(work / "calibration", ignore_errors=True)
-    config = work / "calibration.yaml"
-    write_yaml_atomic(config, CALIBRATION)
-    _dmais("simulate", str(config), "--out", str(dataset))
+    shutil.rmtree(work / name, ignore_errors=True)
+    path = work / f"{name}.yaml"
+    write_yaml_atomic(path, config)
+    _dmais("simulate", str(path), "--out", str(dataset), "--jobs", "2")
     for stage in ("intrinsics", "extrinsics"):
         _dmais(stage, str(dataset), "--out", str(results))
     return dataset, results
@@ -209,19 +215,10 @@ def simulated(work: Path, frames_per_group: int) -> tuple[Path, Path]:
     """(dataset, results) of the simulator's flight of 2 hovering groups of `frames_per_group` frames (one per
     site), calibrated by dmais intrinsics and extrinsics, under `work`; made once."""
     name = f"simulated_{frames_per_group}"
-    dataset, results = work / name / "dataset", work / name / "results"
-    if (results / "rig.json").is_file():
-        return dataset, results
-    shutil.rmtree(work / name, ignore_errors=True)
-    config = work / f"{name}.yaml"
     sites = {"A": {"center_m": [1500.0, -800.0, 45.0], "groups": [1]},
              "B": {"center_m": [-2200.0, 1800.0, 120.0], "groups": [2]}}
-    write_yaml_atomic(config, {**CALIBRATION, "name": name, "flight": {"frames_per_group": frames_per_group,
-                                                                     "sites": sites}})
-    _dmais("simulate", str(config), "--out", str(dataset), "--jobs", "2")
-    for stage in ("intrinsics", "extrinsics"):
-        _dmais(stage, str(dataset), "--out", str(results))
-    return dataset, results
+    return _simulated_and_calibrated(work, name, {**CALIBRATION, "name": name, "flight": {
+        "frames_per_group": frames_per_group, "sites": sites}})
 
 
 def own_points(source: tuple[Path, Path], out: Path) -> tuple[Path, Path]:
