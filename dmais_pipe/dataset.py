@@ -29,6 +29,8 @@ import yaml
 from .camera import MODELS
 from .errors import DatasetError, yaml_problem
 from .files import write_csv_atomic, write_yaml_atomic
+from .geo import (FAR_OUTSIDE_DEG, Geo, GeoError, crs_3d, default_origin, ecef_from_crs, enu_from_ecef,
+                  outside_area_of_use)
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +58,9 @@ FRAME_COLUMNS = ("frame", "group", "pos_x", "pos_y", "pos_z")
 OBSERVATION_COLUMNS = ("image", "point_id", "u", "v")
 RESULT_OBSERVATION_COLUMNS = ("image", "camera", "point_id", "u", "v")
 
-_MANIFEST_KEYS = ("name", "description", "reference_camera", "cameras", "marker_size_m")
+_MANIFEST_KEYS = ("name", "description", "reference_camera", "cameras", "marker_size_m", "crs", "pos_crs", "origin")
+#: dataset.yaml `origin`'s keys: the computation frame's origin on WGS 84 (geo.py).
+_ORIGIN_KEYS = ("lat_deg", "lon_deg", "h_m")
 _CAMERA_KEYS = ("width", "height", "focal_px", "model")
 _MIN_QUATERNION_NORM = 1e-6
 #: A control field is collinear when its RMS spread across its best-fit line is below both this
@@ -89,6 +93,9 @@ class _Manifest:
     cameras: dict[str, CameraSpec]
     marker_size_m: float
     description: str
+    crs: str = ""
+    pos_crs: str = ""
+    origin: tuple[float, float, float] | None = None
 
 
 def _read_manifest(path: Path) -> _Manifest:
@@ -123,7 +130,39 @@ def _parse_manifest(data, path: Path) -> _Manifest:
         cameras=cameras,
         marker_size_m=_positive(data.get("marker_size_m", DEFAULT_MARKER_SIZE_M), "marker_size_m", path),
         description="" if description is None else _text_value(description, "description", path, allow_empty=True),
+        **_parse_crs_keys(data, path),
     )
+
+
+def _parse_crs_keys(data: dict, path: Path) -> dict:
+    """crs, pos_crs (default crs) and origin of a manifest, each CRS checked by pyproj; without crs,
+    pos_crs and origin are errors (they would be ignored)."""
+    if "crs" not in data:
+        for key in ("pos_crs", "origin"):
+            if key in data:
+                raise DatasetError(path, f"{key} is given without crs; name the CRS of the points as crs")
+        return {}
+    crs = _text_value(data["crs"], "crs", path)
+    pos_crs = _text_value(data["pos_crs"], "pos_crs", path) if "pos_crs" in data else crs
+    for key, text in (("crs", crs), ("pos_crs", pos_crs)):
+        try:
+            crs_3d(text)
+        except GeoError as error:
+            raise DatasetError(path, f"{key}: {error}") from None
+    return {"crs": crs, "pos_crs": pos_crs, "origin": _parse_origin(data["origin"], path) if "origin" in data else None}
+
+
+def _parse_origin(data, path: Path) -> tuple[float, float, float]:
+    if not isinstance(data, dict):
+        raise DatasetError(path, f"origin must be a mapping with {', '.join(_ORIGIN_KEYS)}, got {data!r}")
+    _check_keys(data, _ORIGIN_KEYS, path, "origin: ")
+    values = []
+    for key, limit in zip(_ORIGIN_KEYS, (90.0, 180.0, 1e5)):
+        value = data.get(key)
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not abs(value) <= limit:
+            raise DatasetError(path, f"origin.{key} must be a number within +-{limit:g}, got {value!r}")
+        values.append(float(value))
+    return tuple(values)
 
 
 def _parse_cameras(data, path: Path) -> dict[str, CameraSpec]:
@@ -188,6 +227,10 @@ def _manifest_dict(manifest: _Manifest) -> dict:
     if manifest.description:
         data["description"] = manifest.description
     data.update(reference_camera=manifest.reference_camera, cameras=cameras, marker_size_m=manifest.marker_size_m)
+    if manifest.crs:
+        data.update(crs=manifest.crs, pos_crs=manifest.pos_crs)
+    if manifest.origin is not None:
+        data["origin"] = dict(zip(_ORIGIN_KEYS, manifest.origin))
     return data
 
 
@@ -479,7 +522,60 @@ def _read_frames(path: Path) -> pd.DataFrame:
     columns = {"frame": _strings(frame_id), "group": _strings(table.text("group"))}
     columns.update({axis: table.floats(axis) for axis in FRAME_COLUMNS[2:]})
     columns.update(zip(PRIOR_QUAT, _quaternions(table, PRIOR_QUAT).T))
-    return _frame(table, columns, FRAME_COLUMNS + PRIOR_QUAT)
+    return _frame(table, columns, FRAME_COLUMNS + PRIOR_QUAT), table
+
+
+# ------------------------------------------------------------------------------ coordinate reference systems
+
+
+def _dataset_geo(manifest: _Manifest, control: pd.DataFrame, table: Table) -> Geo | None:
+    """The dataset's Geo (None without crs); its origin dataset.yaml's, else the control points'
+    mean (geo.default_origin)."""
+    if not manifest.crs:
+        return None
+    xyz = control[list(POINT_COLUMNS[1:])].to_numpy(float)
+    origin = manifest.origin or default_origin(_ecef(manifest.crs, "crs", table, xyz, POINT_COLUMNS[1:]))
+    return Geo(manifest.crs, manifest.pos_crs, origin)
+
+
+def _in_computation_frame(frame: pd.DataFrame, columns: Sequence[str], table: Table, geo: Geo,
+                          pos: bool = False) -> pd.DataFrame:
+    """`frame` (rows as the `table` read) with its coordinate `columns` (x, y, z in `crs`, or in
+    `pos_crs` with pos) converted to the computation frame where a row gives them (NaN rows kept)."""
+    xyz = frame[list(columns)].to_numpy(float, copy=True)
+    given = np.isfinite(xyz).all(axis=1)
+    if not given.any():
+        return frame
+    key = "pos_crs" if pos else "crs"
+    ecef = _ecef(getattr(geo, key), key, table, xyz, columns, given)
+    xyz[given] = enu_from_ecef(geo.origin, ecef)
+    out = frame.copy()
+    out[list(columns)] = xyz
+    return out
+
+
+def _ecef(crs: str, key: str, table: Table, xyz: np.ndarray, columns: Sequence[str],
+          given: np.ndarray | None = None) -> np.ndarray:
+    """(k, 3) geocentric coordinates of the rows `given` (n,) (default all) of xyz (n, 3) in `crs`
+    (dataset.yaml's `key`). A row pyproj cannot convert, or further than FAR_OUTSIDE_DEG outside
+    the CRS's area of use, is an error naming its line; rows outside it nearer, a warning."""
+    rows = np.flatnonzero(np.ones(len(xyz), bool) if given is None else given)
+    names = ", ".join(columns)
+    try:
+        ecef = ecef_from_crs(crs, xyz[rows])
+    except GeoError as error:
+        raise table.error(f"{names}: {error} in {key} {crs!r}", None if error.row is None else rows[error.row]) from None
+    distance, area = outside_area_of_use(crs, ecef)
+    far = np.zeros(len(xyz), bool)
+    far[rows] = distance > FAR_OUTSIDE_DEG
+    table.check(far, lambda row: f"{names} ({', '.join(f'{v:.10g}' for v in xyz[row])}) lie "
+                f"{distance[np.searchsorted(rows, row)]:.3g} deg outside the area of use of {key} {crs!r}, "
+                f"{area}; are they in that CRS?")
+    if (distance > 0).any():
+        first = int(table.lines[rows[int(np.argmax(distance > 0))]])
+        log.warning("%s: %d row(s) lie outside the area of use of %s %r (%s; first on line %d, at most %.3g deg "
+                    "outside)", table.path, int((distance > 0).sum()), key, crs, area, first, distance.max())
+    return ecef
 
 
 def _empty_frames() -> pd.DataFrame:
@@ -553,6 +649,8 @@ class Dataset:
     Extra columns of the CSV files are kept as strings after the documented ones.
     stamps: the tables as they were when the load began (`table_stamps`); part: '' for the whole
     dataset, else what of it a job's slice holds (`restricted`, slices.py).
+    geo: dataset.yaml's crs, pos_crs and the computation frame's origin (geo.py), None without crs.
+    With it every coordinate above (points, prior_x..z, pos_x..z) is in the computation frame.
     """
 
     root: Path
@@ -569,6 +667,7 @@ class Dataset:
     image_lines: dict[str, int] = field(default_factory=dict)  # image id -> its line in images.csv
     stamps: str = ""
     part: str = ""
+    geo: Geo | None = None
     _positions: dict = field(default_factory=dict, init=False, repr=False)  # `_rows`' groups, made once
 
     @classmethod
@@ -582,13 +681,20 @@ class Dataset:
         control, control_table = _read_points(root / CONTROL_POINTS)
         if control.empty:
             raise DatasetError(root / CONTROL_POINTS, "has no points; at least one control point is needed")
+        geo = _dataset_geo(manifest, control, control_table)
+        if geo is not None:
+            control = _in_computation_frame(control, POINT_COLUMNS[1:], control_table, geo)
         _check_field_geometry(root / CONTROL_POINTS, control[["x", "y", "z"]].to_numpy(float))
         ground = _empty_points()
         if (root / GROUND_POINTS).exists():
             ground, ground_table = _read_points(root / GROUND_POINTS)
             _check_disjoint(control_table, ground_table)
+            if geo is not None:
+                ground = _in_computation_frame(ground, POINT_COLUMNS[1:], ground_table, geo)
         images, image_table = _read_images(root / IMAGES, root, manifest.cameras)
-        frames = _load_frames(root, images, image_table)
+        if geo is not None:
+            images = _in_computation_frame(images, PRIOR_CENTER, image_table, geo, pos=True)
+        frames = _load_frames(root, images, image_table, geo)
         observations = _empty_observations()
         if (root / OBSERVATIONS).exists():
             camera_of = dict(zip(images["image"], images["camera"]))
@@ -600,7 +706,7 @@ class Dataset:
             root=root, name=manifest.name, reference_camera=manifest.reference_camera, cameras=manifest.cameras,
             marker_size_m=manifest.marker_size_m, description=manifest.description,
             control_points=control, ground_points=ground, images=images, frames=frames, observations=observations,
-            image_lines=dict(zip(images["image"], image_table.lines.tolist())), stamps=stamps,
+            image_lines=dict(zip(images["image"], image_table.lines.tolist())), stamps=stamps, geo=geo,
         )
 
     def restricted(self, images, frames=None, part: str = "") -> Dataset:
@@ -791,15 +897,18 @@ def _grayscale(pixels: np.ndarray) -> np.ndarray | None:
     return pixels if pixels.ndim == 2 else None
 
 
-def _load_frames(root: Path, images: pd.DataFrame, image_table: Table) -> pd.DataFrame:
-    """frames.csv (required when there are flight images); every flight placement must be a frame."""
+def _load_frames(root: Path, images: pd.DataFrame, image_table: Table, geo: Geo | None) -> pd.DataFrame:
+    """frames.csv (required when there are flight images); every flight placement must be a frame.
+    With `geo`, the POS positions in the computation frame."""
     flight = (images["stage"] == "flight").to_numpy()
     if not (root / FRAMES).exists():
         if flight.any():
             line = image_table.lines[int(np.argmax(flight))]
             raise DatasetError(root / FRAMES, f"missing; {IMAGES} has flight images (first on line {line})")
         return _empty_frames()
-    frames = _read_frames(root / FRAMES)
+    frames, table = _read_frames(root / FRAMES)
+    if geo is not None:
+        frames = _in_computation_frame(frames, FRAME_COLUMNS[2:], table, geo, pos=True)
     placement = images["placement"].to_numpy(dtype=object)
     # pandas hashes the ids; np.isin on object arrays compares them pairwise (6 s for 50,000 images)
     unknown = flight & ~pd.Index(placement).isin(frames["frame"])

@@ -23,6 +23,7 @@ from .camera import Camera
 from .dataset import STAGES, Dataset, Table, read_observation_table, read_table
 from .errors import DatasetError, DmaisError
 from .files import csv_text, write_csv_atomic, write_json_atomic, write_text_atomic
+from .geo import GeoError
 from .geometry import Rigid3
 from .plan import marker_batches
 from .rig import Rig
@@ -39,6 +40,13 @@ POSE_COLUMNS = ("frame", "group", "cameras", "n_points", *QUAT, *TRANSLATION, *C
 #: the angles' sigma (arc-min), and the per-axis pixel noise behind them. Files before them lack them.
 POSE_UNCERTAINTY_COLUMNS = ("heading_deg", "pitch_deg", "roll_deg", "sigma_x_m", "sigma_y_m", "sigma_z_m",
                             "sigma_heading_arcmin", "sigma_pitch_arcmin", "sigma_roll_arcmin", "noise_px")
+#: poses.csv's columns after those of a dataset with a `crs` (geo.py, docs/design.md): the rig centre's
+#: WGS 84 latitude, longitude (deg) and ellipsoidal height (m); the ZYX Euler angles (deg) of
+#: ned_from_rig at the frame's own position; the centre's 1-sigma along north, east, down (m) and the
+#: angles' (arc-min).
+POSE_GEO_COLUMNS = ("lat_deg", "lon_deg", "h_m", "ned_heading_deg", "ned_pitch_deg", "ned_roll_deg",
+                    "sigma_north_m", "sigma_east_m", "sigma_down_m", "sigma_ned_heading_arcmin",
+                    "sigma_ned_pitch_arcmin", "sigma_ned_roll_arcmin")
 #: One row per observation of a solved frame: whether the pose used it, and its residual (px).
 POSE_OBSERVATION_COLUMNS = ("frame", "image", "camera", "point_id", "u", "v", "used", "du", "dv")
 #: <poses>.budget.csv: one row per solved frame and error-model component (pose/error_model.py):
@@ -291,8 +299,9 @@ class Workspace:
                    budget: pd.DataFrame | None = None, mounting: pd.DataFrame | None = None) -> list[Path]:
         """A poses file (POSE_COLUMNS, then any extra columns) and, beside it, its per-observation file
         and, when given, its error budget (POSE_BUDGET_COLUMNS) and its rig watched in flight
-        (MOUNTING_COLUMNS)."""
+        (MOUNTING_COLUMNS). With the dataset's `crs`, x, y, z are written in it (`centres_in_crs`)."""
         extras = [c for c in poses.columns if c not in POSE_COLUMNS]
+        poses = self.centres_in_crs(poses)
         written = [write_text_atomic(path, csv_text(poses[[*POSE_COLUMNS, *extras]])),
                    write_text_atomic(pose_observations_path(path), csv_text(observations[list(POSE_OBSERVATION_COLUMNS)]))]
         if budget is not None:
@@ -311,7 +320,8 @@ class Workspace:
         (names joined by '+') must be cameras of the rig (and of `allowed_cameras` when given); a
         file without rows is an error unless empty_ok (a per-group part of the workflow).
         Raises ResultsError naming the file and line. Returns typed columns: POSE_UNCERTAINTY_COLUMNS
-        as floats (NaN where empty) when the file has them, other extras as strings.
+        and POSE_GEO_COLUMNS as floats (NaN where empty) when the file has them, other extras as
+        strings. With the dataset's `crs`, x, y, z are returned in the computation frame.
         """
         path = self.poses_path() if path is None else Path(path)
         if not path.is_file():
@@ -327,10 +337,28 @@ class Workspace:
             n_points = numbers["n_points"]
             table.check((n_points != np.round(n_points)) | (n_points < 0),
                         lambda row: f"column n_points: {n_points[row]:g} is not a count")
-            extras = {c: table.floats(c, optional=True) if c in POSE_UNCERTAINTY_COLUMNS else table.text(c)
-                      for c in table.extra_columns(POSE_COLUMNS)}
+            extras = {c: table.floats(c, optional=True) if c in (*POSE_UNCERTAINTY_COLUMNS, *POSE_GEO_COLUMNS)
+                      else table.text(c) for c in table.extra_columns(POSE_COLUMNS)}
+            geo = self.dataset.geo
+            if geo is not None and len(table):
+                centres = np.column_stack([numbers[c] for c in CENTER])
+                try:
+                    centres = geo.enu_from_crs(centres)
+                except GeoError as error:
+                    raise table.error(f"x, y, z in crs {geo.crs!r}: {error}", error.row) from None
+                numbers.update(zip(CENTER, centres.T))
         return pd.DataFrame({"frame": frame, "group": table.text("group"), "cameras": cameras,
                              **numbers, "n_points": n_points.astype(int), **extras})
+
+    def centres_in_crs(self, table: pd.DataFrame) -> pd.DataFrame:
+        """A poses or evaluation table with its x, y, z (computation frame) in the dataset's `crs`
+        (geo.Geo.crs_from_enu); the table itself without one."""
+        geo = self.dataset.geo
+        if geo is None or not len(table):
+            return table
+        out = table.copy()
+        out[list(CENTER)] = geo.crs_from_enu(table[list(CENTER)].to_numpy(float))
+        return out
 
     def load_pose_observations(self, path: Path | None = None) -> pd.DataFrame | None:
         """The per-observation file beside a poses file (default poses.csv): frame, image, camera,
@@ -381,7 +409,8 @@ class Workspace:
     # -------------------------------------------------------------- evaluation and tables
 
     def save_evaluation(self, evaluation: pd.DataFrame, label: str | None = None) -> Path:
-        return write_csv_atomic(self.evaluation_path(label), evaluation)
+        """evaluation.csv (or evaluation_<label>.csv); x, y, z in the dataset's `crs` where it has one."""
+        return write_csv_atomic(self.evaluation_path(label), self.centres_in_crs(evaluation))
 
     def load_evaluation(self, label: str | None = None) -> pd.DataFrame | None:
         """evaluation.csv (or evaluation_<label>.csv) as written by the evaluate stage; None when absent."""

@@ -99,12 +99,16 @@ def solve_frame(origins: np.ndarray, directions: np.ndarray, points: np.ndarray,
 @dataclass(frozen=True)
 class FlightPoses:
     """`solve_flight`'s result: the poses table, the per-observation table, the error model behind
-    the sigma columns of each group, and each component's variances per frame (`budget_table`)."""
+    the sigma columns of each group, and each component's variances per frame (`budget_table`);
+    covariance (F, 6, 6) per row of the table, the linearised covariance of (rotation in the rig
+    axes, centre in the world axes) (`uncertainty.PoseUncertainty.pose_covariance`), for the
+    sigmas in other axes (geo.ned_sigmas)."""
 
     table: pd.DataFrame
     observations: pd.DataFrame
     error_model: dict[str, ErrorModel]
     budget: pd.DataFrame
+    covariance: np.ndarray | None = None
 
 
 def estimate_poses(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list[str],
@@ -145,6 +149,7 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
     table = solution.table.copy()
     table[list(POSE_UNCERTAINTY_COLUMNS)] = np.nan
     models, budgets = {}, []
+    covariance = np.full((len(table), 6, 6), np.nan)
 
     def resolve(origins, directions, points):  # the re-solves of nonlinear.py: this stage's solver, no RANSAC
         return solve_frame(origins, directions, points, None, False, refine)[:2]
@@ -172,9 +177,10 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
                                   uncertainty.noise_px])
         for name, column in zip(POSE_UNCERTAINTY_COLUMNS, values.T):
             table.loc[frames, name] = column
+        covariance[frames] = uncertainty.pose_covariance
         budgets.append(budget_table(table["frame"].to_numpy()[frames], uncertainty, models[group]))
     budget = pd.concat(budgets, ignore_index=True) if budgets else pd.DataFrame(columns=list(POSE_BUDGET_COLUMNS))
-    return FlightPoses(_with_frame_extras(table, dataset), solution.observations, models, budget)
+    return FlightPoses(_with_frame_extras(table, dataset), solution.observations, models, budget, covariance)
 
 
 @dataclass(frozen=True)

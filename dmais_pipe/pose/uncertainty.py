@@ -28,7 +28,8 @@ class PoseUncertainty:
     sigma_attitude (F, 3) arc-min of heading, pitch, roll; noise_px (F,) the model's per-axis pixel
     noise; variance_position {component: (F, 3)} m^2 and variance_attitude {component: (F, 3)}
     arcmin^2, each component's share (the sigmas' squares are their sums); covariance (F, 6, 6) the
-    linearised total of (omega, delta_t)."""
+    linearised total of (omega, delta_t); pose_covariance (F, 6, 6) that of (omega, the rig centre in
+    the world axes), which geo.ned_sigmas turns to north-east-down."""
 
     attitude: np.ndarray
     sigma_position: np.ndarray
@@ -37,6 +38,7 @@ class PoseUncertainty:
     variance_position: dict[str, np.ndarray]
     variance_attitude: dict[str, np.ndarray]
     covariance: np.ndarray | None = None
+    pose_covariance: np.ndarray | None = None
 
     def with_totals(self, rows: np.ndarray, position: np.ndarray, attitude: np.ndarray) -> "PoseUncertainty":
         """This uncertainty with the frames `rows` (k,) given the total variances position (k, 3) m^2 and
@@ -74,6 +76,9 @@ def pose_uncertainty(geometry: Geometry, model: ErrorModel, R, t) -> PoseUncerta
     E_inverse = np.linalg.inv(euler_zyx_rates(np.radians(attitude)))
     position, angles = {}, {}
     covariances = frame_covariances(geometry, model)
+    total = sum(covariances.values())
+    J = np.zeros((len(R), 6, 6))  # (omega, delta_t) -> (omega, centre)
+    J[:, :3, :3], J[:, 3:, :] = np.eye(3), G
     for name, covariance in covariances.items():
         position[name] = _variances(G @ covariance @ np.swapaxes(G, 1, 2))
         angles[name] = _variances(E_inverse @ covariance[:, :3, :3] @ np.swapaxes(E_inverse, 1, 2)) * ARCMIN_PER_RAD**2
@@ -81,7 +86,7 @@ def pose_uncertainty(geometry: Geometry, model: ErrorModel, R, t) -> PoseUncerta
                            sigma_attitude=np.sqrt(sum(angles.values())),
                            noise_px=np.full(len(R), model.sigma["pixel"]),
                            variance_position=position, variance_attitude=angles,
-                           covariance=sum(covariances.values()))
+                           covariance=total, pose_covariance=J @ total @ np.swapaxes(J, 1, 2))
 
 
 def _variances(covariance) -> np.ndarray:

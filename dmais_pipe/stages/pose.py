@@ -31,7 +31,9 @@ from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS, calibr
 from ..pose.flight import ROBUST_THRESHOLD_PX, FlightPoses, solve_flight
 from ..pose.mounting import GroupRig, adjust_group_rig, mounting_table
 from ..rig import Rig
-from ..workspace import MOUNTING_COLUMNS, QUAT, TRANSLATION, ResultsError, Workspace
+from ..geo import Geo, ned_attitude, ned_sigmas
+from ..workspace import (CENTER, MOUNTING_COLUMNS, POSE_GEO_COLUMNS, POSE_UNCERTAINTY_COLUMNS, QUAT, TRANSLATION,
+                         ResultsError, Workspace)
 from . import setting
 
 log = logging.getLogger(__name__)
@@ -90,6 +92,8 @@ def run(workspace: Workspace, conf: Conf = Conf(), cameras: list[str] | None = N
         raise DmaisError(f"pose: no flight frame of {workspace.dataset.root} could be solved with cameras {chosen}")
     if table.empty:
         log.warning("pose: no flight frame of group(s) %s could be solved with cameras %s", groups, chosen)
+    if workspace.dataset.geo is not None and len(table):
+        table = with_geodetic_columns(table, workspace.dataset.geo, solved.covariance)
     path = out or poses_path(workspace, rig, chosen)
     written = workspace.save_poses(table, solved.observations, path, solved.budget, mounting)
     if len(table):
@@ -186,6 +190,25 @@ def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise:
     return watched
 
 
+def with_geodetic_columns(table: pd.DataFrame, geo: Geo, covariance: np.ndarray) -> pd.DataFrame:
+    """The poses `table` (computation frame) with POSE_GEO_COLUMNS after its uncertainty columns: the
+    centre's WGS 84 latitude, longitude, height, the NED attitude at it (geo.ned_attitude) and their
+    1-sigma (geo.ned_sigmas, from covariance (F, 6, 6), FlightPoses.covariance)."""
+    centres = table[list(CENTER)].to_numpy(float)
+    ned_from_world = geo.ned_from_enu(centres)
+    world_from_rig = np.swapaxes(rotation_from_quat(table[list(QUAT)].to_numpy(float)), 1, 2)
+    attitude = ned_attitude(ned_from_world, world_from_rig)
+    sigma_position, sigma_attitude = ned_sigmas(
+        ned_from_world, table[["heading_deg", "pitch_deg", "roll_deg"]].to_numpy(float), attitude,
+        table[["sigma_x_m", "sigma_y_m", "sigma_z_m"]].to_numpy(float),
+        table[["sigma_heading_arcmin", "sigma_pitch_arcmin", "sigma_roll_arcmin"]].to_numpy(float), covariance)
+    values = np.column_stack([geo.geodetic_from_enu(centres), attitude, sigma_position, sigma_attitude])
+    at = list(table.columns).index(POSE_UNCERTAINTY_COLUMNS[-1]) + 1
+    out = table.drop(columns=[c for c in POSE_GEO_COLUMNS if c in table.columns])  # a frames.csv column of that name
+    return pd.concat([out.iloc[:, :at], pd.DataFrame(values, columns=list(POSE_GEO_COLUMNS), index=out.index),
+                      out.iloc[:, at:]], axis=1)
+
+
 def pos_prior(conf: Conf) -> tuple[np.ndarray | None, np.ndarray | None]:
     """The settings pos_lever_arm (3,) m and pos_sigma (3,) m as numbers, (None, None) without a lever
     arm; DmaisError naming the setting where one is not three finite numbers (pos_sigma above 0)."""
@@ -216,16 +239,17 @@ def _with_in_flight_rigs(workspace: Workspace, conf: Conf, rig: Rig, record: dic
     return FlightPoses(pd.concat([p.table for p in parts], ignore_index=True),
                        pd.concat([p.observations for p in parts], ignore_index=True),
                        {g: m for p in parts for g, m in p.error_model.items()},
-                       pd.concat([p.budget for p in parts], ignore_index=True))
+                       pd.concat([p.budget for p in parts], ignore_index=True),
+                       np.concatenate([p.covariance for p in parts]))
 
 
 def _group_of(solved: FlightPoses, group: str) -> FlightPoses:
     """The part of `solved` of one group."""
     frames = set(solved.table.loc[solved.table["group"].astype(str) == group, "frame"])
-    return FlightPoses(solved.table[solved.table["frame"].isin(frames)],
-                       solved.observations[solved.observations["frame"].isin(frames)],
+    rows = solved.table["frame"].isin(frames).to_numpy()
+    return FlightPoses(solved.table[rows], solved.observations[solved.observations["frame"].isin(frames)],
                        {g: m for g, m in solved.error_model.items() if str(g) == group},
-                       solved.budget[solved.budget["frame"].isin(frames)])
+                       solved.budget[solved.budget["frame"].isin(frames)], solved.covariance[rows])
 
 
 def _rig_record(workspace: Workspace) -> dict:
