@@ -133,6 +133,17 @@ DEFAULTS = {
         "ins_boresight_deg": [0.25, -0.15, 0.4],  # imu_from_rig as a rotation vector in the rig axes
         "border_margin_px": 20.0,
     },
+    # Real-world coordinates (`check_geodetic`): with a crs, the world frame is the topocentric
+    # east-north-up frame of WGS 84 at `origin` (latitude, longitude deg, ellipsoidal height m), and
+    # the dataset gives its points in `crs` (e.g. a UTM zone, heights ellipsoidal), its POS positions
+    # and camera-centre priors in `pos_crs` (WGS 84 longitude, latitude, height), dataset.yaml names
+    # both and the origin; truth/ stays in the frame, with latitude, longitude, height and the NED
+    # attitude beside. Without crs (the default) the world is a local metric frame, as before.
+    "geodetic": {
+        "crs": None,
+        "pos_crs": "EPSG:4979",
+        "origin": [35.0, 17.8, 100.0],
+    },
 }
 
 
@@ -184,11 +195,31 @@ def check_camera_entry(name: str, entry) -> str:
 
 
 def settings_to_write(config: dict) -> dict:
-    """The resolved settings as truth/simulation.yaml holds them: a hover flight's without LINE_SETTINGS."""
+    """The resolved settings as truth/simulation.yaml holds them: a hover flight's without LINE_SETTINGS,
+    a local frame's without `geodetic` (so that both are the files written before those settings)."""
+    if config["geodetic"]["crs"] is None:
+        config = {key: value for key, value in config.items() if key != "geodetic"}
     if config["flight"]["pattern"] != "hover":
         return config
     flight = {key: value for key, value in config["flight"].items() if key not in LINE_SETTINGS}
     return {**config, "flight": flight}
+
+
+def check_geodetic(config: dict) -> None:
+    """The `geodetic` settings: crs and pos_crs strings (or crs None), origin three numbers within
+    the latitude and longitude ranges; ConfigError otherwise (the CRSs themselves are checked by
+    pyproj when the dataset is written)."""
+    geodetic = config["geodetic"]
+    for key in ("crs", "pos_crs"):
+        value = geodetic[key]
+        if not (value is None and key == "crs") and not (isinstance(value, str) and value.strip()):
+            raise ConfigError(f"simulator setting 'geodetic.{key}' must be a CRS name such as EPSG:32633, got {value!r}")
+    origin = geodetic["origin"]
+    if (not isinstance(origin, list) or len(origin) != 3
+            or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in origin)
+            or abs(origin[0]) > 90 or abs(origin[1]) > 180):
+        raise ConfigError(f"simulator setting 'geodetic.origin' must be [latitude deg, longitude deg, height m], "
+                          f"got {origin!r}")
 
 
 def merge(defaults: dict, overrides: dict, where: str = "") -> dict:
@@ -221,6 +252,7 @@ def load_config(path: str | Path) -> dict:
     try:
         config = merge(DEFAULTS, data)
         check_flight_pattern(config)
+        check_geodetic(config)
         for name, entry in config["rig"]["cameras"].items():
             check_camera_entry(name, entry)
     except ConfigError as error:

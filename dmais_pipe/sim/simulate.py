@@ -21,6 +21,7 @@ import pandas as pd
 from ..dataset import POINT_SIGMA, write_dataset
 from ..errors import ConfigError, DmaisError
 from ..files import write_csv_atomic, write_png_atomic, write_yaml_atomic
+from ..geo import Geo, GeoError, ned_attitude
 from ..geometry import Rigid3, exp_so3
 from ..rig import Rig
 from .config import load_config, settings_to_write
@@ -152,6 +153,11 @@ def write_world(config: dict, world: dict, root: Path, jobs: int) -> None:
     observations = _measured(config, truth, shots, rendered, stream(seed, "pixels"))
     images = _images_frame(config, shots, rendered, stream(seed, "priors"))
     frames = _frames_frame(config, world["frames"], stream(seed, "pos"))
+    geo = world_geo(config)
+    if geo is not None:  # the survey in crs, the POS and RTK in pos_crs
+        control, ground = (_in_crs(points, ["x", "y", "z"], geo) for points in (control, ground))
+        images = _in_crs(images, ["prior_x", "prior_y", "prior_z"], geo, pos=True)
+        frames = _in_crs(frames, ["pos_x", "pos_y", "pos_z"], geo, pos=True)
 
     write_dataset(
         root,
@@ -174,13 +180,46 @@ def _manifest(config: dict) -> dict:
                **({"model": entry["model"]} if entry.get("model", "radial1") != "radial1" else {})}
         for name, entry in rig["cameras"].items()
     }
+    geodetic = config["geodetic"]
+    crs = {} if geodetic["crs"] is None else {
+        "crs": geodetic["crs"], "pos_crs": geodetic["pos_crs"],
+        "origin": dict(zip(("lat_deg", "lon_deg", "h_m"), map(float, geodetic["origin"])))}
     return {
         "name": config["name"],
         "description": f"DMAIS simulator, seed {config['seed']}",
         "reference_camera": rig["reference_camera"],
         "cameras": cameras,
         "marker_size_m": config["marker_size_m"],
+        **crs,
     }
+
+
+def world_geo(config: dict) -> Geo | None:
+    """The simulated world's coordinate systems (its frame the topocentric ENU frame at the origin),
+    None for a local frame; ConfigError naming a CRS pyproj does not know."""
+    geodetic = config["geodetic"]
+    if geodetic["crs"] is None:
+        return None
+    geo = Geo(geodetic["crs"], geodetic["pos_crs"], tuple(float(v) for v in geodetic["origin"]))
+    for key in ("crs", "pos_crs"):
+        try:
+            geo.crs_from_enu(np.zeros((1, 3)), pos=key == "pos_crs")
+        except GeoError as error:
+            raise ConfigError(f"simulator setting 'geodetic.{key}': {error}") from None
+    return geo
+
+
+def _in_crs(table: pd.DataFrame, columns: list[str], geo: Geo, pos: bool = False) -> pd.DataFrame:
+    """`table` with its world `columns` (n rows, NaN where absent) in geo's crs (pos: pos_crs)."""
+    if not set(columns) <= set(table.columns):
+        return table
+    out = table.copy()
+    xyz = table[columns].to_numpy(float, copy=True)
+    given = np.isfinite(xyz).all(axis=1)
+    if given.any():
+        xyz[given] = geo.crs_from_enu(xyz[given], pos=pos)
+        out[columns] = xyz
+    return out
 
 
 def _points_frame(markers: list[Marker]) -> pd.DataFrame:
@@ -252,13 +291,26 @@ def _write_truth(config, world, shots, truth, control_truth, ground_truth, folde
     write_csv_atomic(folder / "observations.csv", truth)
     write_csv_atomic(folder / "images.csv", pd.DataFrame(
         [{"image": s.image, "camera": s.camera, "stage": s.stage, **_pose_columns(s.cam_from_world)} for s in shots]))
-    write_csv_atomic(folder / "frames.csv", pd.DataFrame(
+    frames = pd.DataFrame(
         [{"frame": f.frame, "group": f.group, "site": f.site, **_pose_columns(f.rig_from_world),
-          **dict(zip(("x", "y", "z"), f.rig_from_world.center))} for f in world["frames"]]))
+          **dict(zip(("x", "y", "z"), f.rig_from_world.center))} for f in world["frames"]])
+    write_csv_atomic(folder / "frames.csv", _with_geodetic_truth(frames, world["frames"], world_geo(config)))
     write_csv_atomic(folder / "flight_cam_from_rig.csv", pd.DataFrame(
         [{"frame": f.frame, "camera": name, **_pose_columns(pose)}
          for f in world["frames"] for name, pose in f.cam_from_rig.items()]))
     write_yaml_atomic(folder / "simulation.yaml", settings_to_write(config))
+
+
+def _with_geodetic_truth(table: pd.DataFrame, frames: list[Frame], geo: Geo | None) -> pd.DataFrame:
+    """truth/frames.csv's table with, in a geodetic world, each rig centre's WGS 84 lat_deg, lon_deg,
+    h_m and ned_heading_deg, ned_pitch_deg, ned_roll_deg (ned_from_rig's ZYX angles at it)."""
+    if geo is None or not frames:
+        return table
+    centres = np.array([f.rig_from_world.center for f in frames])
+    world_from_rig = np.array([f.rig_from_world.R.T for f in frames])
+    values = np.column_stack([geo.geodetic_from_enu(centres), ned_attitude(geo.ned_from_enu(centres), world_from_rig)])
+    return table.assign(**dict(zip(("lat_deg", "lon_deg", "h_m", "ned_heading_deg", "ned_pitch_deg",
+                                    "ned_roll_deg"), values.T)))
 
 
 # ------------------------------------------------------------------------------ rendering
