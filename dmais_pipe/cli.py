@@ -248,6 +248,12 @@ def _cmd_bench_mounting(args) -> None:
     print_table(bench_mounting(args.csv, chosen, pos=args.pos, work=args.work), args.csv)
 
 
+def _cmd_bench_geodetic(args) -> None:
+    from .bench.geodetic import bench_geodetic, print_table
+
+    print_table(bench_geodetic(args.csv, args.preset, work=args.work), args.csv)
+
+
 def _flight_patterns(text: str) -> list[str]:
     """An argparse type: comma-separated flight patterns of the simulator (sim.config.FLIGHT_PATTERNS)."""
     from .sim.config import FLIGHT_PATTERNS
@@ -514,6 +520,14 @@ def _parser() -> argparse.ArgumentParser:
     mounting.add_argument("--csv", type=Path, default=Path("reports/bench/mounting.csv"),
                           help="output table, the per-camera and per-frame rows beside it (default: %(default)s)")
     mounting.set_defaults(run=_cmd_bench_mounting)
+    geodetic = benches.add_parser("geodetic", help="the same observations solved in a CRS (survey in UTM, POS in "
+                                                   "WGS 84) and in a local ENU frame, against the simulator's truth")
+    geodetic.add_argument("--preset", type=Path, default=Path("config/simulate/geodetic.yaml"),
+                          help="simulator preset with geodetic settings (default: %(default)s)")
+    geodetic.add_argument("--work", type=Path, help="keep each run in WORK/<run> (default: a temporary folder)")
+    geodetic.add_argument("--csv", type=Path, default=Path("reports/bench/geodetic.csv"),
+                          help="output table (default: %(default)s)")
+    geodetic.set_defaults(run=_cmd_bench_geodetic)
     return parser
 
 
