@@ -4,7 +4,10 @@ Paper, section "Intrinsic Calibration" (eq. 2-3 model, eq. `refine`):
 
 1. priors d = 0, fx = fy = f, principal point at the image centre, ((W - 1) / 2, (H - 1) / 2) with
    the centre of the top-left pixel at (0, 0) (the paper's W/2, H/2 counts from the pixel corner);
-2. PnPf per calibration image (pose + f; `calib.pnpf.solve_pnpf`), then the mean f;
+2. PnPf per calibration image (pose + f; `calib.pnpf.solve_pnpf`), then the mean f; on a flat field
+   (every control point of the camera's images on one plane, `calib.planar.plane_frame`) the views'
+   homographies instead (`calib.planar.planar_start`, Zhang's closed form as cv2.initCameraMatrix2D's),
+   where a view nearly parallel to the image plane weighs next to nothing rather than spoiling the mean;
 3. PnP per image with the mean f;
 4. Levenberg-Marquardt jointly over fx, fy, cx, cy, d and all image poses (eq. `refine`),
    scipy.optimize.least_squares with an analytic Jacobian.
@@ -20,9 +23,11 @@ the covariance (J^T J)^-1 sigma^2, sigma^2 = SSR / (2 n_obs - n_params).
 Baselines (the intrinsics stage writes them to tables/intrinsics.csv beside "ours"):
 - `opencv`: cv2.calibrateCamera with the camera's model (radial1: k1 = d alone; opencv: its default
   model), seeded with the image centre and a nominal focal length (a non-planar field needs
-  CALIB_USE_INTRINSIC_GUESS);
+  CALIB_USE_INTRINSIC_GUESS); a flat field is given in its plane's coordinates (z = 0) without a
+  guess, so that OpenCV starts on its own (cv2.initCameraMatrix2D), as its users run it;
 - `dlt_lm`: Bouguet/Tsai-style, full intrinsics from a per-image normalized DLT (H&Z alg. 7.1,
-  K from the RQ decomposition of P[:, :3], averaged over images), then the same LM.
+  K from the RQ decomposition of P[:, :3], averaged over images), then the same LM (a 3-D field
+  only: the DLT of a flat one does not determine K, and the baseline is refused by name).
 Every method's eps_eval is computed by the same pose-only estimation on the eval images.
 """
 
@@ -39,6 +44,7 @@ from scipy.optimize import least_squares
 from ..camera import PARAMETER_NAMES, Camera, image_centre, project_unmasked
 from ..errors import DmaisError
 from ..geometry import Rigid3, exp_so3, pose_jacobian
+from .planar import plane_frame, planar_start
 from .pnpf import solve_pnpf
 
 log = logging.getLogger(__name__)
@@ -411,17 +417,12 @@ def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: i
     calib, evals, centre, skipped = _load_inputs(points_world_per_image, uv_per_image,
                                                  eval_points_world_per_image, eval_uv_per_image, name, min_images)
     principal = image_centre(width, height)
-    pnpf, focal = {}, {}
-    for image, (X, uv) in calib.items():
-        try:
-            pnpf[image], focal[image] = solve_pnpf(X, uv, principal)
-        except DmaisError as error:
-            log.warning("camera %s, image %s: PnPf failed (%s); its pose comes from PnP only", name, image, error)
-    if not focal:
-        raise DmaisError(f"camera {name}: PnPf failed on every calibration image; cannot initialize the focal length")
-    f0 = _mean_focal(focal, name)
-    log.info("camera %s: PnPf focal lengths %s px, mean %.1f px", name,
-             ", ".join(f"{v:.1f}" for v in focal.values()), f0)
+    if plane_frame(np.vstack([X for X, _ in calib.values()])) is not None:
+        pnpf, focal = {}, {}
+        f0 = planar_start(calib, principal, name).focal_px
+        log.info("camera %s: a flat field; its views' homographies give the focal length %.1f px", name, f0)
+    else:
+        pnpf, focal, f0 = _pnpf_start(calib, principal, name)
     camera0 = Camera(fx=f0, fy=f0, cx=principal[0], cy=principal[1], d=0.0, width=width, height=height, model=model)
     poses = {}
     for image, (X, uv) in calib.items():
@@ -434,6 +435,24 @@ def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: i
     log.info("camera %s: %s, eps_calib %.4f px, eps_eval %s px", name, describe(camera), result.eps_calib_px,
              "n/a" if result.eps_eval_px is None else f"{result.eps_eval_px:.4f}")
     return result
+
+
+def _pnpf_start(calib: dict, principal: np.ndarray, name: str
+                ) -> tuple[dict[str, Rigid3], dict[str, float], float]:
+    """The paper's start on a 3-D field: PnPf per image ({image: cam_from_world}, {image: f}) and
+    the mean f of those that agree (`_mean_focal`)."""
+    pnpf, focal = {}, {}
+    for image, (X, uv) in calib.items():
+        try:
+            pnpf[image], focal[image] = solve_pnpf(X, uv, principal)
+        except DmaisError as error:
+            log.warning("camera %s, image %s: PnPf failed (%s); its pose comes from PnP only", name, image, error)
+    if not focal:
+        raise DmaisError(f"camera {name}: PnPf failed on every calibration image; cannot initialize the focal length")
+    f0 = _mean_focal(focal, name)
+    log.info("camera %s: PnPf focal lengths %s px, mean %.1f px", name,
+             ", ".join(f"{v:.1f}" for v in focal.values()), f0)
+    return pnpf, focal, f0
 
 
 def describe(camera: Camera, first: int = 0) -> str:
@@ -512,11 +531,16 @@ def calibrate_camera_opencv(points_world_per_image, uv_per_image, width: int, he
                                                  eval_points_world_per_image, eval_uv_per_image, name, min_images,
                                                  warn_skipped)
     names = list(calib)
-    object_points = [calib[k][0].astype(np.float32).reshape(-1, 1, 3) for k in names]
+    frame = plane_frame(np.vstack([X for X, _ in calib.values()]))
+    # a flat field in its plane's coordinates (z = 0): OpenCV's own start (initCameraMatrix2D), no guess
+    field_from_data = Rigid3.identity() if frame is None else _plane_from_world(*frame)
+    object_points = [_on_plane(field_from_data.apply(calib[k][0]), frame).astype(np.float32).reshape(-1, 1, 3)
+                     for k in names]
     image_points = [calib[k][1].astype(np.float32).reshape(-1, 1, 2) for k in names]
     cx, cy = image_centre(width, height)
-    K0 = np.array([[focal_guess, 0, cx], [0, focal_guess, cy], [0, 0, 1]], dtype=np.float64)
-    flags = cv2.CALIB_USE_INTRINSIC_GUESS | OPENCV_FIXED_FLAGS[model]
+    guess = focal_guess if frame is None else 1.0  # OpenCV replaces it on a flat field
+    K0 = np.array([[guess, 0, cx], [0, guess, cy], [0, 0, 1]], dtype=np.float64)
+    flags = (cv2.CALIB_USE_INTRINSIC_GUESS if frame is None else 0) | OPENCV_FIXED_FLAGS[model]
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # its threads' partial sums, added in the order they finish, moved the result by 1e-8
@@ -528,11 +552,24 @@ def calibrate_camera_opencv(points_world_per_image, uv_per_image, width: int, he
     finally:
         cv2.setNumThreads(threads)
     camera = opencv_camera(K, dist, width, height, model)
-    poses = {k: Rigid3(cv2.Rodrigues(r)[0], t.ravel()) for k, r, t in zip(names, rvecs, tvecs)}
+    poses = {k: Rigid3(cv2.Rodrigues(r)[0], t.ravel()) * field_from_data for k, r, t in zip(names, rvecs, tvecs)}
     residuals = np.vstack([project_unmasked(poses[k].apply(calib[k][0]), camera) - calib[k][1] for k in names])
     # OpenCV's order is ours: fx, fy, cx, cy, k1, k2, p1, p2, k3
     cov = np.diag(np.asarray(std_intr).ravel()[:len(camera.parameter_names)] ** 2)
     return _finish(name, "opencv", camera, poses, residuals, cov, calib, evals, centre, skipped)
+
+
+def _plane_from_world(centre: np.ndarray, axes: np.ndarray) -> Rigid3:
+    """plane_from_world of a plane through `centre` (3,) spanned by the unit `axes` (2, 3): x, y along
+    them, z along their normal."""
+    R = np.vstack([axes, np.cross(axes[0], axes[1])])
+    return Rigid3(R, -R @ centre)
+
+
+def _on_plane(points: np.ndarray, frame) -> np.ndarray:
+    """Points (n, 3) in a plane's frame with z set to 0 (OpenCV's planar rig); unchanged where `frame`
+    is None (a 3-D field)."""
+    return points if frame is None else np.column_stack([points[:, :2], np.zeros(len(points))])
 
 
 def opencv_camera(K: np.ndarray, distortion: np.ndarray, width: int, height: int, model: str) -> Camera:
@@ -578,6 +615,8 @@ def calibrate_camera_dlt_lm(points_world_per_image, uv_per_image, width: int, he
     calib, evals, centre, skipped = _load_inputs(points_world_per_image, uv_per_image,
                                                  eval_points_world_per_image, eval_uv_per_image, name, min_images,
                                                  warn_skipped)
+    if plane_frame(np.vstack([X for X, _ in calib.values()])) is not None:
+        raise DmaisError(f"camera {name}: dlt_lm needs a 3-D field; the DLT of a flat one does not determine K")
     Ks = [K for K in (_dlt_intrinsics(X, uv) for X, uv in calib.values()) if K is not None]
     if not Ks:
         raise DmaisError(f"camera {name}: the DLT failed on every calibration image")

@@ -136,7 +136,8 @@ def _calibrate(workspace: Workspace, name: str, conf: Conf, observations: pd.Dat
     common = dict(eval_points_world_per_image=eX, eval_uv_per_image=euv, name=name, model=spec.model)
     ours = calibrate_camera(X, uv, spec.width, spec.height, survey=survey, **common)
     check_plausible(ours, spec.focal_px, Plausibility(conf.max_eps_calib_px, conf.max_focal_deviation))
-    focal_guess = spec.focal_px or float(np.mean(list(ours.pnpf_focal_px.values())))
+    # the PnPf mean of a 3-D field (a flat field's OpenCV baseline starts on its own)
+    focal_guess = spec.focal_px or float(np.mean(list(ours.pnpf_focal_px.values()) or [ours.camera.fx]))
     baselines = {"opencv": lambda: calibrate_camera_opencv(X, uv, spec.width, spec.height, focal_guess,
                                                            warn_skipped=False, **common),
                  "dlt_lm": lambda: calibrate_camera_dlt_lm(X, uv, spec.width, spec.height, warn_skipped=False,
