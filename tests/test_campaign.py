@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from dmais_pipe import cli
-from dmais_pipe.bench.campaign import campaign_dataset, given_flight_source, job_stats
+from dmais_pipe.bench.campaign import _slurm_rows, campaign_dataset, given_flight_source, job_stats
 from dmais_pipe.dataset import Dataset
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.plan import marker_batches
@@ -128,6 +128,16 @@ def test_job_stats_reads_snakemake_table():
             "markers              4\nobservations         1\ntotal                5\n\nReasons:\n")
     assert job_stats(text) == {"markers": 4, "observations": 1, "total": 5}
     assert job_stats("Nothing to be done (all requested files are present and up to date).") == {}
+
+
+def test_the_slurm_rows_count_the_jobs_of_each_node():
+    jobs = pd.DataFrame({"node": ["n2", "n1", "n2", "n3"], "images": [100, 100, 100, 50],
+                         "elapsed_s": [40.0, 30.0, 36.0, 20.0], "shell_s": [35.0, 26.0, 32.0, 17.0],
+                         "work_s": [30.0, 24.0, 30.0, 15.0], "max_rss_mb": [300.0, 310.0, 290.0, 200.0]})
+    jobs.attrs["wall_s"] = 80.0
+    rows = {row["metric"]: row for row in _slurm_rows(jobs)}
+    assert rows["slurm_nodes"]["value"] == 3 and rows["slurm_nodes"]["note"] == "jobs per node: n1 1, n2 2, n3 1"
+    assert rows["slurm_overhead_per_image_s"]["value"] == pytest.approx(27.0 / 350, abs=1e-4)  # (elapsed - work) / images
 
 
 def test_a_source_with_the_flight_observations_given_extracts_no_flight_image(source, tmp_path):

@@ -411,21 +411,21 @@ def _job(results: Path, root: Path, batch: str, images: int, jobs: pd.DataFrame)
     benchmark = pd.read_csv(root / "benchmarks" / NAME / "markers" / f"{batch}.tsv", sep="\t").iloc[0]
     # sacct samples memory every 30 s (JobAcctGatherFrequency) and misses short peaks: the larger counts
     rss = max(float(job["max_rss_mb"]) if pd.notna(job["max_rss_mb"]) else 0.0, float(benchmark["max_rss"]))
-    return {"batch": batch, "job": job["job"], "images": images, "elapsed_s": job["elapsed_s"],
+    return {"batch": batch, "job": job["job"], "node": job["node"], "images": images, "elapsed_s": job["elapsed_s"],
             "shell_s": float(benchmark["s"]), "work_s": work,
             "overhead_per_image_s": (job["elapsed_s"] - work) / images, "max_rss_mb": rss}
 
 
 def _sacct(run_id: str, start: str) -> pd.DataFrame:
-    """The completed marker jobs of the SLURM run `run_id` (its job name): job, batch, elapsed_s and
+    """The completed marker jobs of the SLURM run `run_id` (its job name): job, batch, node, elapsed_s and
     max_rss_mb (the largest of its steps')."""
     fields = ["sacct", "-n", "-P", "-S", start]
-    jobs = subprocess.run([*fields, "-X", "--name", run_id, "-o", "JobID,Comment,Elapsed,State"],
+    jobs = subprocess.run([*fields, "-X", "--name", run_id, "-o", "JobID,Comment,NodeList,Elapsed,State"],
                           capture_output=True, text=True, check=True).stdout
-    rows = [line.split("|") for line in jobs.splitlines() if line.count("|") == 3]
-    rows = [(job, comment.split("_wildcards_", 1)[-1], _seconds(elapsed)) for job, comment, elapsed, state in rows
-            if comment.startswith("rule_markers") and state == "COMPLETED"]
-    table = pd.DataFrame(rows, columns=["job", "batch", "elapsed_s"])
+    rows = [line.split("|") for line in jobs.splitlines() if line.count("|") == 4]
+    rows = [(job, comment.split("_wildcards_", 1)[-1], node, _seconds(elapsed)) for job, comment, node, elapsed, state
+            in rows if comment.startswith("rule_markers") and state == "COMPLETED"]
+    table = pd.DataFrame(rows, columns=["job", "batch", "node", "elapsed_s"])
     if table.empty:
         return table.assign(max_rss_mb=[])
     steps = subprocess.run([*fields, "-j", ",".join(table["job"]), "-o", "JobID,MaxRSS"],
@@ -459,7 +459,10 @@ def _slurm_rows(jobs: pd.DataFrame) -> list[dict]:
     images = int(jobs["images"].sum())
     per_image = lambda column: float(column.sum()) / images  # noqa: E731
     note = "sum over the jobs / their images"
+    per_node = jobs["node"].value_counts().sort_index()
     return [_row("slurm_jobs", len(jobs), "jobs", f"{images} images, 1 CPU each"),
+            _row("slurm_nodes", len(per_node), "nodes",
+                 "jobs per node: " + ", ".join(f"{node} {count}" for node, count in per_node.items())),
             _row("slurm_run_wall_s", float(jobs.attrs["wall_s"]), "s",
                  "the controlling snakemake: submission, queue, status checks (the profile's interval)"),
             _row("slurm_elapsed_per_job_s", float(jobs["elapsed_s"].mean()), "s", "sacct Elapsed, mean"),
