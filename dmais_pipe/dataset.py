@@ -564,7 +564,7 @@ def _ecef(crs: str, key: str, table: Table, xyz: np.ndarray, columns: Sequence[s
     try:
         ecef = ecef_from_crs(crs, xyz[rows])
     except GeoError as error:
-        raise table.error(f"{names}: {error} in {key} {crs!r}", None if error.row is None else rows[error.row]) from None
+        raise table.error(f"{names} in {key} {crs!r}: {error}", None if error.row is None else rows[error.row]) from None
     distance, area = outside_area_of_use(crs, ecef)
     far = np.zeros(len(xyz), bool)
     far[rows] = distance > FAR_OUTSIDE_DEG

@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +45,7 @@ GEODETIC = "EPSG:4979"
 FAR_OUTSIDE_DEG = 2.0
 #: The step (deg) of the central differences through pyproj that give the north and east directions.
 _STEP_DEG = 1e-4
+_AXIS_M = 1e5
 _ARCMIN_PER_RAD = 60.0 * 180.0 / math.pi
 
 
@@ -68,7 +70,7 @@ def crs_3d(text: str) -> pyproj.CRS:
         crs = pyproj.CRS.from_user_input(text)
     except CRSError as error:
         raise GeoError(f"{text!r} is not a coordinate reference system pyproj knows ({_first_line(error)})") from None
-    if crs.is_engineering or crs.is_vertical or crs.is_bound and crs.source_crs.is_engineering:
+    if crs.is_engineering or (crs.is_vertical and not crs.is_compound) or crs.is_bound and crs.source_crs.is_engineering:
         raise GeoError(f"{text!r} ({crs.name}) is not tied to the Earth; give a geographic, projected, "
                        "geocentric or compound CRS")
     return crs if len(crs.axis_info) >= 3 else crs.to_3d()
@@ -79,11 +81,13 @@ def _transformer(source: str, target: str) -> pyproj.Transformer:
     """The best transformation from CRS `source` to `target` (3-D, always_xy); GeoError naming the
     grid when the best one needs a grid PROJ does not have (a geoid model), rather than falling back
     to a worse one silently."""
-    group = TransformerGroup(crs_3d(source), crs_3d(target), always_xy=True)
+    with warnings.catch_warnings():  # pyproj warns of a missing grid: said below, in one line
+        warnings.simplefilter("ignore", UserWarning)
+        group = TransformerGroup(crs_3d(source), crs_3d(target), always_xy=True)
     if not group.best_available and group.unavailable_operations:
         grids = [grid.short_name for grid in group.unavailable_operations[0].grids if not grid.available]
-        raise GeoError(f"{source!r} to {target!r} needs the grid {', '.join(grids)}, which PROJ does not have "
-                       f"(install it in {pyproj.datadir.get_data_dir()} or set PROJ_NETWORK=ON)")
+        raise GeoError(f"converting {source!r} to {target!r} needs the grid {', '.join(grids)}, which PROJ does "
+                       f"not have (install it in {pyproj.datadir.get_data_dir()} or set PROJ_NETWORK=ON)")
     if not group.transformers:
         raise GeoError(f"pyproj has no transformation from {source!r} to {target!r}")
     return group.transformers[0]
@@ -172,10 +176,10 @@ def ned_from_ecef(geodetic) -> np.ndarray:
 
 def ecef_from_enu_rotation(origin) -> np.ndarray:
     """(3, 3) the rotation from the topocentric frame at origin to the geocentric axes (columns: east,
-    north, up in ECEF), from pyproj's conversion of the frame's unit vectors."""
-    ends = ecef_from_enu(origin, np.vstack([np.zeros(3), np.eye(3)]))
-    axes = (ends[1:] - ends[0]).T
-    u, _, vt = np.linalg.svd(axes)  # the nearest rotation: removes PROJ's rounding (~1e-10)
+    north, up in ECEF), from pyproj's conversion of the frame's axes (100 km along each, so that
+    PROJ's ~1e-9 m rounding at the Earth's radius is 1e-14 of them; the conversion is affine)."""
+    ends = ecef_from_enu(origin, np.vstack([np.zeros(3), _AXIS_M * np.eye(3)]))
+    u, _, vt = np.linalg.svd((ends[1:] - ends[0]).T / _AXIS_M)  # the nearest rotation
     return u @ vt
 
 
