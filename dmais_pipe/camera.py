@@ -23,7 +23,10 @@ undistorted radius `Camera.max_projectable_radius`, the largest radius within wh
 determinant stays positive in every direction (radial1: r (1 + d r^2) turns at 1 / sqrt(-3 d) for
 d < 0; opencv: found numerically). `Camera.project` returns NaN beyond it, `Camera.undistort*` for
 pixels whose undistorted point lies beyond it, and `Camera.folds_in_image` says whether that disk
-leaves out part of the image (an opencv calibration or import of such a camera is refused).
+leaves out part of the image. Then `Camera.one_to_one_region` is the part of the image it covers
+(pixels from the principal point, share of the image) and `Camera.fold_reach` how far points lie
+towards the fold: a calibration is refused only when its observations reach near the fold, an import
+when the region is less than half the image (calib.intrinsics.check_plausible, calib.import_intrinsics).
 
 `Camera.project` returns NaN for points the camera does not image; least-squares solvers use
 `project_unmasked`, the same formula for every point off the camera plane, so that a trial step
@@ -58,6 +61,10 @@ _FOLD_REACH = 8.0
 _FOLD_BISECTIONS = 30
 #: Undistortion converges to this many pixels (Newton's method; the issue asks for 1e-3 px).
 UNDISTORT_TOLERANCE_PX = 1e-9
+#: The one-to-one region's edge is traced in this many directions, its share of the image counted on
+#: a grid of about this many pixels across the image's longer side.
+_REGION_DIRECTIONS = 720
+_REGION_GRID = 161
 
 
 def image_centre(width: int, height: int) -> np.ndarray:
@@ -187,6 +194,25 @@ def _project_opencv(xy, camera: "Camera", jacobian: bool):
 
 
 @dataclass(frozen=True)
+class OneToOneRegion:
+    """Where a lens model that folds inside its image is one-to-one: the undistorted normalized radius of
+    the fold, the smallest distance (distorted pixels) from the principal point to the region's edge,
+    and the share of the image's pixels inside it (those outside undistort to NaN)."""
+
+    undistorted_radius: float
+    radius_px: float
+    image_fraction: float
+
+    def describe(self) -> str:
+        return (f"one-to-one within {self.radius_px:.0f} px of the principal point, {self.image_fraction:.1%} of the "
+                f"image (undistorted radius {self.undistorted_radius:.3g})")
+
+    def to_dict(self) -> dict:
+        return {"undistorted_radius": float(self.undistorted_radius), "radius_px": float(self.radius_px),
+                "image_fraction": float(self.image_fraction)}
+
+
+@dataclass(frozen=True)
 class Camera:
     """Intrinsics of one camera: focal lengths and principal point in pixels, the first radial
     coefficient d (k1), image size, the distortion model and, for `opencv`, k2, p1, p2, k3."""
@@ -275,6 +301,36 @@ class Camera:
                                  np.column_stack([np.full(n, -0.5), vs]),
                                  np.column_stack([np.full(n, self.width - 0.5), vs])])
         return bool(np.isnan(self.undistort_normalized(border)).any())
+
+    def one_to_one_region(self) -> OneToOneRegion:
+        """The part of the image where the model is one-to-one (the whole image: radius inf, share 1,
+        where it does not fold inside it)."""
+        limit = self.max_projectable_radius
+        if not self.folds_in_image:
+            return OneToOneRegion(limit, np.inf, 1.0)
+        angle = np.linspace(0.0, 2.0 * np.pi, _REGION_DIRECTIONS, endpoint=False)
+        edge = _project_normalized(limit * np.column_stack([np.cos(angle), np.sin(angle)]), None, self, False)
+        step = max(self.width, self.height) / (_REGION_GRID - 1)
+        us, vs = np.arange(0.0, self.width, step), np.arange(0.0, self.height, step)
+        grid = np.column_stack([np.repeat(us, len(vs)), np.tile(vs, len(us))])
+        inside = np.isfinite(self.undistort_normalized(grid)).all(axis=1)
+        return OneToOneRegion(limit, float(np.hypot(*(edge - [self.cx, self.cy]).T).min()), float(inside.mean()))
+
+    def fold_reach(self, xy) -> np.ndarray:
+        """(n,) how far undistorted normalized points xy (n, 2) lie towards the fold: the distance of
+        each one's pixel from the principal point over that of the fold's pixel in the same direction
+        (1 at the fold; inf beyond it; 0 where the model never folds)."""
+        xy = _as_points(xy, 2, "xy")
+        limit = self.max_projectable_radius
+        if not np.isfinite(limit):
+            return np.zeros(len(xy))
+        radius = np.hypot(xy[:, 0], xy[:, 1])
+        direction = xy / np.where(radius > 0, radius, 1.0)[:, None]
+        centre = np.array([self.cx, self.cy])
+        point = np.linalg.norm(_project_normalized(xy, None, self, False) - centre, axis=1)
+        edge = np.linalg.norm(_project_normalized(limit * direction, None, self, False) - centre, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(radius > limit, np.inf, np.where(radius > 0, point / edge, 0.0))
 
     def project(self, points_cam, jacobian: bool = False):
         """Distorted pixels (n, 2) of points (n, 3) in the camera frame.

@@ -394,14 +394,35 @@ def _grid_rays(foreign: ForeignCamera) -> np.ndarray:
     return np.column_stack([xy, np.ones(len(xy))])
 
 
-def test_an_opencv_model_that_folds_inside_the_image_is_refused(wide, stereo, tmp_path):
-    """k1 alone, exact, but so strong that r (1 + k1 r^2) turns before the image corners: refused for
-    an opencv camera, as its calibration would be; a radial1 camera takes it (the paper's model is
-    not checked, as `calib.intrinsics.Plausibility` says)."""
-    K = stereo["M1"]
-    source = _calibration_file(tmp_path / "W.yaml", K, [-0.6, 0.0, 0.0, 0.0, 0.0])
-    with pytest.raises(DmaisError, match=r"^camera W: the imported opencv model folds inside the image"):
+def test_an_opencv_model_that_folds_inside_the_central_half_of_the_image_is_refused(wide, stereo, tmp_path):
+    """k1 alone, exact, but so strong that r (1 + k1 r^2) turns at a third of the image's half-diagonal
+    (k1 = -1.5: one-to-one over 29% of the image): refused for an opencv camera; a radial1 camera takes
+    it (the paper's model is not checked, as `calib.intrinsics.Plausibility` says)."""
+    source = _calibration_file(tmp_path / "W.yaml", stereo["M1"], [-1.5, 0.0, 0.0, 0.0, 0.0])
+    with pytest.raises(DmaisError, match=r"^camera W: the imported opencv model folds back inside the central part of "
+                                         r"the image \(one-to-one within 16\d px of the principal point, 2\d\.\d% of "
+                                         r"the image .*at least 50% needed\); not a lens calibration$"):
         intrinsics.import_cameras(Workspace.open(wide, tmp_path / "results"), ["W"], source)
     assert not (tmp_path / "results" / "intrinsics").exists()
     intrinsics.import_cameras(Workspace.open(wide, tmp_path / "results"), ["R"], source)
     assert Workspace.open(wide, tmp_path / "results").load_intrinsics("R")[0].folds_in_image
+
+
+def test_an_opencv_model_that_folds_near_the_corners_is_imported_with_its_region(wide, stereo, tmp_path, caplog):
+    """k1 = -0.6 turns at undistorted radius 0.745, distorted 0.497 (266 px at f = 536), short of the
+    image's corners: imported with a warning giving the region, which the record keeps; its pixels
+    beyond undistort to NaN, those within round-trip."""
+    source = _calibration_file(tmp_path / "W.yaml", stereo["M1"], [-0.6, 0.0, 0.0, 0.0, 0.0])
+    with caplog.at_level("WARNING"):
+        intrinsics.import_cameras(Workspace.open(wide, tmp_path / "results"), ["W"], source)
+    camera, record = Workspace.open(wide, tmp_path / "results").load_intrinsics("W")
+    region = record["one_to_one"]
+    assert region["undistorted_radius"] == pytest.approx(1 / np.sqrt(1.8), rel=1e-6)
+    f = min(camera.fx, camera.fy)
+    assert region["radius_px"] == pytest.approx(2 / 3 * f / np.sqrt(1.8), rel=2e-3)  # r (1 + k1 r^2) at the turn
+    assert 0.6 < region["image_fraction"] < 0.8
+    assert f"{region['image_fraction']:.1%} of the image" in caplog.text and "camera W: the imported" in caplog.text
+    corners = np.array([[-0.5, -0.5], [camera.width - 0.5, camera.height - 0.5]])
+    assert np.isnan(camera.undistort(corners)).all()
+    inside = np.array([[camera.cx + 0.9 * region["radius_px"], camera.cy], [camera.cx, camera.cy - 200.0]])
+    assert np.allclose(camera.distort(camera.undistort(inside)), inside, atol=1e-6)

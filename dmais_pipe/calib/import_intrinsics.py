@@ -14,9 +14,16 @@ times functions of x, the columns of `project_unmasked`'s parameter Jacobian), e
     ours(x; d) - (fx x + cx) = d fx x |x|^2,  the same in v with fy, cy.
 
 The residual (max / RMS px over the grid) is the conversion's cost; above `max_residual_px` the
-camera is refused, naming the largest coefficient that the model cannot represent. A converted
-opencv model that folds inside the image (`Camera.folds_in_image`) is refused too, as a calibration
-would be (`calib.intrinsics.Plausibility`).
+camera is refused, naming the largest coefficient that the model cannot represent.
+
+A converted opencv model that folds inside the image (`Camera.folds_in_image`) has no observations
+here to show that the fold lies beyond them (as a calibration's must, `calib.intrinsics.Plausibility`),
+so the file is judged by the region where it is one-to-one (`Camera.one_to_one_region`): covering at
+least MIN_ONE_TO_ONE_FRACTION of the image, it is accepted with a warning giving the region, which the
+record keeps ("one_to_one"; pixels outside undistort to NaN). Real board calibrations fold, if at
+all, in the corners no board reached (cv2.calibrateCamera on OpenCV's stereo sample: 0.1% of the
+image beyond the fold; k1 -0.365, k2 0.145, k3 -0.029 on 1920 x 1080 at f = 1000 px: 15%); a
+polynomial that turns back within the central half of its image is not a lens calibration.
 
 Pixel conventions: OpenCV's files use ours (centre of the top-left pixel at (0, 0)); COLMAP's put
 it at (0.5, 0.5), so its principal point is shifted by -0.5 px.
@@ -24,6 +31,7 @@ it at (0.5, 0.5), so its principal point is shifted by -0.5 px.
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import shutil
@@ -34,13 +42,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ..camera import Camera, project_unmasked
+from ..camera import Camera, OneToOneRegion, project_unmasked
 from ..errors import DmaisError
 from .rig_ba import COLMAP_PIXEL_OFFSET
+
+log = logging.getLogger(__name__)
 
 #: OpenCV's distortion coefficients, in its order.
 OPENCV_COEFFICIENTS = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6", "s1", "s2", "s3", "s4", "tau_x", "tau_y")
 DEFAULT_MAX_RESIDUAL_PX = 0.1
+#: An imported opencv model must be one-to-one over at least this share of its image.
+MIN_ONE_TO_ONE_FRACTION = 0.5
 GRID_STEPS = 33  # grid points per image side for the fit
 #: How a refusal names each of our models.
 MODEL_DESCRIPTIONS = {"radial1": "one-coefficient model", "opencv": "opencv model (k1, k2, p1, p2, k3)"}
@@ -82,6 +94,7 @@ class Conversion:
     camera: Camera
     residual_max_px: float
     residual_rms_px: float
+    one_to_one: OneToOneRegion | None = None  # where the camera folds inside its image
 
 
 # ------------------------------------------------------------------------------ reading
@@ -204,7 +217,8 @@ def convert_camera(foreign: ForeignCamera, name: str, model: str = "radial1",
 
     Raises DmaisError naming the camera and its largest non-representable coefficient when the fit
     leaves more than `max_residual_px` anywhere on the grid, or when the converted opencv model folds
-    inside the image.
+    back inside the central part of the image (`_checked_region`; one folding nearer the corners is
+    accepted with a warning and its one-to-one region).
     """
     pinhole = Camera(foreign.fx, foreign.fy, foreign.cx, foreign.cy, 0.0, foreign.width, foreign.height, model)
     own = OPENCV_COEFFICIENTS[:len(pinhole.parameter_names) - 4]  # the file's names of the model's coefficients
@@ -222,10 +236,22 @@ def convert_camera(foreign: ForeignCamera, name: str, model: str = "radial1",
     conversion = Conversion(camera, float(residual.max()), float(np.sqrt(np.mean(residual**2))))
     if conversion.residual_max_px > max_residual_px:
         raise _not_representable(foreign, name, conversion, own, max_residual_px)
-    if camera.model != "radial1" and camera.folds_in_image:  # as calib.intrinsics.check_plausible
-        raise DmaisError(f"camera {name}: the imported {model} model folds inside the image (one-to-one only within "
-                         f"undistorted radius {camera.max_projectable_radius:.3g}); not a lens calibration")
+    if camera.model != "radial1" and camera.folds_in_image:
+        conversion.one_to_one = _checked_region(camera, name)
     return conversion
+
+
+def _checked_region(camera: Camera, name: str) -> OneToOneRegion:
+    """The one-to-one region of an imported camera that folds inside its image, with a warning; a
+    DmaisError where it covers less than MIN_ONE_TO_ONE_FRACTION of the image."""
+    region = camera.one_to_one_region()
+    if not region.image_fraction >= MIN_ONE_TO_ONE_FRACTION:
+        raise DmaisError(f"camera {name}: the imported {camera.model} model folds back inside the central part of "
+                         f"the image ({region.describe()}; at least {MIN_ONE_TO_ONE_FRACTION:.0%} needed); not a lens "
+                         "calibration")
+    log.warning("camera %s: the imported %s model folds back inside the image: %s. Pixels outside it undistort to "
+                "NaN", name, camera.model, region.describe())
+    return region
 
 
 def _grid_projections(foreign: ForeignCamera) -> tuple[np.ndarray, np.ndarray]:
@@ -284,7 +310,8 @@ def imported_record(name: str, conversion: Conversion, foreign: ForeignCamera, s
             "imported": {"file": str(source), "model": foreign.model, "fx": foreign.fx, "fy": foreign.fy,
                          "cx": foreign.cx, "cy": foreign.cy, "distortion": foreign.distortion,
                          "residual_max_px": conversion.residual_max_px,
-                         "residual_rms_px": conversion.residual_rms_px}}
+                         "residual_rms_px": conversion.residual_rms_px},
+            **({} if conversion.one_to_one is None else {"one_to_one": conversion.one_to_one.to_dict()})}
 
 
 # ------------------------------------------------------------------------------ writing

@@ -41,7 +41,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..camera import PARAMETER_NAMES, Camera, image_centre, project_unmasked
+from ..camera import PARAMETER_NAMES, Camera, OneToOneRegion, image_centre, project_unmasked
 from ..errors import DmaisError
 from ..geometry import Rigid3, exp_so3, pose_jacobian
 from .planar import plane_frame, planar_start
@@ -97,6 +97,10 @@ class IntrinsicsResult:
     #: one-sigma survey error of the control point along x, y, z (its share of the covariance behind
     #: `std`; empty where no sigma is given).
     survey_effect: dict[str, np.ndarray] = field(default_factory=dict)
+    #: where the model folds inside the image: the part of it where the model is one-to-one, and per
+    #: image (calibration and held-out) the largest `Camera.fold_reach` of its fitted points' rays
+    one_to_one: OneToOneRegion | None = None
+    fold_reach: dict[str, float] = field(default_factory=dict)
 
     def worst_images(self, count: int = 3) -> list[tuple[str, float]]:
         """The `count` calibration images of largest RMS reprojection distance, worst first."""
@@ -123,6 +127,8 @@ class IntrinsicsResult:
             "image_eps_eval_px": {k: float(v) for k, v in self.eval_image_eps_px.items()},
             "poses": {k: p.to_dict() for k, p in self.poses.items()},
             "eval_poses": {k: p.to_dict() for k, p in self.eval_poses.items()},
+            **({} if self.one_to_one is None else
+               {"one_to_one": {**self.one_to_one.to_dict(), "observed_reach": max(self.fold_reach.values())}}),
         }
 
     def table_row(self) -> dict:
@@ -391,6 +397,7 @@ def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, s
     std = dict(zip(camera.parameter_names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()))
     ends = np.cumsum([len(X) for X, _ in calib.values()])[:-1]  # residuals are stacked in calib's order
     calib_residuals = dict(zip(calib, np.split(np.asarray(residuals).reshape(-1, 2), ends)))
+    folds = camera.model != "radial1" and camera.folds_in_image
     return IntrinsicsResult(
         name=name, camera=camera, std=std, eps_calib_px=_rms(residuals), eps_eval_px=eps_eval,
         n_images=len(calib), n_observations=sum(len(X) for X, _ in calib.values()),
@@ -398,7 +405,19 @@ def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, s
         pnpf_focal_px=pnpf_focal or {}, skipped_images=skipped, method=method,
         image_eps_px={k: _rms(r) for k, r in calib_residuals.items()},
         eval_image_eps_px={k: _rms(r) for k, r in eval_residuals.items()},
-        image_residuals_px={**calib_residuals, **eval_residuals}, survey_effect=survey_effect or {})
+        image_residuals_px={**calib_residuals, **eval_residuals}, survey_effect=survey_effect or {},
+        one_to_one=camera.one_to_one_region() if folds else None,
+        fold_reach=_fold_reach(camera, {**poses, **eval_poses}, {**calib, **evals}) if folds else {})
+
+
+def _fold_reach(camera: Camera, poses: dict[str, Rigid3], data: dict) -> dict[str, float]:
+    """image -> the largest `Camera.fold_reach` of its points (n, 3) as its fitted pose sees them."""
+    reach = {}
+    for image, (X, _) in data.items():
+        if image in poses:
+            points = poses[image].apply(X)
+            reach[image] = float(camera.fold_reach(points[:, :2] / points[:, 2:]).max())
+    return reach
 
 
 def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: int, *,
@@ -486,14 +505,19 @@ class Plausibility:
     max_eps_calib_px: RMS reprojection distance over the calibration images (the paper reaches
     0.2-0.45 px; tens of times the marker noise means wrong observations). max_focal_deviation:
     relative distance of fx and fy from the manifest's focal_px (when given) and of fx from fy.
-    Besides these bounds `check_plausible` refuses an opencv-model distortion that folds back inside
-    the image. radial1 is spared that check: its one coefficient cannot follow a wide-angle lens to
+    Besides these bounds `check_plausible` refuses an opencv-model distortion that folds back where
+    the observations are: fold_margin is the share of the way from the principal point to the fold
+    (in pixels, along each observation's direction, `Camera.fold_reach`) that no observation of the
+    calibration or held-out images may enter; one folding only beyond them (real wide-angle lenses'
+    polynomials turn in the image corners no board reached) is accepted with a warning giving its
+    one-to-one region. radial1 is spared that check: its one coefficient cannot follow a wide-angle lens to
     the image corners without turning there (OpenCV's left*.jpg sample fits to 0.45 px with d = -0.26
     yet folds in the corners), and the paper's results must not change.
     """
 
     max_eps_calib_px: float = 5.0
     max_focal_deviation: float = 0.2
+    fold_margin: float = 0.1
 
 
 def check_plausible(result: IntrinsicsResult, focal_px: float | None, limits: Plausibility = Plausibility()) -> None:
@@ -508,13 +532,28 @@ def check_plausible(result: IntrinsicsResult, focal_px: float | None, limits: Pl
         faults.append(f"fx {cam.fx:.1f} and fy {cam.fy:.1f} px differ by more than {limits.max_focal_deviation:.0%}")
     if not (-0.5 <= cam.cx <= cam.width - 0.5 and -0.5 <= cam.cy <= cam.height - 0.5):
         faults.append(f"principal point ({cam.cx:.1f}, {cam.cy:.1f}) lies outside the image")
-    if cam.model != "radial1" and cam.folds_in_image:  # a real lens is one-to-one over its image
-        faults.append(f"its {cam.model} distortion ({describe(cam, first=4)}) folds back inside the image "
-                      f"(one-to-one only out to undistorted radius {cam.max_projectable_radius:.3g})")
+    faults += _fold_fault(result, limits.fold_margin)
     if faults:
         worst = ", ".join(f"{image} {eps:.3g} px" for image, eps in result.worst_images())
         raise DmaisError(f"camera {result.name}: calibration refused, {'; '.join(faults)} (worst images: {worst}); "
                          "earlier results are kept")
+
+
+def _fold_fault(result: IntrinsicsResult, margin: float) -> list[str]:
+    """The fault of a model that folds back where its observations are (within `margin` of the way to
+    the fold); a warning with the one-to-one region where it folds inside the image beyond them."""
+    if result.one_to_one is None:
+        return []
+    cam, region = result.camera, result.one_to_one
+    farthest = max(result.fold_reach, key=result.fold_reach.get)
+    reach = result.fold_reach[farthest]
+    where = f"the farthest observation {reach:.0%} of the way from the principal point to the fold, image {farthest}"
+    if not reach <= 1.0 - margin:
+        return [f"its {cam.model} distortion ({describe(cam, first=4)}) folds back inside the image at the "
+                f"observations ({region.describe()}; {where}; limit {1.0 - margin:.0%})"]
+    log.warning("camera %s: its %s distortion folds back inside the image, beyond its observations: %s; %s. "
+                "Pixels outside it undistort to NaN", result.name, cam.model, region.describe(), where)
+    return []
 
 
 # ------------------------------------------------------------------------------ baselines

@@ -302,13 +302,26 @@ def intrinsics_table(records: list[dict]) -> pd.DataFrame:
         for k, name in enumerate(PARAMETER_NAMES[_model(r)]):
             row[name] = _pm(r.get(name), std.get(name), 1 if k < 4 else 4 if name == "d" else 5)
         row.update(eps_calib_px=r.get("eps_calib_px"), eps_eval_px=r.get("eps_eval_px"),
-                   n_images=r.get("n_images"), n_observations=r.get("n_observations"))
+                   n_images=r.get("n_images"), n_observations=r.get("n_observations"),
+                   one_to_one=_one_to_one_text(r.get("one_to_one")))
         rows.append(row)
     models = {_model(r) for r in records}
     names = [n for n in INTRINSIC_NAMES if any(n in PARAMETER_NAMES[m] for m in models)]
     columns = ["camera", *(["model"] if models - {"radial1"} else []), *names,
-               "eps_calib_px", "eps_eval_px", "n_images", "n_observations"]
+               "eps_calib_px", "eps_eval_px", "n_images", "n_observations",
+               *(["one_to_one"] if any(r.get("one_to_one") for r in records) else [])]
     return pd.DataFrame(rows, columns=columns)
+
+
+def _one_to_one_text(region: dict | None) -> str:
+    """The one-to-one region of a model that folds inside its image (an intrinsics record's
+    "one_to_one"), as the table shows it: its radius from the principal point and share of the image,
+    and how far the observations reach towards the fold; "" for the whole image."""
+    if not region:
+        return ""
+    reach = region.get("observed_reach")
+    observed = "" if reach is None else f", observations to {reach:.0%} of the way"
+    return f"{region['radius_px']:.0f} px, {region['image_fraction']:.1%} of the image{observed}"
 
 
 def _model(record: dict) -> str:
