@@ -31,6 +31,8 @@ from .errors import DatasetError, yaml_problem
 from .files import write_csv_atomic, write_yaml_atomic
 from .geo import (FAR_OUTSIDE_DEG, Geo, GeoError, crs_3d, default_origin, ecef_from_crs, enu_from_ecef,
                   outside_area_of_use)
+from .geometry import quat_from_rotation, rotation_from_euler_zyx
+from .trajectory import FORMATS, TrajectoryError, at_times, read_trajectory
 
 log = logging.getLogger(__name__)
 
@@ -58,7 +60,13 @@ FRAME_COLUMNS = ("frame", "group", "pos_x", "pos_y", "pos_z")
 OBSERVATION_COLUMNS = ("image", "point_id", "u", "v")
 RESULT_OBSERVATION_COLUMNS = ("image", "camera", "point_id", "u", "v")
 
-_MANIFEST_KEYS = ("name", "description", "reference_camera", "cameras", "marker_size_m", "crs", "pos_crs", "origin")
+_MANIFEST_KEYS = ("name", "description", "reference_camera", "cameras", "marker_size_m", "crs", "pos_crs", "origin",
+                  "trajectory")
+_TRAJECTORY_KEYS = ("path", "format")
+#: frames.csv's optional time (s, the trajectory's time base) and INS attitude (deg; NED, the
+#: trajectory's convention: ned_from_imu = Rz(heading) Ry(pitch) Rx(roll)).
+FRAME_TIME = "time"
+INS_ANGLES = ("ins_heading_deg", "ins_pitch_deg", "ins_roll_deg")
 #: dataset.yaml `origin`'s keys: the computation frame's origin on WGS 84 (geo.py).
 _ORIGIN_KEYS = ("lat_deg", "lon_deg", "h_m")
 _CAMERA_KEYS = ("width", "height", "focal_px", "model")
@@ -96,6 +104,7 @@ class _Manifest:
     crs: str = ""
     pos_crs: str = ""
     origin: tuple[float, float, float] | None = None
+    trajectory: tuple[str, str] | None = None  # (path relative to the dataset, format)
 
 
 def _read_manifest(path: Path) -> _Manifest:
@@ -131,7 +140,29 @@ def _parse_manifest(data, path: Path) -> _Manifest:
         marker_size_m=_positive(data.get("marker_size_m", DEFAULT_MARKER_SIZE_M), "marker_size_m", path),
         description="" if description is None else _text_value(description, "description", path, allow_empty=True),
         **_parse_crs_keys(data, path),
+        trajectory=_parse_trajectory(data, path),
     )
+
+
+def _parse_trajectory(data: dict, path: Path) -> tuple[str, str] | None:
+    """dataset.yaml's trajectory: {path, format} (a relative path, a format of trajectory.FORMATS);
+    it needs crs (its positions are geodetic)."""
+    if "trajectory" not in data:
+        return None
+    entry = data["trajectory"]
+    if not isinstance(entry, dict):
+        raise DatasetError(path, f"trajectory must be a mapping with path and format, got {entry!r}")
+    _check_keys(entry, _TRAJECTORY_KEYS, path, "trajectory: ")
+    file = _text_value(entry.get("path"), "trajectory.path", path)
+    kind = entry.get("format")
+    if kind not in FORMATS:
+        raise DatasetError(path, f"trajectory.format must be one of {', '.join(FORMATS)}, got {kind!r}")
+    if Path(file).is_absolute():
+        raise DatasetError(path, f"trajectory.path {file!r} must be relative to the dataset folder")
+    if "crs" not in data:
+        raise DatasetError(path, "trajectory is given without crs; its positions are WGS 84 latitude, longitude "
+                           "and height, so the dataset needs a crs")
+    return file, kind
 
 
 def _parse_crs_keys(data: dict, path: Path) -> dict:
@@ -231,6 +262,8 @@ def _manifest_dict(manifest: _Manifest) -> dict:
         data.update(crs=manifest.crs, pos_crs=manifest.pos_crs)
     if manifest.origin is not None:
         data["origin"] = dict(zip(_ORIGIN_KEYS, manifest.origin))
+    if manifest.trajectory is not None:
+        data["trajectory"] = dict(zip(_TRAJECTORY_KEYS, manifest.trajectory))
     return data
 
 
@@ -515,12 +548,13 @@ def _no_file(path: str) -> str:
 
 
 def _read_frames(path: Path) -> pd.DataFrame:
-    """frames.csv as a DataFrame (columns FRAME_COLUMNS, PRIOR_QUAT, extras)."""
-    table = read_table(path, FRAME_COLUMNS, PRIOR_QUAT)
+    """frames.csv as a DataFrame (columns FRAME_COLUMNS, NaN where a row gives no pos_*, PRIOR_QUAT,
+    extras) and its table."""
+    table = read_table(path, FRAME_COLUMNS[:2], FRAME_COLUMNS[2:] + PRIOR_QUAT)
     frame_id = table.required_text("frame")
     table.first_rows(["frame"], "frame id")
     columns = {"frame": _strings(frame_id), "group": _strings(table.text("group"))}
-    columns.update({axis: table.floats(axis) for axis in FRAME_COLUMNS[2:]})
+    columns.update(zip(FRAME_COLUMNS[2:], _group(table, FRAME_COLUMNS[2:]).T))
     columns.update(zip(PRIOR_QUAT, _quaternions(table, PRIOR_QUAT).T))
     return _frame(table, columns, FRAME_COLUMNS + PRIOR_QUAT), table
 
@@ -576,6 +610,67 @@ def _ecef(crs: str, key: str, table: Table, xyz: np.ndarray, columns: Sequence[s
         log.warning("%s: %d row(s) lie outside the area of use of %s %r (%s; first on line %d, at most %.3g deg "
                     "outside)", table.path, int((distance > 0).sum()), key, crs, area, first, distance.max())
     return ecef
+
+
+def _positions_and_attitudes(root: Path, frames: pd.DataFrame, table: Table, geo: Geo | None,
+                             trajectory: tuple[str, str] | None) -> pd.DataFrame:
+    """`frames` with every row's POS position (pos_*, else interpolated at its time) and, where its
+    prior_q* are empty, the INS attitude of its INS_ANGLES or of the trajectory, in the frame of
+    `geo` (the computation frame)."""
+    pos = frames[list(FRAME_COLUMNS[2:])].to_numpy(float, copy=True)
+    missing = ~np.isfinite(pos).all(axis=1)
+    time = table.floats(FRAME_TIME, optional=True)
+    names = frames["frame"].to_numpy(object)
+    table.check(missing & np.isnan(time), lambda row: f"frame {names[row]!r} gives neither {', '.join(FRAME_COLUMNS[2:])} "
+                f"nor {FRAME_TIME}")
+    angles = _group(table, INS_ANGLES)
+    quat = frames[list(PRIOR_QUAT)].to_numpy(float, copy=True)
+    from_angles = ~np.isfinite(quat).all(axis=1) & np.isfinite(angles).all(axis=1)
+    needs_trajectory = missing | (~np.isfinite(quat).all(axis=1) & ~from_angles & ~np.isnan(time)
+                                  & (trajectory is not None))
+    if geo is None and (missing.any() or from_angles.any()):
+        row = int(np.argmax(missing | from_angles))
+        raise table.error(f"frame {names[row]!r}: {FRAME_TIME} and {', '.join(INS_ANGLES)} need dataset.yaml's crs "
+                          "(they are geodetic)", row)
+    ned_from_imu = np.full((len(frames), 3, 3), np.nan)
+    ned_from_imu[from_angles] = rotation_from_euler_zyx(np.radians(angles[from_angles]))
+    if needs_trajectory.any():
+        if trajectory is None:
+            row = int(np.argmax(missing))
+            raise table.error(f"frame {names[row]!r} gives {FRAME_TIME} without pos_*, and dataset.yaml names no "
+                              "trajectory", row)
+        ecef, attitude = _interpolated(root, trajectory, table, time, needs_trajectory, names)
+        rows = np.flatnonzero(needs_trajectory)
+        pos[rows[missing[rows]]] = enu_from_ecef(geo.origin, ecef[missing[rows]])
+        chosen = ~np.isfinite(quat[rows]).all(axis=1) & ~from_angles[rows]
+        ned_from_imu[rows[chosen]] = attitude[chosen]
+    given = np.isfinite(ned_from_imu).all(axis=(1, 2))
+    if given.any():  # INS = imu_from_world = (world_from_ned @ ned_from_imu)^T
+        world_from_ned = np.swapaxes(geo.ned_from_enu(pos[given]), 1, 2)
+        quat[given] = quat_from_rotation(np.swapaxes(world_from_ned @ ned_from_imu[given], 1, 2))
+    out = frames.copy()
+    out[list(FRAME_COLUMNS[2:])] = pos
+    out[list(PRIOR_QUAT)] = quat
+    return out
+
+
+def _interpolated(root: Path, trajectory: tuple[str, str], table: Table, time: np.ndarray, rows: np.ndarray,
+                  names: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Geocentric positions and ned_from_imu (k, 3, 3) of the frames `rows` (n,) at their `time`
+    (n,), from the trajectory file; errors name the file's record or the frame's line."""
+    path = root / trajectory[0]
+    if not path.is_file():
+        raise DatasetError(path, "missing (dataset.yaml's trajectory.path)")
+    try:
+        samples = read_trajectory(path, trajectory[1], read_table)
+    except TrajectoryError as error:  # its message names the record (sbet) or the line (csv)
+        raise DatasetError(path, str(error)) from None
+    chosen = np.flatnonzero(rows)
+    try:
+        return at_times(samples, time[chosen])
+    except TrajectoryError as error:
+        row = int(chosen[error.index])
+        raise table.error(f"frame {names[row]!r}: {error} ({trajectory[0]})", row) from None
 
 
 def _empty_frames() -> pd.DataFrame:
@@ -694,7 +789,7 @@ class Dataset:
         images, image_table = _read_images(root / IMAGES, root, manifest.cameras)
         if geo is not None:
             images = _in_computation_frame(images, PRIOR_CENTER, image_table, geo, pos=True)
-        frames = _load_frames(root, images, image_table, geo)
+        frames = _load_frames(root, images, image_table, geo, manifest.trajectory)
         observations = _empty_observations()
         if (root / OBSERVATIONS).exists():
             camera_of = dict(zip(images["image"], images["camera"]))
@@ -897,9 +992,12 @@ def _grayscale(pixels: np.ndarray) -> np.ndarray | None:
     return pixels if pixels.ndim == 2 else None
 
 
-def _load_frames(root: Path, images: pd.DataFrame, image_table: Table, geo: Geo | None) -> pd.DataFrame:
+def _load_frames(root: Path, images: pd.DataFrame, image_table: Table, geo: Geo | None,
+                 trajectory: tuple[str, str] | None = None) -> pd.DataFrame:
     """frames.csv (required when there are flight images); every flight placement must be a frame.
-    With `geo`, the POS positions in the computation frame."""
+    With `geo`, the POS positions in the computation frame, and where a row gives its `time`
+    instead, interpolated from the `trajectory` (path, format); INS attitudes given as angles
+    (INS_ANGLES) or from the trajectory as prior_q* in the computation frame."""
     flight = (images["stage"] == "flight").to_numpy()
     if not (root / FRAMES).exists():
         if flight.any():
@@ -909,6 +1007,7 @@ def _load_frames(root: Path, images: pd.DataFrame, image_table: Table, geo: Geo 
     frames, table = _read_frames(root / FRAMES)
     if geo is not None:
         frames = _in_computation_frame(frames, FRAME_COLUMNS[2:], table, geo, pos=True)
+    frames = _positions_and_attitudes(root, frames, table, geo, trajectory)
     placement = images["placement"].to_numpy(dtype=object)
     # pandas hashes the ids; np.isin on object arrays compares them pairwise (6 s for 50,000 images)
     unknown = flight & ~pd.Index(placement).isin(frames["frame"])
@@ -952,7 +1051,8 @@ def write_dataset(
     write_csv_atomic(root / IMAGES, _table_out(images, IMAGE_COLUMNS, (PRIOR_CENTER, PRIOR_QUAT), texts=IMAGE_COLUMNS))
     optional = {
         GROUND_POINTS: (ground_points, _points_out),
-        FRAMES: (frames, lambda f: _table_out(f, FRAME_COLUMNS, (PRIOR_QUAT,), texts=("frame", "group"))),
+        FRAMES: (frames, lambda f: _table_out(f, FRAME_COLUMNS[:2], (FRAME_COLUMNS[2:], PRIOR_QUAT),
+                                              texts=("frame", "group"))),
         OBSERVATIONS: (observations, lambda f: _table_out(f, OBSERVATION_COLUMNS, (), texts=("image", "point_id"))),
     }
     for name, (table, convert) in optional.items():

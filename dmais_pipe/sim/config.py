@@ -139,10 +139,13 @@ DEFAULTS = {
     # and camera-centre priors in `pos_crs` (WGS 84 longitude, latitude, height), dataset.yaml names
     # both and the origin; truth/ stays in the frame, with latitude, longitude, height and the NED
     # attitude beside. Without crs (the default) the world is a local metric frame, as before.
+    # With `trajectory` (sbet or csv), frames.csv gives each frame's time instead of its POS position
+    # and INS attitude, and the POS's trajectory is written beside it (sim/pos.py).
     "geodetic": {
         "crs": None,
         "pos_crs": "EPSG:4979",
         "origin": [35.0, 17.8, 100.0],
+        "trajectory": None,
     },
 }
 
@@ -214,6 +217,9 @@ def check_geodetic(config: dict) -> None:
         value = geodetic[key]
         if not (value is None and key == "crs") and not (isinstance(value, str) and value.strip()):
             raise ConfigError(f"simulator setting 'geodetic.{key}' must be a CRS name such as EPSG:32633, got {value!r}")
+    if geodetic["trajectory"] not in (None, "sbet", "csv"):
+        raise ConfigError(f"simulator setting 'geodetic.trajectory' must be sbet, csv or null, got "
+                          f"{geodetic['trajectory']!r}")
     origin = geodetic["origin"]
     if (not isinstance(origin, list) or len(origin) != 3
             or any(isinstance(v, bool) or not isinstance(v, (int, float)) for v in origin)

@@ -20,9 +20,10 @@ import pandas as pd
 
 from ..dataset import POINT_SIGMA, write_dataset
 from ..errors import ConfigError, DmaisError
-from ..files import write_csv_atomic, write_png_atomic, write_yaml_atomic
+from ..files import write_bytes_atomic, write_csv_atomic, write_png_atomic, write_yaml_atomic
 from ..geo import Geo, GeoError, ned_attitude
-from ..geometry import Rigid3, exp_so3
+from ..geometry import Rigid3, exp_so3, rotation_from_quat
+from . import pos
 from ..rig import Rig
 from .config import load_config, settings_to_write
 from .render import RenderSettings, render_image
@@ -154,6 +155,10 @@ def write_world(config: dict, world: dict, root: Path, jobs: int) -> None:
     images = _images_frame(config, shots, rendered, stream(seed, "priors"))
     frames = _frames_frame(config, world["frames"], stream(seed, "pos"))
     geo = world_geo(config)
+    kind = config["geodetic"]["trajectory"]
+    if geo is not None and kind:  # frames.csv gives times; the POS trajectory beside it
+        frames, trajectory = _with_trajectory(frames, geo, kind)
+        write_bytes_atomic(root / TRAJECTORY_PATHS[kind], trajectory)
     if geo is not None:  # the survey in crs, the POS and RTK in pos_crs
         control, ground = (_in_crs(points, ["x", "y", "z"], geo) for points in (control, ground))
         images = _in_crs(images, ["prior_x", "prior_y", "prior_z"], geo, pos=True)
@@ -183,7 +188,9 @@ def _manifest(config: dict) -> dict:
     geodetic = config["geodetic"]
     crs = {} if geodetic["crs"] is None else {
         "crs": geodetic["crs"], "pos_crs": geodetic["pos_crs"],
-        "origin": dict(zip(("lat_deg", "lon_deg", "h_m"), map(float, geodetic["origin"])))}
+        "origin": dict(zip(("lat_deg", "lon_deg", "h_m"), map(float, geodetic["origin"]))),
+        **({"trajectory": {"path": TRAJECTORY_PATHS[geodetic["trajectory"]], "format": geodetic["trajectory"]}}
+           if geodetic["trajectory"] else {})}
     return {
         "name": config["name"],
         "description": f"DMAIS simulator, seed {config['seed']}",
@@ -207,6 +214,22 @@ def world_geo(config: dict) -> Geo | None:
         except GeoError as error:
             raise ConfigError(f"simulator setting 'geodetic.{key}': {error}") from None
     return geo
+
+
+#: Where a geodetic world's trajectory is written, per format.
+TRAJECTORY_PATHS = {"sbet": "pos/trajectory.sbet", "csv": "pos/trajectory.csv"}
+
+
+def _with_trajectory(frames: pd.DataFrame, geo: Geo, kind: str) -> tuple[pd.DataFrame, bytes]:
+    """frames.csv's table (world frame) with each frame's time instead of its POS position and INS
+    attitude, and the trajectory file's bytes that give them back at those times (sim/pos.py)."""
+    times = pos.frame_times(frames["group"])
+    enu = frames[["pos_x", "pos_y", "pos_z"]].to_numpy(float)
+    imu_from_world = rotation_from_quat(frames[["prior_qw", "prior_qx", "prior_qy", "prior_qz"]].to_numpy(float))
+    ned_from_imu = geo.ned_from_enu(enu) @ np.swapaxes(imu_from_world, 1, 2)
+    samples = pos.samples(times, frames["group"].to_numpy(object), geo.geodetic_from_enu(enu), ned_from_imu)
+    kept = frames.drop(columns=["pos_x", "pos_y", "pos_z", "prior_qw", "prior_qx", "prior_qy", "prior_qz"])
+    return kept.assign(time=times), pos.trajectory_file(kind, *samples)
 
 
 def _in_crs(table: pd.DataFrame, columns: list[str], geo: Geo, pos: bool = False) -> pd.DataFrame:
