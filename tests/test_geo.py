@@ -255,14 +255,20 @@ def _set_manifest(root, **changes):
 ])
 def test_bad_crs_is_one_line_exit_2_and_nothing_written(utm_dataset, tmp_path, capsys, changes, message):
     _set_manifest(utm_dataset, **changes)
-    before = {p: p.stat().st_mtime_ns for p in utm_dataset.rglob("*")}
-    out = tmp_path / "results"
-    assert main(["pose", str(utm_dataset), "--out", str(out)]) == 2
+    assert message in refused_in_one_line(utm_dataset, tmp_path / "results", capsys)
+
+
+def refused_in_one_line(dataset, out, capsys) -> str:
+    """`dmais pose DATASET --out OUT`'s one error line, after checking its exit status 2, that it
+    wrote nothing and left the dataset's files as they were."""
+    before = {p: p.stat().st_mtime_ns for p in dataset.rglob("*")}
+    assert main(["pose", str(dataset), "--out", str(out)]) == 2
     err = capsys.readouterr().err
     lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and message in lines[0], err
+    assert len(lines) == 1, err
     assert not out.exists() or not any(out.iterdir())
-    assert {p: p.stat().st_mtime_ns for p in utm_dataset.rglob("*")} == before
+    assert {p: p.stat().st_mtime_ns for p in dataset.rglob("*")} == before
+    return lines[0]
 
 
 def test_far_outside_names_the_area_and_near_outside_warns(utm_dataset, caplog):

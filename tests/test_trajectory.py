@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from conftest import observation_only
+from test_geo import hand_ecef_from_enu_rotation, hand_ned_from_ecef, refused_in_one_line
 from dmais_pipe import geo
-from dmais_pipe.cli import main
 from dmais_pipe.dataset import Dataset
 from dmais_pipe.evaluate import fit_pos_lever_arm
 from dmais_pipe.geometry import exp_so3, log_so3, rotation_error, rotation_from_euler_zyx, rotation_from_quat
@@ -138,11 +138,22 @@ def _set_time(root, row: int, value: str):
 ])
 def test_bad_trajectory_is_one_line_exit_2_and_nothing_written(sbet_dataset, tmp_path, capsys, spoil, message):
     spoil(sbet_dataset)
-    before = {p: p.stat().st_mtime_ns for p in sbet_dataset.rglob("*")}
-    out = tmp_path / "results"
-    assert main(["pose", str(sbet_dataset), "--out", str(out)]) == 2
-    err = capsys.readouterr().err
-    lines = [line for line in err.splitlines() if line.strip()]
-    assert len(lines) == 1 and message in lines[0], err
-    assert not out.exists() or not any(out.iterdir())
-    assert {p: p.stat().st_mtime_ns for p in sbet_dataset.rglob("*")} == before
+    assert message in refused_in_one_line(sbet_dataset, tmp_path / "results", capsys)
+
+
+def test_ins_angles_per_frame_are_the_ins_quaternions(simulated_dataset, tmp_path):
+    """frames.csv's ins_heading/pitch/roll_deg (NED at the frame, made here with the NED rotation
+    written out by hand from the frame's latitude and longitude) load as its prior_q* did."""
+    root = tmp_path / "dataset"
+    shutil.copytree(simulated_dataset(_sim("traj-none", None)), root)
+    frames = pd.read_csv(root / "frames.csv", dtype={"frame": str, "group": str})
+    lon, lat = frames["pos_x"].to_numpy(), frames["pos_y"].to_numpy()  # pos_crs EPSG:4979: longitude, latitude
+    origin = Dataset.load(root).geo.origin
+    ecef_from_enu = hand_ecef_from_enu_rotation(*origin[:2])
+    imu_from_world = rotation_from_quat(frames[PRIOR].to_numpy())
+    ned_from_imu = hand_ned_from_ecef(lat, lon) @ ecef_from_enu @ np.swapaxes(imu_from_world, 1, 2)
+    angles = np.degrees(geo.euler_zyx_from_rotation(ned_from_imu))
+    given = frames.drop(columns=PRIOR).assign(**dict(zip(("ins_heading_deg", "ins_pitch_deg", "ins_roll_deg"), angles.T)))
+    given.to_csv(root / "frames.csv", index=False, float_format="%.17g")
+    loaded = Dataset.load(root).frames
+    assert rotation_error(rotation_from_quat(loaded[PRIOR].to_numpy()), imu_from_world).max() * ARCMIN < 1e-5
