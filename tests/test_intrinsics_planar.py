@@ -11,14 +11,15 @@ import cv2
 import numpy as np
 import pytest
 
+from dmais_pipe import cli
 from dmais_pipe.calib import intrinsics as calib_intrinsics
 from dmais_pipe.calib.intrinsics import calibrate_camera, evaluate
 from dmais_pipe.calib.planar import planar_start, plane_frame
 from dmais_pipe.camera import Camera, image_centre
 from dmais_pipe.errors import DmaisError
 from dmais_pipe.geometry import Rigid3, rotation_angle
-from dmais_pipe.sim.board import (RIG_CAM_FROM_RIG, RIG_CAMERAS, asymmetric_circle_grid, board_pose,
-                                  board_scene,                                   write_board_dataset)
+from dmais_pipe.sim.board import (RIG_CAM_FROM_RIG, RIG_CAMERAS, BoardScene, BoardView, asymmetric_circle_grid,
+                                  board_pose, board_scene, write_board_dataset)
 from dmais_pipe.stages import extrinsics, intrinsics
 from dmais_pipe.workspace import Workspace
 
@@ -99,14 +100,22 @@ def test_the_planar_start_weighs_fronto_parallel_views_out(scene):
     assert sum(start.weight.values()) == pytest.approx(1.0)
 
 
+def untilted_scene(n_views: int, seed: int) -> BoardScene:
+    """C2's views of the board, each exactly parallel to the image plane, 0.15 px noise."""
+    camera, rng = RIG_CAMERAS["C2"], np.random.default_rng(seed)
+    scene = BoardScene(asymmetric_circle_grid(), {"C2": camera}, {"C2": Rigid3.identity()})
+    for k in range(n_views):
+        pose = board_pose(camera, scene.points, 0.0, rng)
+        uv = camera.project(pose.apply(scene.points))
+        scene.views[f"C2_v{k:02d}"] = BoardView("C2", "", pose, uv + rng.normal(scale=0.15, size=uv.shape))
+    return scene
+
+
 def test_a_board_never_tilted_is_refused_in_one_line():
     """Every view parallel to the image plane: no perspective, no focal length; the refusal names the camera
     and the views' tilts."""
-    camera, board, rng = RIG_CAMERAS["C2"], asymmetric_circle_grid(), np.random.default_rng(SEED)
-    views = {}
-    for k in range(6):
-        uv = camera.project(board_pose(camera, board, 0.0, rng).apply(board))
-        views[f"C2_v{k:02d}"] = (board, uv + rng.normal(scale=0.15, size=uv.shape))
+    scene = untilted_scene(6, SEED)
+    views = {k: (scene.points, v.pixels) for k, v in scene.views.items()}
     with pytest.raises(DmaisError, match=r"^camera C2: the 6 views of its flat calibration field do not determine the "
                                          r"focal length \(their perspective fixes it not at all: .*: C2_v00, C2_v01, "):
         planar_start(views, image_centre(1280, 720), "C2")
@@ -157,3 +166,13 @@ def stereo_calibrate(scene, first: Camera, second: Camera, name: str) -> Rigid3:
                                  (first.width, first.height), flags=cv2.CALIB_FIX_INTRINSIC,
                                  criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12))
     return Rigid3(result[5], result[6].ravel())
+
+
+def test_dmais_intrinsics_on_a_board_never_tilted_is_one_line_and_exit_2(tmp_path, capsys):
+    """The stage's refusal of such a board: one line naming the camera, exit 2, nothing written."""
+    dataset = write_board_dataset(untilted_scene(6, SEED + 1), tmp_path / "dataset", eval_views=1)
+    assert cli.main(["intrinsics", str(dataset), "--out", str(tmp_path / "results")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("dmais intrinsics: error: camera C2: the 5 views of its flat calibration field do not "
+                          "determine the focal length") and err.count("\n") == 1, err
+    assert not (tmp_path / "results" / "intrinsics").exists()
