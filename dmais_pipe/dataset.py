@@ -717,10 +717,22 @@ def _empty_observations() -> pd.DataFrame:
 
 
 def table_stamps(root: Path) -> str:
-    """The dataset folder's tables (its *.csv files and the manifest) by name, size and modification
-    time: what a load of `root` reads, so that a copy cut from a load (slices.py) is known stale when
-    one of them changes, appears or goes."""
-    return ";".join(f"{path.name}:{file_stamp(path)}" for path in sorted(root.glob("*.csv")) + [root / MANIFEST])
+    """The dataset folder's tables (its *.csv files, the manifest and the trajectory file it names)
+    by name, size and modification time: what a load of `root` reads, so that a copy cut from a load
+    (slices.py) is known stale when one of them changes, appears or goes."""
+    stamps = ";".join(f"{path.name}:{file_stamp(path)}" for path in sorted(root.glob("*.csv")) + [root / MANIFEST])
+    trajectory = _trajectory_path(root / MANIFEST)
+    return stamps if trajectory is None else f"{stamps};{trajectory}:{file_stamp(root / trajectory)}"
+
+
+def _trajectory_path(manifest: Path) -> str | None:
+    """The manifest's trajectory.path where it reads as one (None otherwise: the load says why)."""
+    try:
+        entry = (yaml.safe_load(manifest.read_text(encoding="utf-8")) or {}).get("trajectory")
+    except (OSError, ValueError, yaml.YAMLError, AttributeError):
+        return None
+    path = entry.get("path") if isinstance(entry, dict) else None
+    return path if isinstance(path, str) else None
 
 
 def file_stamp(path: Path) -> str:
