@@ -16,8 +16,10 @@ from test_geo import hand_ecef_from_enu_rotation, hand_ned_from_ecef, refused_in
 from dmais_pipe import geo
 from dmais_pipe.dataset import Dataset
 from dmais_pipe.evaluate import fit_pos_lever_arm
-from dmais_pipe.geometry import exp_so3, log_so3, rotation_error, rotation_from_euler_zyx, rotation_from_quat
+from dmais_pipe.geometry import (exp_so3, log_so3, quat_from_rotation, rotation_error, rotation_from_euler_zyx,
+                                  rotation_from_quat)
 from dmais_pipe.pos_calibration import fit_boresight
+from dmais_pipe.stages.evaluate import LOCAL_COMPARISON_COLUMNS, with_local_pos_comparison
 from dmais_pipe.trajectory import SBET_RECORD_BYTES, Trajectory, TrajectoryError, at_times, sbet_bytes, sbet_from_bytes
 
 ARCMIN = 60.0 * 180.0 / np.pi
@@ -157,3 +159,36 @@ def test_ins_angles_per_frame_are_the_ins_quaternions(simulated_dataset, tmp_pat
     given.to_csv(root / "frames.csv", index=False, float_format="%.17g")
     loaded = Dataset.load(root).frames
     assert rotation_error(rotation_from_quat(loaded[PRIOR].to_numpy()), imu_from_world).max() * ARCMIN < 1e-5
+
+
+def test_pos_and_ins_comparison_in_north_east_down(simulated_dataset, tmp_path):
+    """evaluate's local comparison (issue 41 item 4): one frame's POS moved 1 m north (along the
+    north written out by hand) and its INS turned 10' in heading show as -1 m north and -10'."""
+    root = tmp_path / "dataset"
+    shutil.copytree(simulated_dataset(_sim("traj-none", None)), root)
+    poses = pd.read_csv(root / "truth" / "frames.csv", dtype={"frame": str, "group": str})
+
+    def comparison(dataset):
+        lever = fit_pos_lever_arm(poses, dataset, 5.0)
+        R = rotation_from_quat(poses[QUAT].to_numpy())
+        ins = rotation_from_quat(dataset.frames.set_index("frame").loc[poses["frame"], PRIOR].to_numpy())
+        table = with_local_pos_comparison(poses, dataset, lever, fit_boresight(R, ins))
+        return table[list(LOCAL_COMPARISON_COLUMNS)].to_numpy()
+
+    before = comparison(Dataset.load(root))
+    assert np.sqrt(np.mean(before[:, :2] ** 2)) < 0.04 and np.sqrt(np.mean(before[:, 2] ** 2)) < 0.06  # the 2/2/3 cm POS
+    frames = pd.read_csv(root / "frames.csv", dtype={"frame": str, "group": str})
+    lon, lat, h = frames.loc[4, ["pos_x", "pos_y", "pos_z"]].to_numpy(float)
+    north = hand_ned_from_ecef(lat, lon)[0, 0]
+    moved = geo.geodetic_from_ecef(geo.ecef_from_geodetic([lat, lon, h]) + north)[0]
+    frames.loc[4, ["pos_x", "pos_y", "pos_z"]] = moved[[1, 0, 2]]
+    ins = rotation_from_quat(frames.loc[4, PRIOR].to_numpy(float))  # imu_from_world
+    ned_from_world = hand_ned_from_ecef(lat, lon)[0] @ hand_ecef_from_enu_rotation(*Dataset.load(root).geo.origin[:2])
+    turned = (rotation_from_euler_zyx(np.radians([10 / 60, 0, 0])) @ ned_from_world @ ins.T)  # ned_from_imu, turned
+    frames.loc[4, PRIOR] = quat_from_rotation((ned_from_world.T @ turned).T)
+    frames.to_csv(root / "frames.csv", index=False, float_format="%.17g")
+    change = comparison(Dataset.load(root)) - before
+    row = int(np.flatnonzero(poses["frame"].to_numpy() == frames.loc[4, "frame"])[0])
+    change = change - np.median(np.delete(change, row, axis=0), axis=0)  # less the lever arm's and boresight's refit
+    assert change[row, 0] == pytest.approx(-1.0, abs=0.1) and np.abs(change[row, 1:3]).max() < 0.1
+    assert change[row, 3] == pytest.approx(-10.0, abs=1.0) and np.abs(change[row, 4:]).max() < 1.0

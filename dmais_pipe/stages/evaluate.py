@@ -24,7 +24,8 @@ from ..dataset import PRIOR_QUAT, Dataset
 from ..evaluate import (ARCMIN_PER_RAD, angular_errors, conf_table, error_budget_table, evaluate_poses,
                         every_camera_eps_proj, fit_pos_lever_arm, group_offsets, mean_focal_px, pos_positions,
                         pose_methods_table, residual_table, subset_cameras, used_observations)
-from ..geometry import rotation_from_quat
+from ..geo import ned_attitude
+from ..geometry import exp_so3, rotation_from_quat
 from ..markers.quality import FLAG_FACTOR, FLAG_MIN_SIGMA_PX, camera_quality, image_quality
 from ..pos_calibration import Boresight, LeverArm, calibration_table, fit_boresight
 from ..rig import Rig
@@ -72,7 +73,8 @@ def _poses(workspace: Workspace, rig: Rig, whole_rig: pd.DataFrame | None, conf:
         log.info("mean offset (estimate - POS) of group %s: (%.3f, %.3f, %.3f) m", group, *offset)
     observations = workspace.load_observations()
     used_by_rig = used_observations(observations, whole_rig)
-    evaluation = evaluate_poses(poses, dataset, rig, truth, offsets, used_by_rig, lever_arm)
+    evaluation = with_local_pos_comparison(evaluate_poses(poses, dataset, rig, truth, offsets, used_by_rig, lever_arm),
+                                           dataset, lever_arm, boresight)
     table = pose_methods_table(evaluation)
     written = [workspace.save_table("lever_arm", calibration_table(lever_arm, boresight, _simulator_truth(dataset))),
                workspace.save_evaluation(evaluation), workspace.save_table("pose_methods", table)]
@@ -83,7 +85,8 @@ def _poses(workspace: Workspace, rig: Rig, whole_rig: pd.DataFrame | None, conf:
         except ValueError as error:
             raise ResultsError(path, str(error)) from None
         used = used_observations(observations, whole_rig, workspace.load_pose_observations(path))
-        subset = evaluate_poses(workspace.load_poses(path, allowed), dataset, rig, truth, offsets, used, lever_arm)
+        subset = with_local_pos_comparison(evaluate_poses(workspace.load_poses(path, allowed), dataset, rig, truth,
+                                                          offsets, used, lever_arm), dataset, lever_arm, boresight)
         subsets[label] = _with_every_camera(subset, dataset, rig, used)
         written.append(workspace.save_evaluation(subsets[label], label))
     full_rig = subset_label(rig, rig.camera_names)  # tab:conf's #01234
@@ -101,6 +104,36 @@ def _poses(workspace: Workspace, rig: Rig, whole_rig: pd.DataFrame | None, conf:
                  "%.2f ms", row.group, row.n_frames, row.eps_pos_mean_m, row.eps_pos_group_mean_m,
                  row.eps_ang_mean_arcmin, row.eps_proj_mean_px, row.time_mean_ms)
     return written
+
+
+#: evaluation.csv's POS and INS comparison in local terms, with dataset.yaml's crs: the estimate
+#: (centre + lever arm; the boresight times the rig's attitude) minus the POS and the INS, along
+#: north, east, down at the frame (m) and in NED heading, pitch, roll (arc-min).
+LOCAL_COMPARISON_COLUMNS = ("pos_diff_north_m", "pos_diff_east_m", "pos_diff_down_m", "ins_diff_heading_arcmin",
+                            "ins_diff_pitch_arcmin", "ins_diff_roll_arcmin")
+
+
+def with_local_pos_comparison(evaluation: pd.DataFrame, dataset: Dataset, lever_arm: LeverArm,
+                              boresight: Boresight | None) -> pd.DataFrame:
+    """evaluation + LOCAL_COMPARISON_COLUMNS where the dataset has a crs (the INS columns where a
+    boresight was fitted); the table as it is otherwise."""
+    if dataset.geo is None or not len(evaluation):
+        return evaluation
+    centres = evaluation[list(CENTER)].to_numpy(dtype=float)
+    world_from_rig = np.swapaxes(rotation_from_quat(evaluation[list(QUAT)].to_numpy(dtype=float)), 1, 2)
+    ned_from_world = dataset.geo.ned_from_enu(centres)
+    difference = centres + lever_arm.pos_offsets(world_from_rig) - pos_positions(evaluation, dataset)
+    out = evaluation.copy()
+    out[list(LOCAL_COMPARISON_COLUMNS[:3])] = np.einsum("fij,fj->fi", ned_from_world, difference)
+    if boresight is not None:
+        ins = rotation_from_quat(dataset.frames.set_index("frame").loc[evaluation["frame"], list(PRIOR_QUAT)]
+                                 .to_numpy(dtype=float))
+        imu_from_rig = exp_so3(boresight.rotvec)
+        estimated = ned_attitude(ned_from_world, world_from_rig @ imu_from_rig.T)
+        given = ned_attitude(ned_from_world, np.swapaxes(ins, 1, 2))
+        difference = (estimated - given + 180.0) % 360.0 - 180.0
+        out[list(LOCAL_COMPARISON_COLUMNS[3:])] = difference * 60.0
+    return out
 
 
 def _with_every_camera(evaluation: pd.DataFrame, dataset: Dataset, rig: Rig, used: pd.DataFrame) -> pd.DataFrame:
