@@ -15,4 +15,5 @@ rule all:
         rules.dataset_report.output.html,
         rules.report.output.html,
         rules.export_colmap.output.rig_config,
+        lambda wildcards: geojson_outputs(),
     default_target: True

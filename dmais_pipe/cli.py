@@ -185,6 +185,12 @@ def _cmd_export_colmap(args) -> None:
     _print(export.run(_workspace(args), conf))
 
 
+def _cmd_export_geojson(args) -> None:
+    from .stages import export
+
+    _print(export.run_geojson(_workspace(args)))
+
+
 def _cmd_report(args) -> None:
     from .stages import report
 
@@ -375,6 +381,12 @@ def _parser() -> argparse.ArgumentParser:
     export.add_argument("--out", type=Path, required=True, help="results folder (with rig.json and poses.csv)")
     export.add_argument("--format", choices=("text", "binary"), help="only this format (default: both)")
     export.set_defaults(run=_cmd_export_colmap)
+
+    geojson = commands.add_parser("export-geojson", help="the solved frames (points) and the cameras' ground "
+                                                         "footprints (polygons) as WGS 84 GeoJSON; needs a crs")
+    geojson.add_argument("dataset", type=Path)
+    geojson.add_argument("--out", type=Path, required=True, help="results folder (with rig.json and poses.csv)")
+    geojson.set_defaults(run=_cmd_export_geojson)
 
     report = commands.add_parser("report", help="write the self-contained HTML report")
     report.add_argument("dataset", type=Path)

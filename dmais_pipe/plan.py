@@ -51,7 +51,7 @@ def workflow_plan(dataset: Dataset, per_job: int = MARKERS_PER_JOB) -> dict:
     cameras: camera names in the manifest's (= the rig's) order; calibrated_cameras: those with
     intrinsics images; batches: per stage, the marker batches (`marker_batches`, their images
     left out) as name -> {camera, images: how many}; groups: the flight frame groups in the order
-    of frames.csv.
+    of frames.csv; geodetic: whether dataset.yaml names a crs (the GeoJSON export needs one).
     """
     from .dataset import STAGES
 
@@ -63,4 +63,5 @@ def workflow_plan(dataset: Dataset, per_job: int = MARKERS_PER_JOB) -> dict:
         "calibrated_cameras": dataset.cameras_with_intrinsics_images(),
         "batches": batches,
         "groups": list(dict.fromkeys(dataset.frames["group"])),
+        "geodetic": dataset.geo is not None,
     }

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import logging
 import shutil
+import struct
 import numpy as np
 import pandas as pd
 import pyproj
@@ -224,6 +225,55 @@ def test_focal_lengths_equal_the_local_runs(simulated_dataset, tmp_path):
     assert focal["EPSG:32633"].fy == pytest.approx(focal[None].fy, abs=1e-3)
 
 
+def _wkb_points(wkb: bytes) -> np.ndarray:
+    """(k, 3) coordinates of a little-endian ISO WKB Point Z or Polygon Z (one ring), decoded here."""
+    kind = struct.unpack_from("<I", wkb, 1)[0] & 0xFF
+    if kind == 1:
+        return np.array(struct.unpack_from("<3d", wkb, 5))[None]
+    count = struct.unpack_from("<I", wkb, 9)[0]
+    return np.array(struct.unpack_from(f"<{3 * count}d", wkb, 13)).reshape(count, 3)
+
+
+def test_geojson_export_reads_back_in_gdal(solved):
+    """dmais export-geojson read back by GDAL (pyogrio): every frame's point at its poses.csv
+    lat/lon/h with its attributes, and C0's footprints the size a 350 m flight gives (area by
+    pyproj's geodesic polygon area) around the frame's nadir."""
+    pyogrio = pytest.importorskip("pyogrio")
+    from pyogrio import raw
+
+    workspace, poses = solved["crs"]
+    assert main(["export-geojson", str(workspace.dataset.root), "--out", str(workspace.root)]) == 0
+    frames, footprints = (workspace.root / "geojson" / f"{name}.geojson" for name in ("frames", "footprints"))
+    info = pyogrio.read_info(frames)
+    assert info["geometry_type"] == "Point Z" and info["features"] == len(poses)
+    assert pyproj.CRS(info["crs"]).equals(pyproj.CRS("EPSG:4979"))
+    meta, _, geometry, fields = raw.read(frames)
+    values = dict(zip(meta["fields"], fields))
+    assert list(values["frame"]) == list(poses["frame"])
+    lon_lat_h = np.vstack([_wkb_points(g) for g in geometry])
+    assert np.allclose(lon_lat_h, poses[["lon_deg", "lat_deg", "h_m"]].to_numpy(), rtol=0, atol=1e-9)
+    assert np.allclose(values["sigma_ned_roll_arcmin"], poses["sigma_ned_roll_arcmin"]) and set(values["camera_set"]) == {"01234"}
+    meta, _, geometry, fields = raw.read(footprints)
+    values = dict(zip(meta["fields"], fields))
+    assert meta["geometry_type"] == "Polygon Z" and len(geometry) == 5 * len(poses)
+    geod = pyproj.Geod(ellps="WGS84")
+    ground = workspace.dataset.geo.geodetic_from_enu(workspace.dataset.ground_points[["x", "y", "z"]].to_numpy(float))
+    rig = workspace.load_rig()
+    for k in np.flatnonzero(values["camera"] == "C0"):
+        ring = _wkb_points(geometry[k])
+        assert np.allclose(ring[0], ring[-1])  # closed
+        area, _ = geod.polygon_area_perimeter(ring[:-1, 0], ring[:-1, 1])
+        assert area > 0  # counter-clockwise, as RFC 7946 asks
+        frame = poses.set_index("frame").loc[values["frame"][k]]
+        above = frame["h_m"] - np.median(ground[:, 2][np.abs(ground[:, 0] - frame["lat_deg"]) < 0.01])
+        camera = rig.cameras["C0"]
+        expected = above ** 2 * (camera.width - 1) * (camera.height - 1) / (camera.fx * camera.fy)
+        assert area == pytest.approx(expected, rel=0.1)
+        centre = ring[:-1, :2].mean(axis=0)
+        _, _, distance = geod.inv(centre[0], centre[1], frame["lon_deg"], frame["lat_deg"])
+        assert distance < 0.05 * above  # C0 looks down
+
+
 # ------------------------------------------------------------------------------ bad inputs
 
 
@@ -283,3 +333,11 @@ def test_far_outside_names_the_area_and_near_outside_warns(utm_dataset, caplog):
         Dataset.load(utm_dataset)
     warned = [r.getMessage() for r in caplog.records if "outside the area of use" in r.getMessage()]
     assert len(warned) == 1 and "1 row(s)" in warned[0] and "line 5" in warned[0], warned
+
+
+def test_geojson_export_without_crs_is_refused_in_one_line(solved, capsys):
+    workspace, _ = solved["local"]
+    assert main(["export-geojson", str(workspace.dataset.root), "--out", str(workspace.root)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "names no crs" in err[0]
+    assert not (workspace.root / "geojson").exists()

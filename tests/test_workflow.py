@@ -199,7 +199,7 @@ def test_a_faulty_dataset_stops_the_dry_run_with_the_loaders_line(tmp_path):
     """The Snakefile learns the dataset from `dmais plan`: the same loader, so the same one line."""
     site = _write(tmp_path / "site", _inputs())
     plan = workflow_plan(Dataset.load(site))
-    assert plan == {"cameras": ["C0", "C1"], "calibrated_cameras": ["C0", "C1"], "groups": ["1"],
+    assert plan == {"cameras": ["C0", "C1"], "calibrated_cameras": ["C0", "C1"], "groups": ["1"], "geodetic": False,
                     "batches": {"intrinsics": {"intrinsics-C1-1": {"camera": "C1", "images": 1}},
                                 "extrinsics": {"extrinsics-C1-1": {"camera": "C1", "images": 1}},
                                 "flight": {"flight-C1-1": {"camera": "C1", "images": 1}}}}

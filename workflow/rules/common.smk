@@ -53,8 +53,8 @@ def dataset_ready():
 
 
 #: Bumped when `dmais plan`'s JSON or what it writes changes, so that a plan file of an older layout
-#: is not read (3: the plan also cuts the marker batches' slices, RESULTS/slices/).
-PLAN_FORMAT = 3
+#: is not read (3: the plan also cuts the marker batches' slices, RESULTS/slices/; 4: `geodetic`).
+PLAN_FORMAT = 4
 
 
 def _plan_file(dataset_dir):
@@ -120,6 +120,13 @@ def marker_batches(stage):
 def calibrated_cameras():
     """Cameras with intrinsics images, in manifest order."""
     return plan()["calibrated_cameras"]
+
+
+def geojson_outputs():
+    """The GeoJSON export's files where the dataset has a crs (plan's `geodetic`), else none."""
+    if not plan().get("geodetic"):
+        return []
+    return [f"{RESULTS}/geojson/frames.geojson", f"{RESULTS}/geojson/footprints.geojson"]
 
 
 def groups():

@@ -26,3 +26,27 @@ rule export_colmap:
         DMAIS_ENV
     shell:
         "dmais export-colmap {params.dataset_dir} --out {params.results} {params.settings} > {log} 2>&1"
+
+
+# Only for a dataset with a crs (rule all asks for it through geojson_outputs()).
+rule export_geojson:
+    input:
+        manifest=lambda wildcards: dataset_ready(),
+        rig=f"{RESULTS}/rig.json",
+        poses=f"{RESULTS}/poses.csv",
+        subsets=lambda wildcards: expand(f"{RESULTS}/poses_{{subset}}.csv", subset=subset_labels()),
+        observations=f"{RESULTS}/poses.observations.csv",
+    output:
+        frames=f"{RESULTS}/geojson/frames.geojson",
+        footprints=f"{RESULTS}/geojson/footprints.geojson",
+    params:
+        dataset_dir=DATASET_DIR,
+        results=RESULTS,
+    log:
+        f"{LOGS}/export_geojson.log",
+    benchmark:
+        f"{BENCHMARKS}/export_geojson.tsv"
+    conda:
+        DMAIS_ENV
+    shell:
+        "dmais export-geojson {params.dataset_dir} --out {params.results} > {log} 2>&1"
