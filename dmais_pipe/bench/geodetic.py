@@ -10,15 +10,18 @@ extrinsics, pose with every camera), each in WORK/<run>:
 - `crs`: the preset as it is: the survey in crs, POS and RTK priors in pos_crs, dataset.yaml's
   origin the simulator's;
 - `crs_default_origin`: the same files without dataset.yaml's origin, so the computation frame is
-  the topocentric frame at the control points' mean instead.
+  the topocentric frame at the control points' mean instead;
+- `crs_sbet`: the preset with `geodetic.trajectory: sbet`: frames.csv gives each frame's time, the
+  POS positions and INS attitudes come from a 200 Hz SBET (sim/pos.py).
 
 Per run, against truth/frames.csv (its lat_deg, lon_deg, h_m and ned_* angles): the RMS over the
 frames of the rig centre's 3-D error (the estimate's WGS 84 lat/lon/h, or for `local` its ENU x, y,
 z, and the truth's, both to geocentric by pyproj), its mean north, east and down errors, and the RMS
 attitude error (the angle of ned_from_rig estimated times the truth's inverse; for `local`
 rig_from_world's, the same angle); then the largest distance between poses.csv's x, y, z and
-pyproj's conversion of its lat/lon/h into crs, and each camera's calibrated fx, fy against the local
-run's. The CSV has one row per run.
+pyproj's conversion of its lat/lon/h into crs, each camera's calibrated fx, fy against the local
+run's, and (evaluate) the largest difference of the rig centres, the lever arm's components (mm) and
+the boresight's (arc-min) from the `crs` run's. The CSV has one row per run.
 """
 
 from __future__ import annotations
@@ -37,13 +40,13 @@ from ..geo import crs_from_ecef, ecef_from_enu, ecef_from_geodetic, ned_from_ece
 from ..geometry import rotation_error, rotation_from_euler_zyx, rotation_from_quat
 from ..sim.config import load_config
 from ..sim.simulate import simulate
-from ..stages import extrinsics, intrinsics, pose
+from ..stages import evaluate, extrinsics, intrinsics, pose
 from ..workspace import CENTER, QUAT, Workspace
 
 log = logging.getLogger(__name__)
 
 ARCMIN_PER_RAD = 60.0 * 180.0 / np.pi
-RUNS = ("local", "crs", "crs_default_origin")
+RUNS = ("local", "crs", "crs_default_origin", "crs_sbet")
 NED_ANGLES = ("ned_heading_deg", "ned_pitch_deg", "ned_roll_deg")
 
 
@@ -58,7 +61,8 @@ def bench_geodetic(csv: Path, preset: Path = Path("config/simulate/geodetic.yaml
         datasets = simulated_pair(preset, root)
         results = {run: calibrated_poses(datasets[run], root / run) for run in RUNS}
         truth = pd.read_csv(datasets["crs"] / "truth" / "frames.csv", dtype={"frame": str}).set_index("frame")
-        table = pd.DataFrame([run_row(run, *results[run], results["local"][1], truth, config) for run in RUNS])
+        table = pd.DataFrame([{**run_row(run, *results[run], results["local"][1], truth, config),
+                               **pos_calibration_row(results[run][0], results["crs"][0])} for run in RUNS])
     write_csv_atomic(csv, table)
     return table
 
@@ -69,7 +73,8 @@ def simulated_pair(preset: Path, root: Path) -> dict[str, Path]:
     settings = yaml.safe_load(Path(preset).read_text())
     local = {**settings, "geodetic": {**settings["geodetic"], "crs": None}}
     folders = {}
-    for run, chosen in (("crs", settings), ("local", local)):
+    sbet = {**settings, "geodetic": {**settings["geodetic"], "trajectory": "sbet"}}
+    for run, chosen in (("crs", settings), ("local", local), ("crs_sbet", sbet)):
         write_yaml_atomic(root / f"{run}.yaml", chosen)
         folders[run] = simulate(root / f"{run}.yaml", root / run / "dataset")
     copy = root / "crs_default_origin" / "dataset"
@@ -89,6 +94,7 @@ def calibrated_poses(dataset: Path, folder: Path) -> tuple[Workspace, dict, pd.D
     intrinsics.run(workspace, intrinsics.CONFS["ours"])
     extrinsics.run(workspace)
     pose.run(workspace)
+    evaluate.run(workspace)
     rig = workspace.load_rig()
     focal = {name: (camera.fx, camera.fy) for name, camera in rig.cameras.items()}
     written = pd.read_csv(workspace.poses_path(), dtype={"frame": str, "group": str})
@@ -127,6 +133,19 @@ def run_row(run: str, workspace: Workspace, focal: dict, poses: pd.DataFrame, lo
     return row
 
 
+def pos_calibration_row(workspace: Workspace, reference: Workspace) -> dict:
+    """The largest difference of the rig centres (mm), of tables/lever_arm.csv's lever arm (mm) and
+    boresight (arc-min) of `workspace` from those of `reference` (the crs run)."""
+    tables = [w.load_table("lever_arm").set_index("parameter")["value"] for w in (workspace, reference)]
+    lever = [f"lever_{a}" for a in "xyz"]
+    boresight = [f"boresight_{a}" for a in "xyz"]
+    centres = [w.load_poses()[list(CENTER)].to_numpy(float) for w in (workspace, reference)]
+    comparable = workspace.dataset.geo is not None and workspace.dataset.geo.origin == reference.dataset.geo.origin
+    return {"centres_vs_crs_max_mm": 1e3 * float(np.abs(centres[0] - centres[1]).max()) if comparable else np.nan,
+            "lever_vs_crs_max_mm": 1e3 * float(np.abs(tables[0][lever] - tables[1][lever]).max()),
+            "boresight_vs_crs_max_arcmin": float(np.abs(tables[0][boresight] - tables[1][boresight]).max())}
+
+
 def print_table(table: pd.DataFrame, csv: Path) -> None:
     """The table, then the issue's figures: each crs run's position and attitude RMS against
     1.05 x the local run's (+ 2 mm, + 0.02')."""
@@ -138,5 +157,6 @@ def print_table(table: pd.DataFrame, csv: Path) -> None:
         print(f"{row.run}: position {row.pos_rms_m:.4f} m vs local {local.pos_rms_m:.4f} m "
               f"({'within' if position_ok else 'NOT within'} 1.05x + 2 mm); attitude {row.att_rms_arcmin:.3f}' vs "
               f"{local.att_rms_arcmin:.3f}' ({'within' if attitude_ok else 'NOT within'} 1.05x + 0.02'); x, y, z vs "
-              f"pyproj {row.xyz_vs_pyproj_max_mm:.2g} mm; focal lengths vs local {row.focal_vs_local_max_px:.2g} px")
+              f"pyproj {row.xyz_vs_pyproj_max_mm:.2g} mm; focal lengths vs local {row.focal_vs_local_max_px:.2g} px; "
+              f"lever arm vs crs {row.lever_vs_crs_max_mm:.2g} mm, boresight {row.boresight_vs_crs_max_arcmin:.2g}'")
     print(f"\ntable: {csv}")
