@@ -30,7 +30,7 @@ from .camera import MODELS
 from .errors import DatasetError, yaml_problem
 from .files import write_csv_atomic, write_yaml_atomic
 from .geo import (FAR_OUTSIDE_DEG, Geo, GeoError, crs_3d, default_origin, ecef_from_crs, enu_from_ecef,
-                  outside_area_of_use)
+                  outside_area_of_use, pyproj_crs)
 from .geometry import quat_from_rotation, rotation_from_euler_zyx
 from .trajectory import FORMATS, TrajectoryError, at_times, read_trajectory
 
@@ -457,9 +457,9 @@ def point_sigma(points: pd.DataFrame, point_ids) -> np.ndarray:
 
 
 def largest_point_sigma(points: pd.DataFrame, point_ids) -> np.ndarray:
-    """(n,) the largest of each point's survey sigmas along x, y, z (`point_sigma`), 0 where none is
-    given: the calibration's survey term, one sigma for all three axes."""
-    return np.nan_to_num(point_sigma(points, point_ids)).max(axis=1)
+    """(n,) the largest of each point's survey sigmas along x, y, z (`point_sigma`), NaN where none is
+    given (the calibration estimates it): the calibration's survey term, one sigma for all three axes."""
+    return np.fmax.reduce(point_sigma(points, point_ids), axis=1)
 
 
 def _check_disjoint(control: Table, ground: Table) -> None:
@@ -567,6 +567,10 @@ def _dataset_geo(manifest: _Manifest, control: pd.DataFrame, table: Table) -> Ge
     mean (geo.default_origin)."""
     if not manifest.crs:
         return None
+    for key in ("crs", "pos_crs"):
+        text = getattr(manifest, key)
+        if len(pyproj_crs(text).axis_info) < 3:
+            log.info("%s %s is 2-D: its z is taken as the ellipsoidal height", key, text)
     xyz = control[list(POINT_COLUMNS[1:])].to_numpy(float)
     origin = manifest.origin or default_origin(_ecef(manifest.crs, "crs", table, xyz, POINT_COLUMNS[1:]))
     return Geo(manifest.crs, manifest.pos_crs, origin)

@@ -62,14 +62,20 @@ class GeoError(DmaisError):
 
 
 @functools.lru_cache(maxsize=32)
-def crs_3d(text: str) -> pyproj.CRS:
-    """The CRS named by `text` (anything pyproj reads: EPSG:32633, WKT, a PROJ string), as a 3-D CRS:
-    a 2-D one gains an ellipsoidal height axis. GeoError when pyproj does not know it or it has no
-    datum to place points on the Earth."""
+def pyproj_crs(text: str) -> pyproj.CRS:
+    """The CRS named by `text` (anything pyproj reads: EPSG:32633, WKT, a PROJ string) as it is;
+    GeoError when pyproj does not know it."""
     try:
-        crs = pyproj.CRS.from_user_input(text)
+        return pyproj.CRS.from_user_input(text)
     except CRSError as error:
         raise GeoError(f"{text!r} is not a coordinate reference system pyproj knows ({_first_line(error)})") from None
+
+
+@functools.lru_cache(maxsize=32)
+def crs_3d(text: str) -> pyproj.CRS:
+    """The CRS named by `text` (pyproj_crs) as a 3-D CRS: a 2-D one gains an ellipsoidal height
+    axis. GeoError when pyproj does not know it or it has no datum to place points on the Earth."""
+    crs = pyproj_crs(text)
     if crs.is_engineering or (crs.is_vertical and not crs.is_compound) or crs.is_bound and crs.source_crs.is_engineering:
         raise GeoError(f"{text!r} ({crs.name}) is not tied to the Earth; give a geographic, projected, "
                        "geocentric or compound CRS")
