@@ -506,11 +506,10 @@ class Plausibility:
     0.2-0.45 px; tens of times the marker noise means wrong observations). max_focal_deviation:
     relative distance of fx and fy from the manifest's focal_px (when given) and of fx from fy.
     Besides these bounds `check_plausible` refuses an opencv-model distortion that folds back where
-    the observations are: fold_margin is the share of the way from the principal point to the fold
-    (in pixels, along each observation's direction, `Camera.fold_reach`) that no observation of the
-    calibration or held-out images may enter; one folding only beyond them (real wide-angle lenses'
-    polynomials turn in the image corners no board reached) is accepted with a warning giving its
-    one-to-one region. radial1 is spared that check: its one coefficient cannot follow a wide-angle lens to
+    the observations are: the fitted ray of no observation of the calibration or held-out images may
+    lie beyond 1 - fold_margin of the fold's undistorted radius (`Camera.fold_reach`); one folding
+    only beyond them (real wide-angle lenses' polynomials turn in the image corners no board reached)
+    is accepted with a warning giving its one-to-one region. radial1 is spared that check: its one coefficient cannot follow a wide-angle lens to
     the image corners without turning there (OpenCV's left*.jpg sample fits to 0.45 px with d = -0.26
     yet folds in the corners), and the paper's results must not change.
     """
@@ -547,7 +546,7 @@ def _fold_fault(result: IntrinsicsResult, margin: float) -> list[str]:
     cam, region = result.camera, result.one_to_one
     farthest = max(result.fold_reach, key=result.fold_reach.get)
     reach = result.fold_reach[farthest]
-    where = f"the farthest observation {reach:.0%} of the way from the principal point to the fold, image {farthest}"
+    where = f"the farthest observation's ray at {reach:.0%} of the fold's radius, image {farthest}"
     if not reach <= 1.0 - margin:
         return [f"its {cam.model} distortion ({describe(cam, first=4)}) folds back inside the image at the "
                 f"observations ({region.describe()}; {where}; limit {1.0 - margin:.0%})"]

@@ -316,11 +316,11 @@ def intrinsics_table(records: list[dict]) -> pd.DataFrame:
 def _one_to_one_text(region: dict | None) -> str:
     """The one-to-one region of a model that folds inside its image (an intrinsics record's
     "one_to_one"), as the table shows it: its radius from the principal point and share of the image,
-    and how far the observations reach towards the fold; "" for the whole image."""
+    and how far the observations' rays reach towards the fold; "" for the whole image."""
     if not region:
         return ""
     reach = region.get("observed_reach")
-    observed = "" if reach is None else f", observations to {reach:.0%} of the way"
+    observed = "" if reach is None else f", observations to {reach:.0%} of the fold's radius"
     return f"{region['radius_px']:.0f} px, {region['image_fraction']:.1%} of the image{observed}"
 
 
