@@ -48,6 +48,9 @@ MAX_GRADIENT_COSINE = 1e-6
 ALIGNMENT_MAX_ERROR_M = 1e-6
 COLMAP_PIXEL_OFFSET = 0.5  # COLMAP pixel = ours + 0.5 (see colmap_pixels)
 
+#: scipy's Levenberg-Marquardt stops at this relative step, cost decrease and gradient (xtol, ftol, gtol):
+#: a solved quantity is determined to about TOLERANCE x its scale in the problem (a centre: the scene's extent).
+TOLERANCE = 1e-12
 
 @dataclass
 class ImageBlock:
@@ -211,7 +214,8 @@ class _RigProblem:
     def solve(self, p0: np.ndarray, max_nfev: int) -> np.ndarray:
         """Levenberg-Marquardt from p0 (n_params,); returns the optimum (n_params,)."""
         sol = least_squares(lambda p: self.evaluate(p, False), p0, jac=lambda p: self.evaluate(p, True)[1],
-                            method="lm", x_scale="jac", xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=max_nfev)
+                            method="lm", x_scale="jac", xtol=TOLERANCE, ftol=TOLERANCE, gtol=TOLERANCE,
+                            max_nfev=max_nfev)
         return sol.x
 
     def recentred(self, p: np.ndarray) -> "_RigProblem":
