@@ -12,7 +12,11 @@ extrinsics, pose with every camera), each in WORK/<run>:
 - `crs_default_origin`: the same files without dataset.yaml's origin, so the computation frame is
   the topocentric frame at the control points' mean instead;
 - `crs_sbet`: the preset with `geodetic.trajectory: sbet`: frames.csv gives each frame's time, the
-  POS positions and INS attitudes come from a 200 Hz SBET (sim/pos.py).
+  POS positions and INS attitudes come from a 200 Hz SBET (sim/pos.py);
+- `utm_as_metric`: the mistake the pipeline used to invite: the crs dataset's files with the POS and
+  RTK positions converted to the crs too (pyproj) and no crs in dataset.yaml, so that the map
+  projection's coordinates are taken as a metric frame; its x, y, z read as UTM with ellipsoidal
+  heights, its heading, pitch, roll (grid east, north, up) as the NED attitude, as a user would.
 
 Per run, against truth/frames.csv (its lat_deg, lon_deg, h_m and ned_* angles): the RMS over the
 frames of the rig centre's 3-D error (the estimate's WGS 84 lat/lon/h, or for `local` its ENU x, y,
@@ -36,7 +40,7 @@ import pandas as pd
 import yaml
 
 from ..files import write_csv_atomic, write_yaml_atomic
-from ..geo import crs_from_ecef, ecef_from_enu, ecef_from_geodetic, ned_from_ecef
+from ..geo import crs_from_ecef, ecef_from_crs, ecef_from_enu, ecef_from_geodetic, ned_from_ecef
 from ..geometry import rotation_error, rotation_from_euler_zyx, rotation_from_quat
 from ..sim.config import load_config
 from ..sim.simulate import simulate
@@ -46,7 +50,9 @@ from ..workspace import CENTER, QUAT, Workspace
 log = logging.getLogger(__name__)
 
 ARCMIN_PER_RAD = 60.0 * 180.0 / np.pi
-RUNS = ("local", "crs", "crs_default_origin", "crs_sbet")
+RUNS = ("local", "crs", "crs_default_origin", "crs_sbet", "utm_as_metric")
+#: NED axes from east-north-up ones.
+NED_FROM_ENU = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 NED_ANGLES = ("ned_heading_deg", "ned_pitch_deg", "ned_roll_deg")
 
 
@@ -84,7 +90,27 @@ def simulated_pair(preset: Path, root: Path) -> dict[str, Path]:
     manifest.pop("origin")
     write_yaml_atomic(copy / "dataset.yaml", manifest)
     folders["crs_default_origin"] = copy
+    folders["utm_as_metric"] = utm_as_metric(folders["crs"], root / "utm_as_metric" / "dataset")
     return folders
+
+
+def utm_as_metric(source: Path, copy: Path) -> Path:
+    """A copy of the crs dataset `source` with its pos_crs positions (frames.csv pos_*, images.csv
+    prior_x..z) converted to its crs and dataset.yaml without crs, pos_crs and origin."""
+    shutil.rmtree(copy, ignore_errors=True)
+    shutil.copytree(source, copy)
+    manifest = yaml.safe_load((copy / "dataset.yaml").read_text())
+    crs, pos_crs = manifest.pop("crs"), manifest.pop("pos_crs")
+    manifest.pop("origin", None)
+    write_yaml_atomic(copy / "dataset.yaml", manifest)
+    for name, columns in (("frames.csv", ["pos_x", "pos_y", "pos_z"]), ("images.csv", ["prior_x", "prior_y", "prior_z"])):
+        table = pd.read_csv(copy / name, dtype=str, keep_default_na=False)
+        xyz = table[columns].replace("", "nan").to_numpy(float)
+        given = np.isfinite(xyz).all(axis=1)
+        xyz[given] = crs_from_ecef(crs, ecef_from_crs(pos_crs, xyz[given]))
+        table[columns] = [[repr(float(v)) if np.isfinite(v) else "" for v in row] for row in xyz]
+        table.to_csv(copy / name, index=False)
+    return copy
 
 
 def calibrated_poses(dataset: Path, folder: Path) -> tuple[Workspace, dict, pd.DataFrame]:
@@ -109,7 +135,12 @@ def run_row(run: str, workspace: Workspace, focal: dict, poses: pd.DataFrame, lo
     true_ecef = ecef_from_geodetic(truth[["lat_deg", "lon_deg", "h_m"]].to_numpy(float))
     true_ned = rotation_from_euler_zyx(np.radians(truth[list(NED_ANGLES)].to_numpy(float)))
     geo = workspace.dataset.geo
-    if geo is None:  # local: x, y, z in the ENU frame at the simulator's origin
+    if run == "utm_as_metric":  # x, y, z read as crs coordinates, the world's axes as east, north, up
+        ecef = ecef_from_crs(config["geodetic"]["crs"], poses[list(CENTER)].to_numpy(float))
+        taken = NED_FROM_ENU @ np.swapaxes(rotation_from_quat(poses[list(QUAT)].to_numpy(float)), 1, 2)
+        attitude = rotation_error(taken, true_ned)
+        xyz_mm = np.nan
+    elif geo is None:  # local: x, y, z in the ENU frame at the simulator's origin
         origin = tuple(config["geodetic"]["origin"])
         ecef = ecef_from_enu(origin, poses[list(CENTER)].to_numpy(float))
         attitude = rotation_error(rotation_from_quat(poses[list(QUAT)].to_numpy(float)),
