@@ -11,8 +11,9 @@ and moved, so distances and angles in it are true ones; a map projection's are n
 factor, its grid convergence). Without `crs` the world frame is the dataset's own metric frame and
 nothing here is used.
 
-Only dataset.py (reading) and the results' writers (workspace.py, stages/pose.py) call this module;
-the algorithms never see a CRS.
+It is called at the edges only: dataset.py (reading, trajectory.py's positions), workspace.py and
+stages/ (pose, evaluate, export: writing), the simulator's geodetic world and the benches; the
+algorithms never see a CRS.
 
 Names: `ecef` WGS 84 geocentric (EPSG:4978) metres (n, 3); `enu` the computation frame (n, 3);
 `geodetic` (n, 3) latitude (deg), longitude (deg), ellipsoidal height (m), WGS 84 (EPSG:4979);
