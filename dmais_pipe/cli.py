@@ -242,7 +242,8 @@ def _cmd_bench_sigma(args) -> None:
     simulations = simulation_grid(args.seeds, args.vibration, args.survey, pixel_px=args.pixel,
                                   mount_arcmin=args.mount, groups=args.groups, frames_per_group=args.frames_per_group,
                                   calib_images=args.calib_images, truth_rig=args.truth_rig,
-                                  patterns=args.pattern) if args.simulate else []
+                                  patterns=args.pattern, field_survey_m=args.field_survey,
+                                  sigma_given=not args.survey_not_given) if args.simulate else []
     print_table(bench_sigma(args.csv, args.results or [], simulations, work=args.work), args.csv)
 
 
@@ -504,6 +505,11 @@ def _parser() -> argparse.ArgumentParser:
     sigma.add_argument("--calib-images", type=_positive_int, default=6,
                        help="calibration images per camera (default: %(default)s, the demo's)")
     sigma.add_argument("--truth-rig", action="store_true", help="solve with the simulator's rig, no calibration")
+    sigma.add_argument("--field-survey", type=float,
+                       help="the calibration field's survey sigma per axis, m (default: the simulator's)")
+    sigma.add_argument("--survey-not-given", action="store_true",
+                       help="leave the points' survey sigmas (sigma_m) out of the datasets: the calibration and "
+                            "the flight estimate them")
     _add_pattern_argument(sigma)
     sigma.add_argument("--work", type=Path, help="keep each simulation in WORK/<name> (default: a temporary folder)")
     sigma.add_argument("--csv", type=Path, default=Path("reports/bench/sigma.csv"),

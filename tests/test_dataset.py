@@ -409,7 +409,7 @@ def test_points_vertical_survey_sigma_is_read_written_and_looked_up_per_axis(tmp
     ids = ["G1", "G2", "A1", "nowhere"]
     np.testing.assert_array_equal(point_sigma(ds.points, ids), [
         [0.015, 0.015, 0.025], [np.nan, np.nan, 0.03], [np.nan] * 3, [np.nan] * 3])
-    np.testing.assert_array_equal(largest_point_sigma(ds.points, ids), [0.025, 0.03, 0.0, 0.0])
+    np.testing.assert_array_equal(largest_point_sigma(ds.points, ids), [0.025, 0.03, np.nan, np.nan])  # NaN: none given
 
 
 @pytest.mark.parametrize("column", ["sigma_m", "sigma_z_m"])

@@ -490,7 +490,7 @@ def test_calibration_covariance_carries_the_intrinsics_errors_into_the_rig(calib
 
     dataset, results, _ = calibrated
     workspace = Workspace.open(dataset, results)
-    observations, cameras, sigma, std, survey = extrinsics._inputs(workspace, 0.0)
+    observations, cameras, sigma, std, survey, _ = extrinsics._inputs(workspace, 0.0)
     ds = workspace.dataset
 
     def solve(cams):
@@ -530,7 +530,7 @@ def test_the_rig_responds_to_its_control_points_survey_errors(calibrated):
 
     dataset, results, _ = calibrated
     workspace = Workspace.open(dataset, results)
-    observations, cameras, sigma, std, survey = extrinsics._inputs(workspace, 0.0)
+    observations, cameras, sigma, std, survey, _ = extrinsics._inputs(workspace, 0.0)
     ds = workspace.dataset
 
     def solve(points):
@@ -566,3 +566,30 @@ def test_the_rig_responds_to_its_control_points_survey_errors(calibrated):
                   [-(S @ Z) + R, S * np.sqrt(own), e]])
     np.testing.assert_allclose(matrix, M @ M.T, rtol=1e-9, atol=1e-12 * np.abs(matrix).max())
     assert np.linalg.eigvalsh(matrix).min() > -1e-9 * np.abs(matrix).max()
+
+
+def test_survey_table_names_the_given_sigmas(calibrated):
+    """tables/survey_sigma.csv: a row per camera's intrinsics and the rig's, every point's sigma given
+    (the simulator's field survey, 1 mm) and none estimated."""
+    _, results, written = calibrated
+    table = pd.read_csv(results / "tables" / "survey_sigma.csv")
+    assert results / "tables" / "survey_sigma.csv" in written
+    assert list(table["calibration"]) == ["C0", "C1", "C2", "C3", "C4", "rig"]
+    assert (table["points_given"] > 5).all() and (table["points_estimated"] == 0).all()
+    np.testing.assert_allclose(table["sigma_given_max_m"], 0.001)
+    assert table["sigma_estimated_m"].isna().all()
+
+
+def test_one_survey_sigma_for_the_field_rescales_a_cameras_estimated_effects():
+    """with_field_survey_sigma: a camera's effects of the points it estimated scale by the field's sigma
+    over its own, those of given points stay, and each variance keeps its pixel share."""
+    from dmais_pipe.calib.extrinsics import with_field_survey_sigma
+
+    effect = {"A": np.full((2, 3), 0.1), "B": np.full((2, 3), 0.2)}
+    std = {"C1": {"fx": 1.0, "fy": 2.0}}
+    pixel = np.array([1.0, 4.0]) - 3 * (0.1**2 + 0.2**2)
+    new_std, new_effect = with_field_survey_sigma(std, {"C1": effect}, {"C1": 0.002}, 0.003, {"A"})
+    np.testing.assert_allclose(new_effect["C1"]["A"], 0.15)
+    np.testing.assert_allclose(new_effect["C1"]["B"], 0.2)
+    np.testing.assert_allclose([new_std["C1"]["fx"] ** 2, new_std["C1"]["fy"] ** 2], pixel + 3 * (0.15**2 + 0.2**2))
+    assert with_field_survey_sigma(std, {"C1": effect}, {"C1": None}, 0.003, {"A"}) == (std, {"C1": effect})

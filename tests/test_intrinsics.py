@@ -440,6 +440,33 @@ def surveyed_field_views(camera: Camera, n_views: int, rng):
     return field, rows, poses
 
 
+def test_intrinsics_estimate_the_fields_survey_sigma_where_none_is_given():
+    """As above with the survey sigma not given (NaN): the calibration estimates it from its residuals
+    (3 mm drawn, 0.05 px), and the covariance with the estimate predicts the focal length's spread,
+    where the exact points' covariance (the sigma taken as 0) predicts a fraction of it."""
+    from dmais_pipe.calib.intrinsics import bundle_adjust
+
+    rng = np.random.default_rng(22)
+    field, rows, poses = surveyed_field_views(WIDE, 8, rng)
+    survey, noise = 0.003, 0.05
+    focal, predicted, estimates, exact = [], [], [], []
+    for _ in range(60):
+        surveyed = field + rng.normal(scale=survey, size=field.shape)
+        data = {k: (surveyed[r], WIDE.project(poses[k].apply(field[r])) + rng.normal(scale=noise, size=(len(r), 2)))
+                for k, r in rows.items()}
+        unknown = {k: (r.astype(str), np.full(len(r), np.nan)) for k, r in rows.items()}
+        camera, _, _, cov, effect, estimated = bundle_adjust(WIDE, poses, data, unknown)
+        assert sorted(effect) == sorted({str(k) for r in rows.values() for k in r})
+        focal.append(camera.fx)
+        predicted.append(np.sqrt(cov[0, 0]))
+        estimates.append(estimated)
+        exact.append(np.sqrt(bundle_adjust(WIDE, poses, data)[3][0, 0]))
+    assert abs(np.sqrt(np.mean(np.square(estimates))) / survey - 1) < 0.1, np.percentile(estimates, [5, 50, 95])
+    spread = np.std(focal)
+    assert abs(np.mean(predicted) / spread - 1) < 0.25, (np.mean(predicted), spread)
+    assert np.mean(exact) < 0.5 * spread
+
+
 def test_intrinsics_sigma_carries_the_fields_survey_error():
     """The same field surveyed with 3 mm errors and imaged with 0.05 px noise, 150 times: the spread
     of the calibrated focal length is the covariance's with the survey sigma given, and several
@@ -455,7 +482,8 @@ def test_intrinsics_sigma_carries_the_fields_survey_error():
         data = {k: (surveyed[r], WIDE.project(poses[k].apply(field[r])) + rng.normal(scale=noise, size=(len(r), 2)))
                 for k, r in rows.items()}
         sigmas = {k: (r.astype(str), np.full(len(r), survey)) for k, r in rows.items()}
-        camera, _, _, cov, effect = bundle_adjust(WIDE, poses, data, sigmas)
+        camera, _, _, cov, effect, estimated = bundle_adjust(WIDE, poses, data, sigmas)
+        assert estimated is None  # every sigma given
         assert sorted(effect) == sorted({str(k) for r in rows.values() for k in r})
         stacked = np.hstack(list(effect.values()))  # (5, 3P): the survey's share of the covariance
         assert np.all(np.diag(stacked @ stacked.T) <= np.diag(cov) * (1 + 1e-12))

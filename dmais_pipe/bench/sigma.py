@@ -60,6 +60,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
+from ..dataset import CONTROL_POINTS, GROUND_POINTS, POINT_SIGMA, POINT_SIGMA_Z
 from ..errors import DmaisError
 from ..evaluate import subset_cameras
 from ..files import copy_atomic, write_csv_atomic, write_yaml_atomic
@@ -253,18 +254,24 @@ class Simulation:
     eval_images: int = 2
     truth_rig: bool = False
     pattern: str = DEFAULTS["flight"]["pattern"]
+    #: the calibration field's survey sigma per axis (m; None: the simulator's), and whether the
+    #: dataset gives the survey sigmas (sigma_m) or the calibration and the flight estimate them
+    field_survey_m: float | None = None
+    sigma_given: bool = True
 
     @property
     def name(self) -> str:
         pattern = "" if self.pattern == DEFAULTS["flight"]["pattern"] else f"-{self.pattern}"
-        return (f"vib{self.vibration_arcmin:g}-mount{self.mount_arcmin:g}-survey{self.survey_m:g}-px{self.pixel_px:g}"
-                f"-{self.groups}x{self.frames_per_group}{pattern}-seed{self.seed}"
-                f"{'-truthrig' if self.truth_rig else ''}")
+        field = "" if self.field_survey_m is None else f"-field{self.field_survey_m:g}"
+        return (f"vib{self.vibration_arcmin:g}-mount{self.mount_arcmin:g}-survey{self.survey_m:g}{field}"
+                f"-px{self.pixel_px:g}-{self.groups}x{self.frames_per_group}{pattern}-seed{self.seed}"
+                f"{'-truthrig' if self.truth_rig else ''}{'' if self.sigma_given else '-nosigma'}")
 
     def config(self) -> dict:
         """Its simulator settings (a mapping over sim.config.DEFAULTS); flight.pattern only when not the default."""
         pattern = {} if self.pattern == DEFAULTS["flight"]["pattern"] else {"pattern": self.pattern}
-        return {"name": self.name, "seed": self.seed,
+        field = {} if self.field_survey_m is None else {"field": {"survey_sigma_m": self.field_survey_m}}
+        return {"name": self.name, "seed": self.seed, **field,
                 "intrinsics": {"calib_images_per_camera": self.calib_images,
                                "eval_images_per_camera": self.eval_images},
                 "flight": {"frames_per_group": self.frames_per_group, "sites": alternating_sites(self.groups),
@@ -293,6 +300,8 @@ def calibrated_workspace(simulation: Simulation, folder: Path) -> Workspace:
     folder.mkdir(parents=True, exist_ok=True)
     write_yaml_atomic(folder / "simulation.yaml", simulation.config())
     dataset = simulate(folder / "simulation.yaml", folder / "dataset")
+    if not simulation.sigma_given:
+        _without_survey_sigmas(dataset)
     workspace = Workspace.open(dataset, folder)
     if simulation.truth_rig:
         copy_atomic(dataset / "truth" / "rig.json", workspace.rig_path)
@@ -300,6 +309,14 @@ def calibrated_workspace(simulation: Simulation, folder: Path) -> Workspace:
         intrinsics.run(workspace, intrinsics.CONFS["ours"])
         extrinsics.run(workspace)
     return workspace
+
+
+def _without_survey_sigmas(dataset: Path) -> None:
+    """The bench's simulated `dataset` with its points' survey sigma columns taken out: a survey
+    whose sigma the user does not know."""
+    for name in (CONTROL_POINTS, GROUND_POINTS):
+        table = pd.read_csv(dataset / name, dtype={"point_id": str})
+        write_csv_atomic(dataset / name, table.drop(columns=[POINT_SIGMA, POINT_SIGMA_Z], errors="ignore"))
 
 
 def run_simulation(simulation: Simulation, folder: Path) -> Path:

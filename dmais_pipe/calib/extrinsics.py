@@ -103,6 +103,30 @@ def _intrinsics_parts(parameters: list[str], std: dict[str, dict], survey_effect
     return np.clip(own - np.sum(shared**2, axis=1), 0.0, None), shared, points
 
 
+def with_field_survey_sigma(std: dict[str, dict], survey_effect: dict[str, dict],
+                            estimated_sigma: dict[str, float | None], field_sigma: float,
+                            estimated_points: set[str]) -> tuple[dict[str, dict], dict[str, dict]]:
+    """Each camera's intrinsics' `std` and `survey_effect` (<camera>.json's) with the effects of the points
+    whose survey sigma it estimated (`estimated_points`, at its own estimate `estimated_sigma`) made
+    with the field's one, `field_sigma` (the rig adjustment's estimate): the effects scale with the
+    sigma, and each variance keeps its pixel share (std^2 less the effects' squares) beside the
+    rescaled effects'. One sigma for the field: its points' errors are the same draws in every
+    camera's calibration and in the rig's (`calibration_covariance`)."""
+    std, survey_effect = dict(std), dict(survey_effect)
+    for camera, own_sigma in estimated_sigma.items():
+        old = survey_effect.get(camera) or {}
+        if not own_sigma or not old:
+            continue
+        ratio = field_sigma / own_sigma
+        new = {point: np.asarray(effect, dtype=float) * (ratio if point in estimated_points else 1.0)
+               for point, effect in old.items()}
+        change = sum(np.sum(new[point]**2 - np.asarray(old[point], dtype=float)**2, axis=1) for point in new)
+        std[camera] = {name: float(np.sqrt(max(value**2 + change[k], 0.0)))
+                       for k, (name, value) in enumerate((std.get(camera) or {}).items())}
+        survey_effect[camera] = new
+    return std, survey_effect
+
+
 def calibration_covariance(ba: RigBAResult, std: dict[str, dict], survey_effect: dict[str, dict]
                            ) -> tuple[list[str], np.ndarray]:
     """The calibration's parameters (every camera's intrinsics, "<camera>.fx" ... ".d", or ... ".k3"

@@ -46,6 +46,7 @@ from ..errors import DmaisError
 from ..geometry import Rigid3, exp_so3, pose_jacobian
 from .planar import plane_frame, planar_start
 from .pnpf import solve_pnpf
+from .survey_variance import estimate as estimate_survey_variance
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +98,10 @@ class IntrinsicsResult:
     #: one-sigma survey error of the control point along x, y, z (its share of the covariance behind
     #: `std`; empty where no sigma is given).
     survey_effect: dict[str, np.ndarray] = field(default_factory=dict)
+    #: the control points' survey sigma per axis (m) estimated from the calibration's residuals
+    #: (`survey_variance`) where the dataset gives none (`sigma_m` empty or absent), and the effects
+    #: of those points made with it; None where every point's sigma is given (or the points are exact)
+    survey_sigma_m: float | None = None
     #: where the model folds inside the image: the part of it where the model is one-to-one, and per
     #: image (calibration and held-out) the largest `Camera.fold_reach` of its fitted points' rays
     one_to_one: OneToOneRegion | None = None
@@ -116,6 +121,7 @@ class IntrinsicsResult:
             "camera": self.name, **model, "width": cam.width, "height": cam.height, **self._parameters(),
             "std": {k: float(v) for k, v in self.std.items()},
             "survey_effect": {k: np.asarray(v, dtype=float).tolist() for k, v in self.survey_effect.items()},
+            "survey_sigma_estimated_m": None if self.survey_sigma_m is None else float(self.survey_sigma_m),
             "eps_calib_px": float(self.eps_calib_px),
             "eps_eval_px": None if self.eps_eval_px is None else float(self.eps_eval_px),
             "n_images": int(self.n_images), "n_observations": int(self.n_observations),
@@ -238,9 +244,11 @@ def bundle_adjust(camera: Camera, poses: dict[str, Rigid3], data: dict[str, tupl
     """LM over the camera model's parameters (radial1: fx, fy, cx, cy, d) and every pose (eq. `refine`).
 
     survey: {image: (point ids (n,), survey sigma per axis (n,) m)} of each image's points, for the
-    covariance (`_covariance`); None or sigma 0: exact points. Returns (camera, poses, residuals
+    covariance (`_covariance`); None or sigma 0: exact points; NaN: a sigma not given, estimated from
+    the residuals (`survey_variance`, one for all such points). Returns (camera, poses, residuals
     (N, 2), covariance of the intrinsics (P, P), survey effect {point id: (P, 3)}: the change of
-    the intrinsics per one-sigma survey error of the point along x, y, z; P parameters of the model).
+    the intrinsics per one-sigma survey error of the point along x, y, z; P parameters of the model,
+    the estimated survey sigma (m) or None where none was to be estimated).
     """
     names = list(data)
     R0 = [poses[k].R for k in names]
@@ -277,36 +285,54 @@ def bundle_adjust(camera: Camera, poses: dict[str, Rigid3], data: dict[str, tupl
     new_poses = {k: Rigid3(exp_so3(p[P + 6 * i: P + 3 + 6 * i]) @ R0[i], p[P + 3 + 6 * i: P + 6 + 6 * i])
                  for i, k in enumerate(names)}
     J = jac(p)
-    ids, S = _survey_jacobian(fitted, p[P:], names, R0, data, survey or {})
-    cov, effect = _covariance(J, sol.fun, S)
+    ids, sigma, unit = _survey_jacobian(fitted, p[P:], names, R0, data, survey or {})
+    sigma, estimated = _with_estimated_sigma(J, sol.fun, unit, sigma)
+    cov, effect = _covariance(J, sol.fun, unit * np.repeat(sigma, 3))
     return (fitted, new_poses, sol.fun.reshape(-1, 2), cov[:P, :P],
-            {str(point): effect[:P, 3 * k:3 * k + 3] for k, point in enumerate(ids) if point})  # "": exact points
+            {str(point): effect[:P, 3 * k:3 * k + 3] for k, point in enumerate(ids)}, estimated)
+
+
+def _with_estimated_sigma(J: np.ndarray, residuals: np.ndarray, unit: np.ndarray, sigma: np.ndarray
+                          ) -> tuple[np.ndarray, float | None]:
+    """The points' survey sigmas (P,) with those not given (NaN) estimated from the residuals
+    (`survey_variance.estimate`; J (2N, n), residuals (2N,), unit (2N, 3P) per metre of each point's
+    error), and that estimate (None where every sigma was given)."""
+    unknown = np.isnan(sigma)
+    if not unknown.any():
+        return sigma, None
+    columns = np.repeat(unknown, 3)
+    given = unit[:, ~columns] * np.repeat(sigma[~unknown], 3)
+    found = estimate_survey_variance(J, residuals, unit[:, columns], given).survey_sigma
+    return np.where(unknown, found, sigma), found
 
 
 def _survey_jacobian(camera: Camera, pose_parameters: np.ndarray, names: list[str], R0: list[np.ndarray], data,
-                     survey) -> tuple[np.ndarray, np.ndarray]:
-    """The surveyed points' ids (P,) and (2N, 3P) the residuals' change per one-sigma survey error of
-    each along x, y, z (the same point in every image that sees it); no columns where no point has
-    a survey sigma."""
+                     survey) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The ids (P,) of the points not taken as exact (survey sigma above 0, or NaN: not given), their
+    sigmas (P,) and (2N, 3P) the residuals' change per metre of survey error of each along x, y, z
+    (the same point in every image that sees it)."""
     n = sum(len(data[k][0]) for k in names)
     if not survey:
-        return np.zeros(0, dtype=object), np.zeros((2 * n, 0))
+        return np.zeros(0, dtype=str), np.zeros(0), np.zeros((2 * n, 0))
     given = [survey.get(k, (np.full(len(data[k][0]), ""), np.zeros(len(data[k][0])))) for k in names]
     point_ids = np.concatenate([np.asarray(ids, dtype=str) for ids, _ in given])
     sigma = np.concatenate([np.asarray(sigma, dtype=float) for _, sigma in given])
-    if not np.any(sigma > 0):
-        return np.zeros(0, dtype=object), np.zeros((2 * n, 0))
-    ids, point = np.unique(np.where(sigma > 0, point_ids, ""), return_inverse=True)
+    surveyed = ~(sigma <= 0)  # NaN too
+    if not surveyed.any():
+        return np.zeros(0, dtype=str), np.zeros(0), np.zeros((2 * n, 0))
+    ids, first, point = np.unique(point_ids[surveyed], return_index=True, return_inverse=True)
+    rows = np.flatnonzero(surveyed)
     blocks = []
     for i, k in enumerate(names):
         q = pose_parameters[6 * i: 6 + 6 * i]
         R = exp_so3(q[:3]) @ R0[i]
         _, J_cam, _ = project_unmasked(data[k][0] @ R.T + q[3:], camera, jacobian=True)
         blocks.append(J_cam @ R)  # (n, 2, 3): d pixel / d world point
+    blocks = np.concatenate(blocks)
     S = np.zeros((2 * n, 3 * len(ids)))
-    for row, (block, k) in enumerate(zip(np.concatenate(blocks), point)):
-        S[2 * row:2 * row + 2, 3 * k:3 * k + 3] = block * sigma[row]
-    return ids, S
+    for row, k in zip(rows, point):
+        S[2 * row:2 * row + 2, 3 * k:3 * k + 3] = blocks[row]
+    return ids, sigma[rows][first], S
 
 
 def _covariance(J: np.ndarray, residuals: np.ndarray, survey: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -392,7 +418,7 @@ def _load_inputs(points_world_per_image, uv_per_image, eval_points_world_per_ima
 
 
 def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, skipped, pnpf_focal=None,
-            survey_effect=None):
+            survey_effect=None, survey_sigma_m=None):
     eps_eval, eval_poses, eval_residuals = _evaluate(camera, evals, name)
     std = dict(zip(camera.parameter_names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()))
     ends = np.cumsum([len(X) for X, _ in calib.values()])[:-1]  # residuals are stacked in calib's order
@@ -406,6 +432,7 @@ def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, s
         image_eps_px={k: _rms(r) for k, r in calib_residuals.items()},
         eval_image_eps_px={k: _rms(r) for k, r in eval_residuals.items()},
         image_residuals_px={**calib_residuals, **eval_residuals}, survey_effect=survey_effect or {},
+        survey_sigma_m=survey_sigma_m,
         one_to_one=camera.one_to_one_region() if folds else None,
         fold_reach=_fold_reach(camera, {**poses, **eval_poses}, {**calib, **evals}) if folds else {})
 
@@ -449,8 +476,9 @@ def calibrate_camera(points_world_per_image, uv_per_image, width: int, height: i
             poses[image], _ = estimate_pose(camera0, X, uv, guess=pnpf.get(image))
         except DmaisError:
             raise DmaisError(f"camera {name}, image {image}: PnP failed") from None
-    camera, poses, residuals, cov, effect = bundle_adjust(camera0, poses, calib, survey)
-    result = _finish(name, "ours", camera, poses, residuals, cov, calib, evals, centre, skipped, focal, effect)
+    camera, poses, residuals, cov, effect, estimated = bundle_adjust(camera0, poses, calib, survey)
+    result = _finish(name, "ours", camera, poses, residuals, cov, calib, evals, centre, skipped, focal, effect,
+                     estimated)
     log.info("camera %s: %s, eps_calib %.4f px, eps_eval %s px", name, describe(camera), result.eps_calib_px,
              "n/a" if result.eps_eval_px is None else f"{result.eps_eval_px:.4f}")
     return result
@@ -661,5 +689,6 @@ def calibrate_camera_dlt_lm(points_world_per_image, uv_per_image, width: int, he
     K = np.median(np.array(Ks), axis=0)
     camera0 = Camera(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], d=0.0, width=width, height=height, model=model)
     poses = {k: estimate_pose(camera0, X, uv)[0] for k, (X, uv) in calib.items()}
-    camera, poses, residuals, cov, effect = bundle_adjust(camera0, poses, calib, survey)
-    return _finish(name, "dlt_lm", camera, poses, residuals, cov, calib, evals, centre, skipped, survey_effect=effect)
+    camera, poses, residuals, cov, effect, estimated = bundle_adjust(camera0, poses, calib, survey)
+    return _finish(name, "dlt_lm", camera, poses, residuals, cov, calib, evals, centre, skipped, survey_effect=effect,
+                   survey_sigma_m=estimated)

@@ -36,6 +36,7 @@ from scipy.optimize import least_squares
 from ..camera import Camera, project_unmasked
 from ..errors import DmaisError
 from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
+from .survey_variance import estimate as estimate_survey_variance
 
 log = logging.getLogger(__name__)
 
@@ -47,16 +48,16 @@ MAX_GRADIENT_COSINE = 1e-6
 # RANSAC threshold of pycolmap's prior alignment: only the shadow images (exactly on their priors) are inliers
 ALIGNMENT_MAX_ERROR_M = 1e-6
 COLMAP_PIXEL_OFFSET = 0.5  # COLMAP pixel = ours + 0.5 (see colmap_pixels)
-
 #: scipy's Levenberg-Marquardt stops at this relative step, cost decrease and gradient (xtol, ftol, gtol):
 #: a solved quantity is determined to about TOLERANCE x its scale in the problem (a centre: the scene's extent).
 TOLERANCE = 1e-12
 
+
 @dataclass
 class ImageBlock:
     """Observations of one image: camera, placement, world points X (n, 3), pixels uv (n, 2), centre
-    prior; the points' ids (n,) and survey sigmas per axis (n,) m (0: exact), for the survey's share
-    of the covariance (`RigBAResult.survey_response`)."""
+    prior; the points' ids (n,) and survey sigmas per axis (n,) m (0: exact; NaN: not given, estimated
+    from the residuals), for the survey's share of the covariance (`RigBAResult.survey_response`)."""
 
     image: str
     camera: str
@@ -95,6 +96,12 @@ class RigBAResult:
     #: response: the control points are held fixed, so their errors are not in camera_covariance)
     survey_points: list[str] = field(default_factory=list)
     survey_response: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    #: the survey sigma (m) of the points whose sigma the dataset does not give, estimated from the
+    #: adjustment's residuals (`survey_variance`; their response made with it), their ids, and the number
+    #: of observations of them; None, [] and 0 where every point's sigma is given (or exact)
+    survey_sigma_m: float | None = None
+    survey_estimated_points: list[str] = field(default_factory=list)
+    survey_estimated_observations: int = 0
 
 
 def _camera_sigmas(cameras, pixel_sigma: float | dict[str, float]) -> dict[str, float]:
@@ -231,17 +238,17 @@ class _RigProblem:
         """
         r, J = self.evaluate(p, True)
         dof = max(self.n_res - self.n_params, 1)
-        sigma0_sq = float(r @ r) / dof
         scale = np.linalg.norm(J, axis=0)
         scale[scale == 0] = 1.0
         Js = J / scale
         inverse = np.linalg.pinv(Js.T @ Js) / np.outer(scale, scale)
+        survey_points, survey_sigma, unit = self.survey_jacobian(p)
+        sigma0_sq, survey_sigma, estimated = self._variances(J, r, dof, inverse, survey_points, survey_sigma, unit)
         cov = inverse * sigma0_sq
         std_all = np.sqrt(np.clip(np.diag(cov), 0, None))
         camera_rows = np.arange(6 * len(self.names))  # the cameras' parameters come first
         sensitivity = -inverse @ J.T @ self.intrinsics_jacobian(p)
-        survey_points, survey_jacobian = self.survey_jacobian(p)
-        survey_response = -inverse @ J.T @ survey_jacobian
+        survey_response = -inverse @ J.T @ (unit * np.repeat(survey_sigma, 3))
         std = {self.reference: {"rotation_deg": [0.0, 0.0, 0.0], "center_m": [0.0, 0.0, 0.0]}}
         for c in self.names:
             k = self.cam_index[c]
@@ -267,7 +274,28 @@ class _RigProblem:
                            intrinsics_sensitivity=sensitivity[camera_rows], intrinsics_cameras=list(self.cameras),
                            intrinsics_parameters=[f"{c}.{k}" for c, cam in self.cameras.items()
                                                   for k in cam.parameter_names],
-                           survey_points=survey_points, survey_response=survey_response[camera_rows])
+                           survey_points=survey_points, survey_response=survey_response[camera_rows],
+                           **estimated)
+
+    @staticmethod
+    def _variances(J: np.ndarray, r: np.ndarray, dof: int, inverse: np.ndarray, points: list[str],
+                   survey_sigma: np.ndarray, unit: np.ndarray) -> tuple[float, np.ndarray, dict]:
+        """The unit weight's variance, the survey points' (P,) sigmas and RigBAResult's survey_sigma_m,
+        survey_estimated_points and survey_estimated_observations. Where every point's sigma is given,
+        the variance is the residuals' (their survey share in it); else the points' sigma not given (NaN)
+        is estimated (`survey_variance.estimate`) and the variance is the pixel noise's alone, the
+        survey's share carried by the response."""
+        unknown = np.isnan(survey_sigma)
+        if not unknown.any():
+            return float(r @ r) / dof, survey_sigma, {}
+        columns = np.repeat(unknown, 3)
+        given = unit[:, ~columns] * np.repeat(survey_sigma[~unknown], 3)
+        found = estimate_survey_variance(J, r, unit[:, columns], given, inverse)
+        observations = int(np.count_nonzero(np.any(unit[:, columns] != 0, axis=1))) // 2
+        ids = [point for point, free in zip(points, unknown) if free]
+        return (found.pixel_variance, np.where(unknown, found.survey_sigma, survey_sigma),
+                {"survey_sigma_m": found.survey_sigma, "survey_estimated_points": ids,
+                 "survey_estimated_observations": observations})
 
     def intrinsics_jacobian(self, p: np.ndarray) -> np.ndarray:
         """(n_res, n) the whitened residuals' derivatives with respect to every camera's model
@@ -285,13 +313,15 @@ class _RigProblem:
             J[r0:r0 + 2 * len(b.X), k:k + size] = J_intrinsics.reshape(-1, size) / self.sig[b.camera]
         return J
 
-    def survey_jacobian(self, p: np.ndarray) -> tuple[list[str], np.ndarray]:
-        """The surveyed points' ids (P,) (the blocks' points with a survey sigma above 0) and (n_res,
-        3 P) the whitened residuals' change per one-sigma error of each point's coordinates along x,
-        y, z (the same point in every image that sees it)."""
+    def survey_jacobian(self, p: np.ndarray) -> tuple[list[str], np.ndarray, np.ndarray]:
+        """The control points not taken as exact (P,) (the blocks' points with a survey sigma above 0, or
+        NaN: not given), their sigmas (P,) and (n_res, 3 P) the whitened residuals' change per metre of
+        error of each point's coordinates along x, y, z (the same point in every image that sees it)."""
         given = [(b, r0) for b, (r0, _) in zip(self.blocks, self.rows)
                  if b.point_ids is not None and b.point_sigma is not None]
-        ids = sorted({str(i) for b, _ in given for i, sigma in zip(b.point_ids, b.point_sigma) if sigma > 0})
+        sigma_of = {str(i): float(sigma) for b, _ in given for i, sigma in zip(b.point_ids, b.point_sigma)
+                    if not sigma <= 0}
+        ids = sorted(sigma_of)
         column = {point: 3 * k for k, point in enumerate(ids)}
         J = np.zeros((self.n_res, 3 * len(ids)))
         for b, r0 in given:
@@ -301,11 +331,11 @@ class _RigProblem:
             X_cam = ((b.X - Cj) @ Rj.T - c) @ Rc
             J_cam = project_unmasked(X_cam, cam, jacobian=True)[1]
             d_point = J_cam @ (Rc.T @ Rj) / self.sig[b.camera]  # (n, 2, 3): X_cam = R_c^T R_j (X - C_j) - ...
-            for row, (point, sigma) in enumerate(zip(b.point_ids, b.point_sigma)):
-                if sigma > 0:
-                    k = column[str(point)]
-                    J[r0 + 2 * row:r0 + 2 * row + 2, k:k + 3] = d_point[row] * sigma
-        return ids, J
+            for row, point in enumerate(b.point_ids):
+                k = column.get(str(point))
+                if k is not None:
+                    J[r0 + 2 * row:r0 + 2 * row + 2, k:k + 3] = d_point[row]
+        return ids, np.array([sigma_of[point] for point in ids]), J
 
 
 def refine_rig(cameras: dict[str, Camera], reference: str, blocks: list[ImageBlock],

@@ -357,7 +357,7 @@ def _rig_section(ctx: _Context) -> dict:
         if not rigs:
             raise MissingInput(f"{ctx.workspace.rig_path} is missing (run `dmais extrinsics`).")
         image, drawn = Image.inline(_svg(rig_layout_figure(rigs))), list(rigs)
-    extrinsics = {name: ctx.workspace.load_table(name) for name in ("extrinsics_R", "extrinsics_t")}
+    extrinsics = {name: ctx.workspace.load_table(name) for name in ("extrinsics_R", "extrinsics_t", "survey_sigma")}
     return {"layout": image, "drawn_rigs": drawn,
             "rig": table_of(rig_table(ctx.rig)) if ctx.workspace.has_rig() else None,
             **{name: None if table is None else table_of(table) for name, table in extrinsics.items()}}

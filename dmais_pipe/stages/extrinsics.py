@@ -4,7 +4,8 @@ Writes rig.json (calibrated with the RTK camera-centre priors when the conf uses
 images carry them) and its COLMAP twin rig_config.json, extrinsics/rig_{known,unknown}.json for
 both cases and, when both cases can run, the paper's comparison: tables/extrinsics_R.csv,
 extrinsics_t.csv (with standard deviations and a note per row), tables/extrinsics_note.txt and
-figures/extrinsics_layout.svg.
+figures/extrinsics_layout.svg; and tables/survey_sigma.csv, the control points' survey sigma each
+calibration took, given or estimated from its residuals (calib.survey_variance).
 """
 
 from __future__ import annotations
@@ -17,10 +18,12 @@ import numpy as np
 import pandas as pd
 
 from ..calib.extrinsics import (DEFAULT_BACKEND, PRIOR_CENTER, ExtrinsicsResult, annotate_tables, calibrate_extrinsics,
-                                calibration_covariance, colmap_rig_config, extrinsics_tables, image_prefixes)
+                                calibration_covariance, colmap_rig_config, extrinsics_tables, image_prefixes,
+                                with_field_survey_sigma)
 from ..calib.localize import DEFAULT_CENTER_SIGMA_M, DEFAULT_PIXEL_SIGMA_PX
 from ..calib.rig_ba import BACKENDS
 from ..camera import Camera
+from ..dataset import largest_point_sigma
 from ..errors import DmaisError
 from ..report.layout import write_layout_svg
 from ..workspace import Workspace
@@ -29,6 +32,10 @@ from . import setting
 log = logging.getLogger(__name__)
 
 LAYOUT_LABELS = ("with camera-centre priors (known)", "without priors (unknown)")
+#: tables/survey_sigma.csv: per calibration (a camera's intrinsics, the rig), its control points whose
+#: survey sigma the dataset gives and whose it estimated, the given sigmas' largest and the estimate (m).
+SURVEY_SIGMA_COLUMNS = ("calibration", "points_given", "points_estimated", "sigma_given_max_m",
+                        "sigma_estimated_m")
 
 
 @dataclass(frozen=True)
@@ -60,9 +67,15 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     has_priors = bool(images[list(PRIOR_CENTER)].notna().all(axis=1).any())
     if conf.use_priors and not has_priors:
         log.warning("extrinsics: no camera-centre priors in %s; calibrating without", dataset.root / "images.csv")
-    *inputs, intrinsics_std, survey_effect = _inputs(workspace, conf.pixel_sigma_px)
+    *inputs, intrinsics_std, survey_effect, estimated = _inputs(workspace, conf.pixel_sigma_px)
     results = {case: _calibrate(workspace, conf, case, *inputs) for case in ([True, False] if has_priors else [False])}
     chosen = results[conf.use_priors and has_priors]
+    unknown = _points_without_sigma(workspace)
+    if chosen.ba.survey_sigma_m is not None:
+        log.info("extrinsics: the control points' survey sigma, not given for %d of them, estimated as %.2f mm",
+                 len(unknown), 1e3 * chosen.ba.survey_sigma_m)
+        intrinsics_std, survey_effect = with_field_survey_sigma(intrinsics_std, survey_effect, estimated,
+                                                                chosen.ba.survey_sigma_m, unknown)
     parameters, covariance = calibration_covariance(chosen.ba, intrinsics_std, survey_effect)
     written = [workspace.save_rig(chosen.rig, **chosen.extra(), calibration_covariance={
                    "parameters": parameters, "matrix": covariance.tolist()}),
@@ -72,25 +85,57 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
                 for case, result in results.items()]
     if len(results) == 2:
         written += _write_comparison(workspace, results[True], results[False])
-    return written
+    return written + [workspace.save_table("survey_sigma", _survey_table(workspace, chosen, estimated, unknown))]
+
+
+def _points_without_sigma(workspace: Workspace) -> set[str]:
+    """The control points whose survey sigma the dataset does not give."""
+    ids = workspace.dataset.control_points.index.astype(str)
+    return {point for point, sigma in zip(ids, largest_point_sigma(workspace.dataset.points, ids)) if np.isnan(sigma)}
+
+
+def _survey_table(workspace: Workspace, chosen: ExtrinsicsResult, estimated: dict[str, float | None],
+                  unknown: set[str]) -> pd.DataFrame:
+    """tables/survey_sigma.csv (SURVEY_SIGMA_COLUMNS): a row per camera's intrinsics (the points of its
+    survey_effect), then the rig's (rig.json's, the points of its adjustment)."""
+    points = workspace.dataset.points
+    rows = []
+    for camera in estimated:
+        seen = list((workspace.load_intrinsics(camera)[1].get("survey_effect") or {}))
+        rows.append(_survey_row(camera, seen, points, unknown, estimated[camera]))
+    rig_points = list(chosen.ba.survey_points)
+    rows.append(_survey_row("rig", rig_points, points, unknown, chosen.ba.survey_sigma_m))
+    return pd.DataFrame(rows, columns=list(SURVEY_SIGMA_COLUMNS))
+
+
+def _survey_row(calibration: str, seen: list[str], points: pd.DataFrame, unknown: set[str],
+                sigma: float | None) -> dict:
+    given = [point for point in seen if point not in unknown]
+    sigmas = largest_point_sigma(points, given) if given else np.zeros(0)
+    return {"calibration": calibration, "points_given": len(given), "points_estimated": len(seen) - len(given),
+            "sigma_given_max_m": float(sigmas.max()) if len(sigmas) else np.nan,
+            "sigma_estimated_m": np.nan if sigma is None else sigma}
 
 
 def _inputs(workspace: Workspace, pixel_sigma_px: float
-            ) -> tuple[pd.DataFrame, dict[str, Camera], dict[str, float], dict[str, dict], dict[str, dict]]:
+            ) -> tuple[pd.DataFrame, dict[str, Camera], dict[str, float], dict[str, dict], dict[str, dict],
+                       dict[str, float | None]]:
     """The extrinsics images' observations, the calibrated cameras, each camera's pixel sigma
     (pixel_sigma_px when positive, else from the camera's calibration), and its intrinsics' standard
-    deviations and control-point survey effects (its record's `std` and `survey_effect`, empty where
-    it has none: for rig.json's `calibration_covariance`)."""
+    deviations, control-point survey effects and the survey sigma it estimated (its record's `std`,
+    `survey_effect` and `survey_sigma_estimated_m`, empty or None where it has none: for rig.json's
+    `calibration_covariance`)."""
     dataset = workspace.dataset
     images = dataset.images_of("extrinsics")
     observations = workspace.load_observations()
     observations = observations[observations["image"].isin(set(images["image"]))]
     names = [c for c in dataset.cameras if c in set(images["camera"]) or c == dataset.reference_camera]
-    cameras, pixel_sigma, std, survey_effect = {}, {}, {}, {}
+    cameras, pixel_sigma, std, survey_effect, estimated = {}, {}, {}, {}, {}
     for name in names:
         cameras[name], record = workspace.load_intrinsics(name)
         std[name] = record.get("std") or {}
         survey_effect[name] = record.get("survey_effect") or {}
+        estimated[name] = record.get("survey_sigma_estimated_m")
         # per-axis pixel sigma from the intrinsic calibration's RMS point distance (eps / sqrt 2)
         eps = record.get("eps_calib_px")
         if pixel_sigma_px > 0:
@@ -99,7 +144,7 @@ def _inputs(workspace: Workspace, pixel_sigma_px: float
             pixel_sigma[name] = float(eps) / np.sqrt(2.0)
         else:
             pixel_sigma[name] = DEFAULT_PIXEL_SIGMA_PX
-    return observations, cameras, pixel_sigma, std, survey_effect
+    return observations, cameras, pixel_sigma, std, survey_effect, estimated
 
 
 def _calibrate(workspace: Workspace, conf: Conf, use_priors: bool, observations: pd.DataFrame,

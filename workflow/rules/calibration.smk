@@ -54,6 +54,8 @@ rule extrinsics:
                          category="Tables", subcategory="Calibration"),
         translations=report(f"{RESULTS}/tables/extrinsics_t.csv", caption="../report/extrinsics_tables.rst",
                             category="Tables", subcategory="Calibration"),
+        survey=report(f"{RESULTS}/tables/survey_sigma.csv", caption="../report/survey_sigma.rst",
+                      category="Tables", subcategory="Calibration"),
     params:
         dataset_dir=DATASET_DIR,
         results=RESULTS,
