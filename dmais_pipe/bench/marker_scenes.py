@@ -75,6 +75,7 @@ def starts(truth: np.ndarray, rng: np.random.Generator, low: float = 0.3, high: 
 
 TEXTURE_CAMERA = Camera(8000.0, 8000.0, 1999.5, 1499.5, 0.0, 4000, 3000)
 GROUND_DN = 110.0  # mean of the textured ground
+MARKER_MEAN_DN = 120.0  # mean of a marker's two levels (those of 35 / 205 DN)
 TEXTURE_SLOTS = np.array([[400.0 + 800.0 * i, 750.0 + 1500.0 * j] for j in range(2) for i in range(5)])
 
 
@@ -94,10 +95,12 @@ def ground_texture(shape: tuple[int, int], rng: np.random.Generator, std_dn: flo
 
 def textured_scene(rng: np.random.Generator, texture_dn: float, texture_blur_px: float, blur_px: float = 0.8,
                    noise_dn: float = 2.0, sizes_px: tuple[float, float] = (30.0, 500.0), max_tilt_deg: float = 45.0,
-                   camera: Camera = TEXTURE_CAMERA, slots: np.ndarray = TEXTURE_SLOTS):
+                   camera: Camera = TEXTURE_CAMERA, slots: np.ndarray = TEXTURE_SLOTS,
+                   contrasts_dn: tuple[float, float] | None = None):
     """(image (h, w) uint8, truth (n, 2)) of one marker per slot (n, 2) (jittered by up to 100 px;
     size log-uniform in `sizes_px`, foreshortened by up to `max_tilt_deg`, random roll and
-    polarity, levels 35 / 205 DN scaled by 1 +- 0.1) on ground of mean GROUND_DN and texture
+    polarity, levels 35 / 205 DN scaled by 1 +- 0.1, or with `contrasts_dn` (low, high) levels
+    MARKER_MEAN_DN -+ half a contrast log-uniform in it) on ground of mean GROUND_DN and texture
     `texture_dn` std blurred by `texture_blur_px` (`ground_texture`), all under a Gaussian optical
     blur `blur_px` and read noise `noise_dn`."""
     boards = []
@@ -106,8 +109,7 @@ def textured_scene(rng: np.random.Generator, texture_dn: float, texture_blur_px:
         boards.append(marker_board(slot + rng.uniform(-100, 100, 2), size, rng.uniform(0, max_tilt_deg),
                                    rng.uniform(-np.pi, np.pi), rng.uniform(0, np.pi), int(rng.choice([-1, 1])),
                                    camera))
-    factors = np.clip(1.0 + 0.1 * rng.standard_normal(len(boards)), 0.7, 1.3)
-    levels = np.column_stack([35.0 * factors, 205.0 * factors])
+    levels = marker_levels(rng, len(boards), contrasts_dn)
     flat = RenderSettings(background_mean=0.0)
     painted = coverage_image(camera, POSE, boards, flat, levels)
     ground = coverage_image(camera, POSE, boards, replace(flat, background_mean=1.0), np.zeros((len(boards), 2)))
@@ -117,3 +119,13 @@ def textured_scene(rng: np.random.Generator, texture_dn: float, texture_blur_px:
     image += rng.normal(0.0, noise_dn, image.shape).astype(np.float32)
     truth = np.concatenate([camera.project(POSE.apply(b.corners())) for b in boards] or [np.zeros((0, 2))])
     return np.clip(image + 0.5, 0, 255).astype(np.uint8), truth
+
+
+def marker_levels(rng: np.random.Generator, count: int, contrasts_dn: tuple[float, float] | None = None) -> np.ndarray:
+    """(count, 2) dark and bright levels (DN) of `count` markers: 35 / 205 DN scaled by 1 +- 0.1
+    (within 0.7-1.3), or MARKER_MEAN_DN -+ half a contrast log-uniform in `contrasts_dn` (low, high)."""
+    if contrasts_dn is None:
+        factors = np.clip(1.0 + 0.1 * rng.standard_normal(count), 0.7, 1.3)
+        return np.column_stack([35.0 * factors, 205.0 * factors])
+    contrast = np.exp(rng.uniform(*np.log(contrasts_dn), count))
+    return MARKER_MEAN_DN + 0.5 * np.column_stack([-contrast, contrast])

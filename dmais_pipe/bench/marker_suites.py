@@ -46,7 +46,8 @@ def run_suite(suite: str, csv, seed: int = 0, images: int | None = None) -> dict
                out["photos"], base.with_name(base.stem + "_photos.csv"))
     if suite in ("texture", "all"):
         out["texture"] = bench_texture(images=images or 2, seed=seed)
-        _print("detection on textured ground (12 MP, 10 markers of 30-500 px each; last row: all cells)",
+        _print("detection on textured ground (12 MP, 10 markers each: nominal 30-500 px, faint 30-120 px of 75-170 DN "
+               "up to 60 deg; last row: all cells)",
                out["texture"], base.with_name(base.stem + "_texture.csv"))
         print(f"cells meeting the target: {int(out['texture']['ok'].iloc[:-1].sum())} / {len(out['texture']) - 1}\n")
     return out

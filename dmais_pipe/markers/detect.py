@@ -24,10 +24,15 @@
 4. Textured ground (`ground_texture_like`): the contrast threshold stops at MIN_CONTRAST so that
    markers in the shade are found on gravel and grass, but there the ground itself forms X's of
    that contrast: saddles of its texture, clean over the first rings only (scores 0.25-0.58 on
-   texture of 25-40 DN blurred by 0.8-2.5 px, contrast up to 13 x the clutter). An X whose
-   contrast is below TEXTURE_FACTOR x the clutter must score at least TEXTURE_MIN_SCORE, stay a
-   clean X to 10 px (markers of 30 px and more seen at up to 45 deg score >= 0.87 there), else it
-   is rejected (TEXTURE).
+   texture of 25-40 DN blurred by 0.8-2.5 px, contrast up to 13 x the clutter). A saddle of a
+   band-limited texture is smooth: on a ring about it the ground is at best a sinusoid of twice the
+   angle (the saddle's second-order term), whose ring quality is the bimodality of a sinusoid,
+   8 / pi^2 = 0.81, while a marker's ring is a square wave that only the optical blur rounds. An X
+   whose contrast is below TEXTURE_FACTOR x the clutter must either score at least
+   TEXTURE_MIN_SCORE, stay a clean X to 10 px (markers of 30 px and more seen at up to 45 deg
+   score >= 0.87 there), or be sharper than a smooth saddle on a ring near its clean radius
+   (`sharpness` >= SHARP_QUALITY: a marker too small or too steep to stay clean to 10 px still has
+   a square-wave ring), else it is rejected (TEXTURE).
 """
 
 from __future__ import annotations
@@ -70,7 +75,16 @@ ASYMMETRIC_REASONS = (ASYMMETRIC, "poor fit", NO_CLEAN_X)  # refinement failures
 # markers of >= 30 px on that texture score >= 0.87. Both limits lie between, ~1.35 x from either side.
 TEXTURE_FACTOR = 18.0  # an X's contrast below this x the clutter is within what the texture forms
 TEXTURE_MIN_SCORE = MIN_QUALITY  # ... and needs a score of a clean X (quality MIN_QUALITY) to 10 px
-TEXTURE = f"within the ground texture (contrast < {TEXTURE_FACTOR:g} x clutter, score < {TEXTURE_MIN_SCORE:g})"
+# ... or a ring sharper than a smooth saddle's: the better of the rings at 3/4 of the clean radius and at
+# the clean radius (3-12 px; beyond the probe ring, so that the optical blur rounds less of them). Saddles
+# of 15-40 DN texture blurred by 0.8-2.5 px (553 that reached this rule) stayed <= 0.827 on either ring
+# (a sinusoid's 8 / pi^2 = 0.81, and noise); 30 px markers foreshortened up to 60 deg (15 px across),
+# 75-170 DN, on 40 DN texture (58 that the score alone rejected) >= 0.859, 30-60 px ones >= 0.90.
+# The limit lies between, 1.5-2 % from either side: the saddles' side is the sinusoid's bound.
+SHARP_RING_SHARES = (0.75, 1.0)
+SHARP_QUALITY = 0.84
+TEXTURE = (f"within the ground texture (contrast < {TEXTURE_FACTOR:g} x clutter, score < {TEXTURE_MIN_SCORE:g}, "
+           f"ring quality < {SHARP_QUALITY:g})")
 
 
 def _empty() -> pd.DataFrame:
@@ -126,12 +140,25 @@ def ground_texture_like(img: np.ndarray, uv: np.ndarray, radius: np.ndarray, sco
                         texture: float) -> np.ndarray:
     """(n,) True where the X-corners at uv (n, 2) of clean radius (n,) px and score (n,) in an
     image (h, w) of clutter `texture` (image units) could be a saddle of the ground's texture:
-    their contrast on the probe ring (`_probe_ring`) is below TEXTURE_FACTOR x the clutter and
-    their score below TEXTURE_MIN_SCORE."""
+    their contrast on the probe ring (`_probe_ring`) is below TEXTURE_FACTOR x the clutter, their
+    score below TEXTURE_MIN_SCORE and their ring no sharper than a smooth saddle's (`sharpness`
+    below SHARP_QUALITY)."""
     if len(uv) == 0:
         return np.zeros(0, dtype=bool)
     _, ring_contrast = _probe_ring(img, uv, radius)
-    return (np.abs(ring_contrast) < TEXTURE_FACTOR * texture) & (score < TEXTURE_MIN_SCORE)
+    within = (np.abs(ring_contrast) < TEXTURE_FACTOR * texture) & (score < TEXTURE_MIN_SCORE)
+    if within.any():
+        within[within] = sharpness(img, uv[within], radius[within]) < SHARP_QUALITY
+    return within
+
+
+def sharpness(img: np.ndarray, uv: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """(n,) the best `ring_quality` of the rings about uv (n, 2) at SHARP_RING_SHARES of the clean
+    radius (n,) px, 3-12 px: about 1 for a marker's square-wave ring, at most ~0.81 (a sinusoid)
+    for a smooth saddle of the ground's texture."""
+    quality = [ring_quality(sample(img, uv[:, None, :] + np.clip(share * radius, 3.0, 12.0)[:, None, None]
+                                   * ring_offsets(1.0)[None]))[0] for share in SHARP_RING_SHARES]
+    return np.max(quality, axis=0)
 
 
 def _probe_ring(img: np.ndarray, uv: np.ndarray, radius: np.ndarray):
