@@ -574,7 +574,7 @@ def test_survey_table_names_the_given_sigmas(calibrated):
     _, results, written = calibrated
     table = pd.read_csv(results / "tables" / "survey_sigma.csv")
     assert results / "tables" / "survey_sigma.csv" in written
-    assert list(table["calibration"]) == ["C0", "C1", "C2", "C3", "C4", "rig"]
+    assert list(table["calibration"]) == ["C0", "C1", "C2", "C3", "C4", "rig", "field"]
     assert (table["points_given"] > 5).all() and (table["points_estimated"] == 0).all()
     np.testing.assert_allclose(table["sigma_given_max_m"], 0.001)
     assert table["sigma_estimated_m"].isna().all()
@@ -593,3 +593,33 @@ def test_one_survey_sigma_for_the_field_rescales_a_cameras_estimated_effects():
     np.testing.assert_allclose(new_effect["C1"]["B"], 0.2)
     np.testing.assert_allclose([new_std["C1"]["fx"] ** 2, new_std["C1"]["fy"] ** 2], pixel + 3 * (0.15**2 + 0.2**2))
     assert with_field_survey_sigma(std, {"C1": effect}, {"C1": None}, 0.003, {"A"}) == (std, {"C1": effect})
+
+
+def test_a_field_without_survey_sigmas_has_its_sigma_estimated(calibrated, tmp_path):
+    """The same dataset with control_points.csv's sigma_m left out: every calibration estimates the
+    field's survey sigma (the simulator drew 1 mm), rig.json's covariance carries the cameras' pooled
+    estimate, and the rig's rotations' sigmas are those of the run given 1 mm within a third."""
+    dataset, results, _ = calibrated
+    copy = tmp_path / "dataset"
+    shutil.copytree(dataset, copy)
+    control = pd.read_csv(copy / "control_points.csv", dtype={"point_id": str})
+    control.drop(columns=["sigma_m"]).to_csv(copy / "control_points.csv", index=False)
+    workspace = Workspace.open(copy, tmp_path / "results")
+    intrinsics.run(workspace, intrinsics.CONFS["ours"])
+    extrinsics.run(workspace)
+    table = pd.read_csv(tmp_path / "results" / "tables" / "survey_sigma.csv").set_index("calibration")
+    assert (table["points_given"] == 0).all() and (table["points_estimated"] > 5).all()
+    assert table["sigma_estimated_m"].between(0.0006, 0.0016).all(), table
+    cameras = table.loc[["C0", "C1", "C2", "C3", "C4"]]
+    weights = [json.loads((tmp_path / "results" / "intrinsics" / f"{c}.json").read_text())["n_observations"]
+               for c in cameras.index]
+    assert table.loc["field", "sigma_estimated_m"] == pytest.approx(
+        np.sqrt(np.average(cameras["sigma_estimated_m"] ** 2, weights=weights)))
+
+    def rotation_sigmas(folder):
+        cov = json.loads((folder / "rig.json").read_text())["calibration_covariance"]
+        sigma = dict(zip(cov["parameters"], np.sqrt(np.diag(cov["matrix"]))))
+        return np.array([sigma[k] for k in cov["parameters"] if k.rsplit(".", 1)[1] in ("rx", "ry", "rz")])
+
+    ratio = rotation_sigmas(tmp_path / "results") / rotation_sigmas(results)
+    assert 0.67 < np.median(ratio) < 1.5, ratio

@@ -18,8 +18,8 @@ import numpy as np
 import pandas as pd
 
 from ..calib.extrinsics import (DEFAULT_BACKEND, PRIOR_CENTER, ExtrinsicsResult, annotate_tables, calibrate_extrinsics,
-                                calibration_covariance, colmap_rig_config, extrinsics_tables, image_prefixes,
-                                with_field_survey_sigma)
+                                calibration_covariance, colmap_rig_config, extrinsics_tables, field_survey_sigma,
+                                image_prefixes, with_field_survey_rig, with_field_survey_sigma)
 from ..calib.localize import DEFAULT_CENTER_SIGMA_M, DEFAULT_PIXEL_SIGMA_PX
 from ..calib.rig_ba import BACKENDS
 from ..camera import Camera
@@ -71,12 +71,17 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     results = {case: _calibrate(workspace, conf, case, *inputs) for case in ([True, False] if has_priors else [False])}
     chosen = results[conf.use_priors and has_priors]
     unknown = _points_without_sigma(workspace)
-    if chosen.ba.survey_sigma_m is not None:
+    field = field_survey_sigma(estimated)
+    field = chosen.ba.survey_sigma_m if field is None else field
+    ba = chosen.ba
+    if field is not None:
         log.info("extrinsics: the control points' survey sigma, not given for %d of them, estimated as %.2f mm",
-                 len(unknown), 1e3 * chosen.ba.survey_sigma_m)
-        intrinsics_std, survey_effect = with_field_survey_sigma(intrinsics_std, survey_effect, estimated,
-                                                                chosen.ba.survey_sigma_m, unknown)
-    parameters, covariance = calibration_covariance(chosen.ba, intrinsics_std, survey_effect)
+                 len(unknown), 1e3 * field)
+        intrinsics_std, survey_effect = with_field_survey_sigma(intrinsics_std, survey_effect,
+                                                                {c: sigma for c, (sigma, _) in estimated.items()},
+                                                                field, unknown)
+        ba = with_field_survey_rig(ba, field)
+    parameters, covariance = calibration_covariance(ba, intrinsics_std, survey_effect)
     written = [workspace.save_rig(chosen.rig, **chosen.extra(), calibration_covariance={
                    "parameters": parameters, "matrix": covariance.tolist()}),
                workspace.save_rig_config(colmap_rig_config(chosen.rig,
@@ -85,7 +90,7 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
                 for case, result in results.items()]
     if len(results) == 2:
         written += _write_comparison(workspace, results[True], results[False])
-    return written + [workspace.save_table("survey_sigma", _survey_table(workspace, chosen, estimated, unknown))]
+    return written + [workspace.save_table("survey_sigma", _survey_table(workspace, chosen, estimated, unknown, field))]
 
 
 def _points_without_sigma(workspace: Workspace) -> set[str]:
@@ -94,17 +99,19 @@ def _points_without_sigma(workspace: Workspace) -> set[str]:
     return {point for point, sigma in zip(ids, largest_point_sigma(workspace.dataset.points, ids)) if np.isnan(sigma)}
 
 
-def _survey_table(workspace: Workspace, chosen: ExtrinsicsResult, estimated: dict[str, float | None],
-                  unknown: set[str]) -> pd.DataFrame:
+def _survey_table(workspace: Workspace, chosen: ExtrinsicsResult, estimated: dict[str, tuple[float | None, int]],
+                  unknown: set[str], field: float | None) -> pd.DataFrame:
     """tables/survey_sigma.csv (SURVEY_SIGMA_COLUMNS): a row per camera's intrinsics (the points of its
-    survey_effect), then the rig's (rig.json's, the points of its adjustment)."""
+    survey_effect), the rig adjustment's (the points of its adjustment), and the field's, the sigma
+    rig.json's calibration covariance carries (`calib.extrinsics.field_survey_sigma`)."""
     points = workspace.dataset.points
     rows = []
-    for camera in estimated:
+    for camera, (sigma, _) in estimated.items():
         seen = list((workspace.load_intrinsics(camera)[1].get("survey_effect") or {}))
-        rows.append(_survey_row(camera, seen, points, unknown, estimated[camera]))
+        rows.append(_survey_row(camera, seen, points, unknown, sigma))
     rig_points = list(chosen.ba.survey_points)
     rows.append(_survey_row("rig", rig_points, points, unknown, chosen.ba.survey_sigma_m))
+    rows.append(_survey_row("field", list(workspace.dataset.control_points.index.astype(str)), points, unknown, field))
     return pd.DataFrame(rows, columns=list(SURVEY_SIGMA_COLUMNS))
 
 
@@ -119,12 +126,12 @@ def _survey_row(calibration: str, seen: list[str], points: pd.DataFrame, unknown
 
 def _inputs(workspace: Workspace, pixel_sigma_px: float
             ) -> tuple[pd.DataFrame, dict[str, Camera], dict[str, float], dict[str, dict], dict[str, dict],
-                       dict[str, float | None]]:
+                       dict[str, tuple[float | None, int]]]:
     """The extrinsics images' observations, the calibrated cameras, each camera's pixel sigma
     (pixel_sigma_px when positive, else from the camera's calibration), and its intrinsics' standard
-    deviations, control-point survey effects and the survey sigma it estimated (its record's `std`,
-    `survey_effect` and `survey_sigma_estimated_m`, empty or None where it has none: for rig.json's
-    `calibration_covariance`)."""
+    deviations, control-point survey effects and the survey sigma it estimated with its observations'
+    count (its record's `std`, `survey_effect`, `survey_sigma_estimated_m` and `n_observations`, empty
+    or None where it has none: for rig.json's `calibration_covariance`)."""
     dataset = workspace.dataset
     images = dataset.images_of("extrinsics")
     observations = workspace.load_observations()
@@ -135,7 +142,7 @@ def _inputs(workspace: Workspace, pixel_sigma_px: float
         cameras[name], record = workspace.load_intrinsics(name)
         std[name] = record.get("std") or {}
         survey_effect[name] = record.get("survey_effect") or {}
-        estimated[name] = record.get("survey_sigma_estimated_m")
+        estimated[name] = (record.get("survey_sigma_estimated_m"), int(record.get("n_observations") or 0))
         # per-axis pixel sigma from the intrinsic calibration's RMS point distance (eps / sqrt 2)
         eps = record.get("eps_calib_px")
         if pixel_sigma_px > 0:
