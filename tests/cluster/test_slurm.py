@@ -305,14 +305,18 @@ def _node_lost(nodes: list[str], runs: dict, tmp_path_factory, started_processes
                 "bench_pose: {repeats: 5, batch_frames: 10, stage_frames: 0}\n")  # as the bench's --stages run
     for copy in (local, cluster):
         (copy / f"{CAMPAIGN}.yaml").write_text(settings)
-    command = readme_cluster_commands()[0].strip().splitlines()[-1].replace("config/config.yaml", f"{CAMPAIGN}.yaml")
+    # every rule but export_colmap, as the bench's whole-workflow run: the campaign's image copies share their
+    # files, hence their COLMAP names
+    targets = f"reports/{CAMPAIGN}/report.html reports/{CAMPAIGN}/dataset.html"
+    command = readme_cluster_commands()[0].strip().splitlines()[-1].replace(
+        "snakemake ", f"snakemake {targets} ", 1).replace("config/config.yaml", f"{CAMPAIGN}.yaml")
     started = time.strftime("%Y-%m-%dT%H:%M:%S")
 
     def run(script: str, cwd: Path, name: str) -> subprocess.Popen:
         started_processes.append(start(f"source .venv/bin/activate\n{script}", cwd, logs / f"{name}.log"))
         return started_processes[-1]
 
-    clean = run(f"snakemake --cores 2 --configfile {CAMPAIGN}.yaml", local, "campaign_local")
+    clean = run(f"snakemake {targets} --cores 2 --configfile {CAMPAIGN}.yaml", local, "campaign_local")
     lost = run(command, cluster, "campaign_node_lost")
     results = cluster / "results" / CAMPAIGN
     killed = wait_for_jobs_on_every_node(lost, results / "markers" / "batches", nodes)
