@@ -34,8 +34,9 @@ paper: $(STAMP)
 test: $(STAMP)
 	PATH="$(BIN):$$PATH" $(BIN)/python -m pytest -q
 
-# The demo through the SLURM profile on a single-node SLURM brought up here (as root, from Debian's
-# packages: tests/cluster/slurm_up.sh), its tables compared with a local run's.
+# The demo and a campaign slice through the SLURM profile on a SLURM of three nodes brought up here (as
+# root, from Debian's packages: tests/cluster/slurm_up.sh), one node killed midway; tables compared with
+# local runs'.
 test-cluster: $(SLURM_STAMP)
 	PATH="$(BIN):$$PATH" DMAIS_CLUSTER_TEST=1 $(BIN)/python -m pytest -q tests/cluster
 
