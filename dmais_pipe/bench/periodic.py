@@ -141,6 +141,7 @@ def write_photo_dataset(photos: dict[str, dict], root: Path, seed: int, model: s
     cameras = {c: {"width": width, "height": height, "focal_px": FOCAL_PX, "model": model}
                for c in dict.fromkeys(p["camera"] for p in photos.values())}
     points = pd.DataFrame(board_points(), columns=["x", "y", "z"], index=pd.Index(point_ids(), name="point_id"))
+    points["sigma_m"] = 0.0  # a printed board's corners are exact, as OpenCV takes them (no survey to estimate)
     manifest = {"name": "chessboard", "reference_camera": next(iter(cameras)), "cameras": cameras,
                 "marker_size_m": SQUARE_M}
     observations = pd.concat([pd.DataFrame({"image": name, "point_id": point_ids(), "u": photo["corners"][:, 0],
