@@ -34,8 +34,8 @@ import numpy as np
 @dataclass(frozen=True)
 class SurveyVariance:
     """pixel_variance: s^2 (the residuals' unit squared); survey_sigma: sigma (the unit of S's columns'
-    inverse: m); survey_estimable: whether the residuals could tell the two apart (the 2 x 2 system
-    was regular), else survey_sigma is 0."""
+    inverse: m); survey_estimable: whether the residuals could tell the two apart (there are points to
+    estimate and residual dimensions outside the surveys' spans), else survey_sigma is 0."""
 
     pixel_variance: float
     survey_sigma: float
