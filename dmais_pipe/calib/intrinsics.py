@@ -47,6 +47,7 @@ from ..geometry import Rigid3, exp_so3, pose_jacobian
 from .planar import plane_frame, planar_start
 from .pnpf import solve_pnpf
 from .survey_variance import estimate as estimate_survey_variance
+from .survey_variance import inverse_normal
 
 log = logging.getLogger(__name__)
 
@@ -346,12 +347,8 @@ def _covariance(J: np.ndarray, residuals: np.ndarray, survey: np.ndarray) -> tup
     i.e. the residuals' sum of squares less what the survey errors are expected to put in it; and
     (n, 3P) N^-1 J^T S, the parameters' change per one-sigma survey error of each point and axis."""
     n_params = J.shape[1]
-    # Scale columns before inverting: fx ~ 1e4 and rotations ~ 1e-3 differ by many orders.
-    scale = np.linalg.norm(J, axis=0)
-    scale[scale == 0] = 1.0
-    Js = J / scale
     try:
-        inverse = np.linalg.pinv(Js.T @ Js) / np.outer(scale, scale)
+        inverse = inverse_normal(J)
     except np.linalg.LinAlgError:
         return np.full((n_params, n_params), np.nan), np.full((n_params, survey.shape[1]), np.nan)
     effect = inverse @ (J.T @ survey)  # (n, 3P)

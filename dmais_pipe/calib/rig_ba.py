@@ -37,6 +37,7 @@ from ..camera import Camera, project_unmasked
 from ..errors import DmaisError
 from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
 from .survey_variance import estimate as estimate_survey_variance
+from .survey_variance import inverse_normal
 
 log = logging.getLogger(__name__)
 
@@ -238,10 +239,7 @@ class _RigProblem:
         """
         r, J = self.evaluate(p, True)
         dof = max(self.n_res - self.n_params, 1)
-        scale = np.linalg.norm(J, axis=0)
-        scale[scale == 0] = 1.0
-        Js = J / scale
-        inverse = np.linalg.pinv(Js.T @ Js) / np.outer(scale, scale)
+        inverse = inverse_normal(J)
         survey_points, survey_sigma, unit = self.survey_jacobian(p)
         sigma0_sq, survey_sigma, estimated = self._variances(J, r, dof, inverse, survey_points, survey_sigma, unit)
         cov = inverse * sigma0_sq

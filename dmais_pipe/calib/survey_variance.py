@@ -43,14 +43,14 @@ class SurveyVariance:
 
 
 def estimate(J: np.ndarray, residuals: np.ndarray, unit: np.ndarray, given: np.ndarray | None = None,
-             inverse_normal: np.ndarray | None = None) -> SurveyVariance:
+             inverse: np.ndarray | None = None) -> SurveyVariance:
     """The pixel and survey variance components (module docstring) of a least-squares fit with Jacobian
     J (m, n) at its residuals (m,): unit (m, 3P) the residuals' change per unit survey error of the
     points whose sigma is to be estimated, given (m, 3Q) per one-sigma error of those whose sigma is
-    known (None: none); inverse_normal (n, n) (J^T J)^-1 if made already."""
+    known (None: none); inverse (n, n) (J^T J)^-1 if made already (`inverse_normal`)."""
     J, r, S = np.asarray(J, float), np.asarray(residuals, float), np.asarray(unit, float)
     m, n = J.shape
-    inverse = _inverse_normal(J) if inverse_normal is None else inverse_normal
+    inverse = inverse_normal(J) if inverse is None else inverse
     given = np.zeros((m, 0)) if given is None else np.asarray(given, float)
     K = S - J @ (inverse @ (J.T @ S))
     K_g = given - J @ (inverse @ (J.T @ given))
@@ -77,7 +77,7 @@ def _span(K: np.ndarray) -> tuple[np.ndarray, int]:
     return U[:, :k], k
 
 
-def _inverse_normal(J: np.ndarray) -> np.ndarray:
+def inverse_normal(J: np.ndarray) -> np.ndarray:
     """(J^T J)^-1 (pseudo-inverse) with J's columns scaled to unit norm first: a focal length in
     pixels and a rotation in radians differ by many orders."""
     scale = np.linalg.norm(J, axis=0)
