@@ -103,9 +103,10 @@ def cancel_jobs(folder: Path, seconds: float = 120) -> None:
         time.sleep(0.5)
 
 
-def running_jobs() -> list[tuple[str, str]]:
-    """(node, rule and wildcards: the plugin's job comment) of every running SLURM job."""
-    listed = subprocess.run(["squeue", "-h", "-t", "R", "-o", "%N|%k"], capture_output=True, text=True).stdout
+def running_jobs(states: str = "R") -> list[tuple[str, str]]:
+    """(node, rule and wildcards: the plugin's job comment) of every SLURM job in `states` (squeue's -t;
+    "all": every job the controller has not yet seen end)."""
+    listed = subprocess.run(["squeue", "-h", "-t", states, "-o", "%N|%k"], capture_output=True, text=True).stdout
     return [tuple(line.split("|", 1)) for line in listed.splitlines() if "|" in line]
 
 
@@ -339,7 +340,9 @@ def wait_for_jobs_on_every_node(process: subprocess.Popen, batches: Path, nodes:
     deadline = time.monotonic() + CAMPAIGN_TIMEOUT_S
     while True:
         jobs = running_jobs()
-        running = {batch_of(comment) for _, comment in jobs}
+        # a job whose table is written but still completing (CG) on the node to be killed ends NODE_FAIL
+        # and is run again: finished means ended for the controller
+        running = {batch_of(comment) for _, comment in running_jobs("all")}
         half_done = [(node, batch) for node, batch in ((n, batch_of(c)) for n, c in jobs)
                      if batch and batch.startswith("flight-") and not (batches / f"{batch}.csv").exists()
                      and len(_lines(batches / f"{batch}.progress")) > 1]
