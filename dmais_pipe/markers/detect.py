@@ -65,6 +65,9 @@ PRE_QUALITY = 0.3  # looser quality of the prefilter at the unrefined candidate 
 MIN_CLEAN_RADIUS = 4.0  # px: the ring must stay an X up to at least this radius
 RESPONSE_FACTOR = 0.004  # response threshold = (factor * min contrast)^2 at the half-resolution level
 MAX_CANDIDATES = 20000
+#: px: rings about a saddle peak beyond the MAX_CANDIDATES strongest that must all look like an X for it to
+#: be a candidate still (`candidates`): a marker of >= 30 px stays an X to ~8 px, a saddle of texture not.
+RESCUE_RADII_PX = (4.0, 6.0, 8.0)
 DUPLICATE_PX = 2.0
 MAX_SIGMA_PX = 0.1  # px: detections less certain than this are rejected (UNCERTAIN)
 UNCERTAIN = "uncertain for a detection (sigma > 0.1 px)"
@@ -169,13 +172,20 @@ def _probe_ring(img: np.ndarray, uv: np.ndarray, radius: np.ndarray):
 
 
 def candidates(img: np.ndarray, min_contrast: float, level: np.ndarray | None = None) -> np.ndarray:
-    """(k, 2) full-resolution candidate positions, strongest first (at most MAX_CANDIDATES);
-    `level`: cv2.pyrDown(img) if already made."""
+    """(k, 2) full-resolution candidate positions: the saddle peaks, strongest first, at most
+    MAX_CANDIDATES of them, then those of the weaker peaks that look like an X over every ring of
+    RESCUE_RADII_PX (`x_over_rings`); `level`: cv2.pyrDown(img) if already made. On strong texture
+    the peaks are ~10^5 and a faint marker's need not be among the strongest (a 40 DN texture at
+    1.2-2 px blur: ranks up to ~70,000 of ~220,000), but its rings stay an X where the texture's
+    saddles do not (among those peaks, ~600 of the texture's look as much an X as the least of the
+    markers)."""
     if min(img.shape) < 8:
         return np.zeros((0, 2))
     level = cv2.pyrDown(img) if level is None else level
     ys, xs, strength = saddle_peaks(saddle_response(level), min_contrast)
-    return strongest(2 * xs, 2 * ys, strength)
+    ordered = _by_strength(2 * xs, 2 * ys, strength)
+    kept, weaker = ordered[:MAX_CANDIDATES], ordered[MAX_CANDIDATES:]
+    return np.vstack([kept, weaker[x_over_rings(img, weaker, min_contrast)]]) if len(weaker) else kept
 
 
 def saddle_response(level: np.ndarray) -> np.ndarray:
@@ -208,8 +218,25 @@ def saddle_peaks(response: np.ndarray, min_contrast: float):
 def strongest(x: np.ndarray, y: np.ndarray, strength: np.ndarray) -> np.ndarray:
     """(k, 2) positions x, y (n,) ordered by strength (n,), strongest first, equal strengths in
     raster order (y, then x): at most MAX_CANDIDATES."""
-    order = np.lexsort((x, y, -strength))[:MAX_CANDIDATES]
+    return _by_strength(x, y, strength)[:MAX_CANDIDATES]
+
+
+def _by_strength(x: np.ndarray, y: np.ndarray, strength: np.ndarray) -> np.ndarray:
+    """(n, 2) positions x, y (n,) ordered by strength (n,), strongest first, equal strengths in raster order."""
+    order = np.lexsort((x, y, -strength))
     return np.column_stack([x[order], y[order]]).astype(float)
+
+
+def x_over_rings(img: np.ndarray, uv: np.ndarray, min_contrast: float) -> np.ndarray:
+    """(n,) True where the rings about uv (n, 2) at every radius of RESCUE_RADII_PX pass the
+    prefilter of `_verified` (quality PRE_QUALITY, contrast `min_contrast`), in the float image (h, w);
+    each ring tested on the positions the smaller ones passed."""
+    passed = np.ones(len(uv), dtype=bool)
+    for radius in RESCUE_RADII_PX:
+        at = np.flatnonzero(passed)
+        quality, ring_contrast = ring_quality(sample(img, uv[at, None, :] + ring_offsets(radius)[None]))
+        passed[at] = (quality >= PRE_QUALITY) & (np.abs(ring_contrast) >= min_contrast)
+    return passed
 
 
 def contrasts(raw: np.ndarray, texture: float | None, min_contrast: float | None = None):

@@ -23,8 +23,8 @@ of a candidate read the image within `detect.REACH_PX` of it, and a detection li
 4. keeps the detections and rejections inside a window.
 
 The result is `detect`'s detections and rejections inside the windows, to the last bit (the
-rejections compared as a set), unless the whole image has more than MAX_CANDIDATES candidates
-(then `detect` drops its weakest, which a window may keep). Only the parts are converted to float
+rejections compared as a set), unless the whole image has more than MAX_CANDIDATES saddle peaks
+(then `detect` drops its weakest that are no X over rings, which a window may keep). Only the parts are converted to float
 (no full-image copy), and the work is that of the parts' candidates.
 """
 
