@@ -10,6 +10,7 @@ image coordinates; quaternions are (w, x, y, z) of cam_from_world (images) or ri
 
 from __future__ import annotations
 
+import codecs
 import csv
 import logging
 import math
@@ -308,13 +309,20 @@ class Table:
     def floats(self, column: str, optional: bool = False) -> np.ndarray:
         """(n,) floats of the column; NaN for empty cells when `optional`, else every cell must be finite."""
         text = self.text(column)
-        values = np.array([_parse_float(cell) for cell in text], dtype=float)
+        values = _parse_floats(text)
         bad = ~np.isfinite(values)
         if optional:
             bad &= text != ""
         self.check(bad, lambda row: f"column {column}: {text[row]!r} is not a finite number"
                    if text[row] else f"column {column} is empty; expected a number")
         return values
+
+    def check_unique(self, columns: Sequence[str], what: str) -> None:
+        """`first_rows`' check alone: a repeated key raises naming both lines (hashed in one pass;
+        the first repeat is then named by `first_rows`)."""
+        keys = pd.DataFrame({k: self.text(column) for k, column in enumerate(columns)})
+        if keys.duplicated().any():
+            self.first_rows(columns, what)
 
     def first_rows(self, columns: Sequence[str], what: str) -> dict:
         """Map from key (a value, or a tuple for several columns) to its row; duplicates raise naming both lines."""
@@ -338,10 +346,28 @@ def _parse_float(cell: str) -> float:
         return math.nan
 
 
+def _parse_floats(text: np.ndarray) -> np.ndarray:
+    """(n,) `_parse_float` of each cell of text (n,) object: the non-empty cells converted by numpy
+    in one call (which calls float() on each), cell by cell only where one is not a number."""
+    values = np.full(len(text), np.nan)
+    given = text != ""
+    try:
+        values[given] = text[given].astype(float)
+    except ValueError:
+        values = np.array([_parse_float(cell) for cell in text], dtype=float)
+    return values
+
+
 def read_table(path: Path, required: Sequence[str], optional: Sequence[str] = ()) -> Table:
     """Read a CSV file with a header holding at least `required` columns (blank lines are skipped)."""
     if not path.is_file():
         raise DatasetError(path, "missing")
+    plain = _read_plain(path)
+    if plain is not None:
+        header, columns = plain
+        _check_header(path, header, required)
+        cells = pd.DataFrame(dict(zip(header, columns)), dtype=str)
+        return Table(path, cells, np.arange(2, len(cells) + 2))
     try:
         header, rows, lines = _read_rows(path)
     except UnicodeDecodeError:
@@ -352,6 +378,39 @@ def read_table(path: Path, required: Sequence[str], optional: Sequence[str] = ()
     cells = pd.DataFrame(rows, columns=header, dtype=str) if rows else pd.DataFrame(
         {column: pd.Series([], dtype=str) for column in header})
     return Table(path, cells, np.asarray(lines, dtype=int))
+
+
+#: The ASCII whitespace that str.strip() removes, but the line end: a file with one has its cells stripped.
+_ASCII_BLANKS = np.array([ord(c) for c in " \t\x0b\x0c\x1c\x1d\x1e\x1f"], np.uint8)
+
+
+def _read_plain(path: Path) -> tuple[list[str], list[list[str]]] | None:
+    """The header and the columns' stripped cells of a plain CSV file, split in one pass: UTF-8,
+    lines ended by "\n" alone, no quote or NUL, no blank line, at least two columns, every line
+    with the header's number of fields, none longer than the csv module's field limit. Its data
+    lines are lines 2, 3, ... None for any other file: `_read_rows` reads it, and names its faults
+    as before (the csv module's reading of a plain file is this split)."""
+    data = path.read_bytes()
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError:
+        return None
+    if not text or '"' in text or "\r" in text or "\0" in text:
+        return None
+    body = np.frombuffer(data, np.uint8)[len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0:]
+    ends = np.flatnonzero(body == ord("\n"))
+    if body[-1] != ord("\n"):
+        ends = np.append(ends, len(body))
+    commas = np.bincount(np.searchsorted(ends, np.flatnonzero(body == ord(","))), minlength=len(ends))
+    if commas[0] == 0 or (commas != commas[0]).any() or np.diff(ends, prepend=-1).max() > csv.field_size_limit():
+        return None
+    width = int(commas[0]) + 1
+    cells = text.replace("\n", ",").split(",")
+    if text.endswith("\n"):
+        cells.pop()
+    if not text.isascii() or np.isin(body, _ASCII_BLANKS).any():
+        cells = [cell.strip() for cell in cells]
+    return cells[:width], [cells[width + k::width] for k in range(width)]
 
 
 def _read_rows(path: Path) -> tuple[list[str] | None, list[list[str]], list[int]]:
@@ -431,7 +490,7 @@ def _read_points(path: Path) -> tuple[pd.DataFrame, Table]:
     file has them (NaN in their empty cells) (+ extras), and the table read."""
     table = read_table(path, POINT_COLUMNS, (POINT_SIGMA, POINT_SIGMA_Z))
     ids = table.required_text("point_id")
-    table.first_rows(["point_id"], "point id")
+    table.check_unique(["point_id"], "point id")
     columns = {"point_id": _strings(ids), **{axis: table.floats(axis) for axis in "xyz"}}
     known = POINT_COLUMNS
     for name in (POINT_SIGMA, POINT_SIGMA_Z):
@@ -494,7 +553,7 @@ def _read_images(path: Path, root: Path, cameras: dict[str, CameraSpec]) -> tupl
     """images.csv as a DataFrame (columns IMAGE_COLUMNS, PRIOR_CENTER, PRIOR_QUAT, extras) and its table."""
     table = read_table(path, IMAGE_COLUMNS, PRIOR_CENTER + PRIOR_QUAT)
     table.required_text("image")  # validates: every row has an image id
-    table.first_rows(["image"], "image id")
+    table.check_unique(["image"], "image id")
     camera = table.required_text("camera")
     table.check(~np.isin(camera, list(cameras)),
                 lambda row: f"unknown camera '{camera[row]}' ({MANIFEST} has {', '.join(cameras)})")
@@ -526,6 +585,9 @@ def _check_placement(table: Table, stage: np.ndarray, camera: np.ndarray) -> Non
     rig = stage != "intrinsics"
     table.check(rig & (placement == ""), lambda row: f"placement is empty; {stage[row]} images need "
                 + ("the frame id" if stage[row] == "flight" else "a rig placement id"))
+    keys = pd.DataFrame({"stage": stage, "placement": placement, "camera": camera})[rig]
+    if not keys.duplicated().any():  # hashed in one pass; a repeat is named by the loop below
+        return
     seen = {}
     for row in np.flatnonzero(rig):
         key = (stage[row], placement[row], camera[row])
@@ -537,6 +599,9 @@ def _check_placement(table: Table, stage: np.ndarray, camera: np.ndarray) -> Non
 
 def _check_paths(table: Table, root: Path) -> None:
     image, path = table.text("image"), table.text("path")
+    given = path != ""
+    if not given.any():  # observation-only images: nothing to look at
+        return
     table.check([p != "" and Path(p).is_absolute() for p in path],
                 lambda row: f"image {image[row]!r}: path {path[row]!r} must be relative to the dataset folder")
     table.check([p != "" and not (root / p).is_file() for p in path],
@@ -552,7 +617,7 @@ def _read_frames(path: Path) -> pd.DataFrame:
     extras) and its table."""
     table = read_table(path, FRAME_COLUMNS[:2], FRAME_COLUMNS[2:] + PRIOR_QUAT)
     frame_id = table.required_text("frame")
-    table.first_rows(["frame"], "frame id")
+    table.check_unique(["frame"], "frame id")
     columns = {"frame": _strings(frame_id), "group": _strings(table.text("group"))}
     columns.update(zip(FRAME_COLUMNS[2:], _group(table, FRAME_COLUMNS[2:]).T))
     columns.update(zip(PRIOR_QUAT, _quaternions(table, PRIOR_QUAT).T))
@@ -690,26 +755,26 @@ def _read_observations(path: Path, camera_of: dict[str, str], cameras: dict[str,
     names = RESULT_OBSERVATION_COLUMNS if with_camera else OBSERVATION_COLUMNS
     table = read_table(path, names)
     image = table.required_text("image")
-    table.check([name not in camera_of for name in image], lambda row: f"unknown image {image[row]!r} (not in {IMAGES})")
+    image_camera = pd.Series(image, dtype=object).map(camera_of).to_numpy(object)  # NaN: unknown image
+    table.check(pd.isna(image_camera), lambda row: f"unknown image {image[row]!r} (not in {IMAGES})")
     if with_camera:
         camera = table.required_text("camera")
-        table.check([camera_of[i] != c for i, c in zip(image, camera)],
-                    lambda row: f"camera {camera[row]!r} of image {image[row]!r} is "
+        table.check(image_camera != camera, lambda row: f"camera {camera[row]!r} of image {image[row]!r} is "
                     f"{camera_of[image[row]]!r} in {IMAGES}")
     point_id = table.required_text("point_id")
     table.check(~pd.Index(point_id).isin(point_ids),
                 lambda row: f"unknown point id {point_id[row]!r} (not in {CONTROL_POINTS} or {GROUND_POINTS})")
-    table.first_rows(["image", "point_id"], "observation (image, point_id)")
+    table.check_unique(["image", "point_id"], "observation (image, point_id)")
     columns = {name: _strings(table.text(name)) for name in names if name not in ("u", "v")}
     columns.update(u=table.floats("u"), v=table.floats("v"))
-    _check_inside_images(table, image, columns["u"], columns["v"], [cameras[camera_of[i]] for i in image])
+    sizes = np.array([(spec.width, spec.height) for spec in cameras.values()], dtype=float).reshape(-1, 2)
+    size = sizes[pd.Index(list(cameras)).get_indexer(image_camera)]
+    _check_inside_images(table, image, columns["u"], columns["v"], size)
     return _frame(table, {name: columns[name] for name in names}, names)
 
 
-def _check_inside_images(table: Table, image: np.ndarray, u: np.ndarray, v: np.ndarray,
-                         specs: list[CameraSpec]) -> None:
-    """Every pixel (u, v) (n,) within OBSERVATION_MARGIN_PX of its image (n,) of camera specs (n,)."""
-    size = np.array([(spec.width, spec.height) for spec in specs], dtype=float).reshape(-1, 2)
+def _check_inside_images(table: Table, image: np.ndarray, u: np.ndarray, v: np.ndarray, size: np.ndarray) -> None:
+    """Every pixel (u, v) (n,) within OBSERVATION_MARGIN_PX of its image (n,) of size (n, 2) (width, height px)."""
     low, high = -0.5 - OBSERVATION_MARGIN_PX, size - 0.5 + OBSERVATION_MARGIN_PX
     outside = (u < low) | (u > high[:, 0]) | (v < low) | (v > high[:, 1])
     table.check(outside, lambda row: f"observation ({u[row]:.6g}, {v[row]:.6g}) lies outside image "
@@ -808,7 +873,7 @@ class Dataset:
         frames = _load_frames(root, images, image_table, geo, manifest.trajectory)
         observations = _empty_observations()
         if (root / OBSERVATIONS).exists():
-            camera_of = dict(zip(images["image"], images["camera"]))
+            camera_of = camera_of_images(images)
             points = pd.concat([control.index.to_series(), ground.index.to_series()])
             observations = _read_observations(root / OBSERVATIONS, camera_of, manifest.cameras, points,
                                               with_camera=False)
@@ -817,7 +882,8 @@ class Dataset:
             root=root, name=manifest.name, reference_camera=manifest.reference_camera, cameras=manifest.cameras,
             marker_size_m=manifest.marker_size_m, description=manifest.description,
             control_points=control, ground_points=ground, images=images, frames=frames, observations=observations,
-            image_lines=dict(zip(images["image"], image_table.lines.tolist())), stamps=stamps, geo=geo,
+            image_lines=dict(zip(images["image"].to_numpy(object), image_table.lines.tolist())), stamps=stamps,
+            geo=geo,
         )
 
     def restricted(self, images, frames=None, part: str = "") -> Dataset:
@@ -1034,9 +1100,8 @@ def _load_frames(root: Path, images: pd.DataFrame, image_table: Table, geo: Geo 
 
 def _check_sources(image_table: Table, images: pd.DataFrame, observations: pd.DataFrame) -> None:
     """Every image needs a file or observations in observations.csv."""
-    observed = set(observations["image"])
     names = images["image"].to_numpy(dtype=object)
-    bad = (images["path"] == "").to_numpy() & np.array([name not in observed for name in names], dtype=bool)
+    bad = (images["path"] == "").to_numpy() & ~pd.Index(names).isin(observations["image"])
     image_table.check(bad, lambda row: f"image {names[row]!r} has neither a path nor rows in {OBSERVATIONS}")
 
 
@@ -1107,10 +1172,15 @@ def _is_missing(value) -> bool:
     return value is None or (isinstance(value, float) and math.isnan(value))
 
 
+def camera_of_images(images: pd.DataFrame) -> dict[str, str]:
+    """{image: its camera} of an images table (Dataset.images)."""
+    return dict(zip(images["image"].to_numpy(object), images["camera"].to_numpy(object)))
+
+
 def read_observation_table(path: Path, dataset: Dataset) -> pd.DataFrame:
     """A results observations file (image, camera, point_id, u, v + extras) checked like the
     dataset's own: known images and points, the image's camera, inside the image, no repeats."""
-    camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
+    camera_of = camera_of_images(dataset.images)
     return _read_observations(path, camera_of, dataset.cameras, dataset.points.index, with_camera=True)
 
 

@@ -20,7 +20,7 @@ import numpy as np
 import pandas as pd
 
 from .camera import Camera
-from .dataset import STAGES, Dataset, Table, read_observation_table, read_table
+from .dataset import STAGES, Dataset, Table, camera_of_images, read_observation_table, read_table
 from .errors import DatasetError, DmaisError
 from .files import csv_text, write_csv_atomic, write_json_atomic, write_text_atomic
 from .geo import GeoError
@@ -217,7 +217,7 @@ class Workspace:
             tables = [read_observation_table(p, dataset) for p in paths]
             return pd.concat(tables, ignore_index=True) if len(tables) > 1 else tables[0]
         observations = dataset.observations.copy()
-        camera_of = dict(zip(dataset.images["image"], dataset.images["camera"]))
+        camera_of = camera_of_images(dataset.images)
         observations.insert(1, "camera", observations["image"].map(camera_of).astype(str))
         return observations
 
