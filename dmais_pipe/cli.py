@@ -219,7 +219,8 @@ def _cmd_bench_campaign(args) -> None:
     from .bench.campaign import bench_campaign
 
     bench_campaign(args.source, args.out, args.csv, frames=args.frames, frames_per_group=args.frames_per_group,
-                   slurm=args.slurm, slurm_batches=args.slurm_batches, stages=args.stages)
+                   slurm=args.slurm, slurm_batches=args.slurm_batches, stages=args.stages,
+                   slurm_lose=args.slurm_lose, slurm_restore=args.slurm_restore)
 
 
 def _cmd_bench_periodic(args) -> None:
@@ -291,7 +292,6 @@ def _comma_separated(kind):
 
 def _parser() -> argparse.ArgumentParser:
     from .camera import MODELS
-    from .stages.intrinsics import Conf as IntrinsicsConf
 
     parser = argparse.ArgumentParser(prog="dmais", description=__doc__.splitlines()[0])
     parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
@@ -340,16 +340,16 @@ def _parser() -> argparse.ArgumentParser:
     only.add_argument("--camera", action="append", help="calibrate only this camera (repeatable); no table")
     only.add_argument("--table", action="store_true",
                       help="only write tables/intrinsics.csv from the cameras' intrinsics/<camera>.methods.csv")
-    defaults = IntrinsicsConf()
     intrinsics.add_argument("--import", dest="import_file", type=Path, metavar="FILE",
                             help="take the --camera's intrinsics from an OpenCV calibration file (YAML/XML/JSON; "
                                  "FILE:M2 for the pair M2, D2 of a stereo calibration) or a COLMAP cameras.txt / "
                                  "cameras.bin instead of calibrating")
+    # {conf.NAME}: the stage's default setting, filled in when the help is shown (`_stage_help`)
     intrinsics.add_argument("--max-eps-px", type=float,
-                            help=f"refuse a calibration whose eps_calib exceeds this (px; default {defaults.max_eps_calib_px})")
+                            help="refuse a calibration whose eps_calib exceeds this (px; default {conf.max_eps_calib_px})")
     intrinsics.add_argument("--max-focal-deviation", type=float,
                             help="refuse fx, fy further than this fraction from focal_px or from each other "
-                                 f"(default {defaults.max_focal_deviation})")
+                                 "(default {conf.max_focal_deviation})")
     intrinsics.set_defaults(run=_cmd_intrinsics)
 
     extrinsics = commands.add_parser("extrinsics", help="calibrate the rig (cam_from_rig) from the placements")
@@ -458,6 +458,13 @@ def _parser() -> argparse.ArgumentParser:
     campaign.add_argument("--slurm", action="store_true", help="also run flight batches through the SLURM profile")
     campaign.add_argument("--slurm-batches", type=_positive_int, default=4,
                           help="flight batches run on SLURM (default: %(default)s)")
+    campaign.add_argument("--slurm-lose", metavar="COMMAND",
+                          help="with --slurm, run the batches again and, once their jobs run on every node, lose "
+                               "one: this shell command, {node} the node (the test cluster's: 'bash "
+                               "tests/cluster/slurm_up.sh kill {node}'); its wall time against the clean run's")
+    campaign.add_argument("--slurm-restore", metavar="COMMAND", default="true",
+                          help="shell command that brings the lost node back after that run (the test cluster's: "
+                               "'bash tests/cluster/slurm_up.sh')")
     campaign.add_argument("--stages", action="store_true",
                           help="also run every stage locally on the campaign with its flight observations given "
                                "(per-rule time and memory)")
@@ -551,7 +558,8 @@ def _parser() -> argparse.ArgumentParser:
 
 def _add_settings(parser: argparse.ArgumentParser, stage: str) -> None:
     """--conf and --set, with every setting, its default and the named confs listed under --help
-    (`_stage_help`: the stage is loaded only for its help, so other commands start without it)."""
+    (`_stage_help`: the stage is loaded only for its help, so other commands start without it, and
+    an option's help may name a default setting as {conf.NAME})."""
     conf = parser.add_argument("--conf", metavar="NAME")
     parser.add_argument("--set", action="append", metavar="KEY=VALUE",
                         help="change one setting of the conf (repeatable); the settings are listed below")
@@ -565,8 +573,12 @@ def _stage_help(parser: argparse.ArgumentParser, conf: argparse.Action, stage: s
 
     from .stages import settings_help
 
-    confs = import_module(f"dmais_pipe.stages.{stage}").CONFS
+    module = import_module(f"dmais_pipe.stages.{stage}")
+    confs = module.CONFS
     conf.help = f"named settings of the stage: {', '.join(confs)} (default: {next(iter(confs))})"
+    for action in parser._actions:  # argparse keeps no other list of a parser's options
+        if action.help and "{conf." in action.help:
+            action.help = action.help.format(conf=module.Conf())
     parser.epilog = settings_help(confs) + "\n\nSee docs/design.md, 'Stage settings'."
     return argparse.ArgumentParser.format_help(parser)
 

@@ -23,8 +23,7 @@ import numpy as np
 import pandas as pd
 
 from ..blas import single_threaded_blas
-from ..dataset import Dataset, point_sigma
-from ..evaluate import POS
+from ..dataset import FRAME_COLUMNS, Dataset, point_sigma
 from ..errors import DmaisError
 from ..geometry import rotation_from_quat
 from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS, calibration_parameters, survey_sigma
@@ -166,7 +165,7 @@ def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise:
     `calibration` (`calibration_covariance`), the changes' sigmas carry its share (a calibration error
     is not flagged as a change). A group it cannot adjust is left out with a warning naming it."""
     used = solved.observations[solved.observations["used"].to_numpy(bool)]
-    points, pos = dataset.points, dataset.frames.set_index("frame")[list(POS)]
+    points, pos = dataset.points, dataset.frames.set_index("frame")[list(FRAME_COLUMNS[2:])]  # pos_x, pos_y, pos_z
     watched = {}
     for group, model in solved.error_model.items():
         frames = solved.table[solved.table["group"].astype(str) == str(group)]
