@@ -14,7 +14,9 @@ image (decode + detect + refine + identify + write) and <= 0.1 s of cluster over
      demo's: seconds per image of each phase, and what the process costs besides (its start, imports,
      loading the dataset);
   3. with `slurm`, a few flight batches run through the SLURM profile: per job its images, elapsed
-     time, detection work, overhead and peak memory (sacct, the job's Snakemake benchmark file);
+     time, detection work, overhead and peak memory (sacct, the job's Snakemake benchmark file); with
+     `slurm_lose`, the same batches again with one node lost midway: the run's wall time against the
+     clean one's;
   4. marker extraction per phase at 12 MP and 140 MP, JPEG and 16-bit TIFF, windowed about the
      priors' predictions beside the whole image on the same images, and a job's peak memory
      (`bench.marker_costs`: rendered once into results/bench_marker_phases/), <csv>_marker_phases.csv;
@@ -168,9 +170,11 @@ def given_flight_source(source: str | Path, demo: str | Path, out: str | Path) -
 
 
 def bench_campaign(source: Path, out: Path, csv: Path, frames: int = 10_000, frames_per_group: int = 500,
-                   slurm: bool = False, slurm_batches: int = 4, stages: bool = False) -> pd.DataFrame:
+                   slurm: bool = False, slurm_batches: int = 4, stages: bool = False, slurm_lose: str | None = None,
+                   slurm_restore: str = "true") -> pd.DataFrame:
     """Run the bench (module docstring), print its table and write it to `csv` (metric, value, unit,
-    note); with `slurm`, the per-job table too, beside it (<csv>_slurm_jobs.csv); with `stages`, the
+    note); with `slurm`, the per-job table too, beside it (<csv>_slurm_jobs.csv), and with `slurm_lose`
+    the same batches again with a node lost (`_with_a_node_lost`); with `stages`, the
     per-rule table of a whole run (`_all_stages`, <csv>_stages.csv). Returns the table."""
     root = _repository()
     source, out, csv = Path(source).absolute(), Path(out).absolute(), Path(csv).absolute()
@@ -189,6 +193,9 @@ def bench_campaign(source: Path, out: Path, csv: Path, frames: int = 10_000, fra
     elif slurm:
         jobs = _on_slurm(root, config, results, plan, slurm_batches)
         rows += _slurm_rows(jobs)
+        if slurm_lose:
+            rows += _with_a_node_lost(root, config, results, plan, slurm_batches, slurm_lose, slurm_restore,
+                                      jobs.attrs["wall_s"])
     if stages:
         _all_stages(root, source, demo, out.with_name(f"{out.name}_stages"), csv, frames, frames_per_group)
     table = pd.DataFrame(rows, columns=COLUMNS, dtype=object)  # counts stay integers
@@ -375,12 +382,15 @@ def _forget(results: Path, batches: list[str]) -> None:
 # ------------------------------------------------------------------------------ SLURM
 
 
-def _on_slurm(root: Path, config: Path, results: Path, plan: dict, count: int) -> pd.DataFrame:
-    """Per job (one per batch) of `count` flight batches (the first of each camera in turn) run through
-    the SLURM profile: batch, images, elapsed_s, shell_s (the job's `dmais markers`), work_s (its
-    phases), overhead_per_image_s ((elapsed - work) / images), max_rss_mb."""
+def _slurm_batches(plan: dict, count: int) -> list[str]:
+    """The `count` flight batches the SLURM runs take: the first of each camera in turn."""
     flight = plan["batches"]["flight"]
-    batches = sorted(flight, key=lambda name: (name.rsplit("-", 1)[1], list(flight).index(name)))[:count]
+    return sorted(flight, key=lambda name: (name.rsplit("-", 1)[1], list(flight).index(name)))[:count]
+
+
+def _slurm_command(root: Path, config: Path, results: Path, batches: list[str]) -> list[str]:
+    """The SLURM profile's snakemake command of `batches`, forgotten first (`_forget`) and checked by a dry
+    run to be their marker jobs alone."""
     _forget(results, batches)
     targets = [f"results/{NAME}/markers/batches/{batch}.csv" for batch in batches]
     command = [_tool("snakemake"), *targets, *PROFILE, "--configfile", str(config)]  # --configfile takes 1+ values
@@ -389,6 +399,16 @@ def _on_slurm(root: Path, config: Path, results: Path, plan: dict, count: int) -
     if planned != {"markers": len(batches), "total": len(batches)}:
         raise DmaisError(f"campaign: the SLURM run would run {planned} instead of {len(batches)} marker jobs "
                          f"(results in {results} older than their inputs?)")
+    return command
+
+
+def _on_slurm(root: Path, config: Path, results: Path, plan: dict, count: int) -> pd.DataFrame:
+    """Per job (one per batch) of `count` flight batches (`_slurm_batches`) run through
+    the SLURM profile: batch, images, elapsed_s, shell_s (the job's `dmais markers`), work_s (its
+    phases), overhead_per_image_s ((elapsed - work) / images), max_rss_mb."""
+    flight = plan["batches"]["flight"]
+    batches = _slurm_batches(plan, count)
+    command = _slurm_command(root, config, results, batches)
     start = (datetime.now() - timedelta(seconds=5)).strftime("%Y-%m-%dT%H:%M:%S")
     log.info("campaign: %d marker jobs on SLURM: %s", len(batches), ", ".join(batches))
     wall, done = _run(command, root, timeout=3 * 3600)
@@ -399,6 +419,93 @@ def _on_slurm(root: Path, config: Path, results: Path, plan: dict, count: int) -
     table = pd.DataFrame([_job(results, root, batch, flight[batch]["images"], jobs) for batch in batches])
     table.attrs["wall_s"] = wall
     return table
+
+
+def _with_a_node_lost(root: Path, config: Path, results: Path, plan: dict, count: int, lose: str, restore: str,
+                      clean_wall_s: float) -> list[dict]:
+    """The main table's rows of the `_on_slurm` batches run again on SLURM, where one node is lost midway: once
+    the run's jobs are on every node of the cluster and a flight batch is half done (its progress file
+    has an image, its table is not written), the shell command `lose` is run with {node} that batch's
+    node (e.g. the test cluster's `bash tests/cluster/slurm_up.sh kill {node}`: a power loss); the run
+    must then finish unattended (the profile's retries), and `restore` brings the node back after it.
+    Rows: its wall time, the ratio to the clean run's `clean_wall_s` against the target (N / (N - 1)) x 1.3
+    for N nodes, and the jobs sacct shows ended NODE_FAIL."""
+    batches = _slurm_batches(plan, count)
+    command = _slurm_command(root, config, results, batches)
+    nodes = _cluster_nodes()
+    start = (datetime.now() - timedelta(seconds=5)).strftime("%Y-%m-%dT%H:%M:%S")
+    output = results / "slurm_node_lost.log"
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
+    log.info("campaign: %d marker jobs on SLURM, one of %d nodes to be lost", len(batches), len(nodes))
+    started = time.perf_counter()
+    with open(output, "w") as sink:
+        process = subprocess.Popen(command, cwd=root, env=env, stdout=sink, stderr=subprocess.STDOUT)
+        try:
+            node = _lose_a_node(process, root, results / "markers" / "batches", nodes, lose)
+            process.wait(timeout=3 * 3600)
+        finally:
+            if process.poll() is None:
+                process.kill()
+    wall = time.perf_counter() - started
+    _shell(restore, "restore")
+    text = output.read_text()
+    if process.returncode != 0:
+        raise DmaisError(f"campaign: the SLURM run with node {node} lost failed (status {process.returncode}); "
+                         f"its output: {output}")
+    found = re.search(r"SLURM run ID: (\S+)", text)
+    failed = _node_failures(found.group(1), start) if found else []
+    bound = len(nodes) / (len(nodes) - 1) * 1.3
+    return [_row("slurm_node_lost_wall_s", wall, "s", f"{node} of {len(nodes)} nodes lost once jobs ran on every "
+                 f"node; NODE_FAIL jobs retried: {len(failed)} ({', '.join(failed)})"),
+            _row("slurm_node_lost_ratio", wall / clean_wall_s, "x",
+                 f"of the clean run's {clean_wall_s:.1f} s; target: <= N / (N - 1) x 1.3 = {bound:.2f}")]
+
+
+def _cluster_nodes() -> list[str]:
+    """The SLURM nodes that are up (sinfo), at least two."""
+    listed = subprocess.run(["sinfo", "-h", "-N", "-o", "%N|%t"], capture_output=True, text=True).stdout
+    nodes = sorted({node for node, state in (line.split("|") for line in listed.splitlines() if "|" in line)
+                    if not state.startswith(("down", "drain", "fail"))})
+    if len(nodes) < 2:
+        raise DmaisError(f"campaign: losing a node needs a SLURM of two or more nodes up; sinfo shows {nodes}")
+    return nodes
+
+
+def _lose_a_node(process: subprocess.Popen, root: Path, batches: Path, nodes: list[str], lose: str) -> str:
+    """Wait until the SLURM jobs of the run in `root` run on every node of `nodes` and one of them is a
+    flight batch half done (its progress file in `batches` has an image, its table is not written), run
+    `lose` for that job's node and return the node."""
+    while True:
+        listed = subprocess.run(["squeue", "-h", "-t", "R", "-o", "%N|%k|%Z"], capture_output=True, text=True).stdout
+        jobs = [line.split("|") for line in listed.splitlines() if line.count("|") == 2]
+        jobs = [(node, comment.split("_wildcards_", 1)[-1]) for node, comment, where in jobs
+                if Path(where) == root and comment.startswith("rule_markers_wildcards_flight-")]
+        half_done = [node for node, batch in jobs if not (batches / f"{batch}.csv").exists()
+                     and (batches / f"{batch}.progress").is_file()
+                     and len((batches / f"{batch}.progress").read_text().splitlines()) > 1]
+        if {node for node, _ in jobs} >= set(nodes) and half_done:
+            _shell(lose.replace("{node}", half_done[0]), "lose")
+            return half_done[0]
+        if process.poll() is not None:
+            raise DmaisError("campaign: the SLURM run ended before its jobs ran on every node at once "
+                             "(give it more batches: --slurm-batches)")
+        time.sleep(0.2)
+
+
+def _shell(command: str, what: str) -> None:
+    """Run the user's shell `command` (--slurm-{what}); a failure raises one line."""
+    done = subprocess.run(command, shell=True, capture_output=True, text=True, timeout=600)
+    if done.returncode != 0:
+        last = (done.stderr.strip() or done.stdout.strip() or "no output").splitlines()[-1]
+        raise DmaisError(f"campaign: --slurm-{what} `{command}` failed (status {done.returncode}): {last}")
+
+
+def _node_failures(run_id: str, start: str) -> list[str]:
+    """The jobs of the SLURM run `run_id` that ended NODE_FAIL, as job@node."""
+    listed = subprocess.run(["sacct", "-n", "-P", "-X", "-S", start, "--name", run_id, "-o", "JobID,State,NodeList"],
+                            capture_output=True, text=True, check=True).stdout
+    return [f"{job}@{node}" for job, state, node in (line.split("|") for line in listed.splitlines()
+                                                    if line.count("|") == 2) if state == "NODE_FAIL"]
 
 
 def _job(results: Path, root: Path, batch: str, images: int, jobs: pd.DataFrame) -> dict:
