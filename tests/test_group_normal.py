@@ -116,3 +116,55 @@ def test_a_group_whose_frames_system_would_not_fit_is_refused(monkeypatch):
     monkeypatch.setattr(group_normal, "FACTOR_BYTES", 2.0 * 120 * L * 3 * L * 8 * 0.9)  # a band of 2 frames needs more
     with pytest.raises(DmaisError, match="too large to adjust at once: its frames are tied over 2 frames"):
         solve(with_priors(normal), np.ones((structure.size, 1)))
+
+
+def two_camera_normal(n_frames: int, seed: int = 3):
+    """A GroupNormal of a shared-points group with two cameras' jitter blocks (L = 12: a frame's pose, then
+    3 columns per camera), random Jacobians and priors on every unknown, and its whole Jacobian."""
+    rng = np.random.default_rng(seed)
+    frame, point, n_points = observations(rng, "shared", n_frames)
+    n, L2, R2 = len(frame), 12, 6
+    camera = rng.integers(0, 2, n)
+    local_cols = np.concatenate([np.broadcast_to(np.arange(6), (n, 6)), 6 + 3 * camera[:, None] + np.arange(3)],
+                                axis=1)
+    rig_cols = 3 * camera[:, None] + np.arange(3)
+    structure = group_structure(frame, point, local_cols, rig_cols, n_frames, L2, R2, n_points, FRAMES_FIRST)
+    local_J, rig_J, point_J = (rng.normal(size=(n, 2, k)) for k in (9, 3, 3))
+    e = rng.normal(size=(n, 2))
+    normal = assemble(structure, local_J, rig_J, point_J, e)
+    J = np.zeros((2 * n, structure.size))
+    rows = np.arange(2 * n).reshape(n, 2)
+    first = n_frames * L2
+    np.add.at(J, (rows[:, :, None], (frame[:, None] * L2 + local_cols)[:, None, :]), local_J)
+    np.add.at(J, (rows[:, :, None], (first + rig_cols)[:, None, :]), rig_J)
+    np.add.at(J, (rows[:, :, None], (first + R2 + 3 * point[:, None] + np.arange(3))[:, None, :]), point_J)
+    A, Hpp, Hrr = normal.A.copy(), normal.Hpp.copy(), normal.Hrr.copy()
+    A[:, np.arange(L2), np.arange(L2)] += 2.0
+    Hpp[:, np.arange(3), np.arange(3)] += 2.0
+    Hrr[np.diag_indices(R2)] += 2.0
+    return structure, normal, GroupNormal(structure, A, normal.Wr, Hrr, Hpp, normal.Hpr, normal.Wp, normal.b_local,
+                                          normal.b_rig, normal.b_point), J, e
+
+
+def test_the_compiled_blocks_with_jitter_blocks_are_those_of_the_whole_jacobian():
+    _, normal, _, J, e = two_camera_normal(6)
+    np.testing.assert_allclose(normal.dense(), J.T @ J, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(normal.gradient, J.T @ e.ravel(), rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("k", [1, 4])
+def test_the_compiled_frames_first_equals_numpys(k, monkeypatch):
+    """The compiled elimination (_group, Cholesky of each frame's block, dsyrk over chunks of frames) against
+    numpy's inverted blocks and dense couplings (`_frames_first_numpy`), and both against a dense solve."""
+    monkeypatch.setattr(group_normal, "CHUNK_NUMBERS", 3000)  # several chunks of frames
+    structure, _, normal, _, _ = two_camera_normal(11)
+    right = np.random.default_rng(2).normal(size=(structure.size, k))
+    F, L2 = structure.n_frames, structure.local_size
+    R2, P = structure.rig_size, structure.n_points
+    r_local, r_rig, r_point = right[:F * L2].reshape(F, L2, k), right[F * L2:F * L2 + R2], right[F * L2 + R2:]
+    compiled = group_normal._frames_first(normal, r_local, r_rig, r_point.reshape(P, 3, k))
+    reference = group_normal._frames_first_numpy(normal, r_local, r_rig, r_point.reshape(P, 3, k))
+    for a, b in zip(compiled, reference):
+        np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-13)
+    x, _ = solve(normal, right)
+    np.testing.assert_allclose(x, np.linalg.solve(normal.dense(), right), rtol=1e-9, atol=1e-12)

@@ -497,3 +497,31 @@ def test_bench_runs_a_line_flight(tmp_path):
     truth = pd.read_csv(tmp_path / "work" / chosen[0].name / "dataset" / "truth" / "frames.csv")
     steps = np.linalg.norm(np.diff(truth[["x", "y"]].to_numpy(), axis=0), axis=1)
     assert np.all(np.abs(steps - DEFAULTS["flight"]["line_spacing_m"]) < 5.0)
+
+
+def test_the_compiled_model_and_jacobians_equal_numpys():
+    """mounting's compiled loops (_group: the points in the cameras, the compact Jacobians) against the
+    numpy formulas they replace, away from zero (turned cameras, jitters, focal changes)."""
+    from dmais_pipe.pose import mounting
+
+    group = make_group(5, frames=3, mount_arcmin=1.0, markers_per_camera=4)
+    problem = mounting._problem(group.rig, group.cameras, group.uv, group.point_ids, group.points, group.frame_index,
+                                group.R, 0.5, 0.3, 0.025, 30.0, None, None,
+                                focal_covariance(group.rig, np.array([3e-4, 2e-4, 0.0, 4e-4, 2.5e-4])))
+    rng = np.random.default_rng(1)
+    K, F = len(problem.free), problem.n_frames
+    state = mounting._State(group.R.copy(), group.t + group.R @ problem.origin, rng.normal(0, 1e-3, (K, 3)),
+                            rng.normal(0, 1e-4, (F, K, 3)), rng.normal(0, 1e-4, len(problem.focal_prior)),
+                            problem.surveyed + rng.normal(0, 0.01, problem.surveyed.shape))
+    forward = mounting._forward(problem, state)
+    x_rig = np.einsum("nij,nj->ni", state.R[problem.frame], state.points[problem.point]) + state.t[problem.frame]
+    for n, (f, c, slot) in enumerate(zip(problem.frame, problem.camera, problem.slot)):
+        name = problem.names[c]
+        turn = exp_so3(state.jitter[f, slot]) @ exp_so3(state.delta[slot]) if slot >= 0 else np.eye(3)
+        calibrated = group.rig.cam_from_rig[name]
+        np.testing.assert_allclose(forward.x[n], turn @ (calibrated.R @ x_rig[n] + calibrated.t), rtol=1e-12)
+    centre = np.einsum("fij,fj->fi", state.R, problem.centroid) + state.t
+    np.testing.assert_allclose(forward.q, x_rig - centre[problem.frame], rtol=1e-12, atol=1e-9)
+    for compiled, reference in zip(mounting._jacobians(problem, state, forward),
+                                   mounting._jacobians_numpy(problem, state, forward)):
+        np.testing.assert_allclose(compiled, reference, rtol=1e-12, atol=1e-12 * np.abs(reference).max())

@@ -38,6 +38,7 @@ from scipy.sparse import csgraph
 from scipy.sparse import linalg as sparse_linalg
 
 from ..errors import DmaisError
+from . import _group
 
 FRAMES_FIRST, POINTS_FIRST = "frames first", "points first"
 #: Above this size the frames' system of the points-first order is factorised sparse, not dense.
@@ -212,47 +213,19 @@ class GroupNormal:
 
 
 def assemble(structure: GroupStructure, local_J, rig_J, point_J, e) -> GroupNormal:
-    """J^T J and J^T e of N observations' whitened residuals e (N, 2) with the compact Jacobians local_J
+    """J^T J and J^T e of N observations' whitened residuals e (N, 2) (two each) with the compact Jacobians local_J
     (N, 2, l), rig_J (N, 2, r) and point_J (N, 2, 3) (columns: structure's local_cols, rig_cols, the
-    point's 3); the priors are the caller's to add. A frame's blocks are products of its observations'
-    rows stacked (zeros up to n_slots), in chunks of frames."""
+    point's 3); the priors are the caller's to add. One compiled loop over the observations (_group)."""
     s = structure
     F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
-    A, Wr, b_local = np.empty((F, L, L)), np.empty((F, L, R)), np.empty((F, L))
-    Hrr = np.zeros((R, R))
-    for frames, rows in _frame_chunks(s, 2 * s.n_slots * (L + R)):
-        J_local = _stacked(s, frames, rows, local_J, s.local_cols, L)  # (c, 2 n_slots, L)
-        J_rig = _stacked(s, frames, rows, rig_J, s.rig_cols, R)
-        e_rows = _stacked(s, frames, rows, e[:, :, None], np.zeros((len(e), 1), dtype=np.int64), 1)
-        J_local_T = J_local.transpose(0, 2, 1)
-        A[frames], Wr[frames], b_local[frames] = J_local_T @ J_local, J_local_T @ J_rig, (J_local_T @ e_rows)[..., 0]
-        Hrr += J_rig.reshape(-1, R).T @ J_rig.reshape(-1, R)
-    point_T, rc = np.swapaxes(point_J, 1, 2), s.rig_cols
-    point_rows = 3 * s.point[:, None] + np.arange(3)  # (N, 3)
-    Hpp = _summed(point_T @ point_J, point_rows[:, :, None] * 3 + np.arange(3), P * 9).reshape(P, 3, 3)
-    Hpr = _summed(point_T @ rig_J, point_rows[:, :, None] * R + rc[:, None, :], P * 3 * R).reshape(P, 3, R)
-    b_rig = _summed(np.einsum("nkr,nk->nr", rig_J, e), rc, R)
-    b_point = _summed(np.einsum("nki,nk->ni", point_J, e), point_rows, 3 * P).reshape(P, 3)
-    return GroupNormal(s, A, Wr, Hrr, Hpp, Hpr, np.swapaxes(local_J, 1, 2) @ point_J, b_local, b_rig, b_point)
-
-
-def _frame_chunks(structure: GroupStructure, numbers_per_frame: int):
-    """(frames (c,), rows (n,)) consecutive frames and their observations, about CHUNK_NUMBERS numbers a chunk."""
-    s = structure
-    n_chunks = min(s.n_frames, max(1, -(-s.n_frames * numbers_per_frame // CHUNK_NUMBERS)))
-    for frames in np.array_split(np.arange(s.n_frames), n_chunks):
-        yield frames, s.by_frame[s.frame_starts[frames[0]]:s.frame_starts[frames[-1] + 1]]
-
-
-def _stacked(structure: GroupStructure, frames: np.ndarray, rows: np.ndarray, J: np.ndarray, cols: np.ndarray,
-             width: int) -> np.ndarray:
-    """(c, 2 n_slots, width) the observations' `rows` Jacobians J (N, 2, j) at their columns cols (N, j),
-    stacked per frame of `frames` (c,) in their slots, zeros elsewhere."""
-    s = structure
-    out = np.zeros((len(frames), s.n_slots, J.shape[1], width))
-    out[(s.frame[rows] - frames[0])[:, None, None], s.slot[rows][:, None, None], np.arange(J.shape[1])[:, None],
-        cols[rows][:, None, :]] = J[rows]
-    return out.reshape(len(frames), -1, width)
+    A, Wr, b_local = np.zeros((F, L, L)), np.zeros((F, L, R)), np.zeros((F, L))
+    Hrr, Hpp, Hpr = np.zeros((R, R)), np.zeros((P, 3, 3)), np.zeros((P, 3, R))
+    Wp, b_rig, b_point = np.empty((len(e), s.local_cols.shape[1], 3)), np.zeros(R), np.zeros((P, 3))
+    if local_J.shape[1] != 2:
+        raise ValueError(f"two residuals per observation, got {local_J.shape[1]}")
+    _group.assemble(s.frame, s.point, *map(np.ascontiguousarray, (s.local_cols, s.rig_cols, local_J, rig_J, point_J, e)),
+                    A, Wr, b_local, Hrr, Hpp, Hpr, Wp, b_rig, b_point)
+    return GroupNormal(s, A, Wr, Hrr, Hpp, Hpr, Wp, b_local, b_rig, b_point)
 
 
 def _summed(values: np.ndarray, index: np.ndarray, size: int) -> np.ndarray:
@@ -295,11 +268,13 @@ def _equilibrated(normal: GroupNormal) -> tuple[GroupNormal, np.ndarray]:
                                np.diagonal(normal.Hpp, axis1=1, axis2=2).ravel()])
     scale = np.exp2(-np.round(0.5 * np.log2(np.where(diagonal > 0, diagonal, 1.0))))
     local, rig, point = scale[:F * L].reshape(F, L), scale[F * L:F * L + R], scale[F * L + R:].reshape(P, 3)
+    Wp = np.empty_like(normal.Wp)
+    _group.scaled_couplings(np.ascontiguousarray(normal.Wp), s.frame, s.point, np.ascontiguousarray(s.local_cols),
+                            local, point, Wp)
     scaled = GroupNormal(
         s, normal.A * local[:, :, None] * local[:, None, :], normal.Wr * local[:, :, None] * rig,
         normal.Hrr * np.outer(rig, rig), normal.Hpp * point[:, :, None] * point[:, None, :],
-        normal.Hpr * point[:, :, None] * rig, normal.Wp * local[s.frame[:, None], s.local_cols][:, :, None]
-        * point[s.point][:, None, :], normal.b_local * local, normal.b_rig * rig, normal.b_point * point)
+        normal.Hpr * point[:, :, None] * rig, Wp, normal.b_local * local, normal.b_rig * rig, normal.b_point * point)
     return scaled, scale
 
 
@@ -336,10 +311,32 @@ def _cho_factor(matrix: np.ndarray):
 
 
 def _frames_first(normal: GroupNormal, r_local, r_rig, r_point):
-    """Eliminate the frames' blocks, solve the dense (R + 3P) system of the rig and the points."""
+    """Eliminate the frames' blocks, solve the dense (R + 3P) system of the rig and the points (compiled
+    loops over the frames, _group; `_frames_first_numpy` is their reference)."""
     s = normal.structure
     F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
-    A_inv = _inverted(normal.A, "a frame's pose")
+    G = R + 3 * P
+    system = _global_system(normal)
+    y = np.concatenate([r_rig, r_point.reshape(3 * P, -1)])
+    r_local, factors = np.ascontiguousarray(r_local), normal.A.copy()
+    stacked = np.empty((L * max(1, min(F, CHUNK_NUMBERS // (L * G))), G))
+    coupling = (np.ascontiguousarray(normal.Wr), np.ascontiguousarray(normal.Wp), s.by_frame, s.frame_starts,
+                np.ascontiguousarray(s.local_cols), s.point)
+    if _group.frames_first_reduction(factors, *coupling, r_local, system, y, stacked) >= 0:
+        raise _undetermined("a frame's pose")
+    system = np.tril(system) + np.tril(system, -1).T  # dsyrk updated the lower triangle
+    factor = _cho_factor(system)
+    x_global = linalg.cho_solve(factor, y)
+    rig_inverse = linalg.cho_solve(factor, np.eye(G)[:, :R])[:R]
+    x_local = np.empty_like(r_local)
+    _group.frames_first_back(factors, *coupling, r_local, np.ascontiguousarray(x_global), x_local)
+    return x_local, x_global[:R], x_global[R:].reshape(P, 3, -1), rig_inverse
+
+
+def _global_system(normal: GroupNormal) -> np.ndarray:
+    """(R + 3P, R + 3P) the normal matrix's rows and columns of the rig and the points."""
+    s = normal.structure
+    R, P = s.rig_size, s.n_points
     G = R + 3 * P
     system = np.zeros((G, G))
     system[:R, :R] = normal.Hrr
@@ -347,6 +344,17 @@ def _frames_first(normal: GroupNormal, r_local, r_rig, r_point):
     system[points[:, :, None], points[:, None, :]] = normal.Hpp
     system[points.ravel()[:, None], np.arange(R)] = normal.Hpr.reshape(3 * P, R)
     system[:R, R:] = system[R:, :R].T
+    return system
+
+
+def _frames_first_numpy(normal: GroupNormal, r_local, r_rig, r_point):
+    """`_frames_first` by numpy's products of the frames' inverted blocks and dense couplings, in chunks of
+    frames: the compiled loops' reference (tests/test_group_normal.py)."""
+    s = normal.structure
+    F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
+    A_inv = _inverted(normal.A, "a frame's pose")
+    G = R + 3 * P
+    system = _global_system(normal)
     y = np.concatenate([r_rig, r_point.reshape(3 * P, -1)])
     chunks = np.array_split(np.arange(F), min(F, -(-F * L * G // CHUNK_NUMBERS)))
     kept = [] if F * L * G <= KEPT_NUMBERS else None  # the couplings, built once where they fit

@@ -94,7 +94,7 @@ from ..frames import FlightObservations
 from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
 from ..rig import Rig
 from ..workspace import MOUNTING_COLUMNS
-from . import group_normal
+from . import _group, group_normal
 from .error_model import CALIBRATION_PARAMETERS, calibration_parameters
 from .group_normal import GroupNormal, GroupStructure
 
@@ -359,13 +359,16 @@ def _checked_observations(rig: Rig, cameras, uv, point_ids, points, frame_index)
 def _camera_slots(rig: Rig, cameras: np.ndarray) -> tuple[list[str], np.ndarray, np.ndarray]:
     """The non-reference cameras observed (K, in rig order), each observation's camera (N,) index in
     rig order and its delta slot (N,) in [0, K) (-1: the reference); a warning names the others."""
-    names, seen = rig.camera_names, set(cameras)
+    names = rig.camera_names
+    distinct, camera = np.unique(cameras, return_inverse=True)
+    seen = set(distinct)
     free = [c for c in names if c != rig.reference_camera and c in seen]
     missing = [c for c in names if c != rig.reference_camera and c not in seen]
     if missing:
         log.warning("mounting: camera(s) %s have no observation in the group: no estimate (NaN)", ", ".join(missing))
-    slot_of = {name: k for k, name in enumerate(free)}
-    return free, np.array([names.index(c) for c in cameras]), np.array([slot_of.get(c, -1) for c in cameras])
+    in_rig = np.array([names.index(c) for c in distinct], dtype=np.int64)
+    slot = np.array([free.index(c) if c in free else -1 for c in distinct], dtype=np.int64)
+    return free, in_rig[camera], slot[camera]
 
 
 def _checked_frames(frame_index: np.ndarray, n_frames: int) -> np.ndarray:
@@ -508,8 +511,9 @@ def _forward(problem: _Problem, state: _State, jacobians: bool = True) -> _Forwa
     cam_from_rig = (turn @ cal_R).reshape(-1, 3, 3)
     cam_t = (turn @ cal_t[:, :, None])[..., 0].reshape(-1, 3)
     image = p.frame * C + p.camera
-    x_rig = np.einsum("nij,nj->ni", state.R[p.frame], state.points[p.point]) + state.t[p.frame]
-    x = np.einsum("nij,nj->ni", cam_from_rig[image], x_rig) + cam_t[image]
+    x_rig, x = np.empty((len(image), 3)), np.empty((len(image), 3))
+    _group.mounting_points_in_cameras(p.frame, p.point, image, *map(np.ascontiguousarray, (
+        state.R, state.t, state.points, cam_from_rig, cam_t)), x_rig, x)
     predicted = np.empty((len(x), 2))
     J_pixel, J_focal = (np.empty((len(x), 2, 3)), np.empty((len(x), 2))) if jacobians else (None, None)
     for c in np.unique(p.camera):
@@ -560,6 +564,17 @@ def _columns(problem: _Problem) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _jacobians(problem: _Problem, state: _State, f: _Forward):
+    """`_jacobians_numpy`'s Jacobians and columns, by one compiled loop over the observations (_group)."""
+    p = problem
+    n, g = len(p.uv), 7 if len(p.focal_prior) else 6
+    local_J, global_J = np.empty((n, 2, p.structure.local_cols.shape[1])), np.empty((n, 2, g))
+    global_cols = np.concatenate([p.structure.rig_cols, p.rig_size + 3 * p.point[:, None] + np.arange(3)], axis=1)
+    _group.mounting_jacobians(p.frame, f.image, p.slot, p.focal_slot[p.camera], f.J_e, f.J_focal, f.x, f.q,
+                              f.cam_from_rig, f.delta_turn, f.jitter_turn, state.R, local_J, global_J)
+    return local_J, p.structure.local_cols, global_J, global_cols
+
+
+def _jacobians_numpy(problem: _Problem, state: _State, f: _Forward):
     """The compact Jacobians of e: local (N, 2, l) with its columns (N, l) in the frame's block and
     global (N, 2, g) with its columns (N, g) in the vector of the rig's unknowns and the points
     (`_columns`; g = 6, 7 with the focal changes, the point's 3 last); an observation of the reference
@@ -767,8 +782,10 @@ def _calibration_moved(problem: _Problem, state: _State, f: _Forward, jacobians:
     p = problem
     local_J, local_cols, global_J, global_cols = jacobians
     first = p.n_frames * p.local_size
-    U = (local_J @ rig_columns[p.frame[:, None] * p.local_size + local_cols]
-         + global_J @ rig_columns[first + global_cols])  # (N, 2, 3K + C')
+    U = np.zeros((len(p.uv), 2, rig_columns.shape[1]))  # J rig_columns: (N, 2, 3K + C')
+    rig_columns = np.ascontiguousarray(rig_columns)
+    _group.add_row_products(local_J, np.ascontiguousarray(p.frame[:, None] * p.local_size + local_cols), rig_columns, U)
+    _group.add_row_products(global_J, np.ascontiguousarray(first + global_cols), rig_columns, U)
     # d e / d x_rig is the pose's translation columns; x_cam = C (x_rig - centre): d e / d centre = -d_rig
     d_rig = local_J[:, :, 3:6]
     moved, columns = [], []
