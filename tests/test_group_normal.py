@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from dmais_pipe.errors import DmaisError
-from dmais_pipe.pose import group_normal
+from dmais_pipe.pose import _group, group_normal
 from dmais_pipe.pose.group_normal import FRAMES_FIRST, POINTS_FIRST, GroupNormal, assemble, group_structure, solve
 
 L, R = 9, 5  # a frame's pose (6) and one camera's jitter (3); the rig's unknowns
@@ -158,6 +158,7 @@ def test_the_compiled_frames_first_equals_numpys(k, monkeypatch):
     numpy's inverted blocks and dense couplings (`_frames_first_numpy`), and both against a dense solve."""
     monkeypatch.setattr(group_normal, "CHUNK_NUMBERS", 3000)  # several chunks of frames
     structure, _, normal, _, _ = two_camera_normal(11)
+    assert _group.local_layout(structure.local_cols, normal.A) == (6, 3)  # the poses, then the jitter blocks
     right = np.random.default_rng(2).normal(size=(structure.size, k))
     F, L2 = structure.n_frames, structure.local_size
     R2, P = structure.rig_size, structure.n_points

@@ -7,11 +7,15 @@ its L x (R + 3P) coupling) and most of a group adjustment's time (issue 40); her
 the observations and frames. The arithmetic is group_normal's docstring's; its numpy elimination
 (`_frames_first_numpy`) and a dense solve are the references of tests/test_group_normal.py.
 
-The frames-first elimination takes each frame's block A = Lf Lf^T (L x L, Cholesky) and its coupling W
-(L x (R + 3P), the rig and the points): W^T A^-1 W = Y^T Y with Y = Lf^-1 W, summed over the frames by
-one rank-(c L) update (BLAS dsyrk) per chunk of c frames' Y stacked: a frame's rows are a few dense
-vectors, where numpy's products of zero-padded stacks were most of an adjustment's time.
-Matrices are C-ordered doubles.
+The frames-first elimination factorises each frame's block as A = M M^T, M = [[Ls, G], [0, Lb]]: its
+unknowns are n_shared ones every observation of the frame touches (the pose), then blocks of `width` that
+only some touch (a camera's jitter), not tied to each other in A (`local_layout`; otherwise one dense
+Cholesky factor, n_shared = L); Lb the blocks' Cholesky factors, G = A_sb Lb^-T, Ls that of A_ss - G G^T.
+The frame's coupling W (L x (R + 3P), the rig and the points) reduces to Y = M^-1 W, and W^T A^-1 W =
+Y^T Y: the shared rows of Y are dense, summed by one dsyrk per chunk of frames; a block's rows are zero
+beyond a few columns (its camera's rig unknowns and points), kept over the frames whose block has the
+same columns and summed by one small dsyrk on those. In numpy, products of zero-padded stacks were most
+of a group adjustment's time (issue 40). Matrices are C-ordered doubles.
 """
 
 from libc.math cimport sqrt
@@ -137,61 +141,229 @@ cdef void coupling(double *W, int L, int G, const double[:, :, ::1] Wr, const do
                 W[local_cols[i, a] * G + R + 3 * point[i] + c] += Wp[i, a, c]
 
 
+def local_layout(const Py_ssize_t[:, ::1] local_cols, const double[:, :, ::1] A) -> tuple:
+    """(n_shared, width) of the frames' blocks (module docstring): the first n_shared local columns (at
+    least 1) every observation touches in order, then blocks of `width` each observation touches one of
+    whole, not tied to each other in A (F, L, L); (L, 0) where the blocks are not so (a dense factor)."""
+    cdef Py_ssize_t n = local_cols.shape[0], i
+    cdef int l = local_cols.shape[1], L = A.shape[1], n_shared = l, width, a
+    with nogil:
+        for i in range(n):
+            for a in range(n_shared):
+                if local_cols[i, a] != a:
+                    n_shared = a
+                    break
+    width = l - n_shared
+    if n_shared == 0 or width == 0 or (L - n_shared) % width or not blocks_apart(local_cols, A, n_shared, width):
+        return L, 0
+    return n_shared, width
+
+
+cdef bint blocks_apart(const Py_ssize_t[:, ::1] local_cols, const double[:, :, ::1] A, int n_shared,
+                       int width) noexcept nogil:
+    """Whether every observation's columns after the n_shared are one block of `width` whole and A (F, L,
+    L) ties no two blocks."""
+    cdef Py_ssize_t i, f
+    cdef int L = A.shape[1], a, b, start
+    for i in range(local_cols.shape[0]):
+        start = local_cols[i, n_shared]
+        if (start - n_shared) % width:
+            return False
+        for a in range(width):
+            if local_cols[i, n_shared + a] != start + a:
+                return False
+    for f in range(A.shape[0]):
+        for a in range(n_shared, L):
+            for b in range(n_shared, L):
+                if (a - n_shared) // width != (b - n_shared) // width and A[f, a, b] != 0.0:
+                    return False
+    return True
+
+
+cdef bint factorised(double *a, int L, int n_shared, int width) noexcept nogil:
+    """A frame's block a (L x L) -> its factors M (module docstring) in place: Lb on the blocks' diagonal,
+    G in the shared rows' block columns, Ls in the shared rows' first n_shared; False where a is not
+    positive definite."""
+    cdef int n_blocks = (L - n_shared) // width if width else 0, b, i, j, t, j0
+    for b in range(n_blocks):
+        j0 = n_shared + b * width
+        if not cholesky(a + j0 * L + j0, width, L):
+            return False
+        for i in range(n_shared):  # G's row i: Lb g = A_sb's row i
+            for t in range(width):
+                for j in range(t):
+                    a[i * L + j0 + t] -= a[(j0 + t) * L + j0 + j] * a[i * L + j0 + j]
+                a[i * L + j0 + t] /= a[(j0 + t) * L + j0 + t]
+    for i in range(n_shared):
+        for j in range(i + 1):
+            for t in range(n_shared, L):
+                a[i * L + j] -= a[i * L + t] * a[j * L + t]
+    return cholesky(a, n_shared, L)
+
+
+cdef void syrk_rows(double *rows, int n_rows, int n_cols, double *out) noexcept nogil:
+    """out (n_cols x n_cols) <- rows^T rows of rows (n_rows x n_cols, C order), its lower triangle (C order)."""
+    cdef char uplo = b'U', trans = b'N'
+    cdef double one = 1.0, zero = 0.0
+    dsyrk(&uplo, &trans, &n_cols, &n_rows, &one, rows, &n_cols, &zero, out, &n_cols)
+
+
+cdef struct BlockStack:
+    # one block's rows of Y = M^-1 W over the frames whose block has the same columns, kept for one dsyrk
+    int n_rows
+    int n_cols
+    int *cols
+    double *rows
+
+
+cdef void flushed(BlockStack *stack, double[:, ::1] system, double *product) noexcept nogil:
+    """system's lower triangle -= the stack's rows^T rows at its columns; the stack emptied."""
+    cdef int a, b, ra, rb
+    if stack.n_rows:
+        syrk_rows(stack.rows, stack.n_rows, stack.n_cols, product)
+        for a in range(stack.n_cols):
+            for b in range(a + 1):
+                ra, rb = stack.cols[a], stack.cols[b]
+                if ra >= rb:
+                    system[ra, rb] -= product[a * stack.n_cols + b]
+                else:
+                    system[rb, ra] -= product[a * stack.n_cols + b]
+    stack.n_rows = 0
+
+
 def frames_first_reduction(double[:, :, ::1] factors, const double[:, :, ::1] Wr, const double[:, :, ::1] Wp,
                            const Py_ssize_t[::1] by_frame, const Py_ssize_t[::1] frame_starts,
-                           const Py_ssize_t[:, ::1] local_cols, const Py_ssize_t[::1] point,
-                           const double[:, :, ::1] r_local, double[:, ::1] system, double[:, ::1] y,
+                           const Py_ssize_t[:, ::1] local_cols, const Py_ssize_t[::1] point, int n_shared,
+                           int width, const double[:, :, ::1] r_local, double[:, ::1] system, double[:, ::1] y,
                            double[:, ::1] stacked) -> int:
-    """Eliminate the frames: factors (F, L, L) the frames' blocks A, replaced by their lower Cholesky
-    factors Lf; system (G, G) -= sum W^T A^-1 W (its lower triangle only), y (G, k) -= sum W^T A^-1
-    r_local (F, L, k), as Y^T Y and Y^T Lf^-1 r with Y = Lf^-1 W; stacked (c L, G): room for the Y of c
-    frames between two dsyrk calls. Wr, Wp, by_frame, frame_starts, local_cols, point: the normal's and
-    its structure's. Returns -1, or the first frame whose block is not positive definite."""
-    cdef int F = factors.shape[0], L = factors.shape[1], G = system.shape[0], k = y.shape[1]
-    cdef int chunk = stacked.shape[0] // L, f, i, c, kk, in_chunk = 0, failed = -1
+    """Eliminate the frames: factors (F, L, L) the frames' blocks A, replaced by their factors M (module
+    docstring, layout (n_shared, width) from `local_layout`); system (G, G) -= sum W^T A^-1 W (its lower
+    triangle only), y (G, k) -= sum W^T A^-1 r_local (F, L, k), as Y^T Y and Y^T M^-1 r with Y = M^-1 W;
+    stacked (c n_shared, G): room for the shared rows of Y of c frames between two dsyrk calls. Wr, Wp,
+    by_frame, frame_starts, local_cols, point: the normal's and its structure's. Returns -1, or the first
+    frame whose block is not positive definite."""
+    cdef int F = factors.shape[0], L = factors.shape[1], G = system.shape[0], k = y.shape[1], R = Wr.shape[2]
+    cdef int n_blocks = (L - n_shared) // width if width else 0, chunk = stacked.shape[0] // n_shared
+    cdef int capacity = width * chunk, f, b, j0, t, i, c, kk, n_cols, in_chunk = 0, failed = -1, same, q
+    cdef Py_ssize_t j, obs
+    cdef double value
+    cdef double *W = <double *> malloc(L * G * sizeof(double))
     cdef double *z = <double *> malloc(L * k * sizeof(double) + 1)
+    cdef double *product = <double *> malloc(G * G * sizeof(double))
+    cdef int *cols = <int *> malloc(G * sizeof(int))
+    cdef int *seen = <int *> malloc(G * sizeof(int))
+    cdef BlockStack *stacks = <BlockStack *> malloc(n_blocks * sizeof(BlockStack) + 1)
+    cdef BlockStack *stack
     cdef double *a
-    cdef double *Y
-    cdef double factor
+    cdef double *Ys
+    cdef double *Yb
     cdef char uplo = b'U', trans = b'N'
     cdef int rank, ld = G
     cdef double minus_one = -1.0, one = 1.0
-    if z == NULL:
+    if W == NULL or z == NULL or product == NULL or cols == NULL or seen == NULL or stacks == NULL:
+        free(W); free(z); free(product); free(cols); free(seen); free(stacks)
         raise MemoryError()
+    for b in range(n_blocks):
+        stacks[b].n_rows, stacks[b].n_cols = 0, 0
+        stacks[b].cols = <int *> malloc(G * sizeof(int))
+        stacks[b].rows = <double *> malloc(capacity * G * sizeof(double))
     with nogil:
+        for c in range(G):
+            seen[c] = -1
         for f in range(F):
             a = &factors[f, 0, 0]
-            if not cholesky(a, L, L):
+            if not factorised(a, L, n_shared, width):
                 failed = f
                 break
-            Y = &stacked[in_chunk * L, 0]
-            coupling(Y, L, G, Wr, Wp, by_frame, local_cols, point, f, frame_starts[f], frame_starts[f + 1])
-            lower_solve(a, L, L, Y, G, G)
+            coupling(W, L, G, Wr, Wp, by_frame, local_cols, point, f, frame_starts[f], frame_starts[f + 1])
             memcpy(z, &r_local[f, 0, 0], L * k * sizeof(double))
-            lower_solve(a, L, L, z, k, k)
-            for i in range(L):
+            Ys = &stacked[in_chunk * n_shared, 0]
+            memcpy(Ys, W, n_shared * G * sizeof(double))
+            for b in range(n_blocks):
+                j0, stack = n_shared + b * width, &stacks[b]
+                n_cols = 0  # the columns where the block's rows of W are not zero
+                for c in range(R):
+                    for t in range(width):
+                        if W[(j0 + t) * G + c] != 0.0:
+                            cols[n_cols] = c
+                            n_cols += 1
+                            break
+                for j in range(frame_starts[f], frame_starts[f + 1]):
+                    obs = by_frame[j]
+                    q = R + 3 * point[obs]
+                    if local_cols[obs, n_shared] != j0 or seen[q] == f * n_blocks + b:
+                        continue
+                    seen[q] = f * n_blocks + b
+                    for t in range(width):
+                        if W[(j0 + t) * G + q] != 0.0 or W[(j0 + t) * G + q + 1] != 0.0 \
+                                or W[(j0 + t) * G + q + 2] != 0.0:
+                            for c in range(3):
+                                cols[n_cols] = q + c
+                                n_cols += 1
+                            break
+                lower_solve(a + j0 * L + j0, width, L, z + j0 * k, k, k)  # zb = Lb^-1 r_b
+                for i in range(n_shared):  # r_s - G zb
+                    for t in range(width):
+                        for kk in range(k):
+                            z[i * k + kk] -= a[i * L + j0 + t] * z[(j0 + t) * k + kk]
+                if n_cols == 0:
+                    continue
+                same = stack.n_cols == n_cols and stack.n_rows + width <= capacity
+                for c in range(n_cols):
+                    if not same:
+                        break
+                    same = stack.cols[c] == cols[c]
+                if not same:
+                    flushed(stack, system, product)
+                    stack.n_cols = n_cols
+                    memcpy(stack.cols, cols, n_cols * sizeof(int))
+                Yb = stack.rows + stack.n_rows * n_cols
+                stack.n_rows += width
+                for t in range(width):
+                    for c in range(n_cols):
+                        Yb[t * n_cols + c] = W[(j0 + t) * G + cols[c]]
+                lower_solve(a + j0 * L + j0, width, L, Yb, n_cols, n_cols)  # Yb = Lb^-1 Wb
+                for c in range(n_cols):
+                    for kk in range(k):
+                        value = 0.0
+                        for t in range(width):
+                            value += Yb[t * n_cols + c] * z[(j0 + t) * k + kk]
+                        y[cols[c], kk] -= value
+                for i in range(n_shared):  # Ws - G Yb
+                    for t in range(width):
+                        value = a[i * L + j0 + t]
+                        for c in range(n_cols):
+                            Ys[i * G + cols[c]] -= value * Yb[t * n_cols + c]
+            lower_solve(a, n_shared, L, Ys, G, G)  # Ys = Ls^-1 (Ws - G Yb)
+            lower_solve(a, n_shared, L, z, k, k)
+            for i in range(n_shared):
                 for kk in range(k):
-                    factor = z[i * k + kk]
+                    value = z[i * k + kk]
                     for c in range(G):
-                        y[c, kk] -= Y[i * G + c] * factor
+                        y[c, kk] -= Ys[i * G + c] * value
             in_chunk += 1
-            if in_chunk == chunk or f == F - 1:  # system -= Y^T Y: in Fortran's order, Y^T is G x (c L)
-                rank = in_chunk * L
+            if in_chunk == chunk or f == F - 1:  # system -= Ys^T Ys: in Fortran's order, Ys^T is G x (c n_shared)
+                rank = in_chunk * n_shared
                 dsyrk(&uplo, &trans, &ld, &rank, &minus_one, &stacked[0, 0], &ld, &one, &system[0, 0], &ld)
                 in_chunk = 0
-    free(z)
+        for b in range(n_blocks):
+            if failed < 0:
+                flushed(&stacks[b], system, product)
+    for b in range(n_blocks):
+        free(stacks[b].cols); free(stacks[b].rows)
+    free(W); free(z); free(product); free(cols); free(seen); free(stacks)
     return failed
 
 
 def frames_first_back(const double[:, :, ::1] factors, const double[:, :, ::1] Wr, const double[:, :, ::1] Wp,
                       const Py_ssize_t[::1] by_frame, const Py_ssize_t[::1] frame_starts,
-                      const Py_ssize_t[:, ::1] local_cols, const Py_ssize_t[::1] point,
+                      const Py_ssize_t[:, ::1] local_cols, const Py_ssize_t[::1] point, int n_shared, int width,
                       const double[:, :, ::1] r_local, const double[:, ::1] x_global,
                       double[:, :, ::1] x_local) -> None:
-    """x_local (F, L, k) <- A^-1 (r_local - W x_global) per frame, A's Cholesky factors from
+    """x_local (F, L, k) <- A^-1 (r_local - W x_global) per frame, A's factors M from
     `frames_first_reduction`; x_global (G, k) the rig's and the points' solution."""
     cdef int F = factors.shape[0], L = factors.shape[1], k = x_global.shape[1], R = Wr.shape[2], l = Wp.shape[1]
-    cdef int f, row, c, kk
+    cdef int n_blocks = (L - n_shared) // width if width else 0, f, b, j0, row, c, kk, i, t
     cdef Py_ssize_t j, obs, p
     cdef double value
     cdef double *x
@@ -215,8 +387,24 @@ def frames_first_back(const double[:, :, ::1] factors, const double[:, :, ::1] W
                         for c in range(3):
                             value += Wp[obs, row, c] * x_global[p + c, kk]
                         x[local_cols[obs, row] * k + kk] -= value
-            lower_solve(a, L, L, x, k, k)
-            upper_solve(a, L, L, x, k, k)
+            for b in range(n_blocks):  # v = M^-1 u
+                j0 = n_shared + b * width
+                lower_solve(a + j0 * L + j0, width, L, x + j0 * k, k, k)
+                for i in range(n_shared):
+                    for t in range(width):
+                        for kk in range(k):
+                            x[i * k + kk] -= a[i * L + j0 + t] * x[(j0 + t) * k + kk]
+            lower_solve(a, n_shared, L, x, k, k)
+            upper_solve(a, n_shared, L, x, k, k)  # x = M^-T v
+            for b in range(n_blocks):
+                j0 = n_shared + b * width
+                for t in range(width):
+                    for kk in range(k):
+                        value = 0.0
+                        for i in range(n_shared):
+                            value += a[i * L + j0 + t] * x[i * k + kk]
+                        x[(j0 + t) * k + kk] -= value
+                upper_solve(a + j0 * L + j0, width, L, x + j0 * k, k, k)
 
 
 cdef inline void cross_rows(const double *a, const double *b, double *out) noexcept nogil:

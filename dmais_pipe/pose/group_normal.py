@@ -319,9 +319,11 @@ def _frames_first(normal: GroupNormal, r_local, r_rig, r_point):
     system = _global_system(normal)
     y = np.concatenate([r_rig, r_point.reshape(3 * P, -1)])
     r_local, factors = np.ascontiguousarray(r_local), normal.A.copy()
-    stacked = np.empty((L * max(1, min(F, CHUNK_NUMBERS // (L * G))), G))
+    local_cols = np.ascontiguousarray(s.local_cols)
+    n_shared, width = _group.local_layout(local_cols, factors)
+    stacked = np.empty((n_shared * max(1, min(F, CHUNK_NUMBERS // (L * G))), G))
     coupling = (np.ascontiguousarray(normal.Wr), np.ascontiguousarray(normal.Wp), s.by_frame, s.frame_starts,
-                np.ascontiguousarray(s.local_cols), s.point)
+                local_cols, s.point, n_shared, width)
     if _group.frames_first_reduction(factors, *coupling, r_local, system, y, stacked) >= 0:
         raise _undetermined("a frame's pose")
     system = np.tril(system) + np.tril(system, -1).T  # dsyrk updated the lower triangle
