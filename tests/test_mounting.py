@@ -500,8 +500,9 @@ def test_bench_runs_a_line_flight(tmp_path):
 
 
 def test_the_compiled_model_and_jacobians_equal_numpys():
-    """mounting's compiled loops (_group: the points in the cameras, the compact Jacobians) against the
-    numpy formulas they replace, away from zero (turned cameras, jitters, focal changes)."""
+    """mounting's compiled loops (_group: the points in the cameras, the radial1 projection, the compact
+    Jacobians) against the numpy formulas they replace, away from zero (turned cameras, jitters, focal
+    changes)."""
     from dmais_pipe.pose import mounting
 
     group = make_group(5, frames=3, mount_arcmin=1.0, markers_per_camera=4)
@@ -525,3 +526,8 @@ def test_the_compiled_model_and_jacobians_equal_numpys():
     for compiled, reference in zip(mounting._jacobians(problem, state, forward),
                                    mounting._jacobians_numpy(problem, state, forward)):
         np.testing.assert_allclose(compiled, reference, rtol=1e-12, atol=1e-12 * np.abs(reference).max())
+    assert {camera.model for camera in group.rig.cameras.values()} == {"radial1"}
+    for compiled, reference in zip(mounting._radial1_residuals(problem, state, forward.x, True),
+                                   mounting._projected_residuals(problem, state, forward.x, True)):
+        np.testing.assert_allclose(compiled, reference, rtol=1e-12, atol=1e-12 * np.abs(reference).max())
+    np.testing.assert_array_equal(mounting._forward(problem, state, jacobians=False).e, forward.e)

@@ -518,3 +518,34 @@ def add_row_products(const double[:, :, ::1] J, const Py_ssize_t[:, ::1] index, 
                     factor = J[i, k, a]
                     for c in range(m):
                         out[i, k, c] += factor * M_row[c]
+
+
+def radial1_residuals(const double[:, ::1] x, const Py_ssize_t[::1] camera, const double[:, ::1] lens,
+                      const double[:, ::1] uv, const double[::1] weight, double[:, ::1] e, double[:, :, ::1] J_e,
+                      double[:, ::1] J_focal, bint jacobians) -> None:
+    """pose.mounting's whitened residuals of points x (N, 3) in their cameras by the radial1 model
+    (camera.project_unmasked, its reference): e (N, 2) = (pixel - uv) weight; with `jacobians`, J_e (N, 2,
+    3) d e / d x and J_focal (N, 2) d e / d (the relative focal change). lens (C, 7) per camera in rig order:
+    fx, fy (with the focal change), cx, cy, d, and fx, fy (without)."""
+    cdef Py_ssize_t n = x.shape[0], i
+    cdef double xn, yn, inverse_z, r2, s, fx, fy, d, w, j00, j01, j10, j11
+    cdef const double *c
+    with nogil:
+        for i in range(n):
+            c = &lens[camera[i], 0]
+            fx, fy, d, w = c[0], c[1], c[4], weight[i]
+            xn, yn = x[i, 0] / x[i, 2], x[i, 1] / x[i, 2]
+            r2 = xn * xn + yn * yn
+            s = 1.0 + d * r2
+            e[i, 0] = (fx * xn * s + c[2] - uv[i, 0]) * w
+            e[i, 1] = (fy * yn * s + c[3] - uv[i, 1]) * w
+            if not jacobians:
+                continue
+            j00, j01 = fx * (s + 2.0 * d * xn * xn), fx * 2.0 * d * xn * yn
+            j10, j11 = fy * 2.0 * d * xn * yn, fy * (s + 2.0 * d * yn * yn)
+            inverse_z = 1.0 / x[i, 2]
+            J_e[i, 0, 0], J_e[i, 0, 1] = j00 * inverse_z * w, j01 * inverse_z * w
+            J_e[i, 0, 2] = (j00 * (-xn / x[i, 2]) + j01 * (-yn / x[i, 2])) * w
+            J_e[i, 1, 0], J_e[i, 1, 1] = j10 * inverse_z * w, j11 * inverse_z * w
+            J_e[i, 1, 2] = (j10 * (-xn / x[i, 2]) + j11 * (-yn / x[i, 2])) * w
+            J_focal[i, 0], J_focal[i, 1] = xn * s * c[5] * w, yn * s * c[6] * w

@@ -514,6 +514,37 @@ def _forward(problem: _Problem, state: _State, jacobians: bool = True) -> _Forwa
     x_rig, x = np.empty((len(image), 3)), np.empty((len(image), 3))
     _group.mounting_points_in_cameras(p.frame, p.point, image, *map(np.ascontiguousarray, (
         state.R, state.t, state.points, cam_from_rig, cam_t)), x_rig, x)
+    if all(rig.cameras[name].model == "radial1" for name in p.names):
+        e, J_e, J_focal = _radial1_residuals(p, state, x, jacobians)
+    else:
+        e, J_e, J_focal = _projected_residuals(p, state, x, jacobians)
+    if not jacobians:
+        return _Forward(e)
+    centre = np.einsum("fij,fj->fi", state.R, p.centroid) + state.t  # R m + t: q = x_rig - it
+    delta_turn = (Jm @ left_jacobian_so3(deltas)).reshape(-1, 3, 3)
+    return _Forward(e, J_e, J_focal, x, x_rig - centre[p.frame], image, cam_from_rig, delta_turn,
+                    left_jacobian_so3(jitters).reshape(-1, 3, 3))
+
+
+def _radial1_residuals(problem: _Problem, state: _State, x: np.ndarray, jacobians: bool):
+    """`_projected_residuals` of radial1 cameras, by one compiled loop over the observations (_group)."""
+    p = problem
+    lens = np.empty((len(p.names), 7))  # per camera fx, fy with its focal change, cx, cy, d, fx, fy without
+    for c, name in enumerate(p.names):
+        calibrated = p.rig.cameras[name]
+        changed = _focal_changed(calibrated, _focal(p, state, c))
+        lens[c] = changed.fx, changed.fy, calibrated.cx, calibrated.cy, calibrated.d, calibrated.fx, calibrated.fy
+    n = len(x)
+    e, J_e, J_focal = np.empty((n, 2)), np.empty((n, 2, 3) if jacobians else (0, 2, 3)), np.empty((n if jacobians else 0, 2))
+    _group.radial1_residuals(x, p.camera, lens, np.ascontiguousarray(p.uv), p.weight, e, J_e, J_focal, jacobians)
+    return (e, J_e, J_focal) if jacobians else (e, None, None)
+
+
+def _projected_residuals(problem: _Problem, state: _State, x: np.ndarray, jacobians: bool):
+    """The whitened residuals e (N, 2) of points x (N, 3) in their cameras (camera.project_unmasked with each
+    camera's focal change), and with `jacobians` d e / d x (N, 2, 3) and d e / d (the relative focal change)
+    (N, 2); None for them without."""
+    p, rig = problem, problem.rig
     predicted = np.empty((len(x), 2))
     J_pixel, J_focal = (np.empty((len(x), 2, 3)), np.empty((len(x), 2))) if jacobians else (None, None)
     for c in np.unique(p.camera):
@@ -529,11 +560,8 @@ def _forward(problem: _Problem, state: _State, jacobians: bool = True) -> _Forwa
     w = p.weight[:, None]
     e = (predicted - p.uv) * w
     if not jacobians:
-        return _Forward(e)
-    centre = np.einsum("fij,fj->fi", state.R, p.centroid) + state.t  # R m + t: q = x_rig - it
-    delta_turn = (Jm @ left_jacobian_so3(deltas)).reshape(-1, 3, 3)
-    return _Forward(e, J_pixel * w[:, :, None], J_focal * w, x, x_rig - centre[p.frame], image, cam_from_rig,
-                    delta_turn, left_jacobian_so3(jitters).reshape(-1, 3, 3))
+        return e, None, None
+    return e, J_pixel * w[:, :, None], J_focal * w
 
 
 def _focal(problem: _Problem, state: _State, camera: int) -> float:
