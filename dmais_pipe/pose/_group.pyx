@@ -101,11 +101,8 @@ def assemble(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_
             A_f, Wr_f = &A[frame[i], 0, 0], &Wr[frame[i], 0, 0]
             Hp, Hpr_p = &Hpp[point[i], 0, 0], &Hpr[point[i], 0, 0]
             for a in range(l):
-                for b in range(a + 1):
-                    value = jl[a] * jl[b] + jl[l + a] * jl[l + b]
-                    A_f[lc[a] * L + lc[b]] += value
-                    if b != a:
-                        A_f[lc[b] * L + lc[a]] += value
+                for b in range(a + 1):  # A's lower triangle, mirrored below
+                    A_f[max(lc[a], lc[b]) * L + min(lc[a], lc[b])] += jl[a] * jl[b] + jl[l + a] * jl[l + b]
                 for b in range(r):
                     Wr_f[lc[a] * R + rc[b]] += jl[a] * jr[b] + jl[l + a] * jr[r + b]
                 for b in range(3):
@@ -121,6 +118,11 @@ def assemble(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_
                 for b in range(r):
                     Hpr_p[a * R + rc[b]] += jp[a] * jr[b] + jp[3 + a] * jr[r + b]
                 b_point[point[i], a] += jp[a] * ei[0] + jp[3 + a] * ei[1]
+        for i in range(A.shape[0]):
+            A_f = &A[i, 0, 0]
+            for a in range(L):
+                for b in range(a):
+                    A_f[b * L + a] = A_f[a * L + b]
 
 
 cdef void coupling(double *W, int L, int G, const double[:, :, ::1] Wr, const double[:, :, ::1] Wp,

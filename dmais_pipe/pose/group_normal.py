@@ -20,7 +20,9 @@ block per observation, and solved by eliminating one block-diagonal set and then
   banded along a line of frames; it is factorised by blocks (no sharing) or by a sparse LU
   (scipy's SuperLU, a fill-reducing order), and the rig's R unknowns last by their Schur complement.
 
-`elimination` picks the cheaper by counting the work each needs. Both are exact: the solution and the
+`elimination` picks the cheaper by counting the work each needs. The blocks are assembled, and the frames
+eliminated, by compiled loops over the observations and frames (_group.pyx: a frame's block by its
+Cholesky factor, the frames' couplings summed by BLAS dsyrk). Both are exact: the solution and the
 rig's block of the inverse equal those of a dense solve of the whole matrix to rounding
 (tests/test_group_normal.py). The cost is linear in the frames for a fixed number of points per frame
 and frames per point; the dense system of the frames-first order is of the points alone. Frames tied
