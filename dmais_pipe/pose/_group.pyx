@@ -251,7 +251,11 @@ def frames_first_reduction(double[:, :, ::1] factors, const double[:, :, ::1] Wr
     cdef double value
     cdef double *W = <double *> malloc(L * G * sizeof(double))
     cdef double *z = <double *> malloc(L * k * sizeof(double) + 1)
-    cdef double *product = <double *> malloc(G * G * sizeof(double))
+    cdef int most = 0, block_cols  # a block's columns: at most the rig's and 3 per observation of a frame
+    for f in range(F):
+        most = max(most, <int> (frame_starts[f + 1] - frame_starts[f]))
+    block_cols = min(G, R + 3 * most)
+    cdef double *product = <double *> malloc(block_cols * block_cols * sizeof(double))
     cdef int *cols = <int *> malloc(G * sizeof(int))
     cdef int *seen = <int *> malloc(G * sizeof(int))
     cdef BlockStack *stacks = <BlockStack *> malloc(n_blocks * sizeof(BlockStack) + 1)
@@ -268,7 +272,7 @@ def frames_first_reduction(double[:, :, ::1] factors, const double[:, :, ::1] Wr
     for b in range(n_blocks):
         stacks[b].n_rows, stacks[b].n_cols = 0, 0
         stacks[b].cols = <int *> malloc(G * sizeof(int))
-        stacks[b].rows = <double *> malloc(capacity * G * sizeof(double))
+        stacks[b].rows = <double *> malloc(capacity * block_cols * sizeof(double))
     with nogil:
         for c in range(G):
             seen[c] = -1
