@@ -827,7 +827,7 @@ def _calibration_moved(problem: _Problem, state: _State, f: _Forward, jacobians:
             aspect = by_parameter[:, :, :1] * camera.fx - by_parameter[:, :, 1:2] * camera.fy
             by_parameter, parameters = np.concatenate([aspect, by_parameter[:, :, 2:]], axis=2), [ASPECT] + parameters[2:]
         by_parameter = np.concatenate([by_parameter, -d_rig[rows]], axis=2)
-        moved.append(-np.einsum("nkr,nkj->rj", U[rows], by_parameter))
+        moved.append(-(U[rows].reshape(-1, U.shape[2]).T @ by_parameter.reshape(-1, by_parameter.shape[2])))
         columns += [(int(c), parameter) for parameter in parameters + [CENTRE, CENTRE + 1, CENTRE + 2]]
         if p.focal_slot[c] >= 0:  # the prior's residual (s - m) / sigma_s: the gradient moves by -e_s / sigma_s^2 per m
             slot = 3 * len(p.free) + p.focal_slot[c]
