@@ -118,6 +118,8 @@ def _csv_cells(column: pd.Series) -> list[str]:
         return ["" if value != value else repr(value) for value in column.tolist()]
     if column.dtype.kind in "iub":
         return list(map(str, column.tolist()))
+    if isinstance(column.dtype, pd.StringDtype) and not column.isna().any():
+        return _csv_quoted(column.tolist())  # every cell a str already
     return _csv_quoted([value if isinstance(value, str) else "" if pd.isna(value) else str(value)
                         for value in column.tolist()])
 

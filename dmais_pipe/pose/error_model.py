@@ -71,6 +71,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+import pandas as pd
 from scipy.optimize import nnls
 
 from ..camera import LENS_FIELDS
@@ -216,7 +217,7 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
         weight = np.ones(len(points))
     A = _sum_by(np.einsum("nki,nkj->nij", J * weight[:, None, None], J), frame_index, n_frames)
     names = list(rig.cameras)
-    camera = np.array([names.index(str(c)) for c in cameras]) if len(cameras) else np.zeros(0, int)
+    camera = pd.Index(names).get_indexer(np.asarray(cameras).astype(str)) if len(cameras) else np.zeros(0, int)
     residual = residual.reshape(-1, 2)
     norm = np.linalg.norm(p, axis=1)
     dr_dp = (bases - residual[:, :, None] * (p / norm[:, None])[:, None, :]) / norm[:, None, None]
@@ -276,12 +277,14 @@ def _unit(v: np.ndarray) -> np.ndarray:
 
 
 def _sum_by(values: np.ndarray, key: np.ndarray, n_keys: int) -> np.ndarray:
-    """Sums (n_keys, ...) of values (N, ...) per key (N,) in [0, n_keys) (rows with key < 0 ignored)."""
+    """Sums (n_keys, ...) of values (N, ...) per key (N,) in [0, n_keys) (rows with key < 0 ignored).
+    One bincount over (key, entry) slots: each sum adds its rows in their order, as one bincount
+    per entry did."""
     keep = key >= 0
-    flat = values[keep].reshape(int(keep.sum()), int(np.prod(values.shape[1:])))
-    out = np.stack([np.bincount(key[keep], flat[:, j], minlength=n_keys) for j in range(flat.shape[1])], axis=1) \
-        if flat.shape[1] else np.zeros((n_keys, 0))
-    return out.reshape(n_keys, *values.shape[1:])
+    width = int(np.prod(values.shape[1:]))
+    flat = values[keep].reshape(int(keep.sum()), width)
+    slots = (key[keep][:, None] * width + np.arange(width)).ravel()
+    return np.bincount(slots, flat.ravel(), minlength=n_keys * width).reshape(n_keys, *values.shape[1:])
 
 
 def solve_response(geometry: Geometry, errors: np.ndarray) -> np.ndarray:
@@ -291,6 +294,17 @@ def solve_response(geometry: Geometry, errors: np.ndarray) -> np.ndarray:
     sums = np.add.reduceat(right, g.starts, axis=-2) if g.n_frames else right[..., :0, :]
     step = np.einsum("fij,...fj->...fi", g.A_inverse, sums)
     return errors - np.einsum("nkj,...nj->...nk", g.J, step[..., g.frame, :])
+
+
+def _scaled_outer(K: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """(N, m, m) scale_n K_n K_n^T of K (N, m, e), scale (N,): einsum("nij,n,nkj->nik")'s
+    products (K_nij scale_n) K_nkj added over j in order, with broadcast products (einsum's
+    three-operand loop is several times slower)."""
+    scaled = K * scale[:, None, None]
+    out = scaled[:, :, None, 0] * K[:, None, :, 0]
+    for j in range(1, K.shape[2]):
+        out += scaled[:, :, None, j] * K[:, None, :, j]
+    return out
 
 
 def _dense(key: np.ndarray) -> np.ndarray:
@@ -666,7 +680,7 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
 
     def per_observation(effect, variance):  # sum_i (w J^T E_i) V_i (w J^T E_i)^T
         K = np.einsum("nki,nkj->nij", weighted, effect)
-        return _sum_by(np.einsum("nij,n,nkj->nik", K, variance, K), g.frame, n_frames)
+        return _sum_by(_scaled_outer(K, variance), g.frame, n_frames)
 
     def calibration():  # L K L^T, L (F, 6, K C) the frame's sums of w J^T C_i in its camera's columns
         blocks = _sum_by(np.einsum("nki,nkj->nij", weighted, g.calibration), frame_camera, len(block_frame))
