@@ -1,5 +1,5 @@
 """pose.group_normal: the blocks equal J^T J of the whole Jacobian, and both orders of elimination (and the
-block-diagonal, dense and sparse factorisations of the frames) solve as a dense solve of the whole matrix."""
+block-diagonal and banded factorisations of the frames) solve as a dense solve of the whole matrix."""
 
 from __future__ import annotations
 
@@ -16,7 +16,8 @@ L, R = 9, 5  # a frame's pose (6) and one camera's jitter (3); the rig's unknown
 def observations(rng, kind: str, n_frames: int):
     """(frame, point, n_points) of a group: `shared` every frame sees the same 6 points, `own` each frame
     its own 5, `own_twice` its own 3 each seen twice (by two cameras), `line` each frame 3 new points and
-    the 3 of each of the two frames before."""
+    the 3 of each of the two frames before, `shuffled_line` a line whose frames are numbered at random
+    (their own order ties them over the whole group; the band's order is the line's)."""
     if kind == "shared":
         frame, point = np.divmod(np.arange(n_frames * 6), 6)
         return frame, point, 6
@@ -30,6 +31,8 @@ def observations(rng, kind: str, n_frames: int):
     back = np.tile(np.repeat([0, 1, 2], 3), n_frames)
     point = 3 * np.maximum(frame - back, 0) + np.tile(np.arange(3), 3 * n_frames)
     keep = frame - back >= 0
+    if kind == "shuffled_line":
+        return rng.permutation(n_frames)[frame[keep]], point[keep], 3 * n_frames
     return frame[keep], point[keep], 3 * n_frames
 
 
@@ -73,12 +76,13 @@ def test_the_blocks_are_those_of_the_whole_jacobian(kind):
     np.testing.assert_allclose(normal.gradient, J.T @ e.ravel(), rtol=0, atol=1e-10)
 
 
+@pytest.mark.parametrize("solve_block", [16, 128])
 @pytest.mark.parametrize("method", [FRAMES_FIRST, POINTS_FIRST])
 @pytest.mark.parametrize("kind, n_frames", [("shared", 9), ("own", 9), ("own_twice", 9), ("line", 9),
-                                           ("line", 120)])
-def test_each_elimination_solves_as_the_dense_matrix(kind, n_frames, method, monkeypatch):
-    monkeypatch.setattr(group_normal, "DENSE_FRAMES_SIZE", 100)  # the line of 9 frames dense, of 300 sparse
+                                           ("line", 120), ("shuffled_line", 120)])
+def test_each_elimination_solves_as_the_dense_matrix(kind, n_frames, method, solve_block, monkeypatch):
     monkeypatch.setattr(group_normal, "PAIR_CHUNK", 50)  # several chunks of observation pairs
+    monkeypatch.setattr(group_normal, "SOLVE_BLOCK", solve_block)  # blocks within and wider than a line's band
     monkeypatch.setattr(group_normal, "CHUNK_NUMBERS", 2000)  # several chunks of frames
     structure, normal, _, _ = random_normal(kind, n_frames, method)
     normal = with_priors(normal)
@@ -95,7 +99,8 @@ def test_the_cheaper_order_is_chosen():
     assert random_normal("shared", 50, None)[0].method == FRAMES_FIRST
     assert random_normal("own", 50, None)[0].method == POINTS_FIRST
     line = random_normal("line", 200, None)[0]
-    assert line.method == POINTS_FIRST and line.frames_tied
+    assert line.method == POINTS_FIRST and line.frames_tied and line.band == 2
+    assert random_normal("shuffled_line", 200, None)[0].band == 2
     assert not random_normal("own", 50, None)[0].frames_tied
     assert random_normal("own_twice", 50, None)[0].method == POINTS_FIRST
 
@@ -111,9 +116,8 @@ def test_an_undetermined_frame_is_refused(method):
 
 
 def test_a_group_whose_frames_system_would_not_fit_is_refused(monkeypatch):
-    monkeypatch.setattr(group_normal, "DENSE_FRAMES_SIZE", 100)
     structure, normal, _, _ = random_normal("line", 120, POINTS_FIRST)
-    monkeypatch.setattr(group_normal, "FACTOR_BYTES", 2.0 * 120 * L * 3 * L * 8 * 0.9)  # a band of 2 frames needs more
+    monkeypatch.setattr(group_normal, "FACTOR_BYTES", 120 * L * 3 * L * 8 * 0.9)  # a band of 2 frames needs more
     with pytest.raises(DmaisError, match="too large to adjust at once: its frames are tied over 2 frames"):
         solve(with_priors(normal), np.ones((structure.size, 1)))
 

@@ -17,8 +17,9 @@ block per observation, and solved by eliminating one block-diagonal set and then
   group hovering over the same few markers, where every frame sees every point;
 - the points first (`POINTS_FIRST`), leaving the frames and the rig: the frames are tied only where
   they share a point, so that system is block diagonal where no point is seen by two frames and
-  banded along a line of frames; it is factorised by blocks (no sharing) or by a sparse LU
-  (scipy's SuperLU, a fill-reducing order), and the rig's R unknowns last by their Schur complement.
+  banded along a line of frames; it is factorised by blocks (no sharing) or as a band (LAPACK's
+  banded Cholesky, the frames in the order of the narrowest band), and the rig's R unknowns last by
+  their Schur complement.
 
 `elimination` picks the cheaper by counting the work each needs. The blocks are assembled, and the frames
 eliminated, by compiled loops over the observations and frames (_group.pyx: a frame's block by its
@@ -27,7 +28,7 @@ rig's block of the inverse equal those of a dense solve of the whole matrix to r
 (tests/test_group_normal.py). The cost is linear in the frames for a fixed number of points per frame
 and frames per point; the dense system of the frames-first order is of the points alone. Frames tied
 over a band of b frames (a line: C0 sees the markers the forward camera saw ~17 frames before) give
-an LU of ~2 F L (b + 1) L numbers, which is refused beyond FACTOR_BYTES (`_banded_order`).
+a factor of F L (b + 1) L numbers, which is refused beyond FACTOR_BYTES (`_frames_factor`).
 """
 
 from __future__ import annotations
@@ -37,22 +38,23 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import linalg, sparse
 from scipy.sparse import csgraph
-from scipy.sparse import linalg as sparse_linalg
 
 from ..errors import DmaisError
 from . import _group
 
 FRAMES_FIRST, POINTS_FIRST = "frames first", "points first"
-#: Above this size the frames' system of the points-first order is factorised sparse, not dense.
-DENSE_FRAMES_SIZE = 2000
 #: Numbers per chunk of frames where the frames-first order builds its dense system (chunk x L x (R + 3P)).
 CHUNK_NUMBERS = 4_000_000
 #: Up to this many numbers, the frames-first order keeps the frames' couplings between its two passes.
 KEPT_NUMBERS = 30_000_000
-#: The most memory the sparse LU of a points-first frames' system may take (bytes; `_banded_order`).
+#: The most memory the band of a points-first frames' system may take (bytes; `_frames_factor`).
 FACTOR_BYTES = 1.0 * 2**30
-#: Observation pairs per chunk where the points-first order accumulates the frames' coupling blocks.
+#: Observation pairs per chunk where the points-first order accumulates the frames' band.
 PAIR_CHUNK = 200_000
+#: Observations per chunk where the points-first order sums products over the observations.
+OBSERVATION_CHUNK = 50_000
+#: Columns of the frames' band factor per block of its triangular solves (`_band_solved`).
+SOLVE_BLOCK = 128
 
 
 @dataclass(frozen=True)
@@ -65,9 +67,12 @@ class GroupStructure:
     point is seen by two frames (the points-first frames' system is then not block diagonal); method:
     FRAMES_FIRST or POINTS_FIRST (`elimination`). For the points first, untied: point_frame (P,) the
     frame of each point and point_slot (P,) its place among that frame's points (fewer than
-    n_point_slots); tied: pair_left, pair_right (M,) every
-    ordered pair of observations of one point (each with itself too), pair_block (M,) the index of the
-    pair's frames (frame of left, frame of right) in frame_pairs (B, 2), the self pairs (f, f) first."""
+    n_point_slots); tied: band_rank (F,) each frame's place in the order that ties frames over the
+    narrowest band, band the most places apart two tied frames are in it (`_banded_order`),
+    pair_left, pair_right (M,) every ordered pair of observations of one point (each with itself
+    too) whose left frame is not after its right one in that order, by the left frame's place, and
+    within it by run: pair_runs (U + 1,) the first pair of each run of pairs of the same two frames
+    and the same two sets of local columns (their products add up at the same places), and M."""
 
     n_frames: int
     local_size: int
@@ -86,10 +91,11 @@ class GroupStructure:
     point_frame: np.ndarray
     point_slot: np.ndarray
     n_point_slots: int
+    band_rank: np.ndarray
+    band: int
     pair_left: np.ndarray
     pair_right: np.ndarray
-    pair_block: np.ndarray
-    frame_pairs: np.ndarray
+    pair_runs: np.ndarray
 
     @property
     def size(self) -> int:
@@ -115,9 +121,9 @@ def group_structure(frame, point, local_cols, rig_cols, n_frames: int, local_siz
     if method not in (FRAMES_FIRST, POINTS_FIRST):
         raise ValueError(f"unknown elimination {method!r}")
     none = np.zeros(0, dtype=np.int64)
-    points, pairs = (none, none, 0), (none, none, none, np.zeros((0, 2), dtype=np.int64))
+    points, pairs = (none, none, 0), (none, 0, none, none, none)
     if method == POINTS_FIRST and tied:
-        pairs = _observation_pairs(frame, point, counts, n_frames)
+        pairs = _observation_pairs(frame, point, local_cols, counts, n_frames)
     elif method == POINTS_FIRST:
         points = _points_by_frame(first_frame, n_frames)
     return GroupStructure(n_frames, local_size, rig_size, n_points, frame, point, local_cols, rig_cols, by_frame,
@@ -145,20 +151,40 @@ def elimination(n_frames: int, local_size: int, rig_size: int, n_points: int, l:
     return FRAMES_FIRST if frames_first < points_first else POINTS_FIRST
 
 
-def _observation_pairs(frame: np.ndarray, point: np.ndarray, counts: np.ndarray, n_frames: int):
-    """GroupStructure's pair_left, pair_right, pair_block and frame_pairs."""
+def _observation_pairs(frame: np.ndarray, point: np.ndarray, local_cols: np.ndarray, counts: np.ndarray,
+                       n_frames: int):
+    """GroupStructure's band_rank, band, pair_left, pair_right and pair_runs."""
     order = np.argsort(point, kind="stable")
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     repeat = counts[point[order]]
     left = np.repeat(order, repeat)
     within = np.arange(len(left)) - np.repeat(np.cumsum(repeat) - repeat, repeat)
     right = order[starts[point[left]] + within]
-    tied = frame[left] != frame[right]
-    others, block = np.unique(frame[left[tied]] * n_frames + frame[right[tied]], return_inverse=True)
-    pair_block = frame[left].copy()
-    pair_block[tied] = n_frames + block
-    keys = np.concatenate([np.arange(n_frames) * (n_frames + 1), others])
-    return left, right, pair_block, np.column_stack(np.divmod(keys, n_frames))
+    rank, band = _banded_order(frame[left], frame[right], n_frames)
+    upper = rank[frame[left]] <= rank[frame[right]]
+    left, right = left[upper], right[upper]
+    column_set = np.unique(local_cols, axis=0, return_inverse=True)[1].ravel()
+    n_sets = int(column_set.max(initial=0)) + 1
+    key = ((rank[frame[left]] * n_frames + rank[frame[right]]) * n_sets + column_set[left]) * n_sets \
+        + column_set[right]
+    by_key = np.argsort(key, kind="stable")
+    key = key[by_key]
+    runs = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1], [True]]))
+    return rank, band, left[by_key], right[by_key], runs
+
+
+def _banded_order(left: np.ndarray, right: np.ndarray, n_frames: int) -> tuple[np.ndarray, int]:
+    """(rank (F,), band): each frame's place in whichever order ties the frames over the narrower band,
+    their own or the reverse Cuthill-McKee order of the frames tied by the pairs (left, right) (M,),
+    and that band (the most places apart two tied frames are)."""
+    left, right = np.divmod(np.unique(left * n_frames + right), n_frames)
+    graph = sparse.csr_array((np.ones(len(left)), (left, right)), shape=(n_frames, n_frames))
+    reordered = np.empty(n_frames, dtype=np.int64)
+    reordered[csgraph.reverse_cuthill_mckee(graph, symmetric_mode=True)] = np.arange(n_frames)
+    bands = [(int(np.abs(rank[left] - rank[right]).max(initial=0)), k, rank)
+             for k, rank in enumerate((np.arange(n_frames), reordered))]
+    band, _, rank = min(bands)
+    return rank, band
 
 
 @dataclass(frozen=True)
@@ -402,15 +428,15 @@ def _points_first(normal: GroupNormal, r_local, r_rig, r_point):
     S_rr = normal.Hrr - normal.Hpr.reshape(3 * P, R).T @ Hpp_inv_Hpr.reshape(3 * P, R)
     y_rig = r_rig - normal.Hpr.reshape(3 * P, R).T @ Hpp_inv_r.reshape(3 * P, -1)
     if s.frames_tied:
-        blocks, S_fr, y_local, W_point = _tied_reduction(normal, Hpp_inv, Hpp_inv_Hpr, Hpp_inv_r, r_local)
-        frames = _frames_factor(blocks, s)
+        band, S_fr, y_local, W_point = _tied_reduction(normal, Hpp_inv, Hpp_inv_Hpr, Hpp_inv_r, r_local)
+        frames = _frames_factor(band, s)
     else:
         blocks, S_fr, y_local, W_point = _untied_reduction(normal, Hpp_inv, r_point, r_local)
         inverse = _inverted(blocks, "a frame's pose")
         frames = lambda right: inverse @ right  # noqa: E731
-    Z = frames(S_fr)  # (F, L, R)
+    solved = frames(np.concatenate([S_fr, y_local], axis=2))  # one pass over the factor for both
+    Z, frames_y = solved[:, :, :R], solved[:, :, R:]  # (F, L, R), (F, L, k)
     factor = _cho_factor(S_rr - S_fr.reshape(F * L, R).T @ Z.reshape(F * L, R))
-    frames_y = frames(y_local)
     x_rig = linalg.cho_solve(factor, y_rig - S_fr.reshape(F * L, R).T @ frames_y.reshape(F * L, -1))
     x_local = frames_y - Z @ x_rig
     back = r_point - normal.Hpr @ x_rig - W_point(x_local)
@@ -441,86 +467,148 @@ def _untied_reduction(normal: GroupNormal, Hpp_inv, r_point, r_local):
 
 
 def _tied_reduction(normal: GroupNormal, Hpp_inv, Hpp_inv_Hpr, Hpp_inv_r, r_local):
-    """As `_untied_reduction` where frames share points: the frames' system's blocks (B, L, L) of the
-    structure's frame_pairs, one product per pair of observations of a point (`_frame_blocks`)."""
+    """As `_untied_reduction` where frames share points, but the frames' system as its band
+    (`_frames_band`), one product per pair of observations of a point; every product over the
+    observations a chunk of OBSERVATION_CHUNK at a time (a line of 10,000 frames has 1.4 million)."""
     s = normal.structure
-    F, L, P = s.n_frames, s.local_size, s.n_points
-    rows = s.frame[:, None] * L + s.local_cols  # (N, l)
-    S_fr = normal.Wr - _summed(normal.Wp @ Hpp_inv_Hpr[s.point], rows[:, :, None] * s.rig_size
-                               + np.arange(s.rig_size), F * L * s.rig_size).reshape(F, L, -1)
-    k = r_local.shape[2]
-    y_local = r_local - _summed(normal.Wp @ Hpp_inv_r[s.point], rows[:, :, None] * k + np.arange(k),
-                                F * L * k).reshape(F, L, k)
+    P = s.n_points
+    S_fr, y_local = (moved - _by_frame_rows(normal, coupled) for moved, coupled in
+                     ((normal.Wr, Hpp_inv_Hpr), (r_local, Hpp_inv_r)))
 
-    def W_point(x_local):
-        moved = normal.Wp.transpose(0, 2, 1) @ x_local[s.frame[:, None], s.local_cols]  # (N, 3, k)
-        index = (3 * s.point[:, None, None] + np.arange(3)[:, None]) * k + np.arange(k)
-        return _summed(moved, index, P * 3 * k).reshape(P, 3, k)
+    def W_point(x_local):  # (F, L, k) -> (P, 3, k): Wp^T x_local summed per point
+        k = x_local.shape[2]
+        out = np.zeros(P * 3 * k)
+        for rows in _observation_chunks(s):
+            product = normal.Wp[rows].transpose(0, 2, 1) @ x_local[s.frame[rows, None], s.local_cols[rows]]
+            index = (3 * s.point[rows, None, None] + np.arange(3)[:, None]) * k + np.arange(k)
+            out += np.bincount(index.ravel(), weights=product.ravel(), minlength=len(out))
+        return out.reshape(P, 3, k)
 
-    return _frame_blocks(normal, normal.Wp @ Hpp_inv[s.point]), S_fr, y_local, W_point
+    return _frames_band(normal, Hpp_inv), S_fr, y_local, W_point
 
 
-def _frame_blocks(normal: GroupNormal, V: np.ndarray) -> np.ndarray:
-    """(B, L, L) the frames' system's blocks of the frame pairs (structure.frame_pairs): A on the self
-    pairs less, for every pair of observations (i, j) of one point, V_i Wp_j^T at the rows of i's and
-    the columns of j's local unknowns."""
+def _observation_chunks(structure: GroupStructure):
+    """Slices of the observations, OBSERVATION_CHUNK each."""
+    n = len(structure.frame)
+    return (slice(start, min(start + OBSERVATION_CHUNK, n)) for start in range(0, n, OBSERVATION_CHUNK))
+
+
+def _by_frame_rows(normal: GroupNormal, coupled: np.ndarray) -> np.ndarray:
+    """(F, L, q) the sums over the observations of Wp_i coupled_p (p: i's point) at the rows of i's local
+    unknowns; coupled (P, 3, q)."""
     s = normal.structure
-    L, B = s.local_size, len(s.frame_pairs)
-    flat = np.zeros(B * L * L)
-    flat[:s.n_frames * L * L] = normal.A.ravel()
-    lc = s.local_cols
-    for start in range(0, len(s.pair_left), PAIR_CHUNK):
-        i, j = s.pair_left[start:start + PAIR_CHUNK], s.pair_right[start:start + PAIR_CHUNK]
-        products = V[i] @ normal.Wp[j].transpose(0, 2, 1)  # (m, l, l)
-        index = (s.pair_block[start:start + PAIR_CHUNK, None, None] * L + lc[i][:, :, None]) * L + lc[j][:, None, :]
-        flat -= np.bincount(index.ravel(), weights=products.ravel(), minlength=len(flat))
-    return flat.reshape(B, L, L)
+    q = coupled.shape[2]
+    out = np.zeros(s.n_frames * s.local_size * q)
+    for rows in _observation_chunks(s):
+        product = normal.Wp[rows] @ coupled[s.point[rows]]  # (m, l, q)
+        index = (s.frame[rows, None, None] * s.local_size + s.local_cols[rows][:, :, None]) * q + np.arange(q)
+        out += np.bincount(index.ravel(), weights=product.ravel(), minlength=len(out))
+    return out.reshape(s.n_frames, s.local_size, q)
 
 
-def _frames_factor(blocks: np.ndarray, structure: GroupStructure):
-    """A function solving the tied frames' system (its blocks (B, L, L) of structure.frame_pairs) for
-    right sides (F, L, k): a dense Cholesky or a sparse LU of the whole, its frames in the order of the
-    narrowest band (`_banded_order`) and factorised in that order (a fill-reducing order spreads a
-    line's band: 2.6 GB for 3,000 frames)."""
-    F, L = structure.n_frames, structure.local_size
-    rank = _banded_order(structure)  # rank (F,): a frame's place in the order
-    pairs = rank[structure.frame_pairs]
-    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
-    matrix = sparse.bsr_array((blocks[order], pairs[order, 1], np.searchsorted(pairs[order, 0], np.arange(F + 1))),
-                              shape=(F * L, F * L))
-    if F * L <= DENSE_FRAMES_SIZE:
-        factor = _cho_factor(matrix.toarray())
-        solved = lambda right: linalg.cho_solve(factor, right)  # noqa: E731
-    else:
-        try:
-            lu = sparse_linalg.splu(matrix.tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0,
-                                    options={"SymmetricMode": True})
-        except RuntimeError:  # SuperLU: "Factor is exactly singular"
-            raise DmaisError("mounting: the group's normal equations are singular") from None
-        except MemoryError:
-            raise _too_large(structure, "its factorization ran out of memory") from None
-        solved = lu.solve
-
-    return lambda right: solved(right[np.argsort(rank)].reshape(F * L, -1)).reshape(right.shape)[rank]
+def _band_rows(structure: GroupStructure) -> np.ndarray:
+    """(F, L) the rows of each frame's unknowns in the frames' system ordered by structure.band_rank."""
+    L = structure.local_size
+    return structure.band_rank[:, None] * L + np.arange(L)
 
 
-def _banded_order(structure: GroupStructure) -> np.ndarray:
-    """(F,) each frame's place in whichever order ties frames over the narrower band: their own or the
-    reverse Cuthill-McKee order of their pairs. DmaisError where the LU of the frames' system in it
-    would need more than FACTOR_BYTES: frames tied over a band of b frames fill ~2 F L (b + 1) L numbers."""
-    F, L = structure.n_frames, structure.local_size
-    pairs = structure.frame_pairs
-    graph = sparse.csr_array((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(F, F))
-    reordered = np.empty(F, dtype=np.int64)
-    reordered[csgraph.reverse_cuthill_mckee(graph, symmetric_mode=True)] = np.arange(F)
-    bands = [(int(np.abs(rank[pairs[:, 0]] - rank[pairs[:, 1]]).max(initial=0)), k, rank)
-             for k, rank in enumerate((np.arange(F), reordered))]
-    band, _, rank = min(bands)
-    needed = 2.0 * F * L * (band + 1) * L * 8
-    if needed > FACTOR_BYTES and F * L > DENSE_FRAMES_SIZE:
-        raise _too_large(structure, f"its frames are tied over {band} frames (points seen {band} frames apart), and "
-                                    f"the LU of their system would need ~{needed / 2**30:.1f} GiB")
-    return rank
+def _frames_band(normal: GroupNormal, Hpp_inv: np.ndarray) -> np.ndarray:
+    """(F L, (band + 1) L) the frames' system's band in LAPACK's lower storage, transposed: row c holds
+    the entries (c + d, c) at d, the unknowns in structure.band_rank's order. A on the diagonal blocks
+    less, for every pair of observations (i, j) of one point p, Wp_i Hpp_inv_p Wp_j^T at the rows of i's
+    and the columns of j's local unknowns (their upper triangle: i's frame is not after j's), summed
+    over each run of pairs (structure.pair_runs) and added a chunk of runs at a time into the rows they
+    reach; Hpp_inv (P, 3, 3)."""
+    s = normal.structure
+    F, L = s.n_frames, s.local_size
+    width = (s.band + 1) * L
+    band = np.zeros((F * L, width))
+    rows = _band_rows(s)
+    row, column = np.triu_indices(L)
+    band[rows[:, row], column - row] = normal.A[:, row, column]
+    flat = band.reshape(-1)
+    runs = s.pair_runs
+    for first_run, last_run in _run_chunks(runs):
+        pairs = slice(runs[first_run], runs[last_run])
+        i, j = s.pair_left[pairs], s.pair_right[pairs]
+        products = normal.Wp[i] @ Hpp_inv[s.point[i]] @ normal.Wp[j].transpose(0, 2, 1)  # (m, l, l)
+        summed = np.add.reduceat(products, runs[first_run:last_run] - runs[first_run])
+        i, j = s.pair_left[runs[first_run:last_run]], s.pair_right[runs[first_run:last_run]]  # one pair a run
+        row = rows[s.frame[i][:, None], s.local_cols[i]][:, :, None]  # (u, l, 1)
+        column = rows[s.frame[j][:, None], s.local_cols[j]][:, None, :]  # (u, 1, l)
+        keep = column >= row
+        first, last = int(row.min()), int(row.max()) + 1
+        index = (row * width + (column - row) - first * width)[keep]
+        flat[first * width:last * width] -= np.bincount(index, weights=summed[keep], minlength=(last - first) * width)
+    return band
+
+
+def _run_chunks(runs: np.ndarray):
+    """(first, last) runs of pairs (structure.pair_runs) of about PAIR_CHUNK pairs each (a run is not split)."""
+    n_runs, first = len(runs) - 1, 0
+    while first < n_runs:
+        last = max(first + 1, int(np.searchsorted(runs, runs[first] + PAIR_CHUNK, side="right")) - 1)
+        last = min(last, n_runs)
+        yield first, last
+        first = last
+
+
+def _frames_factor(band: np.ndarray, structure: GroupStructure):
+    """A function solving the tied frames' system for right sides (F, L, k), from its band (`_frames_band`,
+    overwritten): LAPACK's banded Cholesky (the frames' system is SPD), in the order of the narrowest
+    band (a fill-reducing order spreads a line's band). DmaisError where the band would need more than
+    FACTOR_BYTES: frames tied over a band of b frames fill F L (b + 1) L numbers."""
+    s = structure
+    F, L = s.n_frames, s.local_size
+    needed = band.nbytes
+    if needed > FACTOR_BYTES:
+        raise _too_large(s, f"its frames are tied over {s.band} frames (points seen {s.band} frames apart), and "
+                            f"the factor of their system would need ~{needed / 2**30:.1f} GiB")
+    try:
+        factor = linalg.cholesky_banded(band.T, overwrite_ab=True, lower=True, check_finite=False).T
+    except linalg.LinAlgError:
+        raise DmaisError("mounting: the group's normal equations are singular") from None
+    rows = _band_rows(s).ravel()
+
+    def solved(right):
+        ordered = np.empty((F * L, right.shape[2]))
+        ordered[rows] = right.reshape(F * L, -1)
+        return _band_solved(factor, ordered)[rows].reshape(right.shape)
+
+    return solved
+
+
+def _band_solved(factor: np.ndarray, right: np.ndarray) -> np.ndarray:
+    """(n, k) the solution of L L^T x = right (n, k), L lower triangular in `factor` (n, u + 1) (LAPACK's
+    lower band storage transposed: factor[c, d] = L[c + d, c]); by blocks of SOLVE_BLOCK columns, each a
+    dense triangle and the rectangle below it (LAPACK's band solve goes a column at a time)."""
+    n, u = factor.shape[0], factor.shape[1] - 1
+    flat = factor.reshape(-1)
+    x = right.copy()
+    starts = range(0, n, min(SOLVE_BLOCK, u + 1))
+    for c0 in starts:
+        c1, triangle, below = _band_blocks(flat, n, u, c0)
+        x[c0:c1] = linalg.solve_triangular(triangle, x[c0:c1], lower=True, check_finite=False)
+        x[c1:c1 + len(below)] -= below @ x[c0:c1]
+    for c0 in reversed(starts):
+        c1, triangle, below = _band_blocks(flat, n, u, c0)
+        x[c0:c1] -= below.T @ x[c1:c1 + len(below)]
+        x[c0:c1] = linalg.solve_triangular(triangle, x[c0:c1], lower=True, trans="T", check_finite=False)
+    return x
+
+
+def _band_blocks(flat: np.ndarray, n: int, u: int, c0: int):
+    """(c1, triangle (b, b), below (h, b)) of the band factor's columns c0 to c1 (`_band_solved`):
+    L[c0:c1, c0:c1] (its lower triangle; the upper holds other entries) and L[c1:c1 + h, c0:c1] with
+    the entries beyond the band zeroed. L[i, j] is flat[j u + i]: a view, rows adjacent, columns u apart."""
+    c1 = min(c0 + min(SOLVE_BLOCK, u + 1), n)  # a triangle wider than the band would reach beyond it
+    h = min(c1 + u, n) - c1
+    view = np.lib.stride_tricks.as_strided(flat[c0 * u + c0:], shape=(c1 - c0 + h, c1 - c0),
+                                           strides=(flat.strides[0], u * flat.strides[0]), writeable=False)
+    below = view[c1 - c0:].copy()
+    beyond = (c1 - c0) + np.arange(h)[:, None] - np.arange(c1 - c0) > u  # row - column beyond the band
+    below[beyond] = 0.0
+    return c1, view[:c1 - c0], below
 
 
 def _too_large(structure: GroupStructure, why: str) -> DmaisError:
