@@ -7,6 +7,12 @@ each). There its real roots can miss the global minimum, and the least-cost cand
 pose far away or the mirror pose with the points behind the cameras. `solver.solve_generalized_pose`
 calls `search` only when the Lagrangian dual does not certify its solution or the solution puts
 most points behind their rays; a certified front-facing solution is the global minimum already.
+The dual can also fail where the template is right: on the simulator's hovering 2 x 1,100-frame
+flight, 80 frames of the whole rig (40 points, 5 cameras) are not certified, the least eigenvalue
+of the dual's matrix -6.5e-3 to -9.2e-3 against a tolerance of 6.4e-3 (1e-9 of trace H 6.4e6),
+the same after further Newton steps (the pose is stationary to 1e-10): the relaxation (R^T R = I
+alone) is not tight there, not rounded. The search then finds the template's pose again in every
+one of them, after refining ~43 starts (~8 ms; the LM 2.4, the homographies 2.0 of it).
 
 `search` refines starts from every side of SO(3), in this order (`starts`):
 
@@ -37,7 +43,9 @@ and the descent of the minima found finish (bounded by LM_ITERATIONS and DESCENT
 steps). CPU time, not wall time, and without the collections (one of a large process took 44 ms
 in `dmais bench pose-hard`, and cut a 5 ms search short): other processes and the caller's
 allocations delay a search but do not change its result (a virtual machine's stolen time still
-counts as CPU time). The starts come in the order above, so a search
+counts as CPU time); the CPU clock is read only as the wall clock, which it cannot outrun, nears
+the budget (`_Budget`: a read cost up to 2 ms on the busy 2-core machine, where the 80 searches of
+a 2,200-frame flight read it 3,500 times), and collections are timed only during a search. The starts come in the order above, so a search
 cut short has tried the most promising. On the 2-core development machine one search of 4-10
 points takes ~3 ms (`dmais bench pose`'s fallback rows, `dmais bench pose-hard`); the budget
 binds with many points or many candidates.
@@ -46,7 +54,9 @@ binds with many points or many candidates.
 from __future__ import annotations
 
 import gc
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -91,17 +101,31 @@ IMPROVEMENT = 1e-6
 
 
 class _CollectionClock:
-    """Seconds of CPU time spent in Python's garbage collections since import (`gc.callbacks`), so
-    that they do not count against the budget."""
+    """Seconds of CPU time spent in Python's garbage collections while a search runs (`gc.callbacks`),
+    so that they do not count against the budget. The collections of the rest of the process are
+    not timed: a timing reads the thread's CPU clock twice (`_Budget`), and a budget spans only its
+    search (a collection holds the interpreter lock: none straddles a search's start)."""
 
     def __init__(self):
-        self.seconds, self._began = 0.0, 0.0
+        self.seconds, self._began, self._searches = 0.0, None, 0
+        self._lock = threading.Lock()
         gc.callbacks.append(self._observe)
+
+    @contextmanager
+    def searching(self):
+        """Within the block, a search runs: collections are timed."""
+        with self._lock:
+            self._searches += 1
+        try:
+            yield
+        finally:
+            with self._lock:
+                self._searches -= 1
 
     def _observe(self, phase: str, info: dict) -> None:
         if phase == "start":
-            self._began = time.thread_time()
-        else:
+            self._began = time.thread_time() if self._searches else None
+        elif self._began is not None:
             self.seconds += time.thread_time() - self._began
 
 
@@ -111,6 +135,27 @@ _COLLECTIONS = _CollectionClock()
 def _search_time() -> float:
     """The thread's CPU time less the garbage collections (seconds): the budget's clock."""
     return time.thread_time() - _COLLECTIONS.seconds
+
+
+class _Budget:
+    """A search's budget: `seconds` of `_search_time` from now. A thread's CPU time (less
+    collections) cannot grow faster than the wall time, so the CPU clock is read only once the wall
+    clock has run half of what was left at the last read: the answers are those of reading it every
+    time, and it costs 20 us to 2 ms a read on a busy virtual machine (0.3 us idle), ~44 a search."""
+
+    def __init__(self, seconds: float):
+        wall = time.perf_counter()  # before the CPU clock: the bound then holds from the wall's reading
+        self.deadline = _search_time() + seconds
+        self.surely_left_until = wall + seconds / 2
+
+    def left(self) -> bool:
+        """Whether the budget is not spent (`_search_time` before the deadline)."""
+        wall = time.perf_counter()
+        if wall < self.surely_left_until:
+            return True
+        remaining = self.deadline - _search_time()
+        self.surely_left_until = wall + remaining / 2
+        return remaining > 0
 
 
 def _sampled_rotations() -> np.ndarray:
@@ -399,16 +444,17 @@ def search(v: np.ndarray, f: np.ndarray, M: np.ndarray, stats: PoseStatistics, c
     much of the thread's CPU time (less garbage collections).
     The sampled starts are tried only when the others end without a certified pose.
     """
-    begin, cpu_begin = time.perf_counter(), _search_time()
-    problem = _Problem(v, f, M - stats.centroid, stats)
-    basins = _RotationSet()
-    best = None
-    for phase in starts(problem, candidates, fronts, prior):
-        new = _refine_starts(problem, phase, basins, cpu_begin + budget_s)
-        if new:
-            best = _least_front_facing(problem, descend(problem, np.array(new)), best)
-        if best is not None and certify(np.ascontiguousarray(best[0])):
-            break
+    with _COLLECTIONS.searching():
+        begin, budget = time.perf_counter(), _Budget(budget_s)
+        problem = _Problem(v, f, M - stats.centroid, stats)
+        basins = _RotationSet()
+        best = None
+        for phase in starts(problem, candidates, fronts, prior):
+            new = _refine_starts(problem, phase, basins, budget)
+            if new:
+                best = _least_front_facing(problem, descend(problem, np.array(new)), best)
+            if best is not None and certify(np.ascontiguousarray(best[0])):
+                break
     if best is None:
         return None
     R, cost, front = best
@@ -418,13 +464,12 @@ def search(v: np.ndarray, f: np.ndarray, M: np.ndarray, stats: PoseStatistics, c
 
 
 def _refine_starts(problem: _Problem, queue: list[np.ndarray], basins: _RotationSet,
-                   deadline: float) -> list[np.ndarray]:
-    """LM from the starts of queue until it is empty or the deadline (`_search_time`) has passed:
-    the new distinct minima (3, 3) with most points in front (every new minimum is appended to
-    basins). A minimum with most points behind is followed by LM from its mirror (planar points),
+                   budget: _Budget) -> list[np.ndarray]:
+    """LM from the starts of queue until it is empty or the budget is spent: the new distinct
+    minima (3, 3) with most points in front (every new minimum is appended to basins). A minimum with most points behind is followed by LM from its mirror (planar points),
     once: for a rig whose cameras are apart the mirror is no exact counterpart."""
     new, queue = [], [(R, False) for R in queue]
-    while queue and _search_time() < deadline:
+    while queue and budget.left():
         start, mirrored = queue.pop(0)
         R = _refined(problem, start)
         if R is None or not basins.add(R):
