@@ -565,7 +565,7 @@ def _read_images(path: Path, root: Path, cameras: dict[str, CameraSpec]) -> tupl
     _check_paths(table, root)
     center = _group(table, PRIOR_CENTER)
     quat = _quaternions(table, PRIOR_QUAT)
-    columns = {name: _strings(table.text(name)) for name in IMAGE_COLUMNS}
+    columns = {name: table.cells[name] for name in IMAGE_COLUMNS}  # str already
     columns.update(zip(PRIOR_CENTER, center.T))
     columns.update(zip(PRIOR_QUAT, quat.T))
     return _frame(table, columns, IMAGE_COLUMNS + PRIOR_CENTER + PRIOR_QUAT), table
@@ -765,7 +765,7 @@ def _read_observations(path: Path, camera_of: dict[str, str], cameras: dict[str,
     table.check(~pd.Index(point_id).isin(point_ids),
                 lambda row: f"unknown point id {point_id[row]!r} (not in {CONTROL_POINTS} or {GROUND_POINTS})")
     table.check_unique(["image", "point_id"], "observation (image, point_id)")
-    columns = {name: _strings(table.text(name)) for name in names if name not in ("u", "v")}
+    columns = {name: table.cells[name] for name in names if name not in ("u", "v")}  # str already
     columns.update(u=table.floats("u"), v=table.floats("v"))
     sizes = np.array([(spec.width, spec.height) for spec in cameras.values()], dtype=float).reshape(-1, 2)
     size = sizes[pd.Index(list(cameras)).get_indexer(image_camera)]
