@@ -25,8 +25,8 @@ Rows:
    `own_points`); frames per second of the difference (2,200 frames less 200: the process's start and
    imports cancel). The simulator's flights, not generated ones: on these the solver's certificate fails
    and its global fallback runs on ~9% of the frames, on the simulator's on ~0.5%;
-2. scaling: one group of 200 and one of 10,000 frames hovering, 200 and 1,000 along a line
-   (`SCALING_FRAMES`): seconds per frame and their ratio, peak memory;
+2. scaling: one group of 200 and one of 10,000 frames hovering and along a line (`SCALING_FRAMES`):
+   seconds per frame and their ratio, peak memory;
 3. dense reference: 2 groups of 40 frames of each kind through the stage in this process, once as it
    is and once with every solve of the group adjustment's normal equations replaced by a dense solve of
    the whole matrix (`dense_solve`): the largest relative difference of mounting.csv's numbers, of
@@ -66,10 +66,9 @@ PIXEL_NOISE_PX, VIBRATION_ARCMIN, SURVEY_M = 0.5, 0.3, (0.015, 0.015, 0.025)
 LINE_REACH_FRAMES = 25
 THROUGHPUT_FRAMES, REFERENCE_FRAMES = (100, 1100), 40
 #: Frames of the scaling rows' two groups per kind: a line's frames are tied over ~38 frames (C0 sees the
-#: markers the forward camera saw 17 frames before, the backward camera 18 after): its frames' LU costs
-#: ~2.5 s a factorisation per 1,000 frames, and at 10,000 would need ~1.7 GiB (group_normal.FACTOR_BYTES
-#: refuses it).
-SCALING_FRAMES = {"hover": (200, 10_000), "line": (200, 1000)}
+#: markers the forward camera saw 17 frames before, the backward camera 18 after): its frames' band
+#: (group_normal._frames_band) holds F L 39 L numbers, 0.94 GiB at 10,000 frames of L = 18.
+SCALING_FRAMES = {"hover": (200, 10_000), "line": (200, 10_000)}
 
 
 def generated_flight(rng, rig, kind: str, n_groups: int, frames_per_group: int):
