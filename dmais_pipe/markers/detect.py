@@ -234,6 +234,8 @@ def x_over_rings(img: np.ndarray, uv: np.ndarray, min_contrast: float) -> np.nda
     passed = np.ones(len(uv), dtype=bool)
     for radius in RESCUE_RADII_PX:
         at = np.flatnonzero(passed)
+        if len(at) == 0:
+            break
         quality, ring_contrast = ring_quality(sample(img, uv[at, None, :] + ring_offsets(radius)[None]))
         passed[at] = (quality >= PRE_QUALITY) & (np.abs(ring_contrast) >= min_contrast)
     return passed
