@@ -270,10 +270,9 @@ def _tool(name: str) -> str:
 
 def _run(command: list[str], root: Path, timeout: float) -> tuple[float, subprocess.CompletedProcess]:
     """(wall seconds, the finished process) of `command` run in `root`; a failure raises one line."""
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
     started = time.perf_counter()
     try:
-        done = subprocess.run(command, cwd=root, env=env, capture_output=True, text=True, timeout=timeout)
+        done = subprocess.run(command, cwd=root, env=_tools_env(), capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
         raise DmaisError(f"campaign: `{' '.join(command)}` took longer than {timeout:.0f} s") from None
     seconds = time.perf_counter() - started
@@ -282,6 +281,11 @@ def _run(command: list[str], root: Path, timeout: float) -> tuple[float, subproc
         last = next((line for line in reversed(lines) if "Error" in line), lines[-1]).strip()
         raise DmaisError(f"campaign: `{' '.join(command)}` failed (status {done.returncode}): {last}")
     return seconds, done
+
+
+def _tools_env() -> dict[str, str]:
+    """The environment of the bench's commands: this Python's folder (the venv's snakemake, dmais) first on PATH."""
+    return {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
 
 
 def job_stats(text: str) -> dict[str, int]:
@@ -435,11 +439,11 @@ def _with_a_node_lost(root: Path, config: Path, results: Path, plan: dict, count
     nodes = _cluster_nodes()
     start = (datetime.now() - timedelta(seconds=5)).strftime("%Y-%m-%dT%H:%M:%S")
     output = results / "slurm_node_lost.log"
-    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"}
     log.info("campaign: %d marker jobs on SLURM, one of %d nodes to be lost", len(batches), len(nodes))
     started = time.perf_counter()
     with open(output, "w") as sink:
-        process = subprocess.Popen(command, cwd=root, env=env, stdout=sink, stderr=subprocess.STDOUT)
+        process = subprocess.Popen(command, cwd=root, stdout=sink, stderr=subprocess.STDOUT,
+                                   env=_tools_env())
         try:
             node = _lose_a_node(process, root, results / "markers" / "batches", nodes, lose)
             process.wait(timeout=3 * 3600)
