@@ -45,9 +45,9 @@ in `dmais bench pose-hard`, and cut a 5 ms search short): other processes and th
 allocations delay a search but do not change its result (a virtual machine's stolen time still
 counts as CPU time); the CPU clock is read only as the wall clock, which it cannot outrun, nears
 the budget (`_Budget`: a read cost up to 2 ms on the busy 2-core machine, where the 80 searches of
-a 2,200-frame flight read it 3,500 times), and collections are timed only during a search. The starts come in the order above, so a search
-cut short has tried the most promising. On the 2-core development machine one search of 4-10
-points takes ~3 ms (`dmais bench pose`'s fallback rows, `dmais bench pose-hard`); the budget
+a 2,200-frame flight read it 3,500 times), and collections are timed only during a search. The
+starts come in the order above, so a search cut short has tried the most promising. On the 2-core
+development machine one search of 4-10 points takes ~3 ms (`dmais bench pose`'s fallback rows, `dmais bench pose-hard`); the budget
 binds with many points or many candidates.
 """
 
@@ -466,8 +466,9 @@ def search(v: np.ndarray, f: np.ndarray, M: np.ndarray, stats: PoseStatistics, c
 def _refine_starts(problem: _Problem, queue: list[np.ndarray], basins: _RotationSet,
                    budget: _Budget) -> list[np.ndarray]:
     """LM from the starts of queue until it is empty or the budget is spent: the new distinct
-    minima (3, 3) with most points in front (every new minimum is appended to basins). A minimum with most points behind is followed by LM from its mirror (planar points),
-    once: for a rig whose cameras are apart the mirror is no exact counterpart."""
+    minima (3, 3) with most points in front (every new minimum is appended to basins). A minimum with
+    most points behind is followed by LM from its mirror (planar points), once: for a rig whose cameras
+    are apart the mirror is no exact counterpart."""
     new, queue = [], [(R, False) for R in queue]
     while queue and budget.left():
         start, mirrored = queue.pop(0)
