@@ -47,8 +47,8 @@ counts as CPU time); the CPU clock is read only as the wall clock, which it cann
 the budget (`_Budget`: a read cost up to 2 ms on the busy 2-core machine, where the 80 searches of
 a 2,200-frame flight read it 3,500 times), and collections are timed only during a search. The
 starts come in the order above, so a search cut short has tried the most promising. On the 2-core
-development machine one search of 4-10 points takes ~3 ms (`dmais bench pose`'s fallback rows, `dmais bench pose-hard`); the budget
-binds with many points or many candidates.
+development machine one search of 4-10 points takes ~3 ms (`dmais bench pose`'s fallback rows,
+`dmais bench pose-hard`); the budget binds with many points or many candidates.
 """
 
 from __future__ import annotations
