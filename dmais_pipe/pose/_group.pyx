@@ -472,21 +472,6 @@ def mounting_jacobians(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] image,
                     global_J[i, k, 3] = J_focal[i, k] if focal_slot[i] >= 0 else 0.0
 
 
-def scaled_couplings(const double[:, :, ::1] Wp, const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point,
-                     const Py_ssize_t[:, ::1] local_cols, const double[:, ::1] local_scale,
-                     const double[:, ::1] point_scale, double[:, :, ::1] out) -> None:
-    """out (N, l, 3) <- Wp (N, l, 3) scaled by its rows' local_scale (F, L) and its point's point_scale (P, 3)."""
-    cdef Py_ssize_t n = Wp.shape[0], i
-    cdef int l = Wp.shape[1], a, c
-    cdef double row
-    with nogil:
-        for i in range(n):
-            for a in range(l):
-                row = local_scale[frame[i], local_cols[i, a]]
-                for c in range(3):
-                    out[i, a, c] = Wp[i, a, c] * row * point_scale[point[i], c]
-
-
 def mounting_points_in_cameras(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point,
                                const Py_ssize_t[::1] image, const double[:, :, ::1] R, const double[:, ::1] t,
                                const double[:, ::1] points, const double[:, :, ::1] cam_from_rig,

@@ -251,8 +251,8 @@ def assemble(structure: GroupStructure, local_J, rig_J, point_J, e) -> GroupNorm
     Wp, b_rig, b_point = np.empty((len(e), s.local_cols.shape[1], 3)), np.zeros(R), np.zeros((P, 3))
     if local_J.shape[1] != 2:
         raise ValueError(f"two residuals per observation, got {local_J.shape[1]}")
-    _group.assemble(s.frame, s.point, *map(np.ascontiguousarray, (s.local_cols, s.rig_cols, local_J, rig_J, point_J, e)),
-                    A, Wr, b_local, Hrr, Hpp, Hpr, Wp, b_rig, b_point)
+    blocks = map(np.ascontiguousarray, (s.local_cols, s.rig_cols, local_J, rig_J, point_J, e))
+    _group.assemble(s.frame, s.point, *blocks, A, Wr, b_local, Hrr, Hpp, Hpr, Wp, b_rig, b_point)
     return GroupNormal(s, A, Wr, Hrr, Hpp, Hpr, Wp, b_local, b_rig, b_point)
 
 
@@ -268,61 +268,53 @@ def _summed(values: np.ndarray, index: np.ndarray, size: int) -> np.ndarray:
 def solve(normal: GroupNormal, right: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The solution (F L + R + 3P, k) of the normal equations for right sides `right` (F L + R + 3P, k),
     and the rig's block (R, R) of the inverse normal matrix, in the structure's order of elimination;
-    DmaisError where a frame, a point or the whole is not determined. The equations are first scaled
-    to a unit diagonal by powers of two (`_equilibrated`: exact, and a group's mix of radians, metres
-    and a long focal length gives condition numbers of 1e13 unscaled)."""
+    DmaisError where a frame, a point or the whole is not determined.
+
+    Every step is exact under a scaling of the unknowns by powers of two (Cholesky factors, triangular
+    solves, sums of products: each result is scaled as its operands, with the same roundings; `_inverted`
+    scales a block's LU by its own diagonal): a group's mix of radians, metres and a long focal length,
+    condition numbers of 1e13, gives the solution a unit diagonal would (tests/test_group_normal.py), without
+    a scaled copy of the equations."""
     s = normal.structure
     F, L, R = s.n_frames, s.local_size, s.rig_size
     right = np.asarray(right, dtype=float).reshape(s.size, -1 if np.size(right) else 0)
     k = right.shape[1]
     if k == 0:  # the rig's inverse alone: one zero right side keeps every shape
         right = np.zeros((s.size, 1))
-    normal, scale = _equilibrated(normal)
-    right = right * scale[:, None]
     r_local = right[:F * L].reshape(F, L, -1)
     r_rig, r_point = right[F * L:F * L + R], right[F * L + R:].reshape(s.n_points, 3, -1)
     solver = _frames_first if s.method == FRAMES_FIRST else _points_first
     x_local, x_rig, x_point, rig_inverse = solver(normal, r_local, r_rig, r_point)
-    x = np.concatenate([x_local.reshape(F * L, -1), x_rig, x_point.reshape(3 * s.n_points, -1)]) * scale[:, None]
-    rig_scale = scale[F * L:F * L + R]
-    return x[:, :k], rig_inverse * np.outer(rig_scale, rig_scale)
-
-
-def _equilibrated(normal: GroupNormal) -> tuple[GroupNormal, np.ndarray]:
-    """The normal equations D N D with D (F L + R + 3P,) the powers of two nearest 1 / sqrt(diag N), and D."""
-    s = normal.structure
-    F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
-    diagonal = np.concatenate([np.diagonal(normal.A, axis1=1, axis2=2).ravel(), np.diag(normal.Hrr),
-                               np.diagonal(normal.Hpp, axis1=1, axis2=2).ravel()])
-    scale = np.exp2(-np.round(0.5 * np.log2(np.where(diagonal > 0, diagonal, 1.0))))
-    local, rig, point = scale[:F * L].reshape(F, L), scale[F * L:F * L + R], scale[F * L + R:].reshape(P, 3)
-    Wp = np.empty_like(normal.Wp)
-    _group.scaled_couplings(np.ascontiguousarray(normal.Wp), s.frame, s.point, np.ascontiguousarray(s.local_cols),
-                            local, point, Wp)
-    scaled = GroupNormal(
-        s, normal.A * local[:, :, None] * local[:, None, :], normal.Wr * local[:, :, None] * rig,
-        normal.Hrr * np.outer(rig, rig), normal.Hpp * point[:, :, None] * point[:, None, :],
-        normal.Hpr * point[:, :, None] * rig, Wp, normal.b_local * local, normal.b_rig * rig, normal.b_point * point)
-    return scaled, scale
+    x = np.concatenate([x_local.reshape(F * L, -1), x_rig, x_point.reshape(3 * s.n_points, -1)])
+    return x[:, :k], rig_inverse
 
 
 def _inverted(blocks: np.ndarray, what: str) -> np.ndarray:
-    """(n, b, b) the inverses of SPD blocks; DmaisError naming `what` where one is singular."""
+    """(n, b, b) the inverses of SPD blocks; DmaisError naming `what` where one is singular. Each block's
+    LU is of the block scaled to a unit diagonal by powers of two (its pivots are then those of any
+    scaling of the unknowns)."""
     if blocks.shape[1:] == (3, 3):
         return _inverted_3x3(blocks, what)
+    scale = _unit_scale(np.diagonal(blocks, axis1=1, axis2=2))[:, :, None]  # (n, b, 1)
     try:
-        return np.linalg.inv(blocks)
+        return np.linalg.inv(blocks * scale * np.swapaxes(scale, 1, 2)) * scale * np.swapaxes(scale, 1, 2)
     except np.linalg.LinAlgError:
         raise _undetermined(what) from None
 
 
+def _unit_scale(diagonal: np.ndarray) -> np.ndarray:
+    """The powers of two nearest 1 / sqrt(diagonal) (1 where it is not above 0), of the diagonal's shape."""
+    return np.exp2(-np.round(0.5 * np.log2(np.where(diagonal > 0, diagonal, 1.0))))
+
+
 def _inverted_3x3(blocks: np.ndarray, what: str) -> np.ndarray:
-    """(n, 3, 3) inverses of symmetric 3 x 3 blocks by their adjugates (rows: cross products of columns)."""
+    """(n, 3, 3) inverses of symmetric 3 x 3 blocks by their adjugates (rows: cross products of columns);
+    singular where the determinant is below 1e-13 of the diagonal's product (its bound for an SPD block;
+    their ratio is that of any scaling of the unknowns)."""
     c0, c1, c2 = blocks[:, :, 0], blocks[:, :, 1], blocks[:, :, 2]
     adjugate = np.stack([np.cross(c1, c2), np.cross(c2, c0), np.cross(c0, c1)], axis=1)
     determinant = np.einsum("ni,ni->n", c0, adjugate[:, 0])
-    scale = np.abs(blocks).max(axis=(1, 2))
-    if not (np.abs(determinant) > 1e-13 * scale**3).all():
+    if not (determinant > 1e-13 * np.prod(np.diagonal(blocks, axis1=1, axis2=2), axis=1)).all():
         raise _undetermined(what)
     return adjugate / determinant[:, None, None]
 
