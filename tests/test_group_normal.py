@@ -203,3 +203,15 @@ def test_the_compiled_frames_first_equals_numpys(k, monkeypatch):
         np.testing.assert_allclose(a, b, rtol=1e-11, atol=1e-13)
     x, _ = solve(normal, right)
     np.testing.assert_allclose(x, np.linalg.solve(normal.dense(), right), rtol=1e-9, atol=1e-12)
+
+
+def test_right_sides_of_the_rig_alone_solve_as_the_dense_matrix():
+    """Right sides without a frames' part (the covariance's rig columns) skip the frames' reduction of y."""
+    structure, _, normal, _, _ = two_camera_normal(11)
+    first = structure.n_frames * structure.local_size
+    right = np.zeros((structure.size, structure.rig_size))
+    right[first + np.arange(structure.rig_size), np.arange(structure.rig_size)] = 1.0
+    x, rig_inverse = solve(normal, right)
+    inverse = np.linalg.inv(normal.dense())
+    np.testing.assert_allclose(x, inverse[:, first:first + structure.rig_size], rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(rig_inverse, x[first:first + structure.rig_size], rtol=1e-12, atol=1e-15)

@@ -332,7 +332,8 @@ def _cho_factor(matrix: np.ndarray):
 
 def _frames_first(normal: GroupNormal, r_local, r_rig, r_point):
     """Eliminate the frames' blocks, solve the dense (R + 3P) system of the rig and the points (compiled
-    loops over the frames, _group; `_frames_first_numpy` is their reference)."""
+    loops over the frames, _group; `_frames_first_numpy` is their reference). Right sides without a
+    frames' part (the rig's columns of the inverse) are not reduced: W^T A^-1 0 is 0."""
     s = normal.structure
     F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
     G = R + 3 * P
@@ -344,7 +345,8 @@ def _frames_first(normal: GroupNormal, r_local, r_rig, r_point):
     stacked = np.empty((n_shared * max(1, min(F, CHUNK_NUMBERS // (L * G))), G))
     coupling = (np.ascontiguousarray(normal.Wr), np.ascontiguousarray(normal.Wp), s.by_frame, s.frame_starts,
                 local_cols, s.point, n_shared, width)
-    if _group.frames_first_reduction(factors, *coupling, r_local, system, y, stacked) >= 0:
+    r_reduced, y_reduced = (r_local, y) if r_local.any() else (np.empty((F, L, 0)), np.empty((G, 0)))
+    if _group.frames_first_reduction(factors, *coupling, r_reduced, system, y_reduced, stacked) >= 0:
         raise _undetermined("a frame's pose")
     system = np.tril(system) + np.tril(system, -1).T  # dsyrk updated the lower triangle
     factor = _cho_factor(system)
