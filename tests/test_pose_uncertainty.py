@@ -136,3 +136,19 @@ def test_frames_csv_extras_are_carried_to_the_poses_file_unchanged(tmp_path):
     written[[*POSE_COLUMNS, "certified"]].to_csv(tmp_path / "old.csv", index=False)
     old = workspace.load_poses(tmp_path / "old.csv")
     assert list(old.columns) == [*POSE_COLUMNS, "certified"] and len(old) == SOLVES
+
+
+def test_the_sigmas_computed_in_blocks_of_frames_equal_those_of_the_whole_group(monkeypatch):
+    """flight._linearised_uncertainty takes a group UNCERTAINTY_OBSERVATIONS at a time (the error model's
+    memory): every number is a frame's own, equal to those of one block (up to the batched products' rounding)."""
+    from dmais_pipe.pose import flight
+
+    dataset, rig, observations, _ = repeated_frame(seed=14)
+    whole = flight.solve_flight(dataset, rig, observations, rig.camera_names)
+    monkeypatch.setattr(flight, "UNCERTAINTY_OBSERVATIONS", 7 * 2 * len(rig.camera_names) * POINTS_PER_CAMERA + 3)
+    blocks = flight.solve_flight(dataset, rig, observations, rig.camera_names)
+    columns = list(POSE_UNCERTAINTY_COLUMNS)
+    np.testing.assert_allclose(blocks.table[columns], whole.table[columns], rtol=1e-12, atol=0)
+    numbers = [c for c in whole.budget.columns if c.startswith("var_")]
+    np.testing.assert_allclose(blocks.budget[numbers], whole.budget[numbers], rtol=1e-12, atol=1e-300)
+    np.testing.assert_allclose(blocks.covariance, whole.covariance, rtol=1e-12, atol=1e-300)

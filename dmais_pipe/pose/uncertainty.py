@@ -11,7 +11,7 @@ the components; frames whose normal matrix is singular get NaN.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -55,6 +55,21 @@ class PoseUncertainty:
         return replace(self, sigma_position=self.sigma_position * np.sqrt(factors[0]),
                        sigma_attitude=self.sigma_attitude * np.sqrt(factors[1]),
                        variance_position=scaled[0], variance_attitude=scaled[1])
+
+
+def concatenated(parts: list[PoseUncertainty]) -> PoseUncertainty:
+    """One PoseUncertainty of the frames of `parts` (of the same model's components), in their order."""
+    if len(parts) == 1:
+        return parts[0]
+
+    def joined(values: list):
+        if values[0] is None:
+            return None
+        if isinstance(values[0], dict):
+            return {name: np.concatenate([v[name] for v in values]) for name in values[0]}
+        return np.concatenate(values)
+
+    return PoseUncertainty(**{f.name: joined([getattr(p, f.name) for p in parts]) for f in fields(PoseUncertainty)})
 
 
 def heading_pitch_roll(R) -> np.ndarray:
