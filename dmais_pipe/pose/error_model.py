@@ -75,7 +75,6 @@ import pandas as pd
 from scipy.optimize import nnls
 
 from ..camera import LENS_FIELDS
-from ..geometry import skew
 from ..rig import Rig
 from .refine import _jacobian, inverse_normal_matrices, tangent_bases
 
@@ -223,13 +222,13 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     dr_dp = (bases - residual[:, :, None] * (p / norm[:, None])[:, None, :]) / norm[:, None, None]
     axis = np.array([rig.cam_from_rig[name].R[2] for name in names])[camera]
     focal_effect = -np.einsum("ni,ni->n", unit, axis)[:, None] * np.einsum("nki,ni->nk", bases, axis)
-    rotation = np.einsum("nki,nij->nkj", bases, skew(unit))
+    rotation = np.cross(bases, unit[:, None, :])  # B [f]x: each row b^T [f]x is b x f (einsum's sums, exactly)
     group_codes = np.unique(np.asarray(groups).astype(str), return_inverse=True)[1]
     point_codes = np.unique(np.asarray(point_ids).astype(str), return_inverse=True)[1]
     n_parameters = len(calibration_parameters(rig)) * len(names)
     calibration_covariance = np.zeros((n_parameters, n_parameters)) if calibration_covariance is None \
         else np.asarray(calibration_covariance, dtype=float)
-    calibration = _calibration_effects(rig, names, cameras, uv, bases, unit, dr_dp, np.diag(calibration_covariance))
+    calibration = _calibration_effects(rig, names, cameras, uv, bases, rotation, dr_dp, np.diag(calibration_covariance))
     point_sigma = np.full((len(points), 3), np.nan) if point_sigma_m is None else \
         np.broadcast_to(np.asarray(point_sigma_m, float).reshape(len(points), -1), (len(points), 3)).copy()
     return Geometry(J=J, weight=weight, A_inverse=inverse_normal_matrices(A), residual=residual,
@@ -241,12 +240,12 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
                     t_centred=t_centred, R=R, origins=origins, points_centred=points_centred)
 
 
-def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, dr_dp, variances) -> np.ndarray:
+def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, rotation, dr_dp, variances) -> np.ndarray:
     """C_i (N, 2, K): the change of r_i per unit change of each of its camera's
     calibration_parameters (intrinsics by central differences of the rays; a rotation w of the camera
     about the rig's axes rotates its rays by w; a move of its centre moves their origin), where its
-    variance (variances (K C,)) is not 0; dr_dp (N, 2, 3) the residuals' change with the ray-to-point
-    vector."""
+    variance (variances (K C,)) is not 0; bases (N, 2, 3) B_i, rotation (N, 2, 3) G_i = B_i [f_i]x,
+    dr_dp (N, 2, 3) the residuals' change with the ray-to-point vector."""
     parameters = calibration_parameters(rig)
     k_all = len(parameters)
     lens = [k for k, name in enumerate(parameters) if k < 5 or name in LENS_PARAMETERS]
@@ -257,18 +256,20 @@ def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, unit, d
         if not len(rows) or not sigma.any():
             continue
         camera, rig_from_cam = rig.cameras[name], rig.cam_from_rig[name].R.T
+        mine, block, pixels = bases[rows], np.zeros((len(rows), 2, k_all)), uv[rows]
         for k in lens:
             parameter = parameters[k]
             if sigma[k] == 0:
                 continue
             step = 1e-3 * sigma[k]
-            plus = replace(camera, **{parameter: getattr(camera, parameter) + step}).unproject(uv[rows])
-            minus = replace(camera, **{parameter: getattr(camera, parameter) - step}).unproject(uv[rows])
+            plus = replace(camera, **{parameter: getattr(camera, parameter) + step}).unproject(pixels)
+            minus = replace(camera, **{parameter: getattr(camera, parameter) - step}).unproject(pixels)
             change = (_unit(plus) - _unit(minus)) @ rig_from_cam.T / (2 * step)
-            effects[rows, :, k] = -np.einsum("nki,ni->nk", bases[rows], change)
+            block[:, :, k] = -np.einsum("nki,ni->nk", mine, change)
         # d f / d w = -[f]x: r changes by -B df = B [f]x w; the origin by dv: p by -dv
-        effects[rows, :, 5:8] = np.einsum("nki,nij->nkj", bases[rows], skew(unit[rows]))
-        effects[rows, :, 8:11] = -dr_dp[rows]
+        block[:, :, 5:8] = rotation[rows]
+        block[:, :, 8:11] = -dr_dp[rows]
+        effects[rows] = block
     return effects
 
 
@@ -280,10 +281,12 @@ def _sum_by(values: np.ndarray, key: np.ndarray, n_keys: int) -> np.ndarray:
     """Sums (n_keys, ...) of values (N, ...) per key (N,) in [0, n_keys) (rows with key < 0 ignored).
     One bincount over (key, entry) slots: each sum adds its rows in their order, as one bincount
     per entry did."""
-    keep = key >= 0
     width = int(np.prod(values.shape[1:]))
-    flat = values[keep].reshape(int(keep.sum()), width)
-    slots = (key[keep][:, None] * width + np.arange(width)).ravel()
+    if len(key) and key.min() < 0:
+        keep = key >= 0
+        values, key = values[keep], key[keep]
+    flat = values.reshape(len(key), width)
+    slots = (key[:, None] * width + np.arange(width)).ravel()
     return np.bincount(slots, flat.ravel(), minlength=n_keys * width).reshape(n_keys, *values.shape[1:])
 
 
@@ -678,8 +681,8 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
     block_camera[frame_camera] = g.camera
     k_all = g.calibration.shape[2]
 
-    def per_observation(effect, variance):  # sum_i (w J^T E_i) V_i (w J^T E_i)^T
-        K = np.einsum("nki,nkj->nij", weighted, effect)
+    def per_observation(effect, variance, K=None):  # sum_i (w J^T E_i) V_i (w J^T E_i)^T
+        K = np.einsum("nki,nkj->nij", weighted, effect) if K is None else K
         return _sum_by(_scaled_outer(K, variance), g.frame, n_frames)
 
     def calibration():  # L K L^T, L (F, 6, K C) the frame's sums of w J^T C_i in its camera's columns
@@ -694,8 +697,9 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
         L = _sum_by(np.einsum("nki,nkj->nij", weighted, effect), frame_camera, len(block_frame)) * sigma[:, None, :]
         return _sum_by(np.einsum("bij,bkj->bik", L, L), block_frame, n_frames)
 
-    pixel = per_observation(np.broadcast_to(np.eye(2), (len(g.frame), 2, 2)) / g.focal[:, None, None],
-                            np.full(len(g.frame), model.si("pixel") ** 2))
+    # E_i = I / F_i: w J^T E_i is (w J)^T (1 / F_i), as einsum made it with the identity's zeros
+    pixel = per_observation(None, np.full(len(g.frame), model.si("pixel") ** 2),
+                            np.swapaxes(weighted, 1, 2) * (1.0 / g.focal)[:, None, None])
     point_sigma = survey_sigma(g.point_sigma, model)
     rotation_sigma = np.hypot(model.si("jitter"), model.si("mounting"))
     moving = np.where(np.bincount(frame_camera, g.reference, minlength=len(block_frame)) > 0, 0.0, rotation_sigma)
