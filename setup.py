@@ -56,4 +56,5 @@ setup(ext_modules=cythonize([
     Extension("dmais_pipe.pose._kernels", ["dmais_pipe/pose/_kernels.pyx"], extra_compile_args=compile_args()),
     Extension("dmais_pipe.pose._refine", ["dmais_pipe/pose/_refine.pyx"], extra_compile_args=compile_args()),
     Extension("dmais_pipe.pose._group", ["dmais_pipe/pose/_group.pyx"], extra_compile_args=compile_args()),
+    Extension("dmais_pipe.pose._error", ["dmais_pipe/pose/_error.pyx"], extra_compile_args=compile_args()),
 ]))

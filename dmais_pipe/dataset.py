@@ -22,7 +22,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pandas as pd
 import yaml
@@ -1048,6 +1047,8 @@ def _decode(file: Path) -> tuple[np.ndarray | None, str]:
     """The pixels of an image file (None when it cannot be decoded) and what the decoder libraries
     wrote to stderr meanwhile. libpng and libjpeg write warnings straight to file descriptor 2, so
     it is redirected while OpenCV decodes: a broken file gives one line of ours, not theirs too."""
+    import cv2  # where images are read only: a job that reads none (pose) starts without OpenCV
+
     data = file.read_bytes()
     if not data:
         return None, "empty file"
@@ -1066,6 +1067,8 @@ def _decode(file: Path) -> tuple[np.ndarray | None, str]:
 
 def _grayscale(pixels: np.ndarray) -> np.ndarray | None:
     """(h, w) pixels from (h, w), (h, w, 1), BGR (h, w, 3) or BGRA (h, w, 4); None for other layouts."""
+    import cv2
+
     if pixels.ndim == 3 and pixels.shape[2] == 1:
         return pixels[:, :, 0]
     if pixels.ndim == 3 and pixels.shape[2] in (3, 4):

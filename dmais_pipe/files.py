@@ -13,7 +13,6 @@ import tempfile
 from contextlib import contextmanager
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pandas as pd
 import yaml
@@ -134,6 +133,8 @@ def _csv_quoted(cells: list[str]) -> list[str]:
 
 def write_png_atomic(path: str | Path, image: np.ndarray, compression: int = 1) -> Path:
     """Write an 8- or 16-bit grayscale image as PNG (compression 0-9, low is fast)."""
+    import cv2  # OpenCV for the few that write images, not for every command
+
     ok, encoded = cv2.imencode(".png", image, [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])
     if not ok:
         raise OSError(f"could not encode {path} as PNG")

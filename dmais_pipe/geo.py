@@ -28,14 +28,15 @@ import logging
 import math
 import warnings
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pyproj
-from pyproj.exceptions import CRSError, ProjError
-from pyproj.transformer import TransformerGroup
 
 from .errors import DmaisError
 from .geometry import euler_zyx_from_rotation, euler_zyx_rates
+
+if TYPE_CHECKING:  # imported where a CRS is used: not by every job of a dataset without one (0.1 s)
+    import pyproj
 
 log = logging.getLogger(__name__)
 
@@ -66,6 +67,9 @@ class GeoError(DmaisError):
 def pyproj_crs(text: str) -> pyproj.CRS:
     """The CRS named by `text` (anything pyproj reads: EPSG:32633, WKT, a PROJ string) as it is;
     GeoError when pyproj does not know it."""
+    import pyproj
+    from pyproj.exceptions import CRSError
+
     try:
         return pyproj.CRS.from_user_input(text)
     except CRSError as error:
@@ -88,6 +92,9 @@ def _transformer(source: str, target: str) -> pyproj.Transformer:
     """The best transformation from CRS `source` to `target` (3-D, always_xy); GeoError naming the
     grid when the best one needs a grid PROJ does not have (a geoid model), rather than falling back
     to a worse one silently."""
+    import pyproj
+    from pyproj.transformer import TransformerGroup
+
     with warnings.catch_warnings():  # pyproj warns of a missing grid: said below, in one line
         warnings.simplefilter("ignore", UserWarning)
         group = TransformerGroup(crs_3d(source), crs_3d(target), always_xy=True)
@@ -102,6 +109,8 @@ def _transformer(source: str, target: str) -> pyproj.Transformer:
 
 @functools.lru_cache(maxsize=32)
 def _topocentric(origin: tuple[float, float, float]) -> pyproj.Transformer:
+    import pyproj
+
     lat, lon, h = origin
     return pyproj.Transformer.from_pipeline(
         f"+proj=topocentric +ellps=WGS84 +lat_0={lat!r} +lon_0={lon!r} +h_0={h!r}")
@@ -109,6 +118,8 @@ def _topocentric(origin: tuple[float, float, float]) -> pyproj.Transformer:
 
 def _transform(transformer: pyproj.Transformer, xyz, direction: str = "FORWARD") -> np.ndarray:
     """(n, 3) of xyz (n, 3) through `transformer`; GeoError where PROJ gives no finite result."""
+    from pyproj.exceptions import ProjError
+
     xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
     try:
         out = np.column_stack(transformer.transform(xyz[:, 0], xyz[:, 1], xyz[:, 2], direction=direction,

@@ -338,3 +338,25 @@ def test_an_opencv_cameras_lens_parameters_enter_the_calibration_term_as_their_r
         column = base.calibration[:, :, em.calibration_parameters(rig).index(name)]
         assert np.abs(change[mine]).max() > 0
         np.testing.assert_allclose(column[mine], change[mine], rtol=1e-4, atol=1e-4 * np.abs(change[mine]).max())
+
+
+def test_the_compiled_frame_sums_are_the_numpy_expressions_they_replace():
+    """pose._error's loops against the numpy of error_model before them (einsum stacks summed by _sum_by),
+    to the bit: each sum adds its rows in their order, each product its terms in einsum's order."""
+    from dmais_pipe.pose._error import row_products, scaled_outer_sums
+
+    rng = np.random.default_rng(3)
+    n, n_keys = 5000, 300
+    left = rng.normal(size=(n, 2, 6)) * 10.0 ** rng.uniform(-4, 4, (n, 1, 1))
+    scale = rng.uniform(0.1, 2.0, n)
+    for key in (np.sort(rng.integers(0, n_keys, n)), rng.integers(-1, n_keys, n)):  # a frame's rows; any order
+        for width in (1, 2, 3, 6, 11):
+            effect = rng.normal(size=(n, 2, width))
+            K = np.einsum("nki,nkj->nij", left, effect)
+            scaled = K * scale[:, None, None]  # sum over j of (K_ij scale) K_mj, in order
+            outer = scaled[:, :, None, 0] * K[:, None, :, 0]
+            for j in range(1, width):
+                outer += scaled[:, :, None, j] * K[:, None, :, j]
+            np.testing.assert_array_equal(row_products(left, effect, key, n_keys), em._sum_by(K, key, n_keys))
+            np.testing.assert_array_equal(scaled_outer_sums(left, effect, scale, key, n_keys),
+                                          em._sum_by(outer, key, n_keys))

@@ -40,7 +40,6 @@ from ..dataset import Dataset
 from ..errors import DmaisError
 from ..geometry import Rigid3, exp_so3
 from ..rig import Rig
-from ..calib.pnpf import solve_pnpf
 from .detect import detect
 from .identify import GATE_PX, MIN_INLIERS, identify_with_reasons
 from .windows import detect_in_windows
@@ -263,6 +262,8 @@ def verify_with_pose(uv: np.ndarray, ids: np.ndarray, points: pd.DataFrame, prin
     residual exceeds gate_px. With too few ids left for a fit, all are dropped: an id no
     pose confirms is not trusted.
     """
+    from ..calib.pnpf import solve_pnpf  # with scipy.optimize: for calibration images, not a flight batch's job
+
     ids = np.asarray(ids, dtype=object).copy()
     while True:
         keep = np.flatnonzero(ids != "")

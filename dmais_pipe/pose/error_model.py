@@ -76,6 +76,7 @@ from scipy.optimize import nnls
 
 from ..camera import LENS_FIELDS
 from ..rig import Rig
+from ._error import row_products, scaled_outer_sums
 from .refine import _jacobian, inverse_normal_matrices, tangent_bases
 
 ARCMIN = np.radians(1.0 / 60.0)
@@ -214,7 +215,7 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
         weight /= np.bincount(frame_index, weight, minlength=n_frames)[frame_index] / counts[frame_index]
     else:
         weight = np.ones(len(points))
-    A = _sum_by(np.einsum("nki,nkj->nij", J * weight[:, None, None], J), frame_index, n_frames)
+    A = row_products(J * weight[:, None, None], J, frame_index, n_frames)
     names = list(rig.cameras)
     camera = pd.Index(names).get_indexer(np.asarray(cameras).astype(str)) if len(cameras) else np.zeros(0, int)
     residual = residual.reshape(-1, 2)
@@ -297,17 +298,6 @@ def solve_response(geometry: Geometry, errors: np.ndarray) -> np.ndarray:
     sums = np.add.reduceat(right, g.starts, axis=-2) if g.n_frames else right[..., :0, :]
     step = np.einsum("fij,...fj->...fi", g.A_inverse, sums)
     return errors - np.einsum("nkj,...nj->...nk", g.J, step[..., g.frame, :])
-
-
-def _scaled_outer(K: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """(N, m, m) scale_n K_n K_n^T of K (N, m, e), scale (N,): einsum("nij,n,nkj->nik")'s
-    products (K_nij scale_n) K_nkj added over j in order, with broadcast products (einsum's
-    three-operand loop is several times slower)."""
-    scaled = K * scale[:, None, None]
-    out = scaled[:, :, None, 0] * K[:, None, :, 0]
-    for j in range(1, K.shape[2]):
-        out += scaled[:, :, None, j] * K[:, None, :, j]
-    return out
 
 
 def _dense(key: np.ndarray) -> np.ndarray:
@@ -681,12 +671,11 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
     block_camera[frame_camera] = g.camera
     k_all = g.calibration.shape[2]
 
-    def per_observation(effect, variance, K=None):  # sum_i (w J^T E_i) V_i (w J^T E_i)^T
-        K = np.einsum("nki,nkj->nij", weighted, effect) if K is None else K
-        return _sum_by(_scaled_outer(K, variance), g.frame, n_frames)
+    def per_observation(effect, variance):  # sum_i (w J^T E_i) V_i (w J^T E_i)^T
+        return scaled_outer_sums(weighted, effect, variance, g.frame, n_frames)
 
     def calibration():  # L K L^T, L (F, 6, K C) the frame's sums of w J^T C_i in its camera's columns
-        blocks = _sum_by(np.einsum("nki,nkj->nij", weighted, g.calibration), frame_camera, len(block_frame))
+        blocks = row_products(weighted, g.calibration, frame_camera, len(block_frame))
         L = np.zeros((n_frames, 6, g.calibration_covariance.shape[0]))
         for c in np.unique(block_camera):
             mine = block_camera == c
@@ -694,12 +683,11 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
         return L @ g.calibration_covariance @ np.swapaxes(L, 1, 2) * model.si("calibration") ** 2
 
     def per_block(effect, sigma):  # sum over blocks of L L^T, L = sum over the block's rows of w J^T E_i sigma
-        L = _sum_by(np.einsum("nki,nkj->nij", weighted, effect), frame_camera, len(block_frame)) * sigma[:, None, :]
+        L = row_products(weighted, effect, frame_camera, len(block_frame)) * sigma[:, None, :]
         return _sum_by(np.einsum("bij,bkj->bik", L, L), block_frame, n_frames)
 
-    # E_i = I / F_i: w J^T E_i is (w J)^T (1 / F_i), as einsum made it with the identity's zeros
-    pixel = per_observation(None, np.full(len(g.frame), model.si("pixel") ** 2),
-                            np.swapaxes(weighted, 1, 2) * (1.0 / g.focal)[:, None, None])
+    pixel = per_observation(np.broadcast_to(np.eye(2), (len(g.frame), 2, 2)) / g.focal[:, None, None],
+                            np.full(len(g.frame), model.si("pixel") ** 2))
     point_sigma = survey_sigma(g.point_sigma, model)
     rotation_sigma = np.hypot(model.si("jitter"), model.si("mounting"))
     moving = np.where(np.bincount(frame_camera, g.reference, minlength=len(block_frame)) > 0, 0.0, rotation_sigma)
