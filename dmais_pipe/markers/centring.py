@@ -45,23 +45,28 @@ def _refine_fixed(img, start, radius, max_iterations, eps, max_shift, converge: 
     n = len(p)
     out = np.full((n, 2), np.nan)
     active = np.nonzero(np.all(np.isfinite(p), axis=1))[0]
+    # The window and its gradients stay where the start put them: gathered once, for every step.
+    cx, cy = np.rint(p[active, 0]).astype(int), np.rint(p[active, 1]).astype(int)
+    x_all = cx[:, None] + ox[None]  # (k, m) integer pixel positions
+    y_all = cy[:, None] + oy[None]
+    xc, yc = np.clip(x_all, 1, width - 2), np.clip(y_all, 1, height - 2)
+    gx_all = 0.5 * (img[yc, xc + 1].astype(np.float64) - img[yc, xc - 1])
+    gy_all = 0.5 * (img[yc + 1, xc].astype(np.float64) - img[yc - 1, xc])
+    kept_all = (x_all == xc) * (y_all == yc)
+    slot = np.full(n, -1)
+    slot[active] = np.arange(len(active))
     for _ in range(max_iterations):
         if len(active) == 0:
             break
         q = p[active]
         inside = (q[:, 0] >= 0) & (q[:, 0] <= width - 1) & (q[:, 1] >= 0) & (q[:, 1] <= height - 1)
-        q = np.where(inside[:, None], q, 0.0)
-        s0 = np.where(inside[:, None], start[active], 0.0)
-        cx, cy = np.rint(s0[:, 0]).astype(int), np.rint(s0[:, 1]).astype(int)
-        x = cx[:, None] + ox[None]  # (k, m) integer pixel positions
-        y = cy[:, None] + oy[None]
-        xc, yc = np.clip(x, 1, width - 2), np.clip(y, 1, height - 2)
-        gx = 0.5 * (img[yc, xc + 1].astype(np.float64) - img[yc, xc - 1])
-        gy = 0.5 * (img[yc + 1, xc].astype(np.float64) - img[yc - 1, xc])
+        q = np.where(inside[:, None], q, 0.0)  # a step outside the image ends that point (ok below)
+        rows = slot[active]
+        x, y, gx, gy = x_all[rows], y_all[rows], gx_all[rows], gy_all[rows]
         rx, ry = x - q[:, :1], y - q[:, 1:]
         d2 = rx**2 + ry**2
         # Gaussian tapered smoothly to 0 at `radius`: no pixel enters or leaves the window abruptly.
-        w = np.exp(-d2 / sigma2) * np.maximum(1.0 - d2 / radius**2, 0.0) ** 2 * (x == xc) * (y == yc)
+        w = np.exp(-d2 / sigma2) * np.maximum(1.0 - d2 / radius**2, 0.0) ** 2 * kept_all[rows]
         wxx, wxy, wyy = (w * gx * gx).sum(1), (w * gx * gy).sum(1), (w * gy * gy).sum(1)
         bx = (w * (gx * gx * x + gx * gy * y)).sum(1)
         by = (w * (gx * gy * x + gy * gy * y)).sum(1)

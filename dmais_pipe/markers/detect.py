@@ -245,11 +245,12 @@ def contrasts(raw: np.ndarray, texture: float | None, min_contrast: float | None
     """(contrast, lit contrast) in the units of the image `raw` (h, w): the ring tests' minimum
     contrast (`min_contrast` in 8-bit DN, None: from the clutter `texture`, None where the image
     has no half-resolution level) and that of a lit X (the candidates' threshold)."""
+    scale = _dn_scale(raw)
     if min_contrast is not None or texture is None:
-        contrast = (MIN_CONTRAST if min_contrast is None else min_contrast) * _dn_scale(raw)
+        contrast = (MIN_CONTRAST if min_contrast is None else min_contrast) * scale
     else:
-        contrast = _threshold(texture, _dn_scale(raw))
-    return contrast, MIN_CONTRAST * _dn_scale(raw) if min_contrast is None else contrast
+        contrast = _threshold(texture, scale)
+    return contrast, MIN_CONTRAST * scale if min_contrast is None else contrast
 
 
 def detect(image, min_contrast: float | None = None, min_quality: float = MIN_QUALITY,

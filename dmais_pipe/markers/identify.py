@@ -249,11 +249,14 @@ def _period_vectors(moved: np.ndarray, anchor: int) -> np.ndarray:
     return np.vstack([v for b in basis for v in (b, -b)])
 
 
-def _neighbour_along(moved: np.ndarray, tree: cKDTree, points: np.ndarray, shift: np.ndarray) -> np.ndarray:
-    """(k,) index of the prediction one period `shift` (2,) from each of points (k,) of moved (m, 2),
-    -1 where none lies within half the shift of where it would be."""
-    distance, index = tree.query(moved[points] + shift)
-    return np.where(distance < 0.5 * np.hypot(*shift), index, -1)
+def _neighbours_along(moved: np.ndarray, tree: cKDTree, points: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+    """(s, k) index of the prediction one period shifts[j] (s, 2) from each of points (k,) of moved
+    (m, 2), -1 where none lies within half the shift of where it would be: one query for every shift."""
+    if len(shifts) == 0:
+        return np.zeros((0, len(points)), dtype=int)
+    distance, index = tree.query((moved[points][None, :, :] + shifts[:, None, :]).reshape(-1, 2))
+    shape = (len(shifts), len(points))
+    return np.where(distance.reshape(shape) < 0.5 * np.hypot(*shifts.T)[:, None], index.reshape(shape), -1)
 
 
 def _period_alternatives(scene: _Scene, best: _Alignment) -> list[tuple[np.ndarray, _Alignment]]:
@@ -263,8 +266,8 @@ def _period_alternatives(scene: _Scene, best: _Alignment) -> list[tuple[np.ndarr
     tree = cKDTree(moved)
     anchor = int(best.pi[np.argmin(np.hypot(*(moved[best.pi] - scene.centre).T))])
     out = []
-    for shift in _period_vectors(moved, anchor):
-        neighbour = _neighbour_along(moved, tree, best.pi, shift)
+    shifts = _period_vectors(moved, anchor)
+    for shift, neighbour in zip(shifts, _neighbours_along(moved, tree, best.pi, shifts)):
         alternative = _polish(scene, neighbour[neighbour >= 0], best.di[neighbour >= 0])
         if alternative is not None and alternative.pairs() != best.pairs():
             out.append((shift, alternative))
@@ -297,8 +300,8 @@ def _local_shift_reason(scene: _Scene, best: _Alignment, k: int, matched_tree: c
     near = np.atleast_1d(matched_tree.query(scene.det[best.di[k]], min(NEIGHBOURHOOD, len(best.pi)))[1])
     points, dets = best.pi[near], best.di[near]
     own = max(float(np.sum((best.distance[near] / scene.gates[points]) ** 2)), 1.0)
-    for shift in _period_vectors(moved, best.pi[k]):
-        neighbour = _neighbour_along(moved, moved_tree, points, shift)
+    shifts = _period_vectors(moved, best.pi[k])
+    for shift, neighbour in zip(shifts, _neighbours_along(moved, moved_tree, points, shifts)):
         found = neighbour >= 0
         distance = np.hypot(*(moved[neighbour[found]] - scene.det[dets[found]]).T) / scene.gates[neighbour[found]]
         ratio = (float(np.sum(np.minimum(distance**2, 1.0))) + np.count_nonzero(~found)) / own

@@ -86,7 +86,7 @@ def refine_corners(image, uv, radius=None, max_shift: float | None = None) -> Co
     # blur and foreshortening the small-window seed can drift away).
     first = seed(img, uv, np.full(n, limit))
     first = np.where(np.isfinite(first), first, uv)
-    clean_uv, clean_first = clean_radius(img, uv), clean_radius(img, first)
+    clean_uv, clean_first = np.split(clean_radius(img, np.vstack([uv, first])), 2)  # one call: rows are independent
     start = np.where((clean_first >= clean_uv)[:, None], first, uv)
     if not fixed:
         radius = np.maximum(clean_uv, clean_first)

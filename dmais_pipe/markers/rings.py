@@ -8,11 +8,15 @@ their fits with these.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import cv2
 import numpy as np
 
 RING_SAMPLES = 48
 RADII = 3.0 * 1.35 ** np.arange(14)  # ring radii probed by clean_radius: 3 ... ~150 px
+#: `clean_radius` samples this many rings (points x radii) at once at most.
+CLEAN_BLOCK_RINGS = 400
 
 
 class ImageParts:
@@ -62,6 +66,9 @@ class ImageParts:
 
     def __getitem__(self, key):
         ys, xs = np.broadcast_arrays(*key)
+        if self._cells is None:  # one part
+            return self.pixels[0][np.clip(ys - self.tops[0], 0, self.heights[0] - 1),
+                                  np.clip(xs - self.lefts[0], 0, self.widths[0] - 1)]
         owner = self.owners(xs.ravel(), ys.ravel()).reshape(xs.shape)
         height, width = self.heights[owner], self.widths[owner]
         row = np.minimum(np.maximum(ys - self.tops[owner], 0), height - 1)
@@ -132,22 +139,31 @@ def ring_stats(values: np.ndarray):
     k = values.shape[1]
     mean = values.mean(axis=1, keepdims=True)
     high = values > mean
-    transitions = np.count_nonzero(high != np.roll(high, 1, axis=1), axis=1)
+    transitions = np.count_nonzero(high[:, 1:] != high[:, :-1], axis=1) + (high[:, 0] != high[:, -1])
     n_high = high.sum(axis=1)
     total = ((values - mean) ** 2).sum(axis=1) + 1e-9
     mean_high = np.where(high, values, 0).sum(axis=1) / np.maximum(n_high, 1)
     mean_low = np.where(~high, values, 0).sum(axis=1) / np.maximum(k - n_high, 1)
     within = (np.where(high, values - mean_high[:, None], values - mean_low[:, None]) ** 2).sum(axis=1)
     bimodal = np.clip(1.0 - within / total, 0.0, 1.0)
-    opposite = np.roll(values, k // 2, axis=1)
+    opposite = np.concatenate([values[:, k - k // 2:], values[:, :k - k // 2]], axis=1)  # np.roll by k // 2
     symmetric = np.clip(1.0 - ((values - opposite) ** 2).sum(axis=1) / (2.0 * total), 0.0, 1.0)
     quality = np.where(transitions == 4, bimodal * symmetric, 0.0)
     return quality, mean_high, mean_low, high
 
 
 def ring_offsets(radius: float, k: int = RING_SAMPLES) -> np.ndarray:
+    """(k, 2) offsets of k samples on a circle of `radius` px, half a step off the x axis."""
+    return radius * _unit_ring(k)
+
+
+@lru_cache(maxsize=16)
+def _unit_ring(k: int) -> np.ndarray:
+    """(k, 2) `ring_offsets` of radius 1 (read-only: shared by every call)."""
     angle = 2.0 * np.pi * (np.arange(k) + 0.5) / k
-    return radius * np.column_stack([np.cos(angle), np.sin(angle)])
+    unit = np.column_stack([np.cos(angle), np.sin(angle)])
+    unit.flags.writeable = False
+    return unit
 
 
 def clean_radius(image: np.ndarray, uv: np.ndarray, min_quality: float = 0.6,
@@ -163,27 +179,38 @@ def clean_radius(image: np.ndarray, uv: np.ndarray, min_quality: float = 0.6,
     alive = np.ones(n, dtype=bool)
     ref_high, ref_low = np.zeros(n), np.zeros(n)
     ref_mask = np.zeros((n, RING_SAMPLES), dtype=bool)
-    for radius in radii:
-        idx = np.nonzero(alive)[0]
-        if len(idx) == 0:
-            break
-        values = sample(image, uv[idx, None, :] + ring_offsets(radius)[None])
-        quality, high, low, mask = ring_stats(values)
-        ok = quality >= min_quality
-        was = started[idx]
-        contrast = np.maximum(ref_high[idx] - ref_low[idx], 1e-9)
-        same = ((np.mean(mask == ref_mask[idx], axis=1) >= 0.9)
-                & (high >= ref_high[idx] - 0.25 * contrast) & (low <= ref_low[idx] + 0.25 * contrast))
-        ok = np.where(was, ok & same, ok)
-        first = ok & ~was
-        ref_mask[idx[first]] = mask[first]
-        # Levels, ring to ring: blur lets them spread with the radius, but a ring leaving the
-        # board (background, outline) pulls a level back.
-        ref_high[idx[ok]], ref_low[idx[ok]] = high[ok], low[ok]
-        started[idx[first]] = True
-        result[idx[ok]] = radius
-        stop = np.where(was, ~ok, ~ok & (radius >= max_first))
-        alive[idx[stop]] = False
+    radii = np.asarray(radii, dtype=float)
+    at = 0
+    while at < len(radii) and alive.any():
+        # Several radii per sampling and per `ring_stats` where the points are few: each ring's
+        # numbers are its own (row by row), and the calls' overhead, not the samples, is the cost.
+        block = radii[at:at + max(1, min(len(radii) - at, CLEAN_BLOCK_RINGS // int(alive.sum())))]
+        at += len(block)
+        rows = np.nonzero(alive)[0]
+        offsets = np.concatenate([ring_offsets(radius) for radius in block])  # (b k, 2)
+        values = sample(image, uv[rows, None, :] + offsets[None]).reshape(len(rows) * len(block), RING_SAMPLES)
+        stats = [a.reshape((len(rows), len(block)) + a.shape[1:]) for a in ring_stats(values)]
+        for j, radius in enumerate(block):
+            live = alive[rows]
+            idx = rows[live]
+            if len(idx) == 0:
+                break
+            quality, high, low, mask = (a[live, j] for a in stats)
+            ok = quality >= min_quality
+            was = started[idx]
+            contrast = np.maximum(ref_high[idx] - ref_low[idx], 1e-9)
+            same = ((np.mean(mask == ref_mask[idx], axis=1) >= 0.9)
+                    & (high >= ref_high[idx] - 0.25 * contrast) & (low <= ref_low[idx] + 0.25 * contrast))
+            ok = np.where(was, ok & same, ok)
+            first = ok & ~was
+            ref_mask[idx[first]] = mask[first]
+            # Levels, ring to ring: blur lets them spread with the radius, but a ring leaving the
+            # board (background, outline) pulls a level back.
+            ref_high[idx[ok]], ref_low[idx[ok]] = high[ok], low[ok]
+            started[idx[first]] = True
+            result[idx[ok]] = radius
+            stop = np.where(was, ~ok, ~ok & (radius >= max_first))
+            alive[idx[stop]] = False
     return result
 
 

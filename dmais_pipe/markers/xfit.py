@@ -60,17 +60,20 @@ def model(params: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: bool = Tru
     c1, s1, c2, s2 = np.cos(t1), np.sin(t1), np.cos(t2), np.sin(t2)
     l1, l2 = c1 * dx + s1 * dy, c2 * dx + s2 * dy
     a, b = erf(l1 / (_SQRT2 * s)), erf(l2 / (_SQRT2 * s))
-    value = m + c * a * b
+    ca = c * a
+    value = m + ca * b
     if not jacobian:
         return value, None
     da = _DERF / s * np.exp(-0.5 * (l1 / s) ** 2)  # d a / d l1
     db = _DERF / s * np.exp(-0.5 * (l2 / s) ** 2)
+    # The products each column shares, each in the order the column's formula multiplies it.
+    dab, adb, minus_c = da * b, a * db, -c
     jac = np.empty(x.shape + (N_PARAMS,))
-    jac[..., 0] = -c * (da * b * c1 + a * db * c2)
-    jac[..., 1] = -c * (da * b * s1 + a * db * s2)
+    jac[..., 0] = minus_c * (dab * c1 + adb * c2)
+    jac[..., 1] = minus_c * (dab * s1 + adb * s2)
     jac[..., 2] = c * da * b * (-s1 * dx + c1 * dy)
-    jac[..., 3] = c * a * db * (-s2 * dx + c2 * dy)
-    jac[..., 4] = -c * (da * b * l1 + a * db * l2) / s
+    jac[..., 3] = ca * db * (-s2 * dx + c2 * dy)
+    jac[..., 4] = minus_c * (dab * l1 + adb * l2) / s
     jac[..., 5] = 1.0
     jac[..., 6] = a * b
     return value, jac
@@ -262,8 +265,9 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=m
         trial = params[active] + step
         trial[:, bounded] = np.maximum(trial[:, bounded], MIN_BLUR)
         # The trial's Jacobian with its values: the next step's normal equations where it is taken.
-        value, jac = model(trial, x[active], y[active])
-        new_cost, new_hess, new_grad = _normal_equations(value - values[active], jac, weights[active])
+        rows = slice(None) if len(active) == n else active  # no copies while every fit is active
+        value, jac = model(trial, x[rows], y[rows])
+        new_cost, new_hess, new_grad = _normal_equations(value - values[rows], jac, weights[rows])
         better = np.isfinite(new_cost) & (new_cost <= cost[active])
         taken = active[better]
         params[taken], cost[taken] = trial[better], new_cost[better]
