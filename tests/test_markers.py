@@ -15,7 +15,9 @@ from dmais_pipe.errors import DatasetError, DmaisError
 from dmais_pipe.files import write_png_atomic
 from dmais_pipe.geometry import Rigid3
 from dmais_pipe.markers import detect, identify, refine
+from dmais_pipe.markers.centring import seed as coarse_centre
 from dmais_pipe.markers.extract import verify_with_pose
+from dmais_pipe.markers.rings import CLEAN_BLOCK_RINGS, ImageParts, as_float_image, clean_radius
 from dmais_pipe.stages import intrinsics, markers as markers_stage
 from dmais_pipe.sim.render import MarkerBoard, RenderSettings, render_image
 from dmais_pipe.workspace import Workspace
@@ -123,6 +125,29 @@ def test_refine_fails_cleanly_on_flat_and_edge():
     out = refine(image, [[20.0, 20.0], [50.0, 50.0], [-30.0, 10.0]])
     assert out.shape == (3, 2) and np.isnan(out).all()
     assert refine(image, np.zeros((0, 2))).shape == (0, 2)
+
+
+def test_ring_tests_and_centring_give_each_point_what_it_gets_alone(small_scenes):
+    """`clean_radius` (several rings per call where the points are few, one where they are more than
+    CLEAN_BLOCK_RINGS) and `seed` (its window's gradients gathered once for all steps) give each point
+    what it gets alone, and the same on a one-part `rings.ImageParts` (indexed directly) as on the
+    float image: the windowed search's detections stay the whole image's to the last bit."""
+    boards, image = small_scenes[0]
+    img = as_float_image(image)
+    rng = np.random.default_rng(3)
+    truth = corners_of(SMALL, boards)
+    points = np.vstack([truth, truth + rng.normal(0.0, 1.0, truth.shape),
+                        rng.uniform([-5.0, -5.0], [645.0, 485.0], (CLEAN_BLOCK_RINGS + 50, 2))])
+    clean_alone = np.array([clean_radius(img, point[None])[0] for point in points])
+    seed_alone = np.vstack([coarse_centre(img, point[None], 3.0) for point in points])
+    part = ImageParts([(0, 0, img.shape[1], img.shape[0])], img.shape)
+    part.pixels[0][...] = img
+    for pixels in (img, part):
+        assert np.array_equal(clean_radius(pixels, points), clean_alone)
+        assert np.array_equal(clean_radius(pixels, points[:len(truth)]), clean_alone[:len(truth)])
+        assert np.array_equal(coarse_centre(pixels, points, 3.0), seed_alone, equal_nan=True)
+    assert clean_alone[:len(truth)].min() >= 30.0  # the markers' rings reach past the first block of rings
+    assert np.isnan(seed_alone).any() and np.isfinite(seed_alone).any()
 
 
 def chessboard_photo(square=24, cols=9, rows=7, angle=17.0, blur=1.2, noise=2.0, seed=0):
