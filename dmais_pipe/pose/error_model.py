@@ -68,13 +68,13 @@ mounting) do not enter one frame's covariance; they make the frames' errors alik
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
 from scipy.optimize import nnls
 
-from ..camera import LENS_FIELDS
+from ..camera import LENS_FIELDS, project_unmasked
 from ..rig import Rig
 from ._error import row_products, scaled_outer_sums
 from .refine import _jacobian, inverse_normal_matrices, tangent_bases
@@ -217,15 +217,17 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
         weight = np.ones(len(points))
     A = row_products(J * weight[:, None, None], J, frame_index, n_frames)
     names = list(rig.cameras)
-    camera = pd.Index(names).get_indexer(np.asarray(cameras).astype(str)) if len(cameras) else np.zeros(0, int)
+    camera = np.full(len(cameras), -1)
+    for c, name in enumerate(names):
+        camera[np.asarray(cameras) == name] = c
     residual = residual.reshape(-1, 2)
     norm = np.linalg.norm(p, axis=1)
     dr_dp = (bases - residual[:, :, None] * (p / norm[:, None])[:, None, :]) / norm[:, None, None]
     axis = np.array([rig.cam_from_rig[name].R[2] for name in names])[camera]
     focal_effect = -np.einsum("ni,ni->n", unit, axis)[:, None] * np.einsum("nki,ni->nk", bases, axis)
     rotation = np.cross(bases, unit[:, None, :])  # B [f]x: each row b^T [f]x is b x f (einsum's sums, exactly)
-    group_codes = np.unique(np.asarray(groups).astype(str), return_inverse=True)[1]
-    point_codes = np.unique(np.asarray(point_ids).astype(str), return_inverse=True)[1]
+    group_codes = pd.factorize(np.asarray(groups).astype(str), sort=True)[0]  # np.unique's codes, by hashing
+    point_codes = pd.factorize(np.asarray(point_ids).astype(str), sort=True)[0]
     n_parameters = len(calibration_parameters(rig)) * len(names)
     calibration_covariance = np.zeros((n_parameters, n_parameters)) if calibration_covariance is None \
         else np.asarray(calibration_covariance, dtype=float)
@@ -243,30 +245,25 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
 
 def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, rotation, dr_dp, variances) -> np.ndarray:
     """C_i (N, 2, K): the change of r_i per unit change of each of its camera's
-    calibration_parameters (intrinsics by central differences of the rays; a rotation w of the camera
+    calibration_parameters (intrinsics as its ray moves, `_ray_changes`; a rotation w of the camera
     about the rig's axes rotates its rays by w; a move of its centre moves their origin), where its
     variance (variances (K C,)) is not 0; bases (N, 2, 3) B_i, rotation (N, 2, 3) G_i = B_i [f_i]x,
     dr_dp (N, 2, 3) the residuals' change with the ray-to-point vector."""
     parameters = calibration_parameters(rig)
     k_all = len(parameters)
-    lens = [k for k, name in enumerate(parameters) if k < 5 or name in LENS_PARAMETERS]
     effects = np.zeros((len(uv), 2, k_all))
     for c, name in enumerate(names):
         rows = np.flatnonzero(np.asarray(cameras) == name)
         sigma = np.sqrt(np.clip(variances[k_all * c:k_all * (c + 1)], 0.0, None))
         if not len(rows) or not sigma.any():
             continue
-        camera, rig_from_cam = rig.cameras[name], rig.cam_from_rig[name].R.T
-        mine, block, pixels = bases[rows], np.zeros((len(rows), 2, k_all)), uv[rows]
-        for k in lens:
-            parameter = parameters[k]
-            if sigma[k] == 0:
-                continue
-            step = 1e-3 * sigma[k]
-            plus = replace(camera, **{parameter: getattr(camera, parameter) + step}).unproject(pixels)
-            minus = replace(camera, **{parameter: getattr(camera, parameter) - step}).unproject(pixels)
-            change = (_unit(plus) - _unit(minus)) @ rig_from_cam.T / (2 * step)
-            block[:, :, k] = -np.einsum("nki,ni->nk", mine, change)
+        camera, block = rig.cameras[name], np.zeros((len(rows), 2, k_all))
+        # the camera's own parameters: fx fy cx cy and d (k1), then LENS_PARAMETERS by name
+        own = {k: k if k < 5 else camera.parameter_names.index(parameters[k]) for k in range(k_all)
+               if (k < 5 or parameters[k] in LENS_PARAMETERS) and sigma[k] > 0}
+        if own:
+            change = _ray_changes(camera, rig.cam_from_rig[name].R.T, uv[rows])  # (n, 3, P)
+            block[:, :, list(own)] = -np.einsum("nki,nip->nkp", bases[rows], change[:, :, list(own.values())])
         # d f / d w = -[f]x: r changes by -B df = B [f]x w; the origin by dv: p by -dv
         block[:, :, 5:8] = rotation[rows]
         block[:, :, 8:11] = -dr_dp[rows]
@@ -274,8 +271,23 @@ def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, rotatio
     return effects
 
 
-def _unit(v: np.ndarray) -> np.ndarray:
-    return v / np.linalg.norm(v, axis=1)[:, None]
+def _ray_changes(camera, rig_from_cam: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """(n, 3, P) the change of the unit rays (rig frame) of pixels (n, 2) per unit change of each of the
+    camera's parameter_names (P): at a fixed pixel its undistorted point xy moves by -J_xy^-1 J_p (the
+    projection's Jacobians there), its ray w / |w|, w = (x, y, 1), by (I - f f^T) dw / |w|. NaN where the
+    pixel does not undistort. (Central differences of the rays did the same, 10 undistortions a camera.)"""
+    xy = camera.undistort_normalized(pixels)
+    w = np.column_stack([xy, np.ones(len(xy))])
+    _, J_point, J_parameters = project_unmasked(w, camera, jacobian=True)
+    J = J_point[:, :, :2]  # at depth 1, d pixels / d (x, y)
+    inverse = np.stack([np.stack([J[:, 1, 1], -J[:, 0, 1]], axis=1), np.stack([-J[:, 1, 0], J[:, 0, 0]], axis=1)],
+                       axis=1) / (J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0])[:, None, None]
+    dw = np.zeros((len(xy), 3, J_parameters.shape[2]))
+    dw[:, :2] = -inverse @ J_parameters
+    norm = np.linalg.norm(w, axis=1)
+    f = w / norm[:, None]
+    change = (dw - f[:, :, None] * np.einsum("ni,nip->np", f, dw)[:, None, :]) / norm[:, None, None]
+    return np.einsum("ij,njp->nip", rig_from_cam, change)
 
 
 def _sum_by(values: np.ndarray, key: np.ndarray, n_keys: int) -> np.ndarray:
