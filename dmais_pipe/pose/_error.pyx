@@ -8,6 +8,8 @@ Each sum adds its rows in their order and each product its terms in einsum's ord
 (tests/test_error_model.py compares them). Keys are sorted or not; a negative key leaves its row out.
 """
 
+from libc.math cimport sqrt
+
 import numpy as np
 
 
@@ -58,4 +60,41 @@ def scaled_outer_sums(left, effect, scale, key, Py_ssize_t n_keys):
                 for j in range(1, width):
                     value = value + (K[i, j] * s[n]) * K[m, j]
                 o[slot, i, m] += value
+    return out
+
+
+cdef inline double dot3(const double *a, const double *b) noexcept nogil:
+    """a . b of three numbers as np.einsum("...j,...j") adds them: (a0 b0 + a2 b2) + a1 b1."""
+    return (a[0] * b[0] + a[2] * b[2]) + a[1] * b[1]
+
+
+def predicted_directions(R, t, frame, points, origins, bases=None):
+    """(N, 3) the unit directions from each ray's origin to its point for the poses R (F, 3, 3), t (F, 3) of the
+    rows' frames (N,), points and origins (N, 3): error_model's p = R[frame] m + t[frame] - o over its norm; with
+    bases (N, 2, 3), their products with them instead (N, 2) (the residuals of nonlinear.py), as numpy's einsum,
+    norm and division make them."""
+    cdef const double[:, :, ::1] r = np.ascontiguousarray(R, dtype=float)
+    cdef const double[:, ::1] tt = np.ascontiguousarray(t, dtype=float)
+    cdef const Py_ssize_t[::1] k = np.ascontiguousarray(frame, dtype=np.intp)
+    cdef const double[:, ::1] m = np.ascontiguousarray(points, dtype=float)
+    cdef const double[:, ::1] o = np.ascontiguousarray(origins, dtype=float)
+    cdef bint residuals = bases is not None
+    cdef const double[:, :, ::1] b = np.ascontiguousarray(bases if residuals else np.zeros((0, 2, 3)), dtype=float)
+    out = np.empty((m.shape[0], 2 if residuals else 3))
+    cdef double[:, ::1] result = out
+    cdef Py_ssize_t n, i, f
+    cdef double p[3]
+    cdef double norm
+    for n in range(m.shape[0]):
+        f = k[n]
+        for i in range(3):
+            p[i] = (dot3(&r[f, i, 0], &m[n, 0]) + tt[f, i]) - o[n, i]
+        norm = sqrt((p[0] * p[0] + p[1] * p[1]) + p[2] * p[2])
+        for i in range(3):
+            p[i] = p[i] / norm
+        if residuals:
+            result[n, 0] = dot3(&b[n, 0, 0], p)
+            result[n, 1] = dot3(&b[n, 1, 0], p)
+        else:
+            result[n, 0], result[n, 1], result[n, 2] = p[0], p[1], p[2]
     return out

@@ -26,6 +26,7 @@ import numpy as np
 
 from ..geometry import exp_so3
 from ..errors import PoseError
+from ._error import predicted_directions
 from .error_model import ErrorModel, Geometry, calibration_errors, model_draw, survey_sigma
 from .refine import tangent_bases
 from .uncertainty import heading_pitch_roll
@@ -106,13 +107,12 @@ def bootstrap_variances(geometry: Geometry, model: ErrorModel, solve: Callable, 
 def _predicted_directions(g: Geometry, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(N, 3) unit directions from each ray's origin to its point for poses R (F, 3, 3), t (F, 3)
     (about the frames' centroids)."""
-    p = np.einsum("nij,nj->ni", R[g.frame], g.points_centred) + t[g.frame] - g.origins
-    return p / np.linalg.norm(p, axis=1)[:, None]
+    return predicted_directions(R, t, g.frame, g.points_centred, g.origins)
 
 
 def _residuals(g: Geometry, bases: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """(N, 2) the residuals of poses R (F, 3, 3), t (F, 3) against directions of tangent bases (N, 2, 3)."""
-    return np.einsum("nij,nj->ni", bases, _predicted_directions(g, R, t))
+    return predicted_directions(R, t, g.frame, g.points_centred, g.origins, bases)
 
 
 def _perturbed(directions: np.ndarray, bases: np.ndarray, errors: np.ndarray) -> np.ndarray:
