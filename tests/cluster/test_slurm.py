@@ -282,10 +282,7 @@ def assert_tables_equal(local: Path, cluster: Path, name: str, least: int) -> No
 
 @pytest.fixture(scope="module")
 def node_lost(slurm, runs, tmp_path_factory):
-    """The campaign slice run locally and on SLURM, where a node is killed midway (`_node_lost`); only
-    with DMAIS_NODE_LOSS_TEST=1 until its time on an idle machine is known to fit CI's (README)."""
-    if os.environ.get("DMAIS_NODE_LOSS_TEST") != "1":
-        pytest.skip("the node-loss campaign runs with DMAIS_NODE_LOSS_TEST=1 (README, Running on a cluster)")
+    """The campaign slice run locally and on SLURM, where a node is killed midway (`_node_lost`)."""
     started_processes = []
     try:
         yield _node_lost(slurm, runs, tmp_path_factory, started_processes)
