@@ -501,9 +501,9 @@ def test_bench_runs_a_line_flight(tmp_path):
 
 def test_the_compiled_model_and_jacobians_equal_numpys():
     """mounting's compiled loops (_group: the points in the cameras, the radial1 projection, the compact
-    Jacobians) against the numpy formulas they replace, away from zero (turned cameras, jitters, focal
-    changes)."""
-    from dmais_pipe.pose import mounting
+    Jacobians, the normal equations with them formed in the loop) against the numpy formulas they replace,
+    away from zero (turned cameras, jitters, focal changes)."""
+    from dmais_pipe.pose import group_normal, mounting
 
     group = make_group(5, frames=3, mount_arcmin=1.0, markers_per_camera=4)
     problem = mounting._problem(group.rig, group.cameras, group.uv, group.point_ids, group.points, group.frame_index,
@@ -531,3 +531,14 @@ def test_the_compiled_model_and_jacobians_equal_numpys():
                                    mounting._projected_residuals(problem, state, forward.x, True)):
         np.testing.assert_allclose(compiled, reference, rtol=1e-12, atol=1e-12 * np.abs(reference).max())
     np.testing.assert_array_equal(mounting._forward(problem, state, jacobians=False).e, forward.e)
+    fused = mounting._normal_equations(problem, state, forward)  # the Jacobians formed and added in one loop
+    for jacobians, exact in ((mounting._jacobians(problem, state, forward), True),
+                             (mounting._jacobians_numpy(problem, state, forward), False)):
+        local_J, _, global_J, _ = jacobians
+        normal = group_normal.assemble(problem.structure, local_J, global_J[:, :, :-3], global_J[:, :, -3:], forward.e)
+        mounting._add_priors(problem, state, normal)
+        for block, reference in zip(fused.blocks(), normal.blocks()):
+            if exact:
+                np.testing.assert_array_equal(block, reference)
+            else:
+                np.testing.assert_allclose(block, reference, rtol=1e-12, atol=1e-12 * np.abs(reference).max())

@@ -5,7 +5,9 @@ compact Jacobians, and the frames-first elimination of the frames' blocks.
 In numpy these were products of per-frame stacks padded with zeros (a frame's 2 n_obs x L Jacobian,
 its L x (R + 3P) coupling) and most of a group adjustment's time (issue 40); here they are loops over
 the observations and frames. The arithmetic is group_normal's docstring's; its numpy elimination
-(`_frames_first_numpy`) and a dense solve are the references of tests/test_group_normal.py.
+(`_frames_first_numpy`) and a dense solve are the references of tests/test_group_normal.py. pose.mounting's
+model and Jacobians are here too (`mounting_assemble` forms each observation's Jacobian and adds it to the
+blocks at once: an iteration's Jacobians are never stored).
 
 The frames-first elimination factorises each frame's block as A = M M^T, M = [[Ls, G], [0, Lb]]: its
 unknowns are n_shared ones every observation of the frame touches (the pose), then blocks of `width` that
@@ -73,6 +75,59 @@ cdef void upper_solve(const double *l, int n, int ld, double *x, int cols, int l
             x[i * ldx + c] /= factor
 
 
+cdef enum:
+    MAX_ROW = 32  # an observation's Jacobian columns: local, rig and point
+
+
+cdef inline void add_observation(const double *j, int w, int l, int r, const Py_ssize_t *lc, const Py_ssize_t *rc,
+                                 const double *ei, double *A_f, double *Wr_f, double *b_f, int L, int R,
+                                 double *Hrr, double *b_rig, double *Hp, double *Hpr_p, double *b_p,
+                                 double *Wp_i) noexcept nogil:
+    """Add one observation's J^T J and J^T e to its blocks (`assemble`'s): j its two rows (row stride w) of l
+    local, r rig and 3 point columns, at local columns lc and rig columns rc; A_f (L x L, its lower triangle),
+    Wr_f (L x R), b_f (L,) its frame's, Hrr (R x R), b_rig (R,), Hp (3 x 3), Hpr_p (3 x R), b_p (3,) its
+    point's; Wp_i (l x 3) written. The row's factors are held in locals: a store into a block cannot change
+    them, so they are not read again after each."""
+    cdef int a, b, row, col
+    cdef double j0, j1, e0 = ei[0], e1 = ei[1]
+    cdef const double *jr = j + l
+    cdef const double *jp = j + l + r
+    for a in range(l):
+        j0, j1, row = j[a], j[w + a], <int> lc[a]
+        for b in range(a + 1):  # A's lower triangle, mirrored below
+            col = <int> lc[b]
+            A_f[max(row, col) * L + min(row, col)] += j0 * j[b] + j1 * j[w + b]
+        for b in range(r):
+            Wr_f[row * R + rc[b]] += j0 * jr[b] + j1 * jr[w + b]
+        for b in range(3):
+            Wp_i[3 * a + b] = j0 * jp[b] + j1 * jp[w + b]
+        b_f[row] += j0 * e0 + j1 * e1
+    for a in range(r):
+        j0, j1, row = jr[a], jr[w + a], <int> rc[a]
+        for b in range(r):
+            Hrr[row * R + rc[b]] += j0 * jr[b] + j1 * jr[w + b]
+        b_rig[row] += j0 * e0 + j1 * e1
+    for a in range(3):
+        j0, j1 = jp[a], jp[w + a]
+        for b in range(3):
+            Hp[3 * a + b] += j0 * jp[b] + j1 * jp[w + b]
+        for b in range(r):
+            Hpr_p[a * R + rc[b]] += j0 * jr[b] + j1 * jr[w + b]
+        b_p[a] += j0 * e0 + j1 * e1
+
+
+cdef void mirrored(double[:, :, ::1] A) noexcept nogil:
+    """Each block of A (F, L, L) made symmetric from its lower triangle."""
+    cdef int L = A.shape[1], a, b
+    cdef Py_ssize_t f
+    cdef double *A_f
+    for f in range(A.shape[0]):
+        A_f = &A[f, 0, 0]
+        for a in range(L):
+            for b in range(a):
+                A_f[b * L + a] = A_f[a * L + b]
+
+
 def assemble(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
              const Py_ssize_t[:, ::1] rig_cols, const double[:, :, ::1] local_J, const double[:, :, ::1] rig_J,
              const double[:, :, ::1] point_J, const double[:, ::1] e, double[:, :, ::1] A, double[:, :, ::1] Wr,
@@ -82,47 +137,24 @@ def assemble(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_
     blocks A (F, L, L), Wr (F, L, R), b_local (F, L), Hrr (R, R), Hpp (P, 3, 3), Hpr (P, 3, R), b_rig (R,),
     b_point (P, 3), and write Wp (N, l, 3)."""
     cdef Py_ssize_t n = local_J.shape[0], i
-    cdef int l = local_J.shape[2], r = rig_J.shape[2], L = A.shape[1], R = Hrr.shape[0], a, b
-    cdef const double *jl
-    cdef const double *jr
-    cdef const double *jp
-    cdef const double *ei
-    cdef const Py_ssize_t *lc
-    cdef const Py_ssize_t *rc
-    cdef double *A_f
-    cdef double *Wr_f
-    cdef double *Hp
-    cdef double *Hpr_p
-    cdef double value
+    cdef int l = local_J.shape[2], r = rig_J.shape[2], w = l + r + 3, k, a
+    cdef double j[2 * MAX_ROW]
+    if w > MAX_ROW:
+        raise ValueError(f"at most {MAX_ROW} columns per observation, got {w}")
     with nogil:
         for i in range(n):
-            jl, jr, jp, ei = &local_J[i, 0, 0], &rig_J[i, 0, 0], &point_J[i, 0, 0], &e[i, 0]
-            lc, rc = &local_cols[i, 0], &rig_cols[i, 0]
-            A_f, Wr_f = &A[frame[i], 0, 0], &Wr[frame[i], 0, 0]
-            Hp, Hpr_p = &Hpp[point[i], 0, 0], &Hpr[point[i], 0, 0]
-            for a in range(l):
-                for b in range(a + 1):  # A's lower triangle, mirrored below
-                    A_f[max(lc[a], lc[b]) * L + min(lc[a], lc[b])] += jl[a] * jl[b] + jl[l + a] * jl[l + b]
-                for b in range(r):
-                    Wr_f[lc[a] * R + rc[b]] += jl[a] * jr[b] + jl[l + a] * jr[r + b]
-                for b in range(3):
-                    Wp[i, a, b] = jl[a] * jp[b] + jl[l + a] * jp[3 + b]
-                b_local[frame[i], lc[a]] += jl[a] * ei[0] + jl[l + a] * ei[1]
-            for a in range(r):
-                for b in range(r):
-                    Hrr[rc[a], rc[b]] += jr[a] * jr[b] + jr[r + a] * jr[r + b]
-                b_rig[rc[a]] += jr[a] * ei[0] + jr[r + a] * ei[1]
-            for a in range(3):
-                for b in range(3):
-                    Hp[3 * a + b] += jp[a] * jp[b] + jp[3 + a] * jp[3 + b]
-                for b in range(r):
-                    Hpr_p[a * R + rc[b]] += jp[a] * jr[b] + jp[3 + a] * jr[r + b]
-                b_point[point[i], a] += jp[a] * ei[0] + jp[3 + a] * ei[1]
-        for i in range(A.shape[0]):
-            A_f = &A[i, 0, 0]
-            for a in range(L):
-                for b in range(a):
-                    A_f[b * L + a] = A_f[a * L + b]
+            for k in range(2):
+                for a in range(l):
+                    j[k * w + a] = local_J[i, k, a]
+                for a in range(r):
+                    j[k * w + l + a] = rig_J[i, k, a]
+                for a in range(3):
+                    j[k * w + l + r + a] = point_J[i, k, a]
+            add_observation(j, w, l, r, &local_cols[i, 0], &rig_cols[i, 0], &e[i, 0], &A[frame[i], 0, 0],
+                            &Wr[frame[i], 0, 0], &b_local[frame[i], 0], A.shape[1], Hrr.shape[0], &Hrr[0, 0],
+                            &b_rig[0], &Hpp[point[i], 0, 0], &Hpr[point[i], 0, 0], &b_point[point[i], 0],
+                            &Wp[i, 0, 0])
+        mirrored(A)
 
 
 cdef void coupling(double *W, int L, int G, const double[:, :, ::1] Wr, const double[:, :, ::1] Wp,
@@ -335,11 +367,12 @@ def frames_first_reduction(double[:, :, ::1] factors, const double[:, :, ::1] Wr
                         for t in range(width):
                             value += Yb[t * n_cols + c] * z[(j0 + t) * k + kk]
                         y[cols[c], kk] -= value
-                for i in range(n_shared):  # Ws - G Yb
-                    for t in range(width):
-                        value = a[i * L + j0 + t]
-                        for c in range(n_cols):
-                            Ys[i * G + cols[c]] -= value * Yb[t * n_cols + c]
+                for i in range(n_shared):  # Ws - G Yb: an entry's subtractions in t's order, in a register
+                    for c in range(n_cols):
+                        value = Ys[i * G + cols[c]]
+                        for t in range(width):
+                            value -= a[i * L + j0 + t] * Yb[t * n_cols + c]
+                        Ys[i * G + cols[c]] = value
             lower_solve(a, n_shared, L, Ys, G, G)  # Ys = Ls^-1 (Ws - G Yb)
             lower_solve(a, n_shared, L, z, k, k)
             for i in range(n_shared):
@@ -420,6 +453,56 @@ cdef inline void cross_rows(const double *a, const double *b, double *out) noexc
     out[2] = a[0] * b[1] - a[1] * b[0]
 
 
+cdef inline void observation_jacobian(Py_ssize_t i, const Py_ssize_t[::1] frame, const Py_ssize_t[::1] image,
+                                      const Py_ssize_t[::1] slot, const Py_ssize_t[::1] focal_slot,
+                                      const double[:, :, ::1] J_e, const double[:, ::1] J_focal,
+                                      const double[:, ::1] x, const double[:, ::1] q,
+                                      const double[:, :, ::1] cam_from_rig, const double[:, :, ::1] delta_turn,
+                                      const double[:, :, ::1] jitter_turn, const double[:, :, ::1] R, int l, int g,
+                                      double *local_row, double *global_row, int stride) noexcept nogil:
+    """Observation i's two rows of `mounting_jacobians`' local_J (l columns) and global_J (g) into local_row
+    and global_row (row stride `stride`)."""
+    cdef Py_ssize_t f = frame[i], im = image[i]
+    cdef int k, a, b
+    cdef double d_rig[3]
+    cdef double e_cross_x[3]
+    cdef double value
+    cdef double *lr
+    cdef double *gr
+    for k in range(2):
+        lr, gr = local_row + k * stride, global_row + k * stride
+        for a in range(3):
+            value = 0.0
+            for b in range(3):
+                value += J_e[i, k, b] * cam_from_rig[im, b, a]
+            d_rig[a] = value
+        cross_rows(&q[i, 0], d_rig, lr)
+        for a in range(3):
+            lr[3 + a] = d_rig[a]
+            value = 0.0
+            for b in range(3):
+                value += d_rig[b] * R[f, b, a]
+            gr[g - 3 + a] = value
+        cross_rows(&J_e[i, k, 0], &x[i, 0], e_cross_x)
+        for a in range(3):
+            if slot[i] < 0:
+                gr[a] = 0.0
+                if l > 6:
+                    lr[6 + a] = 0.0
+                continue
+            value = 0.0
+            for b in range(3):
+                value -= e_cross_x[b] * delta_turn[im, b, a]
+            gr[a] = value
+            if l > 6:
+                value = 0.0
+                for b in range(3):
+                    value -= e_cross_x[b] * jitter_turn[im, b, a]
+                lr[6 + a] = value
+        if g > 6:
+            gr[3] = J_focal[i, k] if focal_slot[i] >= 0 else 0.0
+
+
 def mounting_jacobians(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] image, const Py_ssize_t[::1] slot,
                        const Py_ssize_t[::1] focal_slot, const double[:, :, ::1] J_e, const double[:, ::1] J_focal,
                        const double[:, ::1] x, const double[:, ::1] q, const double[:, :, ::1] cam_from_rig,
@@ -431,45 +514,43 @@ def mounting_jacobians(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] image,
     and jitter where slot < 0 (the reference camera), for the focal change where focal_slot < 0. J_e
     (N, 2, 3), J_focal (N, 2), x, q (N, 3), image (N,), the turns (F C, 3, 3), R (F, 3, 3): `_Forward`'s
     and the state's."""
-    cdef Py_ssize_t n = J_e.shape[0], i, f, im
-    cdef int l = local_J.shape[2], g = global_J.shape[2], k, a, b
-    cdef double d_rig[3]
-    cdef double e_cross_x[3]
-    cdef double value
+    cdef Py_ssize_t n = J_e.shape[0], i
+    cdef int l = local_J.shape[2], g = global_J.shape[2]
+    cdef double rows[2 * MAX_ROW]
+    with nogil:
+        for i in range(n):  # each row pair through a buffer: local_J and global_J have strides of their own
+            observation_jacobian(i, frame, image, slot, focal_slot, J_e, J_focal, x, q, cam_from_rig, delta_turn,
+                                 jitter_turn, R, l, g, rows, rows + l, l + g)
+            memcpy(&local_J[i, 0, 0], rows, l * sizeof(double))
+            memcpy(&global_J[i, 0, 0], rows + l, g * sizeof(double))
+            memcpy(&local_J[i, 1, 0], rows + l + g, l * sizeof(double))
+            memcpy(&global_J[i, 1, 0], rows + 2 * l + g, g * sizeof(double))
+
+
+def mounting_assemble(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] image, const Py_ssize_t[::1] slot,
+                      const Py_ssize_t[::1] focal_slot, const double[:, :, ::1] J_e, const double[:, ::1] J_focal,
+                      const double[:, ::1] x, const double[:, ::1] q, const double[:, :, ::1] cam_from_rig,
+                      const double[:, :, ::1] delta_turn, const double[:, :, ::1] jitter_turn,
+                      const double[:, :, ::1] R, const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
+                      const Py_ssize_t[:, ::1] rig_cols, const double[:, ::1] e, double[:, :, ::1] A,
+                      double[:, :, ::1] Wr, double[:, ::1] b_local, double[:, ::1] Hrr, double[:, :, ::1] Hpp,
+                      double[:, :, ::1] Hpr, double[:, :, ::1] Wp, double[::1] b_rig, double[:, ::1] b_point) -> None:
+    """`assemble` of pose.mounting's Jacobians (`mounting_jacobians`' arguments, then assemble's but the
+    Jacobians), each observation's formed in a buffer and added to the blocks at once."""
+    cdef Py_ssize_t n = J_e.shape[0], i
+    cdef int l = local_cols.shape[1], r = rig_cols.shape[1], w = l + r + 3
+    cdef double j[2 * MAX_ROW]
+    if w > MAX_ROW:
+        raise ValueError(f"at most {MAX_ROW} columns per observation, got {w}")
     with nogil:
         for i in range(n):
-            f, im = frame[i], image[i]
-            for k in range(2):
-                for a in range(3):
-                    value = 0.0
-                    for b in range(3):
-                        value += J_e[i, k, b] * cam_from_rig[im, b, a]
-                    d_rig[a] = value
-                cross_rows(&q[i, 0], d_rig, &local_J[i, k, 0])
-                for a in range(3):
-                    local_J[i, k, 3 + a] = d_rig[a]
-                    value = 0.0
-                    for b in range(3):
-                        value += d_rig[b] * R[f, b, a]
-                    global_J[i, k, g - 3 + a] = value
-                cross_rows(&J_e[i, k, 0], &x[i, 0], e_cross_x)
-                for a in range(3):
-                    if slot[i] < 0:
-                        global_J[i, k, a] = 0.0
-                        if l > 6:
-                            local_J[i, k, 6 + a] = 0.0
-                        continue
-                    value = 0.0
-                    for b in range(3):
-                        value -= e_cross_x[b] * delta_turn[im, b, a]
-                    global_J[i, k, a] = value
-                    if l > 6:
-                        value = 0.0
-                        for b in range(3):
-                            value -= e_cross_x[b] * jitter_turn[im, b, a]
-                        local_J[i, k, 6 + a] = value
-                if g > 6:
-                    global_J[i, k, 3] = J_focal[i, k] if focal_slot[i] >= 0 else 0.0
+            observation_jacobian(i, frame, image, slot, focal_slot, J_e, J_focal, x, q, cam_from_rig, delta_turn,
+                                 jitter_turn, R, l, r + 3, j, j + l, w)
+            add_observation(j, w, l, r, &local_cols[i, 0], &rig_cols[i, 0], &e[i, 0], &A[frame[i], 0, 0],
+                            &Wr[frame[i], 0, 0], &b_local[frame[i], 0], A.shape[1], Hrr.shape[0], &Hrr[0, 0],
+                            &b_rig[0], &Hpp[point[i], 0, 0], &Hpr[point[i], 0, 0], &b_point[point[i], 0],
+                            &Wp[i, 0, 0])
+        mirrored(A)
 
 
 def mounting_points_in_cameras(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point,

@@ -106,7 +106,7 @@ def group_structure(frame, point, local_cols, rig_cols, n_frames: int, local_siz
                     n_points: int, method: str | None = None) -> GroupStructure:
     """The GroupStructure of N observations (its docstring), by `method` or `elimination`'s choice."""
     frame, point = np.asarray(frame, dtype=np.int64), np.asarray(point, dtype=np.int64)
-    local_cols, rig_cols = np.asarray(local_cols, dtype=np.int64), np.asarray(rig_cols, dtype=np.int64)
+    local_cols, rig_cols = (np.ascontiguousarray(cols, dtype=np.int64) for cols in (local_cols, rig_cols))
     by_frame = np.argsort(frame, kind="stable")
     frame_starts = np.searchsorted(frame[by_frame], np.arange(n_frames + 1))
     slot = np.empty(len(frame), dtype=np.int64)
@@ -204,6 +204,10 @@ class GroupNormal:
     b_rig: np.ndarray
     b_point: np.ndarray
 
+    def blocks(self) -> tuple[np.ndarray, ...]:
+        """(A, Wr, b_local, Hrr, Hpp, Hpr, Wp, b_rig, b_point): the order of _group's assemblies."""
+        return self.A, self.Wr, self.b_local, self.Hrr, self.Hpp, self.Hpr, self.Wp, self.b_rig, self.b_point
+
     @property
     def gradient(self) -> np.ndarray:
         """(F L + R + 3P,) the flat gradient."""
@@ -244,16 +248,22 @@ def assemble(structure: GroupStructure, local_J, rig_J, point_J, e) -> GroupNorm
     """J^T J and J^T e of N observations' whitened residuals e (N, 2) (two each) with the compact Jacobians local_J
     (N, 2, l), rig_J (N, 2, r) and point_J (N, 2, 3) (columns: structure's local_cols, rig_cols, the
     point's 3); the priors are the caller's to add. One compiled loop over the observations (_group)."""
-    s = structure
-    F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
-    A, Wr, b_local = np.zeros((F, L, L)), np.zeros((F, L, R)), np.zeros((F, L))
-    Hrr, Hpp, Hpr = np.zeros((R, R)), np.zeros((P, 3, 3)), np.zeros((P, 3, R))
-    Wp, b_rig, b_point = np.empty((len(e), s.local_cols.shape[1], 3)), np.zeros(R), np.zeros((P, 3))
     if local_J.shape[1] != 2:
         raise ValueError(f"two residuals per observation, got {local_J.shape[1]}")
+    s = structure
+    normal = zero_normal(s)
     blocks = map(np.ascontiguousarray, (s.local_cols, s.rig_cols, local_J, rig_J, point_J, e))
-    _group.assemble(s.frame, s.point, *blocks, A, Wr, b_local, Hrr, Hpp, Hpr, Wp, b_rig, b_point)
-    return GroupNormal(s, A, Wr, Hrr, Hpp, Hpr, Wp, b_local, b_rig, b_point)
+    _group.assemble(s.frame, s.point, *blocks, *normal.blocks())
+    return normal
+
+
+def zero_normal(structure: GroupStructure) -> GroupNormal:
+    """Normal equations of `structure` with every block 0 (Wp unset), for a compiled assembly to add to."""
+    s = structure
+    F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
+    return GroupNormal(s, np.zeros((F, L, L)), np.zeros((F, L, R)), np.zeros((R, R)), np.zeros((P, 3, 3)),
+                       np.zeros((P, 3, R)), np.empty((len(s.frame), s.local_cols.shape[1], 3)), np.zeros((F, L)),
+                       np.zeros(R), np.zeros((P, 3)))
 
 
 def _summed(values: np.ndarray, index: np.ndarray, size: int) -> np.ndarray:

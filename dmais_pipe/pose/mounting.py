@@ -535,7 +535,8 @@ def _radial1_residuals(problem: _Problem, state: _State, x: np.ndarray, jacobian
         changed = _focal_changed(calibrated, _focal(p, state, c))
         lens[c] = changed.fx, changed.fy, calibrated.cx, calibrated.cy, calibrated.d, calibrated.fx, calibrated.fy
     n = len(x)
-    e, J_e, J_focal = np.empty((n, 2)), np.empty((n, 2, 3) if jacobians else (0, 2, 3)), np.empty((n if jacobians else 0, 2))
+    m = n if jacobians else 0
+    e, J_e, J_focal = np.empty((n, 2)), np.empty((m, 2, 3)), np.empty((m, 2))
     _group.radial1_residuals(x, p.camera, lens, np.ascontiguousarray(p.uv), p.weight, e, J_e, J_focal, jacobians)
     return (e, J_e, J_focal) if jacobians else (e, None, None)
 
@@ -651,14 +652,16 @@ def _cost(problem: _Problem, state: _State, forward: _Forward | None = None) -> 
 # ------------------------------------------------------------------------------ normal equations
 
 
-def _normal_equations(problem: _Problem, state: _State, forward: _Forward | None = None,
-                      jacobians: tuple | None = None) -> GroupNormal:
-    """J^T J and J^T e of the pixel residuals in blocks (pose.group_normal), then the priors'; forward:
-    the model at `state` with its Jacobians' factors, and jacobians its `_jacobians`, if made already."""
-    p = problem
-    forward = forward or _forward(p, state)
-    local_J, _, global_J, _ = jacobians or _jacobians(p, state, forward)
-    normal = group_normal.assemble(p.structure, local_J, global_J[:, :, :-3], global_J[:, :, -3:], forward.e)
+def _normal_equations(problem: _Problem, state: _State, forward: _Forward | None = None) -> GroupNormal:
+    """J^T J and J^T e of the pixel residuals in blocks (pose.group_normal), then the priors'; forward: the
+    model at `state` with its Jacobians' factors, if made already. Each observation's Jacobian (`_jacobians`)
+    is formed and added in one compiled loop (_group.mounting_assemble)."""
+    p, s = problem, problem.structure
+    f = forward or _forward(p, state)
+    normal = group_normal.zero_normal(s)
+    _group.mounting_assemble(p.frame, f.image, p.slot, p.focal_slot[p.camera], f.J_e, f.J_focal, f.x, f.q,
+                             f.cam_from_rig, f.delta_turn, f.jitter_turn, state.R, s.point, s.local_cols, s.rig_cols,
+                             f.e, *normal.blocks())
     _add_priors(p, state, normal)
     return normal
 
@@ -738,14 +741,14 @@ def _rig_covariance(problem: _Problem, state: _State, forward: _Forward, calibra
     their block of the inverse normal matrix, plus, given the calibration's covariance
     (`adjust_group_rig`), its share (`_calibration_share`), from the inverse's rig columns; forward:
     the model at `state` with its Jacobians' factors."""
-    jacobians = _jacobians(problem, state, forward)
-    normal = _normal_equations(problem, state, forward, jacobians)
+    normal = _normal_equations(problem, state, forward)
     first, R = problem.n_frames * problem.local_size, problem.rig_size
     if calibration_covariance is None:
         return group_normal.solve(normal, np.zeros((problem.structure.size, 0)))[1]
     unit = np.zeros((problem.structure.size, R))
     unit[first + np.arange(R), np.arange(R)] = 1.0
     rig_columns, covariance = group_normal.solve(normal, unit)
+    jacobians = _jacobians(problem, state, forward)
     moved, columns = _calibration_moved(problem, state, forward, jacobians, rig_columns, covariance)
     return covariance + _calibration_share(problem, moved, columns, np.asarray(calibration_covariance, float))
 
@@ -825,7 +828,8 @@ def _calibration_moved(problem: _Problem, state: _State, f: _Forward, jacobians:
         parameters = [0, 1, 2, 3, 4] + [LENS + k for k in range(by_parameter.shape[2] - 5)]
         if p.focal_slot[c] >= 0:
             aspect = by_parameter[:, :, :1] * camera.fx - by_parameter[:, :, 1:2] * camera.fy
-            by_parameter, parameters = np.concatenate([aspect, by_parameter[:, :, 2:]], axis=2), [ASPECT] + parameters[2:]
+            by_parameter = np.concatenate([aspect, by_parameter[:, :, 2:]], axis=2)
+            parameters = [ASPECT] + parameters[2:]
         by_parameter = np.concatenate([by_parameter, -d_rig[rows]], axis=2)
         moved.append(-(U[rows].reshape(-1, U.shape[2]).T @ by_parameter.reshape(-1, by_parameter.shape[2])))
         columns += [(int(c), parameter) for parameter in parameters + [CENTRE, CENTRE + 1, CENTRE + 2]]
