@@ -575,21 +575,42 @@ def mounting_points_in_cameras(const Py_ssize_t[::1] frame, const Py_ssize_t[::1
                 x[i, a] = value + cam_t[im, a]
 
 
-def add_row_products(const double[:, :, ::1] J, const Py_ssize_t[:, ::1] index, const double[:, ::1] M,
-                     double[:, :, ::1] out) -> None:
-    """out (N, k, m) += J[i] @ M[index[i]] per observation i: J (N, k, j), index (N, j) rows of M (n, m)."""
-    cdef Py_ssize_t n = J.shape[0], i
-    cdef int rows = J.shape[1], width = J.shape[2], m = M.shape[1], k, a, c
-    cdef double factor
-    cdef const double *M_row
+def mounting_transposed_products(const Py_ssize_t[::1] rows, const Py_ssize_t[::1] frame,
+                                 const Py_ssize_t[::1] image, const Py_ssize_t[::1] slot,
+                                 const Py_ssize_t[::1] focal_slot, const double[:, :, ::1] J_e,
+                                 const double[:, ::1] J_focal, const double[:, ::1] x, const double[:, ::1] q,
+                                 const double[:, :, ::1] cam_from_rig, const double[:, :, ::1] delta_turn,
+                                 const double[:, :, ::1] jitter_turn, const double[:, :, ::1] R,
+                                 const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
+                                 const Py_ssize_t[:, ::1] rig_cols, int L, int n_rig, const double[:, :, ::1] P,
+                                 double[:, ::1] B) -> None:
+    """B (F L + n_rig + 3P', m) += J_i^T P[j] for the observations i = rows[j] (n,): J_i the whole Jacobian's two
+    rows of observation i (`mounting_jacobians`' arguments; formed here, at its frame's local columns, its rig
+    columns and its point's), P (n, 2, m)."""
+    cdef Py_ssize_t n = rows.shape[0], first = R.shape[0] * L, j, i, target  # R (F, 3, 3): the frames
+    cdef int l = local_cols.shape[1], r = rig_cols.shape[1], w = l + r + 3, m = P.shape[2], a, c
+    cdef double row[2 * MAX_ROW]
+    cdef double j0, j1
+    cdef double *out
+    cdef const double *p
+    if w > MAX_ROW:
+        raise ValueError(f"at most {MAX_ROW} columns per observation, got {w}")
     with nogil:
-        for i in range(n):
-            for a in range(width):
-                M_row = &M[index[i, a], 0]
-                for k in range(rows):
-                    factor = J[i, k, a]
-                    for c in range(m):
-                        out[i, k, c] += factor * M_row[c]
+        for j in range(n):
+            i = rows[j]
+            observation_jacobian(i, frame, image, slot, focal_slot, J_e, J_focal, x, q, cam_from_rig, delta_turn,
+                                 jitter_turn, R, l, r + 3, row, row + l, w)
+            p = &P[j, 0, 0]
+            for a in range(w):
+                if a < l:
+                    target = frame[i] * L + local_cols[i, a]
+                elif a < l + r:
+                    target = first + rig_cols[i, a - l]
+                else:
+                    target = first + n_rig + 3 * point[i] + a - l - r
+                j0, j1, out = row[a], row[w + a], &B[target, 0]
+                for c in range(m):
+                    out[c] += j0 * p[c] + j1 * p[m + c]
 
 
 def radial1_residuals(const double[:, ::1] x, const Py_ssize_t[::1] camera, const double[:, ::1] lens,

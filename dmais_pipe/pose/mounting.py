@@ -705,8 +705,8 @@ def _moved(problem: _Problem, state: _State, d_local: np.ndarray, d_global: np.n
 
 
 def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int, float, _Forward]:
-    """The minimum of the cost from `state`: (state, iterations, cost, the model there with its
-    Jacobians' factors). Converged where a step is shorter than STEP_TOLERANCE in standard deviations
+    """The minimum of the cost from `state`: (state, iterations, cost, the model there, with its
+    Jacobians' factors where the last step was taken). Converged where a step is shorter than STEP_TOLERANCE in standard deviations
     (its length, -gradient . step, is computed from the gradient, exact where the difference of two
     costs is lost in their rounding): that step is taken, unless it raises the cost, and the
     iteration ends there, off the minimum by about the step times the rate of convergence."""
@@ -714,6 +714,7 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
     cost, damping = _cost(problem, state, forward), 1e-6
     for iteration in range(1, MAX_ITERATIONS + 1):
         normal = _normal_equations(problem, state, forward)
+        forward = _Forward(forward.e)  # its Jacobians' factors are in `normal`: not held through the solves
         while True:
             d_local, d_global = _step(problem, normal, damping)
             short = -normal.gradient @ np.concatenate([d_local.ravel(), d_global]) <= STEP_TOLERANCE**2
@@ -740,7 +741,8 @@ def _rig_covariance(problem: _Problem, state: _State, forward: _Forward, calibra
     """(3K + C', 3K + C') covariance of the rig's unknowns (the deltas, rad^2, then C' focal changes):
     their block of the inverse normal matrix, plus, given the calibration's covariance
     (`adjust_group_rig`), its share (`_calibration_share`), from the inverse's rig columns; forward:
-    the model at `state` with its Jacobians' factors."""
+    the model at `state`, made again where it has no Jacobians' factors."""
+    forward = forward if forward.J_e is not None else _forward(problem, state)
     normal = _normal_equations(problem, state, forward)
     first, R = problem.n_frames * problem.local_size, problem.rig_size
     if calibration_covariance is None:
@@ -748,8 +750,8 @@ def _rig_covariance(problem: _Problem, state: _State, forward: _Forward, calibra
     unit = np.zeros((problem.structure.size, R))
     unit[first + np.arange(R), np.arange(R)] = 1.0
     rig_columns, covariance = group_normal.solve(normal, unit)
-    jacobians = _jacobians(problem, state, forward)
-    moved, columns = _calibration_moved(problem, state, forward, jacobians, rig_columns, covariance)
+    del normal  # its couplings (N, l, 3) freed before the calibration's effects are summed
+    moved, columns = _calibration_moved(problem, state, forward, rig_columns, covariance)
     return covariance + _calibration_share(problem, moved, columns, np.asarray(calibration_covariance, float))
 
 
@@ -797,28 +799,20 @@ def _calibration_share(problem: _Problem, moved: np.ndarray, columns: list[tuple
     return A @ calibration_covariance @ A.T - counted
 
 
-def _calibration_moved(problem: _Problem, state: _State, f: _Forward, jacobians: tuple, rig_columns: np.ndarray,
+def _calibration_moved(problem: _Problem, state: _State, f: _Forward, rig_columns: np.ndarray,
                        rig_inverse: np.ndarray) -> tuple[np.ndarray, list[tuple[int, int]]]:
     """(3K + C', n) how the rig's unknowns move per unit change of each calibration parameter of `columns`
     (n pairs (c, k)): per observed camera c, that camera's CALIBRATION_PARAMETERS[k], the intrinsics (k <
     5) and the centre (k = CENTRE + axis, m in the rig frame); of a camera whose focal change is an
     unknown, in place of fx and fy its aspect (k = ASPECT: fx and fy scaled by 1 + a and 1 - a) and
-    its prior's mean (k = FOCAL_PRIOR). f, jacobians: the model at `state` and its `_jacobians`;
+    its prior's mean (k = FOCAL_PRIOR). f: the model at `state` with its Jacobians' factors;
     rig_columns (F L + G, 3K + C'): the inverse normal matrix's columns of the rig's unknowns,
     rig_inverse their rows of them.
 
-    A change x moving the whitened residuals by (d e / d x) x moves the minimum by -N^-1 J^T (d e / d x) x,
-    the rig's part of which is -(J N^-1 E_rig)^T (d e / d x) x: the residuals' change per unit of each
-    rig unknown's column of the inverse, U = J rig_columns, against the parameter's effect."""
-    p = problem
-    local_J, local_cols, global_J, global_cols = jacobians
-    first = p.n_frames * p.local_size
-    U = np.zeros((len(p.uv), 2, rig_columns.shape[1]))  # J rig_columns: (N, 2, 3K + C')
-    rig_columns = np.ascontiguousarray(rig_columns)
-    _group.add_row_products(local_J, np.ascontiguousarray(p.frame[:, None] * p.local_size + local_cols), rig_columns, U)
-    _group.add_row_products(global_J, np.ascontiguousarray(first + global_cols), rig_columns, U)
-    # d e / d x_rig is the pose's translation columns; x_cam = C (x_rig - centre): d e / d centre = -d_rig
-    d_rig = local_J[:, :, 3:6]
+    A change x moving the whitened residuals by E x (E = d e / d x) moves the minimum by -N^-1 J^T E x,
+    the rig's part of which is -rig_columns^T (J^T E) x: J^T E is summed over the camera's observations
+    by one compiled loop forming their Jacobians (_group.mounting_transposed_products), never stored."""
+    p, s = problem, problem.structure
     moved, columns = [], []
     for c in np.unique(p.camera):
         rows = np.flatnonzero(p.camera == c)
@@ -830,8 +824,15 @@ def _calibration_moved(problem: _Problem, state: _State, f: _Forward, jacobians:
             aspect = by_parameter[:, :, :1] * camera.fx - by_parameter[:, :, 1:2] * camera.fy
             by_parameter = np.concatenate([aspect, by_parameter[:, :, 2:]], axis=2)
             parameters = [ASPECT] + parameters[2:]
-        by_parameter = np.concatenate([by_parameter, -d_rig[rows]], axis=2)
-        moved.append(-(U[rows].reshape(-1, U.shape[2]).T @ by_parameter.reshape(-1, by_parameter.shape[2])))
+        # d e / d x_rig is the pose's translation columns; x_cam = C (x_rig - centre): d e / d centre = -d_rig
+        d_rig = f.J_e[rows] @ f.cam_from_rig[f.image[rows]]
+        by_parameter = np.ascontiguousarray(np.concatenate([by_parameter, -d_rig], axis=2))
+        effect = np.zeros((s.size, by_parameter.shape[2]))  # J^T E
+        _group.mounting_transposed_products(rows, p.frame, f.image, p.slot, p.focal_slot[p.camera], f.J_e,
+                                            f.J_focal, f.x, f.q, f.cam_from_rig, f.delta_turn, f.jitter_turn,
+                                            state.R, s.point, s.local_cols, s.rig_cols, p.local_size, p.rig_size,
+                                            by_parameter, effect)
+        moved.append(-(rig_columns.T @ effect))
         columns += [(int(c), parameter) for parameter in parameters + [CENTRE, CENTRE + 1, CENTRE + 2]]
         if p.focal_slot[c] >= 0:  # the prior's residual (s - m) / sigma_s: the gradient moves by -e_s / sigma_s^2 per m
             slot = 3 * len(p.free) + p.focal_slot[c]
