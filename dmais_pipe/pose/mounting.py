@@ -706,10 +706,11 @@ def _moved(problem: _Problem, state: _State, d_local: np.ndarray, d_global: np.n
 
 def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int, float, _Forward]:
     """The minimum of the cost from `state`: (state, iterations, cost, the model there, with its
-    Jacobians' factors where the last step was taken). Converged where a step is shorter than STEP_TOLERANCE in standard deviations
-    (its length, -gradient . step, is computed from the gradient, exact where the difference of two
-    costs is lost in their rounding): that step is taken, unless it raises the cost, and the
-    iteration ends there, off the minimum by about the step times the rate of convergence."""
+    Jacobians' factors where the last step was taken). Converged where a step is shorter than
+    STEP_TOLERANCE in standard deviations (its length, -gradient . step, is computed from the gradient,
+    exact where the difference of two costs is lost in their rounding): that step is taken, unless it
+    raises the cost, and the iteration ends there, off the minimum by about the step times the rate of
+    convergence."""
     forward = _forward(problem, state)
     cost, damping = _cost(problem, state, forward), 1e-6
     for iteration in range(1, MAX_ITERATIONS + 1):
