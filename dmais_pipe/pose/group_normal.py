@@ -432,9 +432,9 @@ def _points_first(normal: GroupNormal, r_local, r_rig, r_point):
     S_rr = normal.Hrr - normal.Hpr.reshape(3 * P, R).T @ Hpp_inv_Hpr.reshape(3 * P, R)
     y_rig = r_rig - normal.Hpr.reshape(3 * P, R).T @ Hpp_inv_r.reshape(3 * P, -1)
     if s.frames_tied:
-        band, S_fr, y_local, W_point = _tied_reduction(normal, Hpp_inv, Hpp_inv_Hpr, Hpp_inv_r, r_local)
-        frames = _frames_factor(band, s)
-        del band  # the factor, held by `frames` alone from here
+        S_fr, y_local, W_point = _tied_reduction(normal, Hpp_inv_Hpr, Hpp_inv_r, r_local)
+        del Hpp_inv_Hpr, Hpp_inv_r  # (P, 3, R + k): freed before the band is made
+        frames = _frames_factor(_frames_band(normal, Hpp_inv), s)  # the band, overwritten by its factor
     else:
         blocks, S_fr, y_local, W_point = _untied_reduction(normal, Hpp_inv, r_point, r_local)
         inverse = _inverted(blocks, "a frame's pose")
@@ -472,10 +472,10 @@ def _untied_reduction(normal: GroupNormal, Hpp_inv, r_point, r_local):
     return blocks, S_fr, y_local, lambda x_local: W.transpose(0, 2, 1) @ x_local[s.point_frame]
 
 
-def _tied_reduction(normal: GroupNormal, Hpp_inv, Hpp_inv_Hpr, Hpp_inv_r, r_local):
-    """As `_untied_reduction` where frames share points, but the frames' system as its band
-    (`_frames_band`), one product per pair of observations of a point; every product over the
-    observations a chunk of OBSERVATION_CHUNK at a time (a line of 10,000 frames has 1.4 million)."""
+def _tied_reduction(normal: GroupNormal, Hpp_inv_Hpr, Hpp_inv_r, r_local):
+    """As `_untied_reduction` where frames share points, but without the frames' system (its band is
+    `_frames_band`'s); every product over the observations a chunk of OBSERVATION_CHUNK at a time (a line
+    of 10,000 frames has 1.4 million)."""
     s = normal.structure
     P = s.n_points
     S_fr, y_local = (moved - _by_frame_rows(normal, coupled) for moved, coupled in
@@ -490,7 +490,7 @@ def _tied_reduction(normal: GroupNormal, Hpp_inv, Hpp_inv_Hpr, Hpp_inv_r, r_loca
             out += np.bincount(index.ravel(), weights=product.ravel(), minlength=len(out))
         return out.reshape(P, 3, k)
 
-    return _frames_band(normal, Hpp_inv), S_fr, y_local, W_point
+    return S_fr, y_local, W_point
 
 
 def _observation_chunks(structure: GroupStructure):
