@@ -257,7 +257,9 @@ def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t
                    np.zeros(len(problem.focal_prior)), problem.surveyed.copy())
     with single_threaded_blas():  # small matrices: threads only add hand-offs (2x slower on 2 busy cores)
         state, iterations, cost, forward = _levenberg_marquardt(problem, state)
-        covariance = _rig_covariance(problem, state, forward, calibration_covariance)
+        normal = _normal_equations(problem, state, forward if forward.J_e is not None else None)
+        del forward  # its Jacobians' factors are in `normal`: not held through the covariance's solve
+        covariance = _rig_covariance(problem, state, normal, calibration_covariance)
     state = replace(state, t=state.t - state.R @ problem.origin)
     return _result(problem, state, covariance, iterations, cost)
 
@@ -728,6 +730,7 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
             if short or damping > 1e8:
                 return state, iteration, cost, forward
         state, cost, forward = trial, trial_cost, trial_forward
+        del trial_forward  # held by `forward` alone, whose factors go once the next normal equations are made
         if short:
             return state, iteration, cost, forward
         damping = max(damping / 10.0, 1e-9)
@@ -738,21 +741,19 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
 # ------------------------------------------------------------------------------ the result
 
 
-def _rig_covariance(problem: _Problem, state: _State, forward: _Forward, calibration_covariance=None) -> np.ndarray:
+def _rig_covariance(problem: _Problem, state: _State, normal: GroupNormal, calibration_covariance=None) -> np.ndarray:
     """(3K + C', 3K + C') covariance of the rig's unknowns (the deltas, rad^2, then C' focal changes):
-    their block of the inverse normal matrix, plus, given the calibration's covariance
-    (`adjust_group_rig`), its share (`_calibration_share`), from the inverse's rig columns; forward:
-    the model at `state`, made again where it has no Jacobians' factors."""
-    forward = forward if forward.J_e is not None else _forward(problem, state)
-    normal = _normal_equations(problem, state, forward)
+    their block of the inverse normal matrix (`normal`, the normal equations at `state`), plus, given the
+    calibration's covariance (`adjust_group_rig`), its share (`_calibration_share`), from the inverse's rig
+    columns and the model at `state`, made again after the solve (its Jacobians' factors are not held
+    through it: a line's group of 10,000 frames has 2 million observations)."""
     first, R = problem.n_frames * problem.local_size, problem.rig_size
     if calibration_covariance is None:
         return group_normal.solve(normal, np.zeros((problem.structure.size, 0)))[1]
     unit = np.zeros((problem.structure.size, R))
     unit[first + np.arange(R), np.arange(R)] = 1.0
     rig_columns, covariance = group_normal.solve(normal, unit)
-    del normal  # its couplings (N, l, 3) freed before the calibration's effects are summed
-    moved, columns = _calibration_moved(problem, state, forward, rig_columns, covariance)
+    moved, columns = _calibration_moved(problem, state, _forward(problem, state), rig_columns, covariance)
     return covariance + _calibration_share(problem, moved, columns, np.asarray(calibration_covariance, float))
 
 
