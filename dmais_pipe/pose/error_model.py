@@ -217,9 +217,10 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
         weight = np.ones(len(points))
     A = row_products(J * weight[:, None, None], J, frame_index, n_frames)
     names = list(rig.cameras)
+    camera_names = np.asarray(cameras)
     camera = np.full(len(cameras), -1)
     for c, name in enumerate(names):
-        camera[np.asarray(cameras) == name] = c
+        camera[camera_names == name] = c
     residual = residual.reshape(-1, 2)
     norm = np.linalg.norm(p, axis=1)
     dr_dp = (bases - residual[:, :, None] * (p / norm[:, None])[:, None, :]) / norm[:, None, None]
@@ -231,7 +232,7 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     n_parameters = len(calibration_parameters(rig)) * len(names)
     calibration_covariance = np.zeros((n_parameters, n_parameters)) if calibration_covariance is None \
         else np.asarray(calibration_covariance, dtype=float)
-    calibration = _calibration_effects(rig, names, cameras, uv, bases, rotation, dr_dp, np.diag(calibration_covariance))
+    calibration = _calibration_effects(rig, names, camera, uv, bases, rotation, dr_dp, np.diag(calibration_covariance))
     point_sigma = np.full((len(points), 3), np.nan) if point_sigma_m is None else \
         np.broadcast_to(np.asarray(point_sigma_m, float).reshape(len(points), -1), (len(points), 3)).copy()
     return Geometry(J=J, weight=weight, A_inverse=inverse_normal_matrices(A), residual=residual,
@@ -243,8 +244,8 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
                     t_centred=t_centred, R=R, origins=origins, points_centred=points_centred)
 
 
-def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, rotation, dr_dp, variances) -> np.ndarray:
-    """C_i (N, 2, K): the change of r_i per unit change of each of its camera's
+def _calibration_effects(rig: Rig, names: list[str], camera_of, uv, bases, rotation, dr_dp, variances) -> np.ndarray:
+    """C_i (N, 2, K): the change of r_i (of camera names[camera_of[i]]) per unit change of each of its camera's
     calibration_parameters (intrinsics as its ray moves, `_ray_changes`; a rotation w of the camera
     about the rig's axes rotates its rays by w; a move of its centre moves their origin), where its
     variance (variances (K C,)) is not 0; bases (N, 2, 3) B_i, rotation (N, 2, 3) G_i = B_i [f_i]x,
@@ -253,7 +254,7 @@ def _calibration_effects(rig: Rig, names: list[str], cameras, uv, bases, rotatio
     k_all = len(parameters)
     effects = np.zeros((len(uv), 2, k_all))
     for c, name in enumerate(names):
-        rows = np.flatnonzero(np.asarray(cameras) == name)
+        rows = np.flatnonzero(camera_of == c)
         sigma = np.sqrt(np.clip(variances[k_all * c:k_all * (c + 1)], 0.0, None))
         if not len(rows) or not sigma.any():
             continue
