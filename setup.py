@@ -1,4 +1,4 @@
-"""Builds the compiled cores of the pose solver and of its refinement and RANSAC; everything else is configured in pyproject.toml.
+"""Builds the compiled cores of the pose solver, of its refinement and RANSAC and of the marker fit; everything else is configured in pyproject.toml.
 
 The cores are built for the CPU they are built on (`make install` compiles them on the user's
 machine): -march=native lets GCC/Clang vectorize the row operations of the elimination template
@@ -38,6 +38,13 @@ def compile_args() -> list[str]:
     return ["-fno-wrapv", "-march=native", "-ffp-contract=off"] if tuned() else ["-fno-wrapv"]
 
 
+def portable_args() -> list[str]:
+    """Compiler flags of the marker fit's core (markers/_xfit.pyx): for any CPU of the architecture, as
+    a marker job checks no build CPU (pose.build_cpu comes with the pose package) and -march=native
+    made it no faster; the same roundings (no fused multiply-adds)."""
+    return [] if sys.platform == "win32" else ["-fno-wrapv", "-ffp-contract=off"]
+
+
 def record_build_cpu() -> None:
     """Write this CPU's /proc/cpuinfo flags line for `pose.build_cpu` (a tuned build), else remove the record."""
     cpuinfo = Path("/proc/cpuinfo")
@@ -57,4 +64,5 @@ setup(ext_modules=cythonize([
     Extension("dmais_pipe.pose._refine", ["dmais_pipe/pose/_refine.pyx"], extra_compile_args=compile_args()),
     Extension("dmais_pipe.pose._group", ["dmais_pipe/pose/_group.pyx"], extra_compile_args=compile_args()),
     Extension("dmais_pipe.pose._error", ["dmais_pipe/pose/_error.pyx"], extra_compile_args=compile_args()),
+    Extension("dmais_pipe.markers._xfit", ["dmais_pipe/markers/_xfit.pyx"], extra_compile_args=portable_args()),
 ]))

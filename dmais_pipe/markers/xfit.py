@@ -20,12 +20,16 @@ blurred light (cheap, exact away from where the shadow edge crosses an edge of t
 weights w = (1 - d^2 / R^2)^2 about a fixed window centre, the blurs held at their floor
 MIN_BLUR while a step would push them below, and returns the parameters, the covariance of p
 from the weighted residual (a sandwich estimate, so misfit raises it too) and the RMS residual.
+For `model` the values, Jacobian and normal equations of a window come from one compiled pass
+over its pixels (`_xfit`, equal to the numpy expressions to rounding).
 """
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.special import erf
+
+from . import _xfit
 
 N_PARAMS = 7  # px, py, t1, t2, s, m, c
 N_SHADED = 11  # and t3, e3, s3, q of a straight shadow edge (`shaded_model`)
@@ -216,7 +220,7 @@ def linear_levels(params: np.ndarray, x, y, values, weights) -> np.ndarray:
     """params (n, 7) with m, c set by weighted linear least squares for the other parameters."""
     params = params.copy()
     params[:, 5], params[:, 6] = 0.0, 1.0
-    ab = model(params, x, y, jacobian=False)[0]
+    ab = _xfit.values(params, x, y)
     sw, sa, saa = weights.sum(1), (weights * ab).sum(1), (weights * ab * ab).sum(1)
     sv, sav = (weights * values).sum(1), (weights * ab * values).sum(1)
     det = np.maximum(sw * saa - sa**2, 1e-12)
@@ -231,6 +235,27 @@ def _normal_equations(residual: np.ndarray, jac: np.ndarray, weights: np.ndarray
     return (weights * residual**2).sum(1), np.matmul(wj, jac), np.matmul(wj, residual[..., None])[..., 0]
 
 
+def _equations(fitted, params, x, y, values, weights):
+    """`_normal_equations` of the model `fitted` for params (n, p) at pixels x, y, values, weights
+    (n, k): `model`'s in one compiled pass over the pixels (`_xfit`), another's from its Jacobian."""
+    if fitted is model:
+        return _xfit.normal_equations(params, x, y, values, weights)
+    value, jac = fitted(params, x, y)
+    return _normal_equations(value - values, jac, weights)
+
+
+def _sandwich(fitted, params, x, y, values, weights):
+    """(weighted cost (n,), J^T W J (n, p, p), J^T W^2 J (n, p, p)) of the model `fitted` at params
+    (n, p): the covariance's parts."""
+    if fitted is model:
+        cost, hess, _, meat = _xfit.normal_equations(params, x, y, values, weights, meat=True)
+        return cost, hess, meat
+    r, jac = fitted(params, x, y)
+    r = r - values
+    wj = (jac * weights[..., None]).transpose(0, 2, 1)
+    return (weights * r**2).sum(1), np.matmul(wj, jac), np.matmul(wj * weights[:, None, :], jac)
+
+
 def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=model):
     """Levenberg-Marquardt from params (n, p) on pixels x, y, values, weights (n, k), of `model`
     (`model`, p = 7, or `shaded_model`, p = 11).
@@ -240,8 +265,7 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=m
     params = params.copy()
     n = len(params)
     lam = np.full(n, 1e-3)
-    value, jac = model(params, x, y)
-    cost, hess, grad = _normal_equations(value - values, jac, weights)
+    cost, hess, grad = _equations(model, params, x, y, values, weights)
     n_params = params.shape[1]
     eye = np.eye(n_params)
     converged = np.zeros(n, dtype=bool)
@@ -266,8 +290,7 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=m
         trial[:, bounded] = np.maximum(trial[:, bounded], MIN_BLUR)
         # The trial's Jacobian with its values: the next step's normal equations where it is taken.
         rows = slice(None) if len(active) == n else active  # no copies while every fit is active
-        value, jac = model(trial, x[rows], y[rows])
-        new_cost, new_hess, new_grad = _normal_equations(value - values[rows], jac, weights[rows])
+        new_cost, new_hess, new_grad = _equations(model, trial, x[rows], y[rows], values[rows], weights[rows])
         better = np.isfinite(new_cost) & (new_cost <= cost[active])
         taken = active[better]
         params[taken], cost[taken] = trial[better], new_cost[better]
@@ -277,21 +300,17 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=m
         done = (better & small) | (lam[active] > 1e6)
         converged[active[done]] = better[done] | small[done]
         active = active[~done]
-    r, jac = model(params, x, y)
-    r = r - values
-    wj = (jac * weights[..., None]).transpose(0, 2, 1)
-    hess = np.matmul(wj, jac)
-    meat = np.matmul(wj * weights[:, None, :], jac)
+    cost, hess, meat = _sandwich(model, params, x, y, values, weights)
     sw = weights.sum(1)
     dof = np.maximum(np.count_nonzero(weights > 0, axis=1) - n_params, 1)
-    sigma2 = (weights * r**2).sum(1) / np.maximum(sw, 1e-12) * np.count_nonzero(weights > 0, axis=1) / dof
+    sigma2 = cost / np.maximum(sw, 1e-12) * np.count_nonzero(weights > 0, axis=1) / dof
     cov = np.full((n, 2, 2), np.nan)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):  # a degenerate fit (a shade of no area): NaN
         ok = np.isfinite(hess).all(axis=(1, 2)) & (np.abs(np.linalg.det(hess)) > 0)
         if ok.any():
             inv = np.linalg.inv(hess[ok])
             cov[ok] = (sigma2[ok, None, None] * (inv @ meat[ok] @ inv))[:, :2, :2]
-    rms = np.sqrt((weights * r**2).sum(1) / np.maximum(sw, 1e-12))
+    rms = np.sqrt(cost / np.maximum(sw, 1e-12))
     return params, cov, rms, converged
 
 

@@ -1,0 +1,90 @@
+"""The marker fit's compiled core (`markers/_xfit.pyx`) against the numpy expressions it replaces
+(`xfit.model` and `xfit._normal_equations`), on seeded synthetic windows, and `xfit.fit` through it
+against the fit of the same model in numpy."""
+
+import numpy as np
+import pytest
+from scipy.special import erf
+
+from dmais_pipe.markers import _xfit, xfit
+
+
+def _windows(seed: int, radius: float = 12.0, n: int = 5):
+    """Blurred X-corners with noise in windows of `radius` about centres near the corners: params
+    (n, 7) a little off the truth, pixels x, y, values, weights (n, k)."""
+    rng = np.random.default_rng(seed)
+    centre = rng.uniform(30.0, 70.0, (n, 2))
+    t1 = rng.uniform(0.0, np.pi, n)
+    truth = np.column_stack([centre + rng.uniform(-0.5, 0.5, (n, 2)), t1, t1 + rng.uniform(0.6, 2.5, n),
+                             rng.uniform(0.6, 2.0, n), rng.uniform(80.0, 160.0, n),
+                             rng.choice([-1.0, 1.0], n) * rng.uniform(30.0, 70.0, n)])
+    x, y, _, weights = xfit.window(np.zeros((100, 100), np.float32), centre, radius)
+    values = xfit.model(truth, x, y, jacobian=False)[0] + rng.normal(0.0, 2.0, x.shape)
+    weights[0, ::7] = 0.0  # zero weights count as in numpy
+    start = truth + np.column_stack([rng.normal(0.0, 0.3, (n, 2)), rng.normal(0.0, 0.05, (n, 2)),
+                                     rng.normal(0.0, 0.1, n), rng.normal(0.0, 5.0, (n, 2))])
+    return start, x, y, values, weights
+
+
+def _close(got: np.ndarray, want: np.ndarray, rtol: float = 1e-10) -> None:
+    """got equals want to rtol of each array's largest magnitude (sums of terms of both signs)."""
+    assert got.shape == want.shape
+    np.testing.assert_allclose(got, want, rtol=0.0, atol=rtol * np.max(np.abs(want)))
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_values_and_normal_equations_are_numpys(seed):
+    params, x, y, values, weights = _windows(seed)
+    model, jac = xfit.model(params, x, y)
+    _close(_xfit.values(params, x, y), model)
+    residual = model - values
+    cost, hess, grad = xfit._normal_equations(residual, jac, weights)
+    got = _xfit.normal_equations(params, x, y, values, weights)
+    for compiled, numpy_value in zip(got, (cost, hess, grad)):
+        _close(compiled, numpy_value)
+    wj = (jac * weights[..., None]).transpose(0, 2, 1)
+    meat = np.matmul(wj * weights[:, None, :], jac)
+    with_meat = _xfit.normal_equations(params, x, y, values, weights, meat=True)
+    _close(with_meat[3], meat)
+    for a, b in zip(with_meat[:3], got):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_far_from_both_edges_erf_is_scipys():
+    # The core takes erf as +-1 beyond 6 (where scipy's rounds to it): a sharp corner in a wide
+    # window, most pixels far from both edges.
+    params, x, y, _, _ = _windows(4, radius=25.0, n=2)
+    params[:, 4], params[:, 5] = 0.3, 0.0
+    product = _erf_product(params, x, y)
+    assert np.mean(np.abs(product) == 1.0) > 0.5
+    np.testing.assert_allclose(_xfit.values(params, x, y), params[:, 6:7] * product, rtol=1e-13, atol=0.0)
+
+
+def _erf_product(params, x, y):
+    """erf(l1 / sqrt(2) s) erf(l2 / sqrt(2) s) of `xfit.model`, by scipy."""
+    px, py, t1, t2, s = (params[:, i:i + 1] for i in range(5))
+    dx, dy = x - px, y - py
+    scale = np.sqrt(2.0) * s
+    return erf((np.cos(t1) * dx + np.sin(t1) * dy) / scale) * erf((np.cos(t2) * dx + np.sin(t2) * dy) / scale)
+
+
+def test_non_finite_params_give_non_finite_sums():
+    params, x, y, values, weights = _windows(5, n=2)
+    params[1, 6] = np.inf
+    cost, hess, grad = _xfit.normal_equations(params, x, y, values, weights)
+    assert np.isfinite(cost[0]) and not np.isfinite(cost[1]) and not np.all(np.isfinite(hess[1]))
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_fit_through_the_core_is_the_numpy_fit(seed):
+    params, x, y, values, weights = _windows(seed)
+
+    def numpy_model(p, px, py, jacobian=True):  # the same model, not `xfit.model`: the numpy path
+        return xfit.model(p, px, py, jacobian)
+
+    compiled = xfit.fit(params, x, y, values, weights)
+    reference = xfit.fit(params, x, y, values, weights, model=numpy_model)
+    assert np.all(compiled[3]) and np.array_equal(compiled[3], reference[3])
+    np.testing.assert_allclose(compiled[0][:, :2], reference[0][:, :2], rtol=0.0, atol=1e-9)
+    np.testing.assert_allclose(compiled[1], reference[1], rtol=1e-8)
+    np.testing.assert_allclose(compiled[2], reference[2], rtol=1e-10)
