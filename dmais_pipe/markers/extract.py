@@ -154,14 +154,15 @@ def prediction_radius(camera: Camera, xyz: np.ndarray, turn_deg: float, shift_m:
 
 
 def search_windows(model, attitude_deg: float = PRIOR_ATTITUDE_DEG, position_m: float = PRIOR_POSITION_M,
-                   gate_px: float = GATE_PX, margin_px: float = PREDICTION_MARGIN_PX) -> np.ndarray | None:
+                   gate_px: float = GATE_PX, margin_px: float = PREDICTION_MARGIN_PX,
+                   projected: tuple | None = None) -> np.ndarray | None:
     """Windows (m, 4) x0, y0, x1, y1 (px) about the predicted pixel of every known point a
     `_prediction_model` puts near its image (within margin_px, as `predicted_projections`): the
     prediction's move under the priors' error bounds (`prediction_radius`) plus `gate_px`, only
     those reaching into the image. None where they cover more than MAX_WINDOW_SHARE of the image
-    (summed): then it is searched whole."""
+    (summed): then it is searched whole. projected: `_projections(model, margin_px)` if already made."""
     camera, cam_from_world, points = model
-    uv, ids = _projections(model, margin_px)
+    uv, ids = _projections(model, margin_px) if projected is None else projected
     xyz = cam_from_world.apply(points.loc[ids, ["x", "y", "z"]].to_numpy(dtype=float))
     reach = prediction_radius(camera, xyz, attitude_deg, position_m) + gate_px
     boxes = np.column_stack([uv - reach[:, None], uv + reach[:, None]])
@@ -199,27 +200,30 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
     pixels = dataset.read_image(image)
     seconds["decode_s"] = time.perf_counter() - started
     model = _prediction_model(dataset, image, rig, calibrated)  # a sentence: why there is none
-    windows = None if isinstance(model, str) or attitude_deg is None else search_windows(
-        model, attitude_deg, position_m, identify_gate_px, margin_px)
+    projected = None if isinstance(model, str) else _projections(model, margin_px)  # the windows' and identify's
+    windows = None if projected is None or attitude_deg is None else search_windows(
+        model, attitude_deg, position_m, identify_gate_px, margin_px, projected)
     seconds["detect_s"] = time.perf_counter() - started - seconds["decode_s"]  # the windows are detection's
     seconds["windows"], seconds["whole_image"] = 0 if windows is None else len(windows), 0
-    named = (margin_px, gate_px, identify_gate_px, identify_min_inliers)
+    named = (gate_px, identify_gate_px, identify_min_inliers)
     if windows is not None and len(windows):
-        found = _identified(dataset, image, pixels, model, named, seconds, windows)
+        found = _identified(dataset, image, pixels, (model, projected), named, seconds, windows)
         if (found["point_id"] != "").any():
             return found
         log.info("markers %s: nothing identified in the %d windows about the predictions: the whole image "
                  "(are the priors within %g deg and %g m?)", image, len(windows), attitude_deg, position_m)
     seconds["whole_image"] = 1
-    return _identified(dataset, image, pixels, model, named, seconds)
+    return _identified(dataset, image, pixels, (model, projected), named, seconds)
 
 
-def _identified(dataset: Dataset, image: str, pixels: np.ndarray, model, settings: tuple, seconds: dict,
+def _identified(dataset: Dataset, image: str, pixels: np.ndarray, predicted: tuple, settings: tuple, seconds: dict,
                 windows: np.ndarray | None = None) -> pd.DataFrame:
     """`process_image`'s detections of `image` (pixels (h, w)) in `windows` (m, 4) (None: the whole
-    image) named from the `_prediction_model` (or why there is none); settings: its margin_px, gate_px,
-    identify_gate_px and identify_min_inliers. Adds each phase's seconds to `seconds`."""
-    margin_px, gate_px, identify_gate_px, identify_min_inliers = settings
+    image) named from predicted: the `_prediction_model` (or why there is none) and its `_projections`
+    (None where there is none); settings: its gate_px, identify_gate_px and identify_min_inliers.
+    Adds each phase's seconds to `seconds`."""
+    model, projected = predicted
+    gate_px, identify_gate_px, identify_min_inliers = settings
     phases = {}
     if windows is None:
         found, rejected = detect(pixels, with_rejected=True, seconds=phases)
@@ -232,7 +236,7 @@ def _identified(dataset: Dataset, image: str, pixels: np.ndarray, model, setting
         found["id_refusal"] = model
         log.warning("markers %s: %d detected, none can be identified: %s", image, len(found), model)
     if not isinstance(model, str) and len(found):
-        uv, ids = _projections(model, margin_px)
+        uv, ids = projected
         height, width = pixels.shape
         named = identify_with_reasons(found[["u", "v"]].to_numpy(), uv, ids, (width, height),
                                       rejected=rejected[["u", "v"]].to_numpy(dtype=float), gate_px=identify_gate_px,
