@@ -1,4 +1,4 @@
-"""Builds the compiled cores of the pose solver, of its refinement and RANSAC and of the marker fit; everything else is configured in pyproject.toml.
+"""Builds the compiled cores of the pose solver, of its refinement and RANSAC and of the markers' fit and samples; everything else is configured in pyproject.toml.
 
 The cores are built for the CPU they are built on (`make install` compiles them on the user's
 machine): -march=native lets GCC/Clang vectorize the row operations of the elimination template
@@ -39,9 +39,9 @@ def compile_args() -> list[str]:
 
 
 def portable_args() -> list[str]:
-    """Compiler flags of the marker fit's core (markers/_xfit.pyx): for any CPU of the architecture, as
-    a marker job checks no build CPU (pose.build_cpu comes with the pose package) and -march=native
-    made it no faster; the same roundings (no fused multiply-adds)."""
+    """Compiler flags of the markers' cores (markers/_xfit.pyx, _rings.pyx): for any CPU of the
+    architecture, as a marker job checks no build CPU (pose.build_cpu comes with the pose package)
+    and -march=native made them no faster; the same roundings (no contracted multiply-adds)."""
     return [] if sys.platform == "win32" else ["-fno-wrapv", "-ffp-contract=off"]
 
 
@@ -65,4 +65,5 @@ setup(ext_modules=cythonize([
     Extension("dmais_pipe.pose._group", ["dmais_pipe/pose/_group.pyx"], extra_compile_args=compile_args()),
     Extension("dmais_pipe.pose._error", ["dmais_pipe/pose/_error.pyx"], extra_compile_args=compile_args()),
     Extension("dmais_pipe.markers._xfit", ["dmais_pipe/markers/_xfit.pyx"], extra_compile_args=portable_args()),
+    Extension("dmais_pipe.markers._rings", ["dmais_pipe/markers/_rings.pyx"], extra_compile_args=portable_args()),
 ]))

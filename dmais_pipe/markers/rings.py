@@ -10,8 +10,9 @@ from __future__ import annotations
 
 from functools import lru_cache
 
-import cv2
 import numpy as np
+
+from . import _rings
 
 RING_SAMPLES = 48
 RADII = 3.0 * 1.35 ** np.arange(14)  # ring radii probed by clean_radius: 3 ... ~150 px
@@ -76,20 +77,15 @@ class ImageParts:
         return self.buffer[self.bases[owner] + row * width + column]
 
     def sample(self, xy: np.ndarray) -> np.ndarray:
-        """`sample` at float32 positions xy (n, 2): each part's cv2.remap at its own. Exact: in
-        float32, x - left is exact wherever x >= left (|x| < 2^24), and cv2.remap's fixed point
-        (1/32 px) moves by whole pixels with it."""
-        owner = self.owners(xy[:, 0], xy[:, 1])
-        if self._cells is None or np.all(owner == owner[:1]):
-            k = int(owner[0]) if len(owner) else 0
-            return _remap(self.pixels[k], xy - np.array([self.lefts[k], self.tops[k]], dtype=np.float32))
-        out = np.empty(len(xy), dtype=np.float32)
-        order = np.argsort(owner, kind="stable")
-        ends = np.searchsorted(owner[order], np.arange(len(self.pixels) + 1))
-        for k in np.flatnonzero(np.diff(ends)):
-            mine = order[ends[k]:ends[k + 1]]
-            out[mine] = _remap(self.pixels[k], xy[mine] - np.array([self.lefts[k], self.tops[k]], dtype=np.float32))
-        return out
+        """`sample` at float32 positions xy (n, 2): each position's part (`owners`) sampled at its
+        own coordinates x - left, y - top (exact in float32 wherever x >= left, |x| < 2^24), as
+        the whole image is at x, y."""
+        if self._cells is None:
+            owner = np.zeros(len(xy), dtype=np.intp)
+        else:
+            owner = _rings.owners(xy[:, 0], xy[:, 1], self._cells, self.CELL_PX)
+        return _rings.parts_sample(self.buffer, self.bases, self.lefts, self.tops, self.widths, self.heights, owner,
+                                   xy)
 
 
 def as_float_image(image) -> np.ndarray | ImageParts:
@@ -107,19 +103,16 @@ def sample(image: np.ndarray | ImageParts, xy: np.ndarray) -> np.ndarray:
     replicated border."""
     xy = np.asarray(xy, dtype=np.float32)
     flat = xy.reshape(-1, 2)
-    values = image.sample(flat) if isinstance(image, ImageParts) else _remap(image, flat)
+    values = image.sample(flat) if isinstance(image, ImageParts) else _bilinear(image, flat)
     return values.reshape(xy.shape[:-1])
 
 
-def _remap(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """(n,) cv2.remap's bilinear samples of float32 `image` (h, w) at float32 positions xy (n, 2)."""
-    flat = xy.reshape(-1, 1, 2)
-    # cv2.remap is limited to SHRT_MAX rows per call.
-    out = np.empty(len(flat), dtype=np.float32)
-    for s in range(0, len(flat), 30000):
-        out[s:s + 30000] = cv2.remap(image, flat[s:s + 30000, :, 0].copy(), flat[s:s + 30000, :, 1].copy(),
-                                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
-    return out
+def _bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(n,) bilinear samples of float32 `image` (h, w) at float32 positions xy (n, 2): cv2.remap's
+    (INTER_LINEAR, BORDER_REPLICATE) in one compiled loop (`_rings.sample`)."""
+    if image.size == 0:
+        return np.full(len(xy), np.nan, dtype=np.float32)
+    return _rings.sample(image, xy)
 
 
 def ring_quality(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

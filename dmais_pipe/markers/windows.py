@@ -19,7 +19,7 @@ of a candidate read the image within `detect.REACH_PX` of it, and a detection li
 3. runs `detect.detections` on the candidates of every group together (strongest first, as
    `candidates` orders them) on the parts as `rings.ImageParts`, read in the whole image's
    coordinates: every test and fit computes with the same values at the same coordinates
-   (cv2.remap's samples too: a part's offset is exact in float32);
+   (the bilinear samples too: a part's offset is exact in float32);
 4. keeps the detections and rejections inside a window.
 
 The result is `detect`'s detections and rejections inside the windows, to the last bit (the

@@ -1,0 +1,63 @@
+"""The compiled bilinear samples of the ring tests (`markers/_rings.pyx`) against cv2.remap, which
+they replace, and `rings.ImageParts` read through them against the whole image."""
+
+import cv2
+import numpy as np
+import pytest
+
+from dmais_pipe.markers import _rings
+from dmais_pipe.markers.rings import ImageParts, sample
+
+
+def _cv2_remap(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(n,) cv2.remap's INTER_LINEAR, BORDER_REPLICATE samples of float32 image at float32 xy (n, 2)."""
+    out = np.empty(len(xy), dtype=np.float32)
+    for s in range(0, len(xy), 30000):  # SHRT_MAX rows a call
+        chunk = xy[s:s + 30000]
+        out[s:s + 30000] = cv2.remap(image, chunk[:, :1].copy(), chunk[:, 1:].copy(), cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_REPLICATE).ravel()
+    return out
+
+
+def _positions(rng, shape, n: int = 40000) -> np.ndarray:
+    """(n, 2) float32 positions over an image of shape (h, w) and 5 px beyond, some on whole and 1/32 px."""
+    height, width = shape
+    xy = np.column_stack([rng.uniform(-5, width + 5, n), rng.uniform(-5, height + 5, n)]).astype(np.float32)
+    xy[::97] = np.round(xy[::97])
+    xy[::89] = np.round(xy[::89] * 32) / 32
+    return xy
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_samples_are_cv2_remaps(seed):
+    rng = np.random.default_rng(seed)
+    shape = tuple(rng.integers(2, 600, 2))
+    image = (rng.normal(0.0, 1.0, shape) * 10 ** rng.uniform(-3, 5)).astype(np.float32)
+    xy = _positions(rng, shape)
+    np.testing.assert_array_equal(sample(image, xy), _cv2_remap(image, xy))
+    view = image[1:, 2:-1]  # rows and columns of a larger buffer
+    np.testing.assert_array_equal(_rings.sample(view, xy), _cv2_remap(np.ascontiguousarray(view), xy))
+
+
+def test_positions_that_are_not_finite_sample_nan():
+    image = np.arange(12, dtype=np.float32).reshape(3, 4)
+    xy = np.array([[np.nan, 1.0], [1.0, np.nan], [np.inf, 1.0], [-np.inf, 1.0], [1e9, 1.0], [-1e9, 2.0]], np.float32)
+    got = sample(image, xy)
+    np.testing.assert_array_equal(got, _cv2_remap(image, xy))
+    assert np.isnan(got[:4]).all() and got[4] == 7.0 and got[5] == 8.0
+
+
+def test_parts_sample_as_the_whole_image():
+    rng = np.random.default_rng(7)
+    image = rng.normal(100.0, 30.0, (700, 900)).astype(np.float32)
+    parts = ImageParts([(0, 0, 192, 180), (448, 300, 900, 700)], image.shape)
+    for pixels, top, left in zip(parts.pixels, parts.tops, parts.lefts):
+        pixels[...] = image[top:top + pixels.shape[0], left:left + pixels.shape[1]]
+    inside = np.vstack([_positions(rng, (160, 170)), _positions(rng, (380, 430)) + [460, 310]]).astype(np.float32)
+    np.testing.assert_array_equal(parts.sample(inside), _cv2_remap(image, inside))
+    owner = parts.owners(inside[:, 0], inside[:, 1])
+    np.testing.assert_array_equal(_rings.owners(inside[:, 0], inside[:, 1], parts._cells, parts.CELL_PX), owner)
+    odd = np.array([[np.nan, 5.0], [5.0, np.inf], [-1e30, 1e30], [2e4, -3.0]], np.float32)
+    with np.errstate(invalid="ignore"):  # numpy's conversion of NaN and inf
+        want = parts.owners(odd[:, 0], odd[:, 1])
+    np.testing.assert_array_equal(_rings.owners(odd[:, 0], odd[:, 1], parts._cells, parts.CELL_PX), want)
