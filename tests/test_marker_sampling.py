@@ -1,12 +1,13 @@
 """The compiled bilinear samples of the ring tests (`markers/_rings.pyx`) against cv2.remap, which
-they replace, and `rings.ImageParts` read through them against the whole image."""
+they replace, `rings.ImageParts` read through them against the whole image, and the compiled ring
+statistics against numpy's (`rings._ring_stats`), to the last bit."""
 
 import cv2
 import numpy as np
 import pytest
 
 from dmais_pipe.markers import _rings
-from dmais_pipe.markers.rings import ImageParts, sample
+from dmais_pipe.markers.rings import ImageParts, _ring_stats, ring_stats, sample
 
 
 def _cv2_remap(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -61,3 +62,16 @@ def test_parts_sample_as_the_whole_image():
     with np.errstate(invalid="ignore"):  # numpy's conversion of NaN and inf
         want = parts.owners(odd[:, 0], odd[:, 1])
     np.testing.assert_array_equal(_rings.owners(odd[:, 0], odd[:, 1], parts._cells, parts.CELL_PX), want)
+
+
+@pytest.mark.parametrize("k", [3, 8, 9, 24, 47, 48, 130])
+def test_ring_stats_are_numpys_to_the_last_bit(k):
+    rng = np.random.default_rng(k)
+    rings = rng.normal(0.0, 1.0, (300, k)) * 10 ** rng.uniform(-3, 4, (300, 1))
+    rings[::5] = np.round(rings[::5])  # samples equal to the ring's mean
+    angle = 2.0 * np.pi * (np.arange(k) + 0.5) / k
+    rings[1::7] = 40.0 * np.sign(np.cos(2.0 * angle + rng.uniform(0, np.pi)))[None] + rng.normal(0, 1, (1, k))  # X's
+    rings[3, 1], rings[4] = np.nan, 5.0
+    for compiled, numpy_value in zip(ring_stats(rings), _ring_stats(rings)):
+        np.testing.assert_array_equal(compiled, numpy_value)
+    assert k < 8 or (ring_stats(rings)[0][1::7] > 0.5).all()

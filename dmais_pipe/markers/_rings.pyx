@@ -1,13 +1,15 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
-"""Compiled bilinear samples of float32 images (markers.rings.sample): the ring tests' and starts' reads,
-~10^5 positions a 12 MP image, without cv2.remap's per-call map copies and its 30,000-row chunks.
+"""Compiled loops of markers.rings: bilinear samples of float32 images (`rings.sample`: the ring tests'
+and starts' reads, ~10^5 positions a 12 MP image, without cv2.remap's per-call map copies and its
+30,000-row chunks) and the statistics of rings of samples (`rings.ring_stats`, ~25 calls an image).
 
 The arithmetic is cv2.remap's (OpenCV 5, INTER_LINEAR, BORDER_REPLICATE, float32) to the last bit where
 OpenCV's remap runs with fused multiply-adds (x86-64 with FMA, as here): per position, a = x - floor(x),
 b = y - floor(y) in float32, the four neighbours at the indexes clamped into the image, then
 t0 = fma(a, p01 - p00, p00), t1 = fma(a, p11 - p10, p10), value = fma(b, t1 - t0, t0) (fmaf: one
-rounding each, on any CPU); NaN where a coordinate is not finite. tests/test_marker_sampling.py
-compares it with cv2.remap.
+rounding each, on any CPU); NaN where a coordinate is not finite. The ring statistics make every
+number as numpy's expressions (`rings._ring_stats`) do, the sums in np.sum's pairwise order, to the
+last bit. tests/test_marker_sampling.py compares both with what they replace.
 """
 
 from libc.math cimport floorf, fmaf, isfinite, NAN
@@ -111,3 +113,86 @@ def parts_sample(buffer, bases, lefts, tops, widths, heights, part, xy):
             o[i] = bilinear(&buf[base[k]], height[k], width[k], width[k], 1, p[i, 0] - <float>left[k],
                             p[i, 1] - <float>top[k])
     return out
+
+
+cdef double pairwise_sum(const double *a, Py_ssize_t n) noexcept nogil:
+    """Sum of a (n) in numpy's order (its pairwise summation of a contiguous row: 8 partial sums
+    below 128 terms, halves above), so that a row's sum is np.sum's to the last bit."""
+    cdef double r[8]
+    cdef double res = 0.0
+    cdef Py_ssize_t i, j, half
+    if n < 8:
+        for i in range(n):
+            res += a[i]
+        return res
+    if n <= 128:
+        for j in range(8):
+            r[j] = a[j]
+        i = 8
+        while i < n - n % 8:
+            for j in range(8):
+                r[j] += a[i + j]
+            i += 8
+        res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+        while i < n:
+            res += a[i]
+            i += 1
+        return res
+    half = n // 2
+    half -= half % 8
+    return pairwise_sum(a, half) + pairwise_sum(a + half, n - half)
+
+
+cdef inline double unit_clip(double x) noexcept nogil:
+    """np.clip(x, 0, 1) (NaN stays NaN)."""
+    if x != x:
+        return x
+    return 0.0 if x < 0.0 else (1.0 if x > 1.0 else x)
+
+
+def ring_stats(values):
+    """`rings.ring_stats` of rings values (m, k), each number as numpy makes it (the same operations,
+    the sums in np.sum's order): quality (m,), bright level (m,), dark level (m,), bright mask (m, k)."""
+    cdef const double[:, ::1] v = np.ascontiguousarray(values, dtype=np.float64)
+    cdef Py_ssize_t m = v.shape[0], k = v.shape[1], i, j, half = k // 2
+    quality, bright, dark = np.empty(m), np.empty(m), np.empty(m)
+    mask = np.empty((m, k), dtype=bool)
+    cdef double[::1] q = quality, hi = bright, lo = dark
+    cdef unsigned char[:, ::1] h = mask.view(np.uint8)
+    scratch = np.empty(k)
+    cdef double[::1] t = scratch
+    cdef double mean, total, mean_high, mean_low, within, opposite, bimodal, symmetric
+    cdef Py_ssize_t transitions, n_high
+    if k == 0:
+        raise ValueError("rings of no samples")
+    with nogil:
+        for i in range(m):
+            mean = pairwise_sum(&v[i, 0], k) / <double>k
+            n_high = 0
+            for j in range(k):
+                h[i, j] = v[i, j] > mean
+                n_high += h[i, j]
+            transitions = h[i, 0] != h[i, k - 1]
+            for j in range(1, k):
+                transitions += h[i, j] != h[i, j - 1]
+            for j in range(k):
+                t[j] = (v[i, j] - mean) * (v[i, j] - mean)
+            total = pairwise_sum(&t[0], k) + 1e-9
+            for j in range(k):
+                t[j] = v[i, j] if h[i, j] else 0.0
+            mean_high = pairwise_sum(&t[0], k) / <double>(n_high if n_high > 1 else 1)
+            for j in range(k):
+                t[j] = 0.0 if h[i, j] else v[i, j]
+            mean_low = pairwise_sum(&t[0], k) / <double>(k - n_high if k - n_high > 1 else 1)
+            for j in range(k):
+                t[j] = v[i, j] - (mean_high if h[i, j] else mean_low)
+                t[j] = t[j] * t[j]
+            within = pairwise_sum(&t[0], k)
+            bimodal = unit_clip(1.0 - within / total)
+            for j in range(k):
+                opposite = v[i, k - half + j] if j < half else v[i, j - half]  # np.roll by k // 2
+                t[j] = (v[i, j] - opposite) * (v[i, j] - opposite)
+            symmetric = unit_clip(1.0 - pairwise_sum(&t[0], k) / (2.0 * total))
+            q[i] = bimodal * symmetric if transitions == 4 else 0.0
+            hi[i], lo[i] = mean_high, mean_low
+    return quality, bright, dark, mask

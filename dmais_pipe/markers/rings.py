@@ -127,7 +127,16 @@ def ring_quality(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def ring_stats(values: np.ndarray):
-    """quality (m,), bright level (m,), dark level (m,), bright mask (m, k) of rings (m, k)."""
+    """quality (m,), bright level (m,), dark level (m,), bright mask (m, k) of rings (m, k):
+    `_ring_stats` (numpy) to the last bit, in one compiled pass (`_rings.ring_stats`)."""
+    values = np.asarray(values, dtype=np.float64)
+    if values.shape[1] == 0:
+        return _ring_stats(values)
+    return _rings.ring_stats(values)
+
+
+def _ring_stats(values: np.ndarray):
+    """`ring_stats` in numpy (the reference of tests/test_marker_sampling.py)."""
     values = np.asarray(values, dtype=np.float64)
     k = values.shape[1]
     mean = values.mean(axis=1, keepdims=True)
