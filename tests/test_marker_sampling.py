@@ -1,12 +1,12 @@
 """The compiled bilinear samples of the ring tests (`markers/_rings.pyx`) against cv2.remap, which
 they replace, `rings.ImageParts` read through them against the whole image, and the compiled ring
-statistics against numpy's (`rings._ring_stats`), to the last bit."""
+statistics and centring steps (`markers/_centring.pyx`) against numpy's, to the last bit."""
 
 import cv2
 import numpy as np
 import pytest
 
-from dmais_pipe.markers import _rings
+from dmais_pipe.markers import _rings, centring
 from dmais_pipe.markers.rings import ImageParts, _ring_stats, ring_stats, sample
 
 
@@ -75,3 +75,21 @@ def test_ring_stats_are_numpys_to_the_last_bit(k):
     for compiled, numpy_value in zip(ring_stats(rings), _ring_stats(rings)):
         np.testing.assert_array_equal(compiled, numpy_value)
     assert k < 8 or (ring_stats(rings)[0][1::7] > 0.5).all()
+
+
+@pytest.mark.parametrize("converge, steps, shift", [(False, 4, 3.0), (True, 40, 2.0), (False, 4, None)])
+def test_compiled_centring_steps_are_numpys(converge, steps, shift):
+    rng = np.random.default_rng(11)
+    yy, xx = np.mgrid[0:300, 0:400]
+    image = cv2.GaussianBlur((rng.normal(100, 20, (300, 400)) + 60 * np.sign((xx - 200.3) * (yy - 150.6)))
+                             .astype(np.float32), (0, 0), 1.2)
+    starts = np.vstack([[[200, 150], [203.2, 148.1], [np.nan, 3], [2, 2], [399, 150], [198.6, 153.9]],
+                        rng.uniform(0, 1, (100, 2)) * [400, 300]])
+    limit = np.linspace(0.5, 5, len(starts)) if shift is None else np.full(len(starts), shift)
+    parts = ImageParts([(0, 0, 192, 180), (256, 100, 400, 300)], image.shape)
+    for pixels, top, left in zip(parts.pixels, parts.tops, parts.lefts):
+        pixels[...] = image[top:top + pixels.shape[0], left:left + pixels.shape[1]]
+    for img in (image, parts):
+        want = centring._refine_fixed_numpy(img, starts, 5.0, steps, 0.01, limit, converge)
+        np.testing.assert_array_equal(centring._refine_fixed(img, starts, 5.0, steps, 0.01, limit, converge), want)
+        assert np.isfinite(want[:, 0]).sum() >= 5
