@@ -11,8 +11,9 @@ The dual can also fail where the template is right: on the simulator's hovering 
 flight, 80 frames of the whole rig (40 points, 5 cameras) are not certified, the least eigenvalue
 of the dual's matrix -6.5e-3 to -9.2e-3 against a tolerance of 6.4e-3 (1e-9 of trace H 6.4e6),
 the same after further Newton steps (the pose is stationary to 1e-10): the relaxation (R^T R = I
-alone) is not tight there, not rounded. The search then finds the template's pose again in every
-one of them, after refining ~43 starts (~8 ms; the LM 2.4, the homographies 2.0 of it).
+alone) is not tight there, not rounded. The search found the template's pose again in every one of
+them, after refining ~43 starts (~11 ms); the solver now proves those poses first by the dual with
+SO(3)'s redundant constraints (`certificate.py`, ~3 ms), and searches only where that fails too.
 
 `search` refines starts from every side of SO(3), in this order (`starts`):
 

@@ -32,7 +32,8 @@ their costs summed over the points, which the quadratic form cannot resolve at 0
 Where the dual does not certify the solution, or it puts most points behind their rays, the
 global fallback (`fallback.py`, issue 31) refines more starts within its time budget and returns
 its pose where that is cheaper and front-facing (`GeneralizedPose.fallback`); no pose with most
-points in front at all is a PoseError.
+points in front at all is a PoseError. A front-facing solution that a tighter dual, with SO(3)'s
+redundant constraints, proves (`certificate.py`) needs no search.
 Changing frame costs nothing in n: H' = K^T H K and g' = K^T g with r = K r',
 K = blockdiag(P^T, P^T, P^T).
 
@@ -69,6 +70,7 @@ from ._kernels import Kernel
 from .equations import N_MONOMIALS
 from .refine import refine_pose
 from . import fallback as global_fallback
+from .certificate import tight_certified
 from .statistics import COLLINEAR_TOLERANCE, ZERO_DIRECTION, statistics_of, validate_correspondences
 from .template import Template, template_entries
 
@@ -224,10 +226,10 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
     return its (6, 6) covariance of (rotation increment, t); sigma: the angular noise (radians)
     for that covariance, else estimated from the residuals. Returns x_rig = R @ M + t.
 
-    Where the certificate fails or the solution puts most points behind their rays, the global
-    fallback (`fallback.search`, within its time budget) looks for a cheaper front-facing pose,
-    from attitude_prior (3, 3) too (rig_from_world, e.g. the INS attitude) when given. Raises
-    PoseError when no pose found puts at least half of the points in front. fallback=False: the
+    Where the certificate fails (and the tighter one of `certificate.py` too) or the solution puts most
+    points behind their rays, the global fallback (`fallback.search`, within its time budget) looks for a
+    cheaper front-facing pose, from attitude_prior (3, 3) too (rig_from_world, e.g. the INS attitude)
+    when given. Raises PoseError when no pose found puts at least half of the points in front. fallback=False: the
     template's roots alone, as before issue 31, whatever their solution (for comparisons).
     """
     prior = None if attitude_prior is None else _checked_prior(attitude_prior)
@@ -253,15 +255,19 @@ def solve_generalized_pose(origins, directions, points, refine: bool = False, si
 
 def _with_fallback(pose: GeneralizedPose, best: int, origins, directions, points, prior) -> GeneralizedPose:
     """pose, or the cheaper front-facing pose of the global fallback (`fallback.search`), which then
-    joins the candidates; best: the index of pose among them. Raises PoseError when neither puts
-    at least half of the points in front."""
+    joins the candidates; best: the index of pose among them. A front-facing pose that the dual with
+    SO(3)'s redundant constraints proves (`certificate.tight_certified`) is returned as it is, without a
+    search (fallback_ms None; `certified` stays the solver's own dual's). Raises PoseError when neither
+    puts at least half of the points in front."""
     begin = time.perf_counter()
     v, f, M = validate_correspondences(origins, directions, points)
     stats = statistics_of(v, f, M)
+    front = pose.candidates.in_front[best] >= 0.5
+    if front and tight_certified(stats.H, stats.g, stats.c, pose.R):
+        return pose  # the global minimum: the search would find no cheaper pose (certificate.py)
     solver = kernel()
     found = global_fallback.search(v, f, M, stats, pose.candidates.R, pose.candidates.in_front,
                                    certify=lambda R: solver.certify(stats.H, stats.g, stats.c, R), prior=prior)
-    front = pose.candidates.in_front[best] >= 0.5
     if found is not None and front:
         template_cost = global_fallback.centred_costs(v, f, M, stats, pose.R[None])[0][0]
     better = found is not None and (not front or found.cost < template_cost * (1 - global_fallback.IMPROVEMENT))
