@@ -59,6 +59,8 @@ def _constraints() -> np.ndarray:
 
 
 CONSTRAINTS = _constraints()
+_FLAT = CONSTRAINTS.reshape(len(CONSTRAINTS), 100)
+_EYE9 = np.eye(9)
 
 
 def tight_certified(H: np.ndarray, g: np.ndarray, c: float, R: np.ndarray) -> bool:
@@ -94,30 +96,48 @@ def _least_eigenvalue_search(Q: np.ndarray, base: np.ndarray, directions: np.nda
     """Whether some multipliers base + directions^T z (directions (d, 31)) give S a least eigenvalue above
     -tolerance: a barrier method maximising s subject to P^T S P - s I > 0 (P the complement (10, 9)),
     stopped as soon as the whole S (10, 10) passes the test."""
-    changes = np.einsum("dk,kij->dij", directions, CONSTRAINTS)  # (d, 10, 10): S moves by -z_d of each
-    forms = np.einsum("ia,dij,jb->dab", complement, -changes, complement)
-    ends = np.concatenate([forms, -np.eye(9)[None]])  # the changes of P^T S P - s I per (z, s): (d + 1, 9, 9)
-    whole = Q - np.einsum("k,kij->ij", base, CONSTRAINTS)
-    z = np.zeros(len(forms))
+    whole = Q - (base @ _FLAT).reshape(10, 10)
+    changes, forms = _independent_changes(directions, complement)  # S moves by -w_e changes_e
+    if changes is None:
+        return np.linalg.eigvalsh(whole)[0] >= -tolerance
+    ends = np.concatenate([forms, -_EYE9.reshape(1, 81)]).reshape(-1, 9, 9)  # P^T S P - s I per (w, s)
+    w = np.zeros(len(forms))
     s = np.linalg.eigvalsh(complement.T @ whole @ complement)[0]
     s -= 1e-3 * abs(s) + tolerance  # strictly inside
     weight = 1.0
     for _ in range(ITERATIONS):
-        S = whole - np.tensordot(z, changes, 1)
+        S = whole - (w @ changes).reshape(10, 10)
         if np.linalg.eigvalsh(S)[0] >= -tolerance:
             return True
-        X = complement.T @ S @ complement - s * np.eye(9)
-        inverse_ends = np.linalg.solve(X[None], ends)  # X^-1 E_d (d + 1, 9, 9)
-        gradient = -np.einsum("dii->d", inverse_ends)
-        gradient[-1] -= weight  # minimising -weight s - log det X
-        hessian = np.einsum("dij,eji->de", inverse_ends, inverse_ends)
-        step = -np.linalg.lstsq(hessian, gradient, rcond=None)[0]  # the forms are not independent
+        X = complement.T @ S @ complement - s * _EYE9
+        Y = (np.linalg.inv(X) @ ends).reshape(len(ends), 81)  # X^-1 E_e
+        gradient = -Y[:, ::10].sum(axis=1)  # the gradient of -log det X: -tr(X^-1 E_e)
+        gradient[-1] -= weight  # of -weight s
+        hessian = Y @ Y.reshape(-1, 9, 9).transpose(0, 2, 1).reshape(len(ends), 81).T  # tr(X^-1 E_e X^-1 E_f)
+        try:
+            step = -np.linalg.solve(hessian, gradient)
+        except np.linalg.LinAlgError:
+            return False
         length = 1.0
-        while np.linalg.eigvalsh(X + np.tensordot(length * step, ends, 1))[0] <= 0:
+        while np.linalg.eigvalsh(X + (length * step @ ends.reshape(len(ends), 81)).reshape(9, 9))[0] <= 0:
             length /= 2
             if length < 1e-8:
                 return False
-        z, s = z + 0.95 * length * step[:-1], s + 0.95 * length * step[-1]
-        if np.sqrt(max(step @ hessian @ step, 0.0)) < 0.5:
+        w, s = w + 0.95 * length * step[:-1], s + 0.95 * length * step[-1]
+        if step @ hessian @ step < 0.25:  # the Newton decrement below 1/2: the barrier's weight grows
             weight *= 4.0
     return False
+
+
+def _independent_changes(directions: np.ndarray, complement: np.ndarray):
+    """(changes (e, 100), forms (e, 81)): combinations of the free directions (d, 31) whose changes of
+    P^T S P (forms, flattened) are orthonormal (the directions' forms are not independent: the Newton
+    system would be singular), and their changes of S (flattened); (None, None) when they make none."""
+    changes = -(directions @ _FLAT)
+    forms = (complement.T @ changes.reshape(-1, 10, 10) @ complement).reshape(len(directions), 81)
+    U, singular, Vt = np.linalg.svd(forms, full_matrices=False)
+    kept = singular > 1e-12 * singular[0] if len(singular) and singular[0] > 0 else np.zeros(0, bool)
+    if not kept.any():
+        return None, None
+    combinations = U[:, kept] / singular[kept]  # (d, e)
+    return -(combinations.T @ changes), Vt[kept]
