@@ -93,3 +93,10 @@ def test_compiled_centring_steps_are_numpys(converge, steps, shift):
         want = centring._refine_fixed_numpy(img, starts, 5.0, steps, 0.01, limit, converge)
         np.testing.assert_array_equal(centring._refine_fixed(img, starts, 5.0, steps, 0.01, limit, converge), want)
         assert np.isfinite(want[:, 0]).sum() >= 5
+
+
+def test_an_image_of_doubles_is_sampled_by_cv2_as_before():
+    rng = np.random.default_rng(12)
+    image = rng.normal(0.0, 50.0, (40, 60))
+    xy = _positions(rng, image.shape, 2000)
+    np.testing.assert_array_equal(sample(image, xy), _cv2_remap(image, xy).astype(np.float32))

@@ -6,48 +6,82 @@ and starts' reads, ~10^5 positions a 12 MP image, without cv2.remap's per-call m
 The arithmetic is cv2.remap's (OpenCV 5, INTER_LINEAR, BORDER_REPLICATE, float32) to the last bit where
 OpenCV's remap runs with fused multiply-adds (x86-64 with FMA, as here): per position, a = x - floor(x),
 b = y - floor(y) in float32, the four neighbours at the indexes clamped into the image, then
-t0 = fma(a, p01 - p00, p00), t1 = fma(a, p11 - p10, p10), value = fma(b, t1 - t0, t0) (fmaf: one
-rounding each, on any CPU); NaN where a coordinate is not finite. The ring statistics make every
+t0 = fma(a, p01 - p00, p00), t1 = fma(a, p11 - p10, p10), value = fma(b, t1 - t0, t0), one rounding
+each on any CPU (the loop is built twice, with the FMA instruction for a CPU that has it, chosen at
+run time, and with libm's fmaf, which the portable build calls otherwise); NaN where a coordinate is
+not finite; float32 images only (`rings.sample` leaves others to cv2.remap). The ring statistics make every
 number as numpy's expressions (`rings._ring_stats`) do, the sums in np.sum's pairwise order, to the
 last bit. tests/test_marker_sampling.py compares both with what they replace.
 """
 
-from libc.math cimport floorf, fmaf, isfinite, NAN
+from libc.math cimport isfinite
 
 import numpy as np
 
 
-cdef inline float bilinear(const float *image, Py_ssize_t height, Py_ssize_t width, Py_ssize_t row,
-                           Py_ssize_t column, float x, float y) noexcept nogil:
-    """The sample at x, y (its own pixel coordinates) of an image (height, width) whose pixel i, j is
-    image[i row + j column]."""
-    if not (isfinite(x) and isfinite(y)):
-        return NAN
-    cdef float fx = floor_of(x), fy = floor_of(y)
-    cdef float a = x - fx, b = y - fy
-    cdef Py_ssize_t x0 = clamp(fx, width) * column, y0 = clamp(fy, height) * row
-    cdef Py_ssize_t x1 = clamp(fx + 1.0, width) * column, y1 = clamp(fy + 1.0, height) * row
-    cdef float p00 = image[y0 + x0], p01 = image[y0 + x1], p10 = image[y1 + x0], p11 = image[y1 + x1]
-    cdef float t0 = fmaf(a, p01 - p00, p00), t1 = fmaf(a, p11 - p10, p10)
-    return fmaf(b, t1 - t0, t0)
+cdef extern from *:
+    """
+    #include <math.h>
+    #include <Python.h>
 
+    /* floorf(x) of a finite x, by a truncating conversion where |x| < 2^30 (no libm call). */
+    static inline float dmais_floor(float x) {
+        if (x > -1073741824.0f && x < 1073741824.0f) {
+            float t = (float)(int)x;
+            return t > x ? t - 1.0f : t;
+        }
+        return floorf(x);
+    }
 
-cdef inline float floor_of(float x) noexcept nogil:
-    """floorf(x) of a finite x, by a truncating conversion where |x| < 2^30 (no libm call)."""
-    cdef float t
-    if -1073741824.0 < x < 1073741824.0:
-        t = <float><int>x
-        return t - 1.0 if t > x else t
-    return floorf(x)
+    /* index (an integral value) clamped into 0..size - 1. */
+    static inline Py_ssize_t dmais_clamp(double index, Py_ssize_t size) {
+        if (index <= 0.0) return 0;
+        if (index >= (double)(size - 1)) return size - 1;
+        return (Py_ssize_t)index;
+    }
 
+    /* The samples out[i] at xy[2 i], xy[2 i + 1] of the part owner[i] (part 0 where owner is NULL):
+       part k's pixel r, c is buffer[base[k] + r row[k] + c column[k]], its left column and top row
+       left[k], top[k] in the positions' coordinates. FMA: fmaf, or the instruction. */
+    #define DMAIS_SAMPLE(NAME, FMA) \
+    static void NAME(const float *buffer, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top, \
+                     const Py_ssize_t *width, const Py_ssize_t *height, const Py_ssize_t *row, \
+                     const Py_ssize_t *column, const Py_ssize_t *owner, const float *xy, Py_ssize_t n, float *out) { \
+        for (Py_ssize_t i = 0; i < n; i++) { \
+            Py_ssize_t k = owner ? owner[i] : 0; \
+            float x = xy[2 * i] - (float)left[k], y = xy[2 * i + 1] - (float)top[k]; \
+            if (!(isfinite(x) && isfinite(y))) { out[i] = NAN; continue; } \
+            float fx = dmais_floor(x), fy = dmais_floor(y); \
+            float a = x - fx, b = y - fy; \
+            Py_ssize_t x0 = dmais_clamp(fx, width[k]) * column[k], y0 = dmais_clamp(fy, height[k]) * row[k]; \
+            Py_ssize_t x1 = dmais_clamp(fx + 1.0, width[k]) * column[k], y1 = dmais_clamp(fy + 1.0, height[k]) * row[k]; \
+            const float *p = buffer + base[k]; \
+            float p00 = p[y0 + x0], p01 = p[y0 + x1], p10 = p[y1 + x0], p11 = p[y1 + x1]; \
+            float t0 = FMA(a, p01 - p00, p00), t1 = FMA(a, p11 - p10, p10); \
+            out[i] = FMA(b, t1 - t0, t0); \
+        } \
+    }
 
-cdef inline Py_ssize_t clamp(double index, Py_ssize_t size) noexcept nogil:
-    """index (an integral value) clamped into 0..size - 1."""
-    if index <= 0.0:
-        return 0
-    if index >= size - 1:
-        return size - 1
-    return <Py_ssize_t>index
+    DMAIS_SAMPLE(dmais_sample_libm, fmaf)
+    #if defined(__x86_64__) && defined(__GNUC__)
+    __attribute__((target("fma"))) DMAIS_SAMPLE(dmais_sample_fma, __builtin_fmaf)
+    static void dmais_sample(const float *buffer, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top,
+                             const Py_ssize_t *width, const Py_ssize_t *height, const Py_ssize_t *row,
+                             const Py_ssize_t *column, const Py_ssize_t *owner, const float *xy, Py_ssize_t n,
+                             float *out) {
+        if (__builtin_cpu_supports("fma"))
+            dmais_sample_fma(buffer, base, left, top, width, height, row, column, owner, xy, n, out);
+        else
+            dmais_sample_libm(buffer, base, left, top, width, height, row, column, owner, xy, n, out);
+    }
+    #else
+    #define dmais_sample dmais_sample_libm
+    #endif
+    """
+    void dmais_sample(const float *buffer, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top,
+                      const Py_ssize_t *width, const Py_ssize_t *height, const Py_ssize_t *row,
+                      const Py_ssize_t *column, const Py_ssize_t *owner, const float *xy, Py_ssize_t n,
+                      float *out) noexcept nogil
 
 
 def sample(image, xy):
@@ -56,10 +90,12 @@ def sample(image, xy):
     cdef const float[:, ::1] p = np.ascontiguousarray(xy, dtype=np.float32)
     out = np.empty(p.shape[0], dtype=np.float32)
     cdef float[::1] o = out
-    cdef Py_ssize_t i, row = img.strides[0] // 4, column = img.strides[1] // 4
-    with nogil:
-        for i in range(p.shape[0]):
-            o[i] = bilinear(&img[0, 0], img.shape[0], img.shape[1], row, column, p[i, 0], p[i, 1])
+    cdef Py_ssize_t zero = 0, width = img.shape[1], height = img.shape[0]
+    cdef Py_ssize_t row = img.strides[0] // 4, column = img.strides[1] // 4
+    if p.shape[0]:
+        with nogil:
+            dmais_sample(&img[0, 0], &zero, &zero, &zero, &width, &height, &row, &column, NULL, &p[0, 0], p.shape[0],
+                         &o[0])
     return out
 
 
@@ -102,16 +138,15 @@ def parts_sample(buffer, bases, lefts, tops, widths, heights, part, xy):
     cdef const Py_ssize_t[::1] top = np.ascontiguousarray(tops, dtype=np.intp)
     cdef const Py_ssize_t[::1] width = np.ascontiguousarray(widths, dtype=np.intp)
     cdef const Py_ssize_t[::1] height = np.ascontiguousarray(heights, dtype=np.intp)
+    cdef const Py_ssize_t[::1] column = np.ones(len(width), dtype=np.intp)
     cdef const Py_ssize_t[::1] owner = np.ascontiguousarray(part, dtype=np.intp)
     cdef const float[:, ::1] p = np.ascontiguousarray(xy, dtype=np.float32)
     out = np.empty(p.shape[0], dtype=np.float32)
     cdef float[::1] o = out
-    cdef Py_ssize_t i, k
-    with nogil:
-        for i in range(p.shape[0]):
-            k = owner[i]
-            o[i] = bilinear(&buf[base[k]], height[k], width[k], width[k], 1, p[i, 0] - <float>left[k],
-                            p[i, 1] - <float>top[k])
+    if p.shape[0]:
+        with nogil:
+            dmais_sample(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &width[0], &column[0], &owner[0],
+                         &p[0, 0], p.shape[0], &o[0])
     return out
 
 

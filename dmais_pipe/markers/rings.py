@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from functools import lru_cache
 
+import cv2
 import numpy as np
 
 from . import _rings
@@ -108,11 +109,22 @@ def sample(image: np.ndarray | ImageParts, xy: np.ndarray) -> np.ndarray:
 
 
 def _bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """(n,) bilinear samples of float32 `image` (h, w) at float32 positions xy (n, 2): cv2.remap's
-    (INTER_LINEAR, BORDER_REPLICATE) in one compiled loop (`_rings.sample`)."""
-    if image.size == 0:
-        return np.full(len(xy), np.nan, dtype=np.float32)
+    """(n,) bilinear samples of `image` (h, w) at float32 positions xy (n, 2): cv2.remap's
+    (INTER_LINEAR, BORDER_REPLICATE), in one compiled loop (`_rings.sample`) for a float32 image."""
+    if image.dtype != np.float32:
+        return _remap(image, xy)
     return _rings.sample(image, xy)
+
+
+def _remap(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """(n,) float32: cv2.remap's bilinear samples of `image` (h, w) (not float32) at float32 positions xy (n, 2)."""
+    flat = xy.reshape(-1, 1, 2)
+    # cv2.remap is limited to SHRT_MAX rows per call.
+    out = np.empty(len(flat), dtype=np.float32)
+    for s in range(0, len(flat), 30000):
+        out[s:s + 30000] = cv2.remap(image, flat[s:s + 30000, :, 0].copy(), flat[s:s + 30000, :, 1].copy(),
+                                     cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).ravel()
+    return out
 
 
 def ring_quality(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
