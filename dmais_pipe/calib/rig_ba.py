@@ -22,7 +22,8 @@ Two solvers minimise this same cost:
   covariance center_sigma^2 I). See that function for the adaptations this needs.
 
 Both report the standard deviations from our own Jacobian at their optimum (Gauss-Newton covariance
-scaled by the a posteriori variance of unit weight), so the numbers are comparable between backends.
+with the pixels' a posteriori variance of unit weight, `_RigProblem._covariance`), so the numbers are
+comparable between backends.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from ..camera import Camera, project_unmasked
 from ..errors import DmaisError
 from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
 from .survey_variance import estimate as estimate_survey_variance
-from .survey_variance import inverse_normal
+from .survey_variance import inverse_normal, pixel_variance
 
 log = logging.getLogger(__name__)
 
@@ -79,7 +80,7 @@ class RigBAResult:
     n_observations: dict[str, int]
     std: dict[str, dict[str, list[float]]]  # camera -> {"rotation_deg": [3], "center_m": [3]}
     prior_residuals_m: dict[str, np.ndarray] = field(default_factory=dict)
-    sigma0: float = float("nan")  # a posteriori standard deviation of unit weight
+    sigma0: float = float("nan")  # the pixels' a posteriori standard deviation of unit weight
     backend: str = "scipy"
     #: the non-reference cameras' parameters "<camera>.rx|ry|rz|vx|vy|vz" (rig-frame rotation of
     #: rig_from_cam, R = exp(r) R_estimate, and the centre v in the rig), the order of the two below
@@ -238,14 +239,14 @@ class _RigProblem:
         Call it on a recentred problem (p = x0) so that rotation deviations are small rotations about the estimate.
         """
         r, J = self.evaluate(p, True)
-        dof = max(self.n_res - self.n_params, 1)
         inverse = inverse_normal(J)
         survey_points, survey_sigma, unit = self.survey_jacobian(p)
-        sigma0_sq, survey_sigma, estimated = self._variances(J, r, dof, inverse, survey_points, survey_sigma, unit)
-        cov = inverse * sigma0_sq
+        J_intrinsics = self.intrinsics_jacobian(p)
+        survey_sigma, estimated = self._survey_sigmas(J, r, inverse, survey_points, survey_sigma, unit)
+        sigma0_sq, cov = self._covariance(J, r, inverse, np.hstack([unit, J_intrinsics]))
         std_all = np.sqrt(np.clip(np.diag(cov), 0, None))
         camera_rows = np.arange(6 * len(self.names))  # the cameras' parameters come first
-        sensitivity = -inverse @ J.T @ self.intrinsics_jacobian(p)
+        sensitivity = -inverse @ J.T @ J_intrinsics
         survey_response = -inverse @ J.T @ (unit * np.repeat(survey_sigma, 3))
         std = {self.reference: {"rotation_deg": [0.0, 0.0, 0.0], "center_m": [0.0, 0.0, 0.0]}}
         for c in self.names:
@@ -275,23 +276,47 @@ class _RigProblem:
                            survey_points=survey_points, survey_response=survey_response[camera_rows],
                            **estimated)
 
+    def pixel_rows(self) -> np.ndarray:
+        """(n_res,) bool: the residuals that are pixels (not the camera-centre priors)."""
+        rows = np.zeros(self.n_res, dtype=bool)
+        for b, (r0, _) in zip(self.blocks, self.rows):
+            rows[r0:r0 + 2 * len(b.X)] = True
+        return rows
+
+    def _covariance(self, J: np.ndarray, r: np.ndarray, inverse: np.ndarray, nuisance: np.ndarray
+                    ) -> tuple[float, np.ndarray]:
+        """The pixel rows' variance of unit weight and the parameters' covariance (n_params, n_params).
+
+        The variance is the pixel noise's alone (`survey_variance.pixel_variance`: the residuals outside
+        the span of the survey's and the intrinsics' effects, `nuisance` (n_res, q), which are the same
+        in every placement and are carried into the calibration covariance by the survey response and
+        the intrinsics sensitivity; counted as noise too, they made the rig's pixel share 4-10 times
+        its error along the flight's position on simulated calibrations). The priors keep their sigma:
+        cov = N^-1 (s^2 J_pixel^T J_pixel + J_prior^T J_prior) N^-1. Where no pixel dimension lies
+        outside that span, s^2 is the residuals' r.r / dof, the whole covariance scaled by it."""
+        pixel = self.pixel_rows()
+        variance = pixel_variance(J, r, nuisance, pixel)
+        if not np.isfinite(variance):
+            variance = float(r @ r) / max(self.n_res - self.n_params, 1)
+            return variance, inverse * variance
+        weighted = variance * (J[pixel].T @ J[pixel]) + J[~pixel].T @ J[~pixel]
+        return variance, inverse @ weighted @ inverse
+
     @staticmethod
-    def _variances(J: np.ndarray, r: np.ndarray, dof: int, inverse: np.ndarray, points: list[str],
-                   survey_sigma: np.ndarray, unit: np.ndarray) -> tuple[float, np.ndarray, dict]:
-        """The unit weight's variance, the survey points' (P,) sigmas and RigBAResult's survey_sigma_m,
-        survey_estimated_points and survey_estimated_observations. Where every point's sigma is given,
-        the variance is the residuals' (their survey share in it); else the points' sigma not given (NaN)
-        is estimated (`survey_variance.estimate`) and the variance is the pixel noise's alone, the
-        survey's share carried by the response."""
+    def _survey_sigmas(J: np.ndarray, r: np.ndarray, inverse: np.ndarray, points: list[str],
+                       survey_sigma: np.ndarray, unit: np.ndarray) -> tuple[np.ndarray, dict]:
+        """The survey points' (P,) sigmas and RigBAResult's survey_sigma_m, survey_estimated_points and
+        survey_estimated_observations: the points' sigma not given (NaN) estimated from the residuals
+        (`survey_variance.estimate`), the survey's share carried by the response."""
         unknown = np.isnan(survey_sigma)
         if not unknown.any():
-            return float(r @ r) / dof, survey_sigma, {}
+            return survey_sigma, {}
         columns = np.repeat(unknown, 3)
         given = unit[:, ~columns] * np.repeat(survey_sigma[~unknown], 3)
         found = estimate_survey_variance(J, r, unit[:, columns], given, inverse)
         observations = int(np.count_nonzero(np.any(unit[:, columns] != 0, axis=1))) // 2
         ids = [point for point, free in zip(points, unknown) if free]
-        return (found.pixel_variance, np.where(unknown, found.survey_sigma, survey_sigma),
+        return (np.where(unknown, found.survey_sigma, survey_sigma),
                 {"survey_sigma_m": found.survey_sigma, "survey_estimated_points": ids,
                  "survey_estimated_observations": observations})
 

@@ -67,6 +67,32 @@ def estimate(J: np.ndarray, residuals: np.ndarray, unit: np.ndarray, given: np.n
     return SurveyVariance(s2, float(np.sqrt(sigma2)), True)
 
 
+def pixel_variance(J: np.ndarray, residuals: np.ndarray, nuisance: np.ndarray, pixel_rows: np.ndarray) -> float:
+    """The variance of the pixel rows (pixel_rows (m,) bool) of a least-squares fit with Jacobian J (m, n) at
+    its residuals r (m,), the other rows (priors, whitened by their own sigma) of unit variance, from the
+    pixel rows of what lies outside the span of J and of `nuisance` (m, q): the residuals' change with
+    errors that are the same in every image (the control points' survey, the intrinsics held as
+    calibrated), which leave residuals no pixel noise explains. With B an orthonormal basis of
+    [J, nuisance], P = I - B B^T, D the pixel rows' indicator, B_D and B_O B's pixel and other rows:
+
+        T = |D P r|^2,   E T = s^2 tr(D P D P) + tr(D P (I - D) P D)
+                             = s^2 (|D| - 2 |B_D|^2 + |B_D^T B_D|^2) + tr(B_D^T B_D B_O^T B_O)
+
+    (|.| Frobenius norms, |D| the pixel rows' count): the priors' own noise reaches the pixel rows only
+    through the projection. NaN where no pixel dimension lies outside that span."""
+    r, rows = np.asarray(residuals, float), np.asarray(pixel_rows, bool)
+    columns = np.hstack([np.asarray(J, float), np.asarray(nuisance, float)])
+    norms = np.linalg.norm(columns, axis=0)
+    basis, _ = _span(columns[:, norms > 0] / norms[norms > 0])  # radians beside metres: each column at unit norm
+    B_D, B_O = basis[rows], basis[~rows]
+    outside = r[rows] - B_D @ (basis.T @ r)
+    pixel_gram, other_gram = B_D.T @ B_D, B_O.T @ B_O
+    dimensions = np.count_nonzero(rows) - 2.0 * np.trace(pixel_gram) + float(np.sum(pixel_gram**2))
+    if dimensions < 1:
+        return float("nan")
+    return max(float(outside @ outside) - float(np.sum(pixel_gram * other_gram)), 0.0) / dimensions
+
+
 def _span(K: np.ndarray) -> tuple[np.ndarray, int]:
     """An orthonormal basis (m, k) of K's columns' span and its dimension k (singular values above
     1e-10 of the largest)."""
