@@ -69,6 +69,7 @@ cdef extern from *:
                              const Py_ssize_t *width, const Py_ssize_t *height, const Py_ssize_t *row,
                              const Py_ssize_t *column, const Py_ssize_t *owner, const float *xy, Py_ssize_t n,
                              float *out) {
+        __builtin_cpu_init();  /* idempotent: the CPU's features known whatever ran first */
         if (__builtin_cpu_supports("fma"))
             dmais_sample_fma(buffer, base, left, top, width, height, row, column, owner, xy, n, out);
         else
