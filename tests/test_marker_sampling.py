@@ -1,13 +1,13 @@
 """The compiled bilinear samples of the ring tests (`markers/_rings.pyx`) against cv2.remap, which
 they replace, `rings.ImageParts` read through them against the whole image, and the compiled ring
-statistics and centring steps (`markers/_centring.pyx`) against numpy's, to the last bit."""
+statistics, clean radii and centring steps (`markers/_centring.pyx`) against numpy's, to the last bit."""
 
 import cv2
 import numpy as np
 import pytest
 
 from dmais_pipe.markers import _rings, centring
-from dmais_pipe.markers.rings import ImageParts, _ring_stats, ring_stats, sample
+from dmais_pipe.markers.rings import RADII, ImageParts, _clean_radius, _ring_stats, clean_radius, ring_stats, sample
 
 
 def _cv2_remap(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -100,3 +100,21 @@ def test_an_image_of_doubles_is_sampled_by_cv2_as_before():
     image = rng.normal(0.0, 50.0, (40, 60))
     xy = _positions(rng, image.shape, 2000)
     np.testing.assert_array_equal(sample(image, xy), _cv2_remap(image, xy).astype(np.float32))
+
+
+def test_compiled_clean_radius_is_numpys():
+    rng = np.random.default_rng(13)
+    yy, xx = np.mgrid[0:300, 0:400]
+    image = cv2.GaussianBlur((rng.normal(100, 5, (300, 400)) + 60 * np.sign((xx - 200.3) * (yy - 150.6)))
+                             .astype(np.float32), (0, 0), 1.0)
+    image[:, 300:] = 40 + rng.normal(0, 5, (300, 100))  # an outline at 300 px
+    uv = np.vstack([[[200.3, 150.6], [201, 150], [np.nan, 5], [5, 5], [299, 150]],
+                    rng.uniform(0, 1, (100, 2)) * [400, 300], [200.3, 100.9] + rng.normal(0, 1.5, (50, 2))])
+    parts = ImageParts([(0, 0, 192, 180), (256, 100, 400, 300)], image.shape)
+    for pixels, top, left in zip(parts.pixels, parts.tops, parts.lefts):
+        pixels[...] = image[top:top + pixels.shape[0], left:left + pixels.shape[1]]
+    for img in (image, parts):
+        for min_quality, radii in ((0.6, RADII), (0.7, RADII[RADII < 8.0])):
+            want = _clean_radius(img, uv, min_quality, radii, 8.0)
+            np.testing.assert_array_equal(clean_radius(img, uv, min_quality, radii), want)
+    assert _clean_radius(image, uv[:1], 0.6, RADII, 8.0)[0] > 50.0

@@ -1,7 +1,9 @@
 # cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
 """Compiled loops of markers.rings: bilinear samples of float32 images (`rings.sample`: the ring tests'
 and starts' reads, ~10^5 positions a 12 MP image, without cv2.remap's per-call map copies and its
-30,000-row chunks) and the statistics of rings of samples (`rings.ring_stats`, ~25 calls an image).
+30,000-row chunks), the statistics of rings of samples (`rings.ring_stats`, ~25 calls an image) and
+the clean radius (`rings.clean_radius`: per point its rings from the smallest, each sampled, scored
+and compared with the previous in one pass).
 
 The arithmetic is cv2.remap's (OpenCV 5, INTER_LINEAR, BORDER_REPLICATE, float32) to the last bit where
 OpenCV's remap runs with fused multiply-adds (x86-64 with FMA, as here): per position, a = x - floor(x),
@@ -190,45 +192,124 @@ def ring_stats(values):
     """`rings.ring_stats` of rings values (m, k), each number as numpy makes it (the same operations,
     the sums in np.sum's order): quality (m,), bright level (m,), dark level (m,), bright mask (m, k)."""
     cdef const double[:, ::1] v = np.ascontiguousarray(values, dtype=np.float64)
-    cdef Py_ssize_t m = v.shape[0], k = v.shape[1], i, j, half = k // 2
+    cdef Py_ssize_t m = v.shape[0], k = v.shape[1], i
     quality, bright, dark = np.empty(m), np.empty(m), np.empty(m)
     mask = np.empty((m, k), dtype=bool)
     cdef double[::1] q = quality, hi = bright, lo = dark
     cdef unsigned char[:, ::1] h = mask.view(np.uint8)
     scratch = np.empty(k)
     cdef double[::1] t = scratch
-    cdef double mean, total, mean_high, mean_low, within, opposite, bimodal, symmetric
-    cdef Py_ssize_t transitions, n_high
     if k == 0:
         raise ValueError("rings of no samples")
     with nogil:
         for i in range(m):
-            mean = pairwise_sum(&v[i, 0], k) / <double>k
-            n_high = 0
-            for j in range(k):
-                h[i, j] = v[i, j] > mean
-                n_high += h[i, j]
-            transitions = h[i, 0] != h[i, k - 1]
-            for j in range(1, k):
-                transitions += h[i, j] != h[i, j - 1]
-            for j in range(k):
-                t[j] = (v[i, j] - mean) * (v[i, j] - mean)
-            total = pairwise_sum(&t[0], k) + 1e-9
-            for j in range(k):
-                t[j] = v[i, j] if h[i, j] else 0.0
-            mean_high = pairwise_sum(&t[0], k) / <double>(n_high if n_high > 1 else 1)
-            for j in range(k):
-                t[j] = 0.0 if h[i, j] else v[i, j]
-            mean_low = pairwise_sum(&t[0], k) / <double>(k - n_high if k - n_high > 1 else 1)
-            for j in range(k):
-                t[j] = v[i, j] - (mean_high if h[i, j] else mean_low)
-                t[j] = t[j] * t[j]
-            within = pairwise_sum(&t[0], k)
-            bimodal = unit_clip(1.0 - within / total)
-            for j in range(k):
-                opposite = v[i, k - half + j] if j < half else v[i, j - half]  # np.roll by k // 2
-                t[j] = (v[i, j] - opposite) * (v[i, j] - opposite)
-            symmetric = unit_clip(1.0 - pairwise_sum(&t[0], k) / (2.0 * total))
-            q[i] = bimodal * symmetric if transitions == 4 else 0.0
-            hi[i], lo[i] = mean_high, mean_low
+            one_ring(&v[i, 0], k, &t[0], &h[i, 0], &q[i], &hi[i], &lo[i])
     return quality, bright, dark, mask
+
+
+cdef void one_ring(const double *v, Py_ssize_t k, double *t, unsigned char *h, double *quality, double *bright,
+                   double *dark) noexcept nogil:
+    """`ring_stats` of one ring v (k): its quality, bright and dark levels, its bright mask into h (k);
+    t: k doubles of scratch."""
+    cdef Py_ssize_t j, half = k // 2, transitions, n_high = 0
+    cdef double mean = pairwise_sum(v, k) / <double>k, total, mean_high, mean_low, within, opposite, bimodal
+    for j in range(k):
+        h[j] = v[j] > mean
+        n_high += h[j]
+    transitions = h[0] != h[k - 1]
+    for j in range(1, k):
+        transitions += h[j] != h[j - 1]
+    for j in range(k):
+        t[j] = (v[j] - mean) * (v[j] - mean)
+    total = pairwise_sum(t, k) + 1e-9
+    for j in range(k):
+        t[j] = v[j] if h[j] else 0.0
+    mean_high = pairwise_sum(t, k) / <double>(n_high if n_high > 1 else 1)
+    for j in range(k):
+        t[j] = 0.0 if h[j] else v[j]
+    mean_low = pairwise_sum(t, k) / <double>(k - n_high if k - n_high > 1 else 1)
+    for j in range(k):
+        t[j] = v[j] - (mean_high if h[j] else mean_low)
+        t[j] = t[j] * t[j]
+    within = pairwise_sum(t, k)
+    bimodal = unit_clip(1.0 - within / total)
+    for j in range(k):
+        opposite = v[k - half + j] if j < half else v[j - half]  # np.roll by k // 2
+        t[j] = (v[j] - opposite) * (v[j] - opposite)
+    quality[0] = bimodal * unit_clip(1.0 - pairwise_sum(t, k) / (2.0 * total)) if transitions == 4 else 0.0
+    bright[0], dark[0] = mean_high, mean_low
+
+
+def clean_radius(buffer, bases, lefts, tops, widths, heights, rows, columns, cells, Py_ssize_t cell_px, uv, radii,
+                 unit, double min_quality, double max_first):
+    """`rings.clean_radius` (n,) about uv (n, 2) of an image given as parts (`rings.ImageParts`' flat
+    buffer, per part its offset, left, top, width, height and row and column strides, the map
+    `cells` (r, c) of the part each cell of cell_px reads, or None: every sample from part 0), on
+    rings of radii (m,) with the unit ring `unit` (k, 2): each ring's samples, statistics and tests
+    as numpy makes them."""
+    cdef const float[::1] buf = buffer
+    cdef const Py_ssize_t[::1] base = np.ascontiguousarray(bases, dtype=np.intp)
+    cdef const Py_ssize_t[::1] left = np.ascontiguousarray(lefts, dtype=np.intp)
+    cdef const Py_ssize_t[::1] top = np.ascontiguousarray(tops, dtype=np.intp)
+    cdef const Py_ssize_t[::1] width = np.ascontiguousarray(widths, dtype=np.intp)
+    cdef const Py_ssize_t[::1] height = np.ascontiguousarray(heights, dtype=np.intp)
+    cdef const Py_ssize_t[::1] row = np.ascontiguousarray(rows, dtype=np.intp)
+    cdef const Py_ssize_t[::1] column = np.ascontiguousarray(columns, dtype=np.intp)
+    cdef const Py_ssize_t[:, ::1] cell_map = np.zeros((1, 1), dtype=np.intp) if cells is None else \
+        np.ascontiguousarray(cells, dtype=np.intp)
+    cdef bint one_part = cells is None
+    cdef const double[:, ::1] p = np.ascontiguousarray(uv, dtype=np.float64)
+    cdef const double[::1] r = np.ascontiguousarray(radii, dtype=np.float64)
+    cdef const double[:, ::1] ring = np.ascontiguousarray(unit, dtype=np.float64)
+    cdef Py_ssize_t n = p.shape[0], k = ring.shape[0], i, j, a, same_count
+    result = np.zeros(n)
+    cdef double[::1] out = result
+    work = np.empty(4 * k)
+    cdef double[::1] w = work
+    points = np.empty((k, 2), dtype=np.float32)
+    cdef float[:, ::1] xy = points
+    samples = np.empty(k, dtype=np.float32)
+    cdef float[::1] s = samples
+    owner_of = np.zeros(k, dtype=np.intp)
+    cdef Py_ssize_t[::1] owner = owner_of
+    masks = np.empty((2, k), dtype=np.uint8)
+    cdef unsigned char[:, ::1] m = masks  # this ring's and the reference
+    cdef double quality, high, low, ref_high, ref_low, contrast
+    cdef bint started, ok, same
+    if k == 0 or n == 0:
+        return result
+    with nogil:
+        for i in range(n):
+            started, ref_high, ref_low = False, 0.0, 0.0
+            for a in range(r.shape[0]):
+                for j in range(k):
+                    xy[j, 0] = <float>(p[i, 0] + r[a] * ring[j, 0])
+                    xy[j, 1] = <float>(p[i, 1] + r[a] * ring[j, 1])
+                    if not one_part:
+                        owner[j] = cell_map[cell(xy[j, 1], cell_px, cell_map.shape[0]),
+                                            cell(xy[j, 0], cell_px, cell_map.shape[1])]
+                dmais_sample(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
+                             &owner[0], &xy[0, 0], k, &s[0])
+                for j in range(k):
+                    w[j] = s[j]
+                one_ring(&w[0], k, &w[k], &m[0, 0], &quality, &high, &low)
+                ok = quality >= min_quality
+                if started:
+                    contrast = ref_high - ref_low
+                    contrast = contrast if contrast > 1e-9 else (contrast if contrast != contrast else 1e-9)
+                    same_count = 0
+                    for j in range(k):
+                        same_count += m[0, j] == m[1, j]
+                    same = (same_count / <double>k >= 0.9 and high >= ref_high - 0.25 * contrast
+                            and low <= ref_low + 0.25 * contrast)
+                    ok = ok and same
+                elif ok:
+                    for j in range(k):
+                        m[1, j] = m[0, j]
+                if ok:
+                    ref_high, ref_low = high, low
+                    out[i] = r[a]
+                if (started and not ok) or (not started and not ok and r[a] >= max_first):
+                    break
+                started = started or ok
+    return result

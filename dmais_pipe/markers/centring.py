@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import _centring
-from .rings import ImageParts
+from .rings import _flat
 
 SEED_RADIUS = 5.0
 SEED_EPS = 0.01
@@ -30,15 +30,17 @@ def seed(img: np.ndarray, uv: np.ndarray, max_shift) -> np.ndarray:
 
 def _refine_fixed(img, start, radius, max_iterations, eps, max_shift, converge: bool = True) -> np.ndarray:
     """`_refine_fixed_numpy` in compiled steps per point (`_centring.gradient_steps`, the same numbers)
-    where img is float32 (an image (h, w) or `rings.ImageParts`)."""
-    if not isinstance(img, ImageParts) and np.asarray(img).dtype != np.float32:
+    where img is a C-ordered float32 image (h, w) or `rings.ImageParts`."""
+    flat = _flat(img)
+    if flat is None:
         return _refine_fixed_numpy(img, start, radius, max_iterations, eps, max_shift, converge)
-    half = _half_window(radius, max_shift)
+    buffer, bases, lefts, tops, widths, heights, _, _, cells, cell_px = flat
+    cells = np.zeros((1, 1), dtype=np.intp) if cells is None else cells
     start = np.array(start, dtype=float).reshape(-1, 2)
     height, width = img.shape
-    return _centring.gradient_steps(*_parts_of(img), height, width, start, half, float(radius), _sigma2(radius),
-                                    max_iterations, eps, np.broadcast_to(np.asarray(max_shift, float), (len(start),)),
-                                    converge)
+    return _centring.gradient_steps(buffer, bases, lefts, tops, widths, heights, cells, cell_px, height, width, start,
+                                    _half_window(radius, max_shift), float(radius), _sigma2(radius), max_iterations,
+                                    eps, np.broadcast_to(np.asarray(max_shift, float), (len(start),)), converge)
 
 
 def _half_window(radius: float, max_shift) -> int:
@@ -50,19 +52,6 @@ def _sigma2(radius: float) -> float:
     """2 sigma^2 of the Gaussian weights: not narrower than MIN_SIGMA (the blurred saddle at the very
     centre violates the edge model)."""
     return 2.0 * max(SIGMA_FRACTION * radius, MIN_SIGMA) ** 2
-
-
-def _parts_of(img) -> tuple:
-    """(flat float32 buffer, per part its offset, left, top, width, height, the parts' cell map, its cell px)
-    of `rings.ImageParts`, or of a float32 image (h, w) as one part."""
-    if isinstance(img, ImageParts):
-        cells = np.zeros((1, 1), dtype=np.intp) if img._cells is None else img._cells
-        return img.buffer, img.bases, img.lefts, img.tops, img.widths, img.heights, cells, img.CELL_PX
-    img = np.ascontiguousarray(img)
-    height, width = img.shape
-    one = np.zeros(1, dtype=np.intp)
-    return (img.reshape(-1), one, one, one, np.array([width]), np.array([height]), np.zeros((1, 1), dtype=np.intp),
-            ImageParts.CELL_PX)
 
 
 def _refine_fixed_numpy(img, start, radius, max_iterations, eps, max_shift, converge: bool = True) -> np.ndarray:

@@ -185,7 +185,35 @@ def clean_radius(image: np.ndarray, uv: np.ndarray, min_quality: float = 0.6,
     """(n,) largest radius of `radii` up to which the rings around uv (n, 2) stay the same clean
     X-corner: quality >= min_quality, the same bright/dark sectors (edges are straight lines through
     the centre, so the pattern does not change with the radius) and the same two levels as the
-    previous ring (the pattern: as the first clean ring, at most `max_first` px); 0 where no ring qualifies."""
+    previous ring (the pattern: as the first clean ring, at most `max_first` px); 0 where no ring
+    qualifies. Compiled per point and ring (`_rings.clean_radius`, `_clean_radius`'s numbers) for a
+    float32 image or ImageParts."""
+    uv = np.asarray(uv, dtype=float).reshape(-1, 2)
+    flat = _flat(image)
+    if flat is None:
+        return _clean_radius(image, uv, min_quality, radii, max_first)
+    return _rings.clean_radius(*flat, uv, np.asarray(radii, dtype=float), _unit_ring(RING_SAMPLES),
+                               float(min_quality), float(max_first))
+
+
+def _flat(image) -> tuple | None:
+    """(flat float32 buffer, per part its offset, left, top, width, height, row and column strides,
+    the parts' cell map or None for one part, its cell px) of ImageParts or a C-ordered float32 image;
+    None for other images."""
+    if isinstance(image, ImageParts):
+        return (image.buffer, image.bases, image.lefts, image.tops, image.widths, image.heights, image.widths,
+                np.ones(len(image.widths), dtype=np.intp), image._cells, image.CELL_PX)
+    image = np.asarray(image)
+    if image.dtype != np.float32 or not image.flags.c_contiguous or image.size == 0:
+        return None
+    height, width = image.shape
+    zero, size = np.zeros(1, dtype=np.intp), np.array([width, height])
+    return image.reshape(-1), zero, zero, zero, size[:1], size[1:], size[:1], np.ones(1, dtype=np.intp), None, \
+        ImageParts.CELL_PX
+
+
+def _clean_radius(image, uv: np.ndarray, min_quality: float, radii: np.ndarray, max_first: float) -> np.ndarray:
+    """`clean_radius` in numpy (the reference of tests/test_marker_sampling.py)."""
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
     n = len(uv)
     result = np.zeros(n)
