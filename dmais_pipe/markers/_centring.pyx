@@ -10,7 +10,7 @@ it has no SIMD loop for float64 exp, as on x86-64 without AVX-512); tests/test_m
 compares the two. The image is read as `rings.ImageParts` reads it (a plain image: one part).
 """
 
-from libc.math cimport exp, hypot, isfinite, rint, NAN
+from libc.math cimport exp, hypot, isfinite, rint
 from libc.stdlib cimport free, malloc
 
 import numpy as np

@@ -16,8 +16,6 @@ number as numpy's expressions (`rings._ring_stats`) do, the sums in np.sum's pai
 last bit. tests/test_marker_sampling.py compares both with what they replace.
 """
 
-from libc.math cimport isfinite
-
 import numpy as np
 
 
