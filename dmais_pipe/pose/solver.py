@@ -257,8 +257,8 @@ def _with_fallback(pose: GeneralizedPose, best: int, origins, directions, points
     """pose, or the cheaper front-facing pose of the global fallback (`fallback.search`), which then
     joins the candidates; best: the index of pose among them. A front-facing pose of rays from more
     than one origin that the dual with SO(3)'s redundant constraints proves (`certificate.tight_certified`)
-    is returned as it is, without a search (fallback_ms None; `certified` stays the solver's own dual's). Raises PoseError when neither
-    puts at least half of the points in front."""
+    is returned as it is, without a search (fallback_ms None; `certified` stays the solver's own dual's).
+    Raises PoseError when neither puts at least half of the points in front."""
     begin = time.perf_counter()
     v, f, M = validate_correspondences(origins, directions, points)
     stats = statistics_of(v, f, M)
