@@ -12,7 +12,8 @@ CORES ?= 2
 # The compiled cores (the pose solver's, the markers') are rebuilt when their sources change.
 $(STAMP): pyproject.toml constraints.txt setup.py dmais_pipe/pose/_kernels.pyx dmais_pipe/pose/_refine.pyx \
 		dmais_pipe/pose/_group.pyx dmais_pipe/pose/_error.pyx dmais_pipe/pose/_small.pxd \
-		dmais_pipe/markers/_xfit.pyx dmais_pipe/markers/_rings.pyx dmais_pipe/markers/_centring.pyx dmais_pipe/markers/_sums.pxd
+		dmais_pipe/markers/_xfit.pyx dmais_pipe/markers/_rings.pyx dmais_pipe/markers/_centring.pyx dmais_pipe/markers/_sums.pxd \
+		dmais_pipe/markers/_rings.pxd dmais_pipe/markers/_shadow.pyx
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	PIP_CONSTRAINT=$(abspath constraints.txt) $(BIN)/python -m pip install --quiet -e '.[test]'

@@ -40,9 +40,9 @@ def compile_args() -> list[str]:
 
 
 def portable_args() -> list[str]:
-    """Compiler flags of the markers' cores (markers/_xfit.pyx, _rings.pyx, _centring.pyx): for any
-    CPU of the architecture, as a marker job checks no build CPU (pose.build_cpu comes with the pose
-    package) and -march=native made them no faster; the same roundings (no contracted multiply-adds)."""
+    """Compiler flags of the markers' cores (markers/_xfit.pyx, _rings.pyx, _centring.pyx, _shadow.pyx):
+    for any CPU of the architecture, as a marker job checks no build CPU (pose.build_cpu comes with the
+    pose package) and -march=native made them no faster; the same roundings (no contracted multiply-adds)."""
     return [] if sys.platform == "win32" else ["-fno-wrapv", "-ffp-contract=off"]
 
 
@@ -68,4 +68,5 @@ setup(ext_modules=cythonize([
     Extension("dmais_pipe.markers._xfit", ["dmais_pipe/markers/_xfit.pyx"], extra_compile_args=portable_args()),
     Extension("dmais_pipe.markers._rings", ["dmais_pipe/markers/_rings.pyx"], extra_compile_args=portable_args()),
     Extension("dmais_pipe.markers._centring", ["dmais_pipe/markers/_centring.pyx"], extra_compile_args=portable_args()),
+    Extension("dmais_pipe.markers._shadow", ["dmais_pipe/markers/_shadow.pyx"], extra_compile_args=portable_args()),
 ]))

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from dmais_pipe.markers import _rings, centring
-from dmais_pipe.markers.rings import RADII, ImageParts, _clean_radius, _ring_stats, clean_radius, ring_stats, sample
+from dmais_pipe.markers.rings import (RADII, ImageParts, _clean_radius, _ring_stats, clean_radius, ring_sample,
+                                     ring_stats, sample)
 
 
 def _cv2_remap(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -118,3 +119,22 @@ def test_compiled_clean_radius_is_numpys():
             want = _clean_radius(img, uv, min_quality, radii, 8.0)
             np.testing.assert_array_equal(clean_radius(img, uv, min_quality, radii), want)
     assert _clean_radius(image, uv[:1], 0.6, RADII, 8.0)[0] > 50.0
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ring_samples_are_the_samples_at_their_sums(seed):
+    rng = np.random.default_rng(seed)
+    image = rng.normal(100.0, 30.0, (700, 900)).astype(np.float32)
+    parts = ImageParts([(0, 0, 192, 180), (448, 300, 900, 700)], image.shape)
+    for pixels, top, left in zip(parts.pixels, parts.tops, parts.lefts):
+        pixels[...] = image[top:top + pixels.shape[0], left:left + pixels.shape[1]]
+    centres = np.vstack([rng.uniform(-5, 905, (300, 2)), rng.uniform([450, 300], [900, 700], (300, 2))])
+    centres[::7] = np.round(centres[::7])
+    centres[3] = np.nan
+    circle = 3.5 * np.column_stack([np.cos(np.arange(8)), np.sin(np.arange(8))])
+    offsets = np.vstack([5.0 * rng.normal(size=(40, 2)), circle])
+    for img in (image, parts, image.astype(np.float64)):
+        want = sample(img, centres[:, None, :] + offsets[None])
+        np.testing.assert_array_equal(ring_sample(img, centres, offsets), want)
+    grid = centres[:60].reshape(6, 10, 2)
+    np.testing.assert_array_equal(ring_sample(parts, grid, offsets), sample(parts, grid[:, :, None, :] + offsets))

@@ -287,3 +287,42 @@ def clean_radius(buffer, bases, lefts, tops, widths, heights, rows, columns, cel
                     break
                 started = started or ok
     return result
+
+
+def ring_samples(buffer, bases, lefts, tops, widths, heights, rows, columns, cells, Py_ssize_t cell_px, centres,
+                 offsets):
+    """(m, k) float32 samples at the float32 positions centres (m, 2) + offsets (k, 2) (each sum in float64,
+    then rounded, as numpy's sum and astype make them) of an image given as parts (`clean_radius`'s)."""
+    cdef const float[::1] buf = buffer
+    cdef const Py_ssize_t[::1] base = np.ascontiguousarray(bases, dtype=np.intp)
+    cdef const Py_ssize_t[::1] left = np.ascontiguousarray(lefts, dtype=np.intp)
+    cdef const Py_ssize_t[::1] top = np.ascontiguousarray(tops, dtype=np.intp)
+    cdef const Py_ssize_t[::1] width = np.ascontiguousarray(widths, dtype=np.intp)
+    cdef const Py_ssize_t[::1] height = np.ascontiguousarray(heights, dtype=np.intp)
+    cdef const Py_ssize_t[::1] row = np.ascontiguousarray(rows, dtype=np.intp)
+    cdef const Py_ssize_t[::1] column = np.ascontiguousarray(columns, dtype=np.intp)
+    cdef const Py_ssize_t[:, ::1] cell_map = np.zeros((1, 1), dtype=np.intp) if cells is None else \
+        np.ascontiguousarray(cells, dtype=np.intp)
+    cdef bint one_part = cells is None
+    cdef const double[:, ::1] p = np.ascontiguousarray(centres, dtype=np.float64)
+    cdef const double[:, ::1] ring = np.ascontiguousarray(offsets, dtype=np.float64)
+    cdef Py_ssize_t m = p.shape[0], k = ring.shape[0], i, j
+    out = np.empty((m, k), dtype=np.float32)
+    cdef float[:, ::1] o = out
+    points = np.empty((k if k else 1, 2), dtype=np.float32)
+    cdef float[:, ::1] xy = points
+    owner_of = np.zeros(k if k else 1, dtype=np.intp)
+    cdef Py_ssize_t[::1] owner = owner_of
+    if k == 0 or m == 0:
+        return out
+    with nogil:
+        for i in range(m):
+            for j in range(k):
+                xy[j, 0] = <float>(p[i, 0] + ring[j, 0])
+                xy[j, 1] = <float>(p[i, 1] + ring[j, 1])
+                if not one_part:
+                    owner[j] = cell_map[cell(xy[j, 1], cell_px, cell_map.shape[0]),
+                                        cell(xy[j, 0], cell_px, cell_map.shape[1])]
+            dmais_sample(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
+                         &owner[0], &xy[0, 0], k, &o[i, 0])
+    return out

@@ -46,8 +46,8 @@ from scipy.spatial import cKDTree
 
 from .centring import seed
 from .refine import ASYMMETRIC, NO_CLEAN_X, refine_corners
-from .rings import RADII, as_float_image, clean_radius, ring_offsets, ring_quality, ring_stats, sample
-from .shadow import SHADOW_REASON, both_sides, line_ends, log_sample, shadowed_corners, step_masks
+from .rings import RADII, as_float_image, clean_radius, ring_offsets, ring_quality, ring_sample, ring_stats, sample
+from .shadow import SHADOW_REASON, both_sides, line_ends, log_ring_sample, shadowed_corners, step_masks
 
 COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
 REJECTED_COLUMNS = ["u", "v", "reason"]
@@ -236,7 +236,7 @@ def x_over_rings(img: np.ndarray, uv: np.ndarray, min_contrast: float) -> np.nda
         at = np.flatnonzero(passed)
         if len(at) == 0:
             break
-        quality, ring_contrast = ring_quality(sample(img, uv[at, None, :] + ring_offsets(radius)[None]))
+        quality, ring_contrast = ring_quality(ring_sample(img, uv[at], ring_offsets(radius)))
         passed[at] = (quality >= PRE_QUALITY) & (np.abs(ring_contrast) >= min_contrast)
     return passed
 
@@ -299,11 +299,10 @@ def detections(img: np.ndarray, cand: np.ndarray, contrast: float, lit_contrast:
     (cand, radius, quality), shadowed, shade = _verified(img, cand, contrast, min_quality, lit_contrast)
     verified = time.perf_counter()
     seconds["detect_s"] = verified - started
-    rejected = pd.DataFrame({"u": shadowed[:, 0], "v": shadowed[:, 1], "reason": SHADOW_REASON})
-    rejected = rejected.astype({"reason": object})
+    rejected = [(shadowed, SHADOW_REASON)]  # (uv (n, 2), reason) in the order they are reported
     if len(cand) == 0 and len(shade[0]) == 0:
         seconds["refine_s"] = time.perf_counter() - verified
-        return _empty(), rejected
+        return _empty(), _rejection_frame(rejected)
     sigma = fit = np.full(len(cand), np.nan)
     if refine_points:
         corners = refine_corners(img, cand)
@@ -315,15 +314,13 @@ def detections(img: np.ndarray, cand: np.ndarray, contrast: float, lit_contrast:
         shade = tuple(np.concatenate([a, b]) for a, b in zip(shade, more))
         dropped = ~ok
         dropped[asymmetric[why == ""]] = False
-        failed = pd.DataFrame({"u": cand[dropped, 0], "v": cand[dropped, 1], "reason": corners.reason[dropped]})
-        rejected = pd.concat([rejected, failed], ignore_index=True) if len(failed) else rejected
+        rejected.append((cand[dropped], corners.reason[dropped]))
         cand, radius, quality = corners.uv[ok], radius[ok], quality[ok]
         sigma, fit = corners.sigma_px[ok], corners.fit_residual[ok]
         # The refined centre must still be the centre of a clean X.
         radius = np.minimum(radius, clean_radius(img, cand, min_quality=min_quality))
         ok = radius >= MIN_CLEAN_RADIUS
-        lost = pd.DataFrame({"u": cand[~ok, 0], "v": cand[~ok, 1], "reason": "no clean X at the fit"})
-        rejected = pd.concat([rejected, lost], ignore_index=True) if len(lost) else rejected
+        rejected.append((cand[~ok], "no clean X at the fit"))
         cand, radius, quality, sigma, fit = cand[ok], radius[ok], quality[ok], sigma[ok], fit[ok]
     # X-corners a shadow edge crosses come fitted with it (`shadow.shadowed_corners`).
     cand, radius, quality, sigma, fit = (np.concatenate([a, b]) for a, b in zip((cand, radius, quality, sigma, fit),
@@ -332,25 +329,30 @@ def detections(img: np.ndarray, cand: np.ndarray, contrast: float, lit_contrast:
     # is mostly none (a "virtual" X of an outline and a shadow edge along its stem; true corners of
     # the benchmarks' hardest regimes stay below ~0.09 px).
     sure = ~(sigma > MAX_SIGMA_PX)
-    if not sure.all():
-        vague = pd.DataFrame({"u": cand[~sure, 0], "v": cand[~sure, 1], "reason": UNCERTAIN})
-        rejected = pd.concat([rejected, vague], ignore_index=True)
-        cand, radius, quality, sigma, fit = cand[sure], radius[sure], quality[sure], sigma[sure], fit[sure]
+    rejected.append((cand[~sure], UNCERTAIN))
+    cand, radius, quality, sigma, fit = cand[sure], radius[sure], quality[sure], sigma[sure], fit[sure]
     score = np.clip(quality * np.minimum(radius, 10.0) / 10.0, 0.0, 1.0)
     ground = ground_texture_like(img, cand, radius, score, texture)
-    if ground.any():
-        textured = pd.DataFrame({"u": cand[ground, 0], "v": cand[ground, 1], "reason": TEXTURE})
-        rejected = pd.concat([rejected, textured], ignore_index=True)
-        cand, score, sigma, fit = cand[~ground], score[~ground], sigma[~ground], fit[~ground]
+    rejected.append((cand[ground], TEXTURE))
+    cand, score, sigma, fit = cand[~ground], score[~ground], sigma[~ground], fit[~ground]
     keep = _dedupe(cand, score)
+    keep = keep[np.lexsort((cand[keep, 0], cand[keep, 1]))]  # by v, then u
     frame = pd.DataFrame({"u": cand[keep, 0], "v": cand[keep, 1], "score": score[keep], "sigma_px": sigma[keep],
-                          "fit_residual": fit[keep]}).sort_values(["v", "u"], ignore_index=True)
-    if len(rejected) and len(frame):
-        # A second candidate of a detected X-corner (e.g. started as a shadowed X) is no rejection.
-        distance = cKDTree(frame[["u", "v"]].to_numpy()).query(rejected[["u", "v"]].to_numpy(dtype=float))[0]
-        rejected = rejected[distance >= DUPLICATE_PX].reset_index(drop=True)
+                          "fit_residual": fit[keep]})
     seconds["refine_s"] = time.perf_counter() - verified
-    return frame, rejected
+    return frame, _rejection_frame(rejected, cand[keep])
+
+
+def _rejection_frame(pieces: list[tuple], detected: np.ndarray | None = None) -> pd.DataFrame:
+    """The rejections u, v, reason (object) of pieces (uv (n, 2), reason: one or (n,)) in their order,
+    those within DUPLICATE_PX of a detection of detected (m, 2) left out: a second candidate of a
+    detected X-corner (e.g. started as a shadowed X) is no rejection."""
+    uv = np.concatenate([np.asarray(where, dtype=float).reshape(-1, 2) for where, _ in pieces])
+    reason = np.concatenate([np.broadcast_to(np.asarray(why, dtype=object), (len(where),)) for where, why in pieces])
+    if len(uv) and detected is not None and len(detected):
+        kept = cKDTree(detected).query(uv)[0] >= DUPLICATE_PX
+        uv, reason = uv[kept], reason[kept]
+    return pd.DataFrame({"u": uv[:, 0], "v": uv[:, 1], "reason": reason}).astype({"reason": object})
 
 
 def _shadow_fits(img, uv, contrast, min_quality):
@@ -377,7 +379,7 @@ def _verified(img: np.ndarray, cand: np.ndarray, contrast: float, min_quality: f
     if len(cand) == 0:
         return none, np.zeros((0, 2)), tuple(np.zeros((0, 2)) if i == 0 else np.zeros(0) for i in range(5))
     # Prefilter at the unrefined position: a ring of radius 4 px must already look like an X.
-    values = sample(img, cand[:, None, :] + ring_offsets(4.0)[None])
+    values = ring_sample(img, cand, ring_offsets(4.0))
     quality, ring_contrast = ring_quality(values)
     passed = (quality >= PRE_QUALITY) & (np.abs(ring_contrast) >= contrast)
     # A shadowed X keeps its full contrast on the lit side: the rest is texture.
@@ -429,14 +431,14 @@ def shadowed_x(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: fl
     # centre adds only a constant, must already look like an X of some contrast (not noise along a
     # straight edge, where it is flat).
     offsets = ring_offsets(SHADOW_RADII[0], SHADOW_SAMPLES)
-    values = log_sample(img, uv[:, None, :] + offsets[None])
+    values = log_ring_sample(img, uv, offsets)
     quality, high, low, _ = ring_stats(0.5 * (values + np.roll(values, SHADOW_SAMPLES // 2, axis=1)))
     ok = (quality >= 0.5) & (high - low >= MIN_SHADOW_LOG)
     direction = None
     for radius in SHADOW_RADII:
         if not ok.any():
             break
-        values = log_sample(img, uv[ok, None, :] + ring_offsets(radius, SHADOW_SAMPLES)[None])
+        values = log_ring_sample(img, uv[ok], ring_offsets(radius, SHADOW_SAMPLES))
         good, phi = _best_shadow_line(values, contrast, min_quality)
         if direction is not None:
             good &= np.abs(np.angle(np.exp(1j * (phi - direction[ok])))) <= np.radians(30.0)

@@ -71,10 +71,17 @@ def _nominal_camera(dataset: Dataset, camera: str, calibrated: Camera | None) ->
     return Camera(spec.focal_px, spec.focal_px, *image_centre(spec.width, spec.height), 0.0, spec.width, spec.height)
 
 
+def _first_row(table: pd.DataFrame, column: str, value) -> dict:
+    """{column name: value} of the first row of `table` whose `column` is `value` (IndexError where none),
+    as `table[table[column] == value].iloc[0]` has them, without making that frame and Series."""
+    at = np.flatnonzero((table[column] == value).to_numpy())[0]
+    return {name: table[name].iat[at] for name in table.columns}
+
+
 def _prediction_model(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None):
     """(camera, cam_from_world, points) that predict where `image` sees the known points, or a
     sentence saying what is missing for that (which priors, focal_px, the calibrated rig)."""
-    row = dataset.images[dataset.images["image"] == image].iloc[0]
+    row = _first_row(dataset.images, "image", image)
     camera_name = row["camera"]
     if row["stage"] == "flight":
         if rig is None:
@@ -82,17 +89,17 @@ def _prediction_model(dataset: Dataset, image: str, rig: Rig | None = None, cali
                    "(run `dmais extrinsics` first)"
         if camera_name not in rig.cameras:
             return f"camera {camera_name} is not in rig.json"
-        frame = dataset.frames[dataset.frames["frame"] == row["placement"]].iloc[0]
-        q = frame[["prior_qw", "prior_qx", "prior_qy", "prior_qz"]].to_numpy(dtype=float)
-        centre = frame[["pos_x", "pos_y", "pos_z"]].to_numpy(dtype=float)
+        frame = _first_row(dataset.frames, "frame", row["placement"])
+        q = np.array([frame[c] for c in ("prior_qw", "prior_qx", "prior_qy", "prior_qz")], dtype=float)
+        centre = np.array([frame[c] for c in ("pos_x", "pos_y", "pos_z")], dtype=float)
         if not np.all(np.isfinite(q)):
             return f"frame {row['placement']!r} of frames.csv has no prior_qw..prior_qz (the INS attitude)"
         rig_from_world = Rigid3.from_quat(q, np.zeros(3))
         rig_from_world = Rigid3.from_quat(q, -rig_from_world.R @ centre)
         points = dataset.ground_points if len(dataset.ground_points) else dataset.points
         return rig.cameras[camera_name], rig.cam_from_rig[camera_name] * rig_from_world, points
-    q = row[["prior_qw", "prior_qx", "prior_qy", "prior_qz"]].to_numpy(dtype=float)
-    centre = row[["prior_x", "prior_y", "prior_z"]].to_numpy(dtype=float)
+    q = np.array([row[c] for c in ("prior_qw", "prior_qx", "prior_qy", "prior_qz")], dtype=float)
+    centre = np.array([row[c] for c in ("prior_x", "prior_y", "prior_z")], dtype=float)
     missing = [f"{name} in images.csv" for name, values in (("prior_x..prior_z (camera centre)", centre),
                                                             ("prior_qw..prior_qz (attitude)", q))
                if not np.all(np.isfinite(values))]
@@ -163,7 +170,7 @@ def search_windows(model, attitude_deg: float = PRIOR_ATTITUDE_DEG, position_m: 
     (summed): then it is searched whole. projected: `_projections(model, margin_px)` if already made."""
     camera, cam_from_world, points = model
     uv, ids = _projections(model, margin_px) if projected is None else projected
-    xyz = cam_from_world.apply(points.loc[ids, ["x", "y", "z"]].to_numpy(dtype=float))
+    xyz = cam_from_world.apply(points[["x", "y", "z"]].to_numpy(dtype=float)[points.index.get_indexer(ids)])
     reach = prediction_radius(camera, xyz, attitude_deg, position_m) + gate_px
     boxes = np.column_stack([uv - reach[:, None], uv + reach[:, None]])
     image = np.array([-0.5, -0.5, camera.width - 0.5, camera.height - 0.5])
@@ -242,7 +249,7 @@ def _identified(dataset: Dataset, image: str, pixels: np.ndarray, predicted: tup
                                       rejected=rejected[["u", "v"]].to_numpy(dtype=float), gate_px=identify_gate_px,
                                       min_inliers=identify_min_inliers, projective=wide_field(model[0]))
         found["point_id"], found["id_refusal"] = named.ids, named.reasons
-        if dataset.images.loc[dataset.images["image"] == image, "stage"].iloc[0] != "flight":
+        if _first_row(dataset.images, "image", image)["stage"] != "flight":
             verified = verify_with_pose(found[["u", "v"]].to_numpy(), named.ids, dataset.points,
                                         image_centre(width, height), gate_px)
             found.loc[(verified == "") & (named.ids != ""), "id_refusal"] = (

@@ -16,7 +16,7 @@ import numpy as np
 
 from . import xfit
 from .centring import seed
-from .rings import RADII, as_float_image, clean_radius, ring_offsets, ring_params, sample
+from .rings import RADII, as_float_image, clean_radius, ring_offsets, ring_params, ring_sample, sample
 from .shadow import shadowed_corners
 from .xfit import rejection_reasons
 
@@ -191,7 +191,8 @@ def symmetric_radius(img: np.ndarray, centre: np.ndarray, contrast: np.ndarray, 
     what the test looks for: the residual includes the misfit of a shadow edge within the window,
     and in a window cut to a few px every ring crosses the edge."""
     radii = np.arange(2.0, float(np.nanmax(radius)) + 1.0 + REACH_PX)
-    values = sample(img, centre[:, None, None, :] + radii[None, :, None, None] * ring_offsets(1.0)[None, None])
+    offsets = (radii[:, None, None] * ring_offsets(1.0)[None]).reshape(-1, 2)  # (r k, 2)
+    values = ring_sample(img, centre, offsets).reshape(len(centre), len(radii), -1)
     half = values.shape[2] // 2
     within = radii[None] <= radius[:, None] + REACH_PX  # (n, r)
     asym = np.sqrt(np.mean((values[:, :, :half] - values[:, :, half:]) ** 2, axis=2))  # (n, r)

@@ -108,6 +108,19 @@ def sample(image: np.ndarray | ImageParts, xy: np.ndarray) -> np.ndarray:
     return values.reshape(xy.shape[:-1])
 
 
+def ring_sample(image: np.ndarray | ImageParts, centres: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(..., k) `sample(image, centres[..., None, :] + offsets)` at centres (..., 2) and offsets (k, 2),
+    to the last bit: the positions made and sampled in one compiled loop (`_rings.ring_samples`) for a
+    float32 image or ImageParts."""
+    centres = np.asarray(centres, dtype=float)
+    offsets = np.asarray(offsets, dtype=float)
+    flat = _flat(image)
+    if flat is None:
+        return sample(image, centres[..., None, :] + offsets)
+    out = _rings.ring_samples(*flat, centres.reshape(-1, 2), offsets.reshape(-1, 2))
+    return out.reshape(centres.shape[:-1] + (len(offsets),))
+
+
 def _bilinear(image: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """(n,) bilinear samples of `image` (h, w) at float32 positions xy (n, 2): cv2.remap's
     (INTER_LINEAR, BORDER_REPLICATE), in one compiled loop (`_rings.sample`) for a float32 image."""

@@ -45,9 +45,9 @@ from functools import lru_cache
 import numpy as np
 from scipy.special import ndtr
 
-from . import xfit
+from . import _shadow, xfit
 from .centring import seed
-from .rings import RADII, clean_radius, ring_offsets, ring_params, ring_stats, sample
+from .rings import RADII, clean_radius, ring_offsets, ring_params, ring_sample, ring_stats, sample
 from .xfit import rejection_reasons
 
 SHADOW_REASON = "shadow edge at the corner"
@@ -183,7 +183,17 @@ def symmetric_centre(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 def _most_symmetric_x(img: np.ndarray, points: np.ndarray, k: int) -> np.ndarray:
     """(n, 2) of points (n, g, 2), the one per row whose log ring of CENTRE_RING_PX (k samples) has
-    the point-symmetric part most like an X."""
+    the point-symmetric part most like an X: `_most_symmetric_x_numpy`'s, scored and chosen in one
+    compiled pass (`_shadow.most_symmetric`)."""
+    n, g = points.shape[:2]
+    if n == 0:
+        return np.zeros((0, 2))
+    logs = log_ring_sample(img, points, ring_offsets(CENTRE_RING_PX, k))
+    return points[np.arange(n), _shadow.most_symmetric(logs.reshape(n * g, -1), g)]
+
+
+def _most_symmetric_x_numpy(img: np.ndarray, points: np.ndarray, k: int) -> np.ndarray:
+    """`_most_symmetric_x` in numpy (the reference of tests/test_marker_shadow_start.py)."""
     n, g = points.shape[:2]
     if n == 0:
         return np.zeros((0, 2))
@@ -348,7 +358,7 @@ def _start_params(img: np.ndarray, uv: np.ndarray, min_x_log: float = MIN_X_LOG)
     sure (n,): the step is the same on the ring of CHECK_RING_PX (else only on the ring of
     INNER_RING_PX, which stays inside markers whose cells are ~5 px across, foreshortened or small)."""
     offsets = ring_offsets(START_RING_PX)
-    logs = log_sample(img, uv[:, None, :] + offsets[None]).astype(np.float64)
+    logs = log_ring_sample(img, uv, offsets).astype(np.float64)
     # Cheap first: the point-symmetric part of the ring, where a shadow line near the centre adds
     # little more than a constant, must already be an X (not a straight edge: flat there) of a
     # marker's log contrast, which the shade does not change (texture's is mostly less).
@@ -379,7 +389,7 @@ def _start_params(img: np.ndarray, uv: np.ndarray, min_x_log: float = MIN_X_LOG)
 def _same_step(img: np.ndarray, uv: np.ndarray, phi: np.ndarray, radius: float) -> np.ndarray:
     """(n,) where the best straight step (`_best_step`) on the log ring of `radius` about uv (n, 2)
     runs within MAX_TURN of the directions phi (n,) found on the start ring."""
-    ring = log_sample(img, uv[:, None, :] + ring_offsets(radius)[None]).astype(np.float64)
+    ring = log_ring_sample(img, uv, ring_offsets(radius)).astype(np.float64)
     return np.abs(np.angle(np.exp(1j * (phi - _best_step(ring)[0])))) <= MAX_TURN
 
 
@@ -392,12 +402,33 @@ def _best_step(logs: np.ndarray):
     n, k = logs.shape
     if n == 0:
         return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros((0, k))
+    shade, g, norm = _step_sizes(logs)
+    line, ok, step, lit = _shadow.best_steps(logs, g, norm, shade, line_ends(_STEPS, k).reshape(len(_STEPS), -1),
+                                             MIN_STEP_LOG, TOP_STEPS, MIN_START_QUALITY, SAME_RATIO,
+                                             MIN_SIDE_SAMPLES)
+    lines, nan = np.array(_STEPS)[line], np.full(n, np.nan)
+    return np.where(ok, lines[:, 0], nan), np.where(ok, lines[:, 1] * START_RING_PX, nan), np.where(ok, step, nan), lit
+
+
+def _step_sizes(logs: np.ndarray):
+    """(shaded samples (l, k) of the lines of _STEPS, the log step sizes (n, l) that fit the point
+    asymmetry of the log rings logs (n, k) best, the lines' asymmetries' squared norms (l,))."""
+    k = logs.shape[1]
     shade, asym = step_masks(_STEPS, k)
     anti = logs - np.roll(logs, k // 2, axis=1)
     norm = np.maximum((asym * asym).sum(axis=1), 1e-9)
-    g = anti @ asym.T / norm  # (n, l)
+    return shade, anti @ asym.T / norm, norm
+
+
+def _best_step_numpy(logs: np.ndarray):
+    """`_best_step` in numpy (the reference of tests/test_marker_shadow_start.py; its ring with the step
+    taken away only where a step is found)."""
+    n, k = logs.shape
+    if n == 0:
+        return np.zeros(0), np.zeros(0), np.zeros(0), np.zeros((0, k))
+    shade, g, norm = _step_sizes(logs)
     explained = np.where(-g >= MIN_STEP_LOG, g * g * norm, -1.0)
-    top = np.argsort(-explained, axis=1)[:, :TOP_STEPS]  # (n, t)
+    top = np.argsort(-explained, axis=1, kind="stable")[:, :TOP_STEPS]  # (n, t)
     g = np.take_along_axis(g, top, axis=1)
     shade = shade[top]  # (n, t, k)
     lit = logs[:, None, :] - g[:, :, None] * shade
@@ -438,6 +469,11 @@ def log_sample(img: np.ndarray, points: np.ndarray) -> np.ndarray:
     """log of the image (h, w) sampled at points (..., 2) (`rings.sample`), from 1 up: a shadow's
     factor on the light is a step there."""
     return np.log(np.maximum(sample(img, points), 1.0))
+
+
+def log_ring_sample(img: np.ndarray, centres: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(..., k) `log_sample` at centres (..., 2) + offsets (k, 2), to the last bit (`rings.ring_sample`)."""
+    return np.log(np.maximum(ring_sample(img, centres, offsets), 1.0))
 
 
 @lru_cache(maxsize=8)

@@ -1,0 +1,159 @@
+# cython: language_level=3, boundscheck=False, wraparound=False, cdivision=True, initializedcheck=False
+"""Compiled loops of markers.shadow's start: the symmetric centre's choice among a grid of log rings
+(`shadow._most_symmetric_x`) and the best straight step of log rings (`shadow._best_step`), each ring's
+numbers as numpy's expressions make them (`shadow._most_symmetric_x_numpy`, `shadow._best_step_numpy`):
+the ring statistics by `_rings.one_ring` (np.sum's pairwise order), libm's exp (numpy's float64 exp on a
+CPU without AVX-512, as here), the steps ordered as np.argsort(kind="stable") orders them. The log of the
+samples and the steps' least-squares sizes (a matrix product) stay numpy's. tests/test_marker_shadow_start.py
+compares both with numpy's."""
+
+import numpy as np
+
+from libc.math cimport INFINITY, exp
+
+from dmais_pipe.markers._rings cimport one_ring
+from dmais_pipe.markers._sums cimport pairwise_sum
+
+
+def most_symmetric(logs, Py_ssize_t groups):
+    """(n,) intp: per run of `groups` rings of the float32 log rings logs (n groups, k), the index in
+    the run of the ring whose point-symmetric part, 0.5 (ring + ring rolled by k // 2), has the
+    largest quality x (bright - dark level) (`_rings.one_ring`), the first of equals (np.argmax: the
+    first NaN where there is one)."""
+    cdef const float[:, ::1] v = np.ascontiguousarray(logs, dtype=np.float32)
+    cdef Py_ssize_t k = v.shape[1], n = v.shape[0] // groups if groups else 0, half = k // 2, i, j, a, r
+    out = np.zeros(n, dtype=np.intp)
+    cdef Py_ssize_t[::1] best = out
+    work = np.empty(2 * k if k else 1)
+    cdef double[::1] w = work
+    masks = np.empty(k if k else 1, dtype=np.uint8)
+    cdef unsigned char[::1] m = masks
+    cdef double quality, high, low, score, top
+    if k == 0:
+        raise ValueError("rings of no samples")
+    with nogil:
+        for i in range(n):
+            top = -INFINITY
+            for j in range(groups):
+                r = i * groups + j
+                for a in range(k):  # np.roll by half: the sample half a ring before
+                    w[a] = 0.5 * (<double>v[r, a] + <double>v[r, a - half if a >= half else a - half + k])
+                one_ring(&w[0], k, &w[k], &m[0], &quality, &high, &low)
+                score = quality * (high - low)
+                if score != score:
+                    best[i] = j
+                    break
+                if j == 0 or score > top:
+                    best[i], top = j, score
+    return out
+
+
+cdef inline bint after(double a, double b) noexcept nogil:
+    """Whether np.sort puts a after b: a larger, or a NaN and b not."""
+    return a > b or (a != a and b == b)
+
+
+cdef void stable_order(const double *key, Py_ssize_t l, Py_ssize_t *order) noexcept nogil:
+    """order (l): the indexes of key (l) as np.argsort(key, kind="stable") has them (NaN last)."""
+    cdef Py_ssize_t i, j, index
+    for i in range(l):
+        index, j = i, i
+        while j > 0 and after(key[order[j - 1]], key[index]):
+            order[j] = order[j - 1]
+            j -= 1
+        order[j] = index
+
+
+cdef bint both_sides(const double *lit, const unsigned char *bright, const double *shade, Py_ssize_t k,
+                     Py_ssize_t min_samples, double same_ratio, double *t) noexcept nogil:
+    """`shadow.both_sides` of one log ring lit (k) with its bright mask (k) and a step's shaded samples
+    shade (k, 0 or 1); t: k doubles of scratch."""
+    cdef double contrast[2]
+    cdef double side, n_bright, n_dark, low, high
+    cdef Py_ssize_t s, a
+    cdef bint both = True
+    for s in range(2):
+        n_bright, n_dark = 0.0, 0.0
+        for a in range(k):
+            side = shade[a] if s == 0 else 1.0 - shade[a]
+            n_bright += side if bright[a] else 0.0
+            n_dark += 0.0 if bright[a] else side
+        both = both and n_bright >= min_samples and n_dark >= min_samples
+        for a in range(k):
+            side = shade[a] if s == 0 else 1.0 - shade[a]
+            t[a] = lit[a] * (side if bright[a] else 0.0 * side)
+        contrast[s] = pairwise_sum(t, k) / (n_bright if n_bright > 1.0 else 1.0)
+        for a in range(k):
+            side = shade[a] if s == 0 else 1.0 - shade[a]
+            t[a] = lit[a] * (0.0 * side if bright[a] else side)
+        contrast[s] = contrast[s] - pairwise_sum(t, k) / (n_dark if n_dark > 1.0 else 1.0)
+    if contrast[0] != contrast[0] or contrast[1] != contrast[1]:
+        return False  # np.minimum and np.maximum propagate NaN, and NaN >= x is False
+    low = contrast[0] if contrast[0] < contrast[1] else contrast[1]
+    high = contrast[1] if contrast[0] < contrast[1] else contrast[0]
+    return both and low >= same_ratio * high
+
+
+def best_steps(logs, g, norm, shade, ends, double min_step, Py_ssize_t top, double min_quality, double same_ratio,
+               Py_ssize_t min_samples):
+    """`shadow._best_step`'s choice for log rings logs (n, k) and the log steps g (n, l) of the lines
+    whose shaded samples are shade (l, k) (0 or 1), norm (l,) their asymmetries' squared norms and ends
+    (l, e) the ring samples about the points where each line crosses the ring: per ring, the line
+    index (n,) of the best step of the `top` that explain the most of its point asymmetry (ordered as
+    np.argsort(kind="stable") orders -explained), whether its X is good enough (n,), its log step (n,)
+    and the ring with it taken away (n, k)."""
+    cdef const double[:, ::1] v = np.ascontiguousarray(logs, dtype=np.float64)
+    cdef const double[:, ::1] steps = np.ascontiguousarray(g, dtype=np.float64)
+    cdef const double[::1] norms = np.ascontiguousarray(norm, dtype=np.float64)
+    cdef const double[:, ::1] shaded = np.ascontiguousarray(shade, dtype=np.float64)
+    cdef const Py_ssize_t[:, ::1] crossing = np.ascontiguousarray(ends, dtype=np.intp)
+    cdef Py_ssize_t n = v.shape[0], k = v.shape[1], l = steps.shape[1], e = crossing.shape[1], i, s, a, line
+    cdef Py_ssize_t t = top if top < l else l, chosen
+    choice, good, step = np.zeros(n, dtype=np.intp), np.zeros(n, dtype=bool), np.zeros(n)
+    lit_out = np.zeros((n, k))
+    cdef Py_ssize_t[::1] c = choice
+    cdef unsigned char[::1] ok = good.view(np.uint8)
+    cdef double[::1] out_step = step
+    cdef double[:, ::1] out_lit = lit_out
+    work = np.empty(l + 4 * k + 1)
+    cdef double[::1] w = work  # -explained (l), lit (k), exp(lit) (k), scratch (2 k)
+    orders = np.empty(l + 1, dtype=np.intp)
+    cdef Py_ssize_t[::1] order = orders
+    masks = np.empty(k + 1, dtype=np.uint8)
+    cdef unsigned char[::1] bright = masks
+    cdef double gl, quality, high, low, best, score
+    cdef double *lit = &w[l]
+    cdef double *light = &w[l + k]
+    cdef bint crosses
+    if n == 0 or t == 0:
+        return choice, good, step, lit_out
+    with nogil:
+        for i in range(n):
+            for line in range(l):
+                gl = steps[i, line]
+                w[line] = -(gl * gl * norms[line] if -gl >= min_step else -1.0)
+            stable_order(&w[0], l, &order[0])
+            best, chosen = 0.0, 0
+            for s in range(t):
+                line = order[s]
+                gl = steps[i, line]
+                for a in range(k):
+                    lit[a] = v[i, a] - gl * shaded[line, a]
+                    light[a] = exp(lit[a])
+                one_ring(light, k, &w[l + 2 * k], &bright[0], &quality, &high, &low)
+                crosses = True
+                for a in range(1, e):
+                    crosses = crosses and bright[crossing[line, a]] == bright[crossing[line, 0]]
+                score = quality if (-gl >= min_step and crosses and
+                                    both_sides(lit, &bright[0], &shaded[line, 0], k, min_samples, same_ratio,
+                                               &w[l + 2 * k])) else -1.0
+                if score != score:  # np.argmax: the first NaN
+                    best, chosen = score, s
+                    break
+                if s == 0 or score > best:
+                    best, chosen = score, s
+            line = order[chosen]
+            c[i], ok[i], out_step[i] = line, best >= min_quality, steps[i, line]
+            for a in range(k):
+                out_lit[i, a] = v[i, a] - steps[i, line] * shaded[line, a]
+    return choice, good, step, lit_out
