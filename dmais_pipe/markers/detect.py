@@ -352,7 +352,12 @@ def _rejection_frame(pieces: list[tuple], detected: np.ndarray | None = None) ->
     if len(uv) and detected is not None and len(detected):
         kept = cKDTree(detected).query(uv)[0] >= DUPLICATE_PX
         uv, reason = uv[kept], reason[kept]
-    return pd.DataFrame({"u": uv[:, 0], "v": uv[:, 1], "reason": reason}).astype({"reason": object})
+    return pd.DataFrame({"u": uv[:, 0], "v": uv[:, 1], "reason": pd.Series(reason, dtype=object)})
+
+
+def uv_of(frame: pd.DataFrame) -> np.ndarray:
+    """(n, 2) float: the u, v columns of a detections or rejections frame (`frame[["u", "v"]]`'s values)."""
+    return np.column_stack([frame["u"].to_numpy(dtype=float), frame["v"].to_numpy(dtype=float)]).reshape(-1, 2)
 
 
 def _shadow_fits(img, uv, contrast, min_quality):

@@ -40,7 +40,7 @@ from ..dataset import Dataset
 from ..errors import DmaisError
 from ..geometry import Rigid3, exp_so3
 from ..rig import Rig
-from .detect import detect
+from .detect import detect, uv_of
 from .identify import GATE_PX, MIN_INLIERS, identify_with_reasons
 from .windows import detect_in_windows
 
@@ -60,6 +60,7 @@ PRIOR_ATTITUDE_DEG = 3.0
 PRIOR_POSITION_M = 0.5
 #: Windows covering more than this share of an image (summed) cost about as much as the whole image.
 MAX_WINDOW_SHARE = 0.5
+_QUAT = ("prior_qw", "prior_qx", "prior_qy", "prior_qz")
 
 
 def _nominal_camera(dataset: Dataset, camera: str, calibrated: Camera | None) -> Camera | None:
@@ -71,17 +72,21 @@ def _nominal_camera(dataset: Dataset, camera: str, calibrated: Camera | None) ->
     return Camera(spec.focal_px, spec.focal_px, *image_centre(spec.width, spec.height), 0.0, spec.width, spec.height)
 
 
-def _first_row(table: pd.DataFrame, column: str, value) -> dict:
-    """{column name: value} of the first row of `table` whose `column` is `value` (IndexError where none),
-    as `table[table[column] == value].iloc[0]` has them, without making that frame and Series."""
+_IMAGE_COLUMNS = ("camera", "stage", "placement", "prior_x", "prior_y", "prior_z") + _QUAT
+_FRAME_COLUMNS = ("pos_x", "pos_y", "pos_z") + _QUAT
+
+
+def _first_row(table: pd.DataFrame, column: str, value, names: tuple) -> dict:
+    """{name: value} of `names` in the first row of `table` whose `column` is `value` (IndexError where
+    none), as `table[table[column] == value].iloc[0]` has them, without making that frame and Series."""
     at = np.flatnonzero((table[column] == value).to_numpy())[0]
-    return {name: table[name].iat[at] for name in table.columns}
+    return {name: table[name].iat[at] for name in names}
 
 
 def _prediction_model(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None):
     """(camera, cam_from_world, points) that predict where `image` sees the known points, or a
     sentence saying what is missing for that (which priors, focal_px, the calibrated rig)."""
-    row = _first_row(dataset.images, "image", image)
+    row = _first_row(dataset.images, "image", image, _IMAGE_COLUMNS)
     camera_name = row["camera"]
     if row["stage"] == "flight":
         if rig is None:
@@ -89,8 +94,8 @@ def _prediction_model(dataset: Dataset, image: str, rig: Rig | None = None, cali
                    "(run `dmais extrinsics` first)"
         if camera_name not in rig.cameras:
             return f"camera {camera_name} is not in rig.json"
-        frame = _first_row(dataset.frames, "frame", row["placement"])
-        q = np.array([frame[c] for c in ("prior_qw", "prior_qx", "prior_qy", "prior_qz")], dtype=float)
+        frame = _first_row(dataset.frames, "frame", row["placement"], _FRAME_COLUMNS)
+        q = np.array([frame[c] for c in _QUAT], dtype=float)
         centre = np.array([frame[c] for c in ("pos_x", "pos_y", "pos_z")], dtype=float)
         if not np.all(np.isfinite(q)):
             return f"frame {row['placement']!r} of frames.csv has no prior_qw..prior_qz (the INS attitude)"
@@ -98,7 +103,7 @@ def _prediction_model(dataset: Dataset, image: str, rig: Rig | None = None, cali
         rig_from_world = Rigid3.from_quat(q, -rig_from_world.R @ centre)
         points = dataset.ground_points if len(dataset.ground_points) else dataset.points
         return rig.cameras[camera_name], rig.cam_from_rig[camera_name] * rig_from_world, points
-    q = np.array([row[c] for c in ("prior_qw", "prior_qx", "prior_qy", "prior_qz")], dtype=float)
+    q = np.array([row[c] for c in _QUAT], dtype=float)
     centre = np.array([row[c] for c in ("prior_x", "prior_y", "prior_z")], dtype=float)
     missing = [f"{name} in images.csv" for name, values in (("prior_x..prior_z (camera centre)", centre),
                                                             ("prior_qw..prior_qz (attitude)", q))
@@ -245,12 +250,12 @@ def _identified(dataset: Dataset, image: str, pixels: np.ndarray, predicted: tup
     if not isinstance(model, str) and len(found):
         uv, ids = projected
         height, width = pixels.shape
-        named = identify_with_reasons(found[["u", "v"]].to_numpy(), uv, ids, (width, height),
-                                      rejected=rejected[["u", "v"]].to_numpy(dtype=float), gate_px=identify_gate_px,
+        named = identify_with_reasons(uv_of(found), uv, ids, (width, height),
+                                      rejected=uv_of(rejected), gate_px=identify_gate_px,
                                       min_inliers=identify_min_inliers, projective=wide_field(model[0]))
         found["point_id"], found["id_refusal"] = named.ids, named.reasons
-        if _first_row(dataset.images, "image", image)["stage"] != "flight":
-            verified = verify_with_pose(found[["u", "v"]].to_numpy(), named.ids, dataset.points,
+        if _first_row(dataset.images, "image", image, ("stage",))["stage"] != "flight":
+            verified = verify_with_pose(uv_of(found), named.ids, dataset.points,
                                         image_centre(width, height), gate_px)
             found.loc[(verified == "") & (named.ids != ""), "id_refusal"] = (
                 f"the pose fitted to the image's ids misses it by more than {gate_px:g} px")

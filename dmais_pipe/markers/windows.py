@@ -37,7 +37,7 @@ import numpy as np
 import pandas as pd
 
 from .detect import (DUPLICATE_PX, MOVE_PX, REACH_PX, RESPONSE_SUPPORT_PX, clutter_of_tiles, contrasts, detect,
-                     detections, saddle_peaks, saddle_response, strongest, tile_boxes)
+                     detections, saddle_peaks, saddle_response, strongest, tile_boxes, uv_of)
 from .rings import ImageParts, as_float_image
 
 #: Crops start on a multiple of this many columns (OpenCV's widest vector is 16 floats of the level).
@@ -149,7 +149,7 @@ def _inside(found: tuple[pd.DataFrame, pd.DataFrame], boxes: np.ndarray, with_re
     """The detections (and rejections) of `found` whose u, v lie in one of the windows boxes (m, 4)."""
     kept = []
     for frame in found:
-        uv = frame[["u", "v"]].to_numpy(dtype=float)
+        uv = uv_of(frame)
         inside = ((uv[:, None, 0] >= boxes[None, :, 0]) & (uv[:, None, 1] >= boxes[None, :, 1])
                   & (uv[:, None, 0] <= boxes[None, :, 2]) & (uv[:, None, 1] <= boxes[None, :, 3])).any(axis=1)
         kept.append(frame[inside].reset_index(drop=True))
