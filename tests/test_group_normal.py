@@ -81,7 +81,7 @@ def test_the_blocks_are_those_of_the_whole_jacobian(kind):
 @pytest.mark.parametrize("kind, n_frames", [("shared", 9), ("own", 9), ("own_twice", 9), ("line", 9),
                                            ("line", 120), ("shuffled_line", 120)])
 def test_each_elimination_solves_as_the_dense_matrix(kind, n_frames, method, solve_block, monkeypatch):
-    monkeypatch.setattr(group_normal, "PAIR_CHUNK", 50)  # several chunks of observation pairs
+    monkeypatch.setattr(group_normal, "POINT_CHUNK", 7)  # several chunks of points
     monkeypatch.setattr(group_normal, "SOLVE_BLOCK", solve_block)  # blocks within and wider than a line's band
     monkeypatch.setattr(group_normal, "CHUNK_NUMBERS", 2000)  # several chunks of frames
     structure, normal, _, _ = random_normal(kind, n_frames, method)
@@ -143,6 +143,27 @@ def test_an_undetermined_frame_is_refused(method):
     normal.Wp[structure.frame == 2] = 0.0
     with pytest.raises(DmaisError, match="not determined"):
         solve(normal, np.ones((structure.size, 1)))
+
+
+@pytest.mark.parametrize("segment_bytes", [20_000, 60_000])
+@pytest.mark.parametrize("kind", ["line", "shuffled_line"])
+def test_a_band_made_a_segment_at_a_time_solves_as_the_kept_one(kind, segment_bytes, monkeypatch):
+    monkeypatch.setattr(group_normal, "POINT_CHUNK", 7)
+    structure, normal, _, _ = random_normal(kind, 120, POINTS_FIRST)
+    normal = with_priors(normal)
+    right = np.random.default_rng(1).normal(size=(structure.size, 3))
+    kept = solve(normal, right)
+    monkeypatch.setattr(group_normal, "KEPT_FACTOR_BYTES", 0)
+    monkeypatch.setattr(group_normal, "SEGMENT_BYTES", segment_bytes)  # 12 and 4 segments of a band of 2 frames
+    assert len(group_normal._segment_bounds(120, structure.band, L)) - 1 == 233_280 // segment_bytes + 1
+    streamed = solve(normal, right)
+    dense = normal.dense()
+    for x, rig_inverse in (kept, streamed):
+        np.testing.assert_allclose(x, np.linalg.solve(dense, right), rtol=1e-9, atol=1e-12)
+        first = structure.n_frames * L
+        np.testing.assert_allclose(rig_inverse, np.linalg.inv(dense)[first:first + R, first:first + R], rtol=1e-9,
+                                   atol=1e-14)
+    np.testing.assert_allclose(streamed[0], kept[0], rtol=1e-12, atol=1e-14)
 
 
 def test_a_group_whose_frames_system_would_not_fit_is_refused(monkeypatch):

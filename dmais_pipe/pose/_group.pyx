@@ -642,3 +642,81 @@ def radial1_residuals(const double[:, ::1] x, const Py_ssize_t[::1] camera, cons
             J_e[i, 1, 0], J_e[i, 1, 1] = j10 * inverse_z * w, j11 * inverse_z * w
             J_e[i, 1, 2] = (j10 * (-xn / x[i, 2]) + j11 * (-yn / x[i, 2])) * w
             J_focal[i, 0], J_focal[i, 1] = xn * s * c[5] * w, yn * s * c[6] * w
+
+
+# ------------------------------------------------------------------------------ the points-first tied frames
+
+
+def frames_band_subtract(const Py_ssize_t[::1] pair_left, const Py_ssize_t[::1] pair_right,
+                         const Py_ssize_t[::1] runs, Py_ssize_t first_run, Py_ssize_t last_run,
+                         const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
+                         const double[:, :, ::1] Wp, const double[:, :, ::1] Hpp_inv, const Py_ssize_t[:, ::1] rows,
+                         double[:, ::1] band) -> None:
+    """Subtract from `band` (S, u + 1; LAPACK's lower band storage transposed: band[r, d] holds (r + d, r)) the
+    sums over the runs first_run to last_run (group_normal.GroupStructure's pair_runs `runs`) of Wp_i Hpp_inv_p
+    Wp_j^T over their pairs (i, j) = (pair_left, pair_right) of observations of a point p: at the rows
+    rows[frame_i, local_cols_i] and the columns rows[frame_j, local_cols_j] (rows (F, L), counted from band's
+    first), where the column is not before the row. Wp (N, l, 3), Hpp_inv (P, 3, 3)."""
+    cdef int l = Wp.shape[1], a, b, c
+    cdef Py_ssize_t run, q, i, j, p, row, column
+    cdef double V[3 * MAX_ROW]
+    cdef double summed[MAX_ROW * MAX_ROW]
+    if l > MAX_ROW:
+        raise ValueError(f"at most {MAX_ROW} local columns per observation, got {l}")
+    with nogil:
+        for run in range(first_run, last_run):
+            memset(summed, 0, l * l * sizeof(double))
+            for q in range(runs[run], runs[run + 1]):
+                i, j, p = pair_left[q], pair_right[q], point[pair_left[q]]
+                for a in range(l):
+                    for c in range(3):
+                        V[3 * a + c] = (Wp[i, a, 0] * Hpp_inv[p, 0, c] + Wp[i, a, 1] * Hpp_inv[p, 1, c]
+                                        + Wp[i, a, 2] * Hpp_inv[p, 2, c])
+                for a in range(l):
+                    for b in range(l):
+                        summed[a * l + b] += V[3 * a] * Wp[j, b, 0] + V[3 * a + 1] * Wp[j, b, 1] \
+                            + V[3 * a + 2] * Wp[j, b, 2]
+            i, j = pair_left[runs[run]], pair_right[runs[run]]
+            for a in range(l):
+                row = rows[frame[i], local_cols[i, a]]
+                for b in range(l):
+                    column = rows[frame[j], local_cols[j, b]]
+                    if column >= row:
+                        band[row, column - row] -= summed[a * l + b]
+
+
+def frames_from_points(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
+                       const double[:, :, ::1] Wp, const double[:, :, ::1] Hpp_inv, const double[:, :, ::1] coupled,
+                       double[:, :, ::1] out) -> None:
+    """Add to out (F, L, q), for every observation i of a point p, Wp_i Hpp_inv_p coupled_p at the rows of its
+    local columns; Wp (N, l, 3), Hpp_inv (P, 3, 3), coupled (P, 3, q)."""
+    cdef Py_ssize_t n = Wp.shape[0], i, p, f
+    cdef int l = Wp.shape[1], q = coupled.shape[2], a, b, c
+    cdef double V[3]
+    with nogil:
+        for i in range(n):
+            p, f = point[i], frame[i]
+            for a in range(l):
+                for c in range(3):
+                    V[c] = Wp[i, a, 0] * Hpp_inv[p, 0, c] + Wp[i, a, 1] * Hpp_inv[p, 1, c] \
+                        + Wp[i, a, 2] * Hpp_inv[p, 2, c]
+                for b in range(q):
+                    out[f, local_cols[i, a], b] += V[0] * coupled[p, 0, b] + V[1] * coupled[p, 1, b] \
+                        + V[2] * coupled[p, 2, b]
+
+
+def points_from_frames(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
+                       const double[:, :, ::1] Wp, const double[:, :, ::1] x_local, double[:, :, ::1] out) -> None:
+    """Add to out (P, 3, k), for every observation i of a point p, Wp_i^T x_local at the rows of its local
+    columns; Wp (N, l, 3), x_local (F, L, k)."""
+    cdef Py_ssize_t n = Wp.shape[0], i, p, f
+    cdef int l = Wp.shape[1], k = x_local.shape[2], a, b, c
+    cdef double w
+    with nogil:
+        for i in range(n):
+            p, f = point[i], frame[i]
+            for a in range(l):
+                for c in range(3):
+                    w = Wp[i, a, c]
+                    for b in range(k):
+                        out[p, c, b] += w * x_local[f, local_cols[i, a], b]

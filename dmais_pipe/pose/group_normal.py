@@ -47,13 +47,15 @@ FRAMES_FIRST, POINTS_FIRST = "frames first", "points first"
 CHUNK_NUMBERS = 4_000_000
 #: Up to this many numbers, the frames-first order keeps the frames' couplings between its two passes.
 KEPT_NUMBERS = 30_000_000
-#: The most memory the band of a points-first frames' system may take (bytes; `_frames_factor`).
+#: The most memory the band factor of a points-first frames' system may take (bytes; `_FramesBand`).
 FACTOR_BYTES = 1.0 * 2**30
-#: Observation pairs per chunk where the points-first order accumulates the frames' band.
-PAIR_CHUNK = 50_000
-#: Observations per chunk where the points-first order sums products over the observations.
-OBSERVATION_CHUNK = 50_000
-#: Columns of the frames' band factor per block of its triangular solves (`_band_solved`).
+#: Up to this many bytes, the frames' band factor is kept through a solve (`_FramesBand`); beyond, it is made
+#: a segment of about SEGMENT_BYTES at a time, twice.
+KEPT_FACTOR_BYTES = 256 * 2**20
+SEGMENT_BYTES = 64 * 2**20
+#: Points per chunk where the points-first order sums products over the points.
+POINT_CHUNK = 50_000
+#: Columns of the frames' band factor per block of its triangular solves (`_band_forward`).
 SOLVE_BLOCK = 128
 
 
@@ -427,26 +429,60 @@ def _points_first(normal: GroupNormal, r_local, r_rig, r_point):
     s = normal.structure
     F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
     Hpp_inv = _inverted(normal.Hpp, "a point")
-    Hpp_inv_Hpr = Hpp_inv @ normal.Hpr  # (P, 3, R)
-    Hpp_inv_r = Hpp_inv @ r_point  # (P, 3, k)
-    S_rr = normal.Hrr - normal.Hpr.reshape(3 * P, R).T @ Hpp_inv_Hpr.reshape(3 * P, R)
-    y_rig = r_rig - normal.Hpr.reshape(3 * P, R).T @ Hpp_inv_r.reshape(3 * P, -1)
+    S_rr, y_rig = _rig_reduced(normal, Hpp_inv, r_rig, r_point)
     if s.frames_tied:
-        S_fr, y_local, W_point = _tied_reduction(normal, Hpp_inv_Hpr, Hpp_inv_r, r_local)
-        del Hpp_inv_Hpr, Hpp_inv_r  # (P, 3, R + k): freed before the band is made
-        frames = _frames_factor(_frames_band(normal, Hpp_inv), s)  # the band, overwritten by its factor
+        S_fr, y_local, W_point = _tied_reduction(normal, Hpp_inv, r_point, r_local)
+        x_local, x_rig, factor = _tied_frames_solved(_FramesBand(normal, Hpp_inv), S_fr, y_local, S_rr, y_rig)
     else:
         blocks, S_fr, y_local, W_point = _untied_reduction(normal, Hpp_inv, r_point, r_local)
         inverse = _inverted(blocks, "a frame's pose")
-        frames = lambda right: inverse @ right  # noqa: E731
-    solved = frames(np.concatenate([S_fr, y_local], axis=2))  # one pass over the factor for both
-    del frames  # a line's factor (0.94 GiB at 10,000 frames) freed before the points' back substitution
-    Z, frames_y = solved[:, :, :R], solved[:, :, R:]  # (F, L, R), (F, L, k)
-    factor = _cho_factor(S_rr - S_fr.reshape(F * L, R).T @ Z.reshape(F * L, R))
-    x_rig = linalg.cho_solve(factor, y_rig - S_fr.reshape(F * L, R).T @ frames_y.reshape(F * L, -1))
-    x_local = frames_y - Z @ x_rig
-    back = r_point - normal.Hpr @ x_rig - W_point(x_local)
-    return x_local, x_rig, Hpp_inv @ back, linalg.cho_solve(factor, np.eye(R))
+        solved = inverse @ np.concatenate([S_fr, y_local], axis=2)  # one pass for both
+        Z, frames_y = solved[:, :, :R], solved[:, :, R:]  # (F, L, R), (F, L, k)
+        factor = _cho_factor(S_rr - S_fr.reshape(F * L, R).T @ Z.reshape(F * L, R))
+        x_rig = linalg.cho_solve(factor, y_rig - S_fr.reshape(F * L, R).T @ frames_y.reshape(F * L, -1))
+        x_local = frames_y - Z @ x_rig
+    return x_local, x_rig, _points_back(normal, Hpp_inv, r_point, x_rig, W_point(x_local)), \
+        linalg.cho_solve(factor, np.eye(R))
+
+
+def _rig_reduced(normal: GroupNormal, Hpp_inv: np.ndarray, r_rig: np.ndarray, r_point: np.ndarray):
+    """(S_rr (R, R), y_rig (R, k)): Hrr and r_rig (R, k) less Hpr^T Hpp_inv (Hpr, r_point) summed over the
+    points, POINT_CHUNK at a time (their (P, 3, R) products are not held); Hpp_inv (P, 3, 3), r_point (P, 3, k)."""
+    R = normal.structure.rig_size
+    S_rr, y_rig = normal.Hrr.copy(), np.array(r_rig, dtype=float)
+    for chunk in _point_chunks(normal.structure):
+        coupled = normal.Hpr[chunk].reshape(-1, R).T
+        moved = Hpp_inv[chunk] @ np.concatenate([normal.Hpr[chunk], r_point[chunk]], axis=2)
+        S_rr -= coupled @ moved[:, :, :R].reshape(-1, R)
+        y_rig -= coupled @ moved[:, :, R:].reshape(len(coupled.T), -1)
+    return S_rr, y_rig
+
+
+def _points_back(normal: GroupNormal, Hpp_inv, r_point, x_rig, moved: np.ndarray) -> np.ndarray:
+    """(P, 3, k) the points' solution Hpp_inv (r_point - Hpr x_rig - moved) from the rig's x_rig (R, k) and the
+    frames' share moved (P, 3, k) (overwritten by it), POINT_CHUNK points at a time."""
+    for chunk in _point_chunks(normal.structure):
+        moved[chunk] = Hpp_inv[chunk] @ (r_point[chunk] - normal.Hpr[chunk] @ x_rig - moved[chunk])
+    return moved
+
+
+def _point_chunks(structure: GroupStructure):
+    """Slices of the points, POINT_CHUNK each."""
+    n = structure.n_points
+    return (slice(start, min(start + POINT_CHUNK, n)) for start in range(0, n, POINT_CHUNK))
+
+
+def _tied_frames_solved(band: _FramesBand, S_fr, y_local, S_rr, y_rig):
+    """(x_local (F, L, k), x_rig (R, k), the Cholesky factor of the rig's Schur complement) of the tied frames'
+    system and the rig's, from the frames' band factor L L^T (`_FramesBand`): with Y = L^-1 S_fr and w = L^-1
+    y_local (one forward pass), the rig's complement is S_rr - Y^T Y and x_local = L^-T (w - Y x_rig) (one
+    backward pass); S_fr (F, L, R), y_local (F, L, k), S_rr (R, R), y_rig (R, k)."""
+    F, L, R = S_fr.shape
+    forward = band.forward(np.concatenate([S_fr, y_local], axis=2).reshape(F * L, -1))
+    Y, w = forward[:, :R], forward[:, R:]
+    factor = _cho_factor(S_rr - Y.T @ Y)
+    x_rig = linalg.cho_solve(factor, y_rig - Y.T @ w)
+    return band.backward(w - Y @ x_rig).reshape(F, L, -1), x_rig, factor
 
 
 def _untied_reduction(normal: GroupNormal, Hpp_inv, r_point, r_local):
@@ -472,44 +508,25 @@ def _untied_reduction(normal: GroupNormal, Hpp_inv, r_point, r_local):
     return blocks, S_fr, y_local, lambda x_local: W.transpose(0, 2, 1) @ x_local[s.point_frame]
 
 
-def _tied_reduction(normal: GroupNormal, Hpp_inv_Hpr, Hpp_inv_r, r_local):
-    """As `_untied_reduction` where frames share points, but without the frames' system (its band is
-    `_frames_band`'s); every product over the observations a chunk of OBSERVATION_CHUNK at a time (a line
-    of 10,000 frames has 1.4 million)."""
+def _tied_reduction(normal: GroupNormal, Hpp_inv, r_point, r_local):
+    """As `_untied_reduction` where frames share points, but without the frames' system (`_FramesBand` makes
+    its band): S_fr = Wr less, and y_local = r_local less, the sums over the observations i of a point p of
+    Wp_i Hpp_inv_p (Hpr_p, r_point_p) at the rows of i's local unknowns, and x_local -> Wp^T x_local summed per
+    point, each by one compiled loop over the observations (_group; nothing of the observations' size held)."""
     s = normal.structure
-    P = s.n_points
-    S_fr, y_local = (moved - _by_frame_rows(normal, coupled) for moved, coupled in
-                     ((normal.Wr, Hpp_inv_Hpr), (r_local, Hpp_inv_r)))
+    coupled = np.ascontiguousarray(np.concatenate([normal.Hpr, r_point], axis=2))
+    moved = np.zeros((s.n_frames, s.local_size, coupled.shape[2]))
+    _group.frames_from_points(s.frame, s.point, s.local_cols, normal.Wp, np.ascontiguousarray(Hpp_inv), coupled,
+                              moved)
+    R = s.rig_size
+    S_fr, y_local = normal.Wr - moved[:, :, :R], r_local - moved[:, :, R:]
 
-    def W_point(x_local):  # (F, L, k) -> (P, 3, k): Wp^T x_local summed per point
-        k = x_local.shape[2]
-        out = np.zeros(P * 3 * k)
-        for rows in _observation_chunks(s):
-            product = normal.Wp[rows].transpose(0, 2, 1) @ x_local[s.frame[rows, None], s.local_cols[rows]]
-            index = (3 * s.point[rows, None, None] + np.arange(3)[:, None]) * k + np.arange(k)
-            out += np.bincount(index.ravel(), weights=product.ravel(), minlength=len(out))
-        return out.reshape(P, 3, k)
+    def W_point(x_local):  # (F, L, k) -> (P, 3, k)
+        out = np.zeros((s.n_points, 3, x_local.shape[2]))
+        _group.points_from_frames(s.frame, s.point, s.local_cols, normal.Wp, np.ascontiguousarray(x_local), out)
+        return out
 
     return S_fr, y_local, W_point
-
-
-def _observation_chunks(structure: GroupStructure):
-    """Slices of the observations, OBSERVATION_CHUNK each."""
-    n = len(structure.frame)
-    return (slice(start, min(start + OBSERVATION_CHUNK, n)) for start in range(0, n, OBSERVATION_CHUNK))
-
-
-def _by_frame_rows(normal: GroupNormal, coupled: np.ndarray) -> np.ndarray:
-    """(F, L, q) the sums over the observations of Wp_i coupled_p (p: i's point) at the rows of i's local
-    unknowns; coupled (P, 3, q)."""
-    s = normal.structure
-    q = coupled.shape[2]
-    out = np.zeros(s.n_frames * s.local_size * q)
-    for rows in _observation_chunks(s):
-        product = normal.Wp[rows] @ coupled[s.point[rows]]  # (m, l, q)
-        index = (s.frame[rows, None, None] * s.local_size + s.local_cols[rows][:, :, None]) * q + np.arange(q)
-        out += np.bincount(index.ravel(), weights=product.ravel(), minlength=len(out))
-    return out.reshape(s.n_frames, s.local_size, q)
 
 
 def _band_rows(structure: GroupStructure) -> np.ndarray:
@@ -518,99 +535,156 @@ def _band_rows(structure: GroupStructure) -> np.ndarray:
     return structure.band_rank[:, None] * L + np.arange(L)
 
 
-def _frames_band(normal: GroupNormal, Hpp_inv: np.ndarray) -> np.ndarray:
-    """(F L, (band + 1) L) the frames' system's band in LAPACK's lower storage, transposed: row c holds
-    the entries (c + d, c) at d, the unknowns in structure.band_rank's order. A on the diagonal blocks
-    less, for every pair of observations (i, j) of one point p, Wp_i Hpp_inv_p Wp_j^T at the rows of i's
-    and the columns of j's local unknowns (their upper triangle: i's frame is not after j's), summed
-    over each run of pairs (structure.pair_runs) and added a chunk of runs at a time into the rows they
-    reach; Hpp_inv (P, 3, 3)."""
+class _FramesBand:
+    """The tied frames' system (the points eliminated) as its band's Cholesky factor L L^T, in the order of
+    structure.band_rank (the narrowest band), made a segment of consecutive frames at a time: LAPACK's banded
+    Cholesky of the segment's band (`_frames_band`) less the previous segment's share, the factor's coupling
+    to the next segment by a triangular solve (`_segment_factor`). Where the whole factor would need more than
+    KEPT_FACTOR_BYTES, only the couplings (u x u each, u = (band + 1) L - 1) are kept through the forward pass
+    and each segment is made again, from its coupling, for the backward pass: memory bounded by a segment of
+    SEGMENT_BYTES and the couplings whatever the frames, for twice the factorisation's work. The same
+    operations in the same order, so the same factor bit for bit. DmaisError where the band would need more
+    than FACTOR_BYTES."""
+
+    def __init__(self, normal: GroupNormal, Hpp_inv: np.ndarray):
+        s = normal.structure
+        self.normal, self.Hpp_inv, self.L, self.u = normal, Hpp_inv, s.local_size, (s.band + 1) * s.local_size - 1
+        self.frames = np.argsort(s.band_rank)  # the frame at each place
+        self.run_place = s.band_rank[s.frame[s.pair_left[s.pair_runs[:-1]]]]  # each run's left frame's place
+        self.rows = _band_rows(s).ravel()
+        self.bounds = _segment_bounds(s.n_frames, s.band, s.local_size)
+        n_segments, total = len(self.bounds) - 1, s.n_frames * s.local_size * (self.u + 1) * 8
+        self.kept = [None] * n_segments if n_segments == 1 else None
+        needed = total if self.kept else np.diff(self.bounds).max() * s.local_size * (self.u + 1) * 8 \
+            + (n_segments - 1) * self.u**2 * 8
+        if needed > FACTOR_BYTES:
+            raise _too_large(s, f"its frames are tied over {s.band} frames (points seen {s.band} frames apart), "
+                                f"and the factor of their system would need ~{needed / 2**30:.1f} GiB")
+        self.couplings = [None] * n_segments  # each segment's rows of the factor's columns before it (a, u)
+
+    def forward(self, right: np.ndarray) -> np.ndarray:
+        """(F L, k) z = L^-1 right, right (F L, k) in the frames' order, z in the band's (self.rows)."""
+        z = np.empty_like(right)
+        z[self.rows] = right
+        for k in range(len(self.bounds) - 1):
+            factor, coupling = _segment_factor(self, k, with_coupling=True)
+            r0, r1 = self.bounds[k] * self.L, self.bounds[k + 1] * self.L
+            if k:
+                z[r0:r0 + len(self.couplings[k])] -= self.couplings[k] @ z[r0 - self.u:r0]
+            _band_forward(factor, z[r0:r1])
+            if k + 2 < len(self.bounds):
+                self.couplings[k + 1] = coupling
+            if self.kept:
+                self.kept[k] = factor
+        return z
+
+    def backward(self, z: np.ndarray) -> np.ndarray:
+        """(F L, k) x = L^-T z in the frames' order, z (F L, k) in the band's (`forward`'s, after it)."""
+        x = z.copy()
+        for k in reversed(range(len(self.bounds) - 1)):
+            factor = self.kept[k] if self.kept else _segment_factor(self, k, with_coupling=False)[0]
+            r0, r1 = self.bounds[k] * self.L, self.bounds[k + 1] * self.L
+            if k + 2 < len(self.bounds):
+                coupling = self.couplings[k + 1]
+                x[r1 - self.u:r1] -= coupling.T @ x[r1:r1 + len(coupling)]
+            _band_backward(factor, x[r0:r1])
+        return x[self.rows]
+
+
+def _segment_bounds(n_frames: int, band: int, L: int) -> np.ndarray:
+    """(n + 1,) the places (structure.band_rank) where the n segments of `_FramesBand` start, and the end: one
+    segment where the whole factor is at most KEPT_FACTOR_BYTES, else segments of about SEGMENT_BYTES, each of
+    at least band + 1 frames (a coupling reaches the next segment alone)."""
+    total = n_frames * L * (band + 1) * L * 8
+    n = 1 if total <= KEPT_FACTOR_BYTES else max(1, min(-(-total // SEGMENT_BYTES), n_frames // (band + 1)))
+    return np.round(np.linspace(0, n_frames, n + 1)).astype(np.int64)
+
+
+def _segment_factor(band: _FramesBand, k: int, with_coupling: bool):
+    """(factor (S, u + 1), coupling (a, u) or None) of segment k of `band` (S rows): LAPACK's banded Cholesky of
+    the segment's band less C C^T on its first rows (C = band.couplings[k], the factor's entries there of the
+    previous segment's last u columns), and the factor's entries L[r1 + i, r1 - u + j] of the next segment's
+    first a rows (r1 the segment's end), E L_last^-T with E the band's entries there (stored past the
+    segment's end in its last rows, untouched by the factorisation) and L_last the factor's last u x u."""
+    f0, f1 = band.bounds[k], band.bounds[k + 1]
+    runs = np.searchsorted(band.run_place, [f0, f1])
+    matrix = _frames_band(band.normal, band.Hpp_inv, band.frames[f0:f1], f0, *runs)
+    S, u = len(matrix), band.u
+    if k:
+        C = band.couplings[k]
+        i, j = np.tril_indices(len(C))
+        matrix[j, i - j] -= (C @ C.T)[i, j]
+    a = min(u, (band.bounds[k + 2] - f1) * band.L) if with_coupling and k + 2 < len(band.bounds) else 0
+    E = np.triu(_band_view(matrix, S, S + a, S - u, S)) if a else None
+    try:
+        factor = linalg.cholesky_banded(matrix.T, overwrite_ab=True, lower=True, check_finite=False).T
+    except linalg.LinAlgError:
+        raise DmaisError("mounting: the group's normal equations are singular") from None
+    if not a:
+        return factor, None
+    last = np.tril(_band_view(factor, S - u, S, S - u, S))
+    return factor, linalg.solve_triangular(last, E.T, lower=True, check_finite=False).T
+
+
+def _band_view(band: np.ndarray, r0: int, r1: int, c0: int, c1: int) -> np.ndarray:
+    """A view of the entries (r, c) of rows r0 to r1 and columns c0 to c1 of the lower band matrix stored in
+    `band` (n, u + 1) (LAPACK's lower band storage transposed: band[c, d] holds (c + d, c)); entries beyond
+    the band hold others. (r, c) is flat[c u + r] of the flat band: rows adjacent, columns u apart."""
+    flat, u = band.reshape(-1), band.shape[1] - 1
+    step = flat.strides[0]
+    return np.lib.stride_tricks.as_strided(flat[c0 * u + r0:], shape=(r1 - r0, c1 - c0), strides=(step, u * step),
+                                           writeable=False)
+
+
+def _frames_band(normal: GroupNormal, Hpp_inv: np.ndarray, frames: np.ndarray, first_place: int, first_run: int,
+                 last_run: int) -> np.ndarray:
+    """(c L, (band + 1) L) the frames' system's band in LAPACK's lower storage, transposed (row r holds the
+    entries (r + d, r) at d), of the rows of `frames` (c,), the frames at places first_place to first_place + c
+    of structure.band_rank's order (their rows counted from the first's): A on the diagonal blocks less, for
+    every pair of observations (i, j) of one point p, Wp_i Hpp_inv_p Wp_j^T at the rows of i's and the columns
+    of j's local unknowns (their upper triangle: i's frame is not after j's), summed over each run of pairs
+    (structure.pair_runs) first_run to last_run (those whose left frame is one of `frames`) by one compiled
+    loop over their pairs (_group.frames_band_subtract); Hpp_inv (P, 3, 3). Entries reaching past the last row
+    are kept in it (the coupling to the next frames)."""
     s = normal.structure
-    F, L = s.n_frames, s.local_size
+    L = s.local_size
     width = (s.band + 1) * L
-    band = np.zeros((F * L, width))
-    rows = _band_rows(s)
+    band = np.zeros((len(frames) * L, width))
+    rows = _band_rows(s) - first_place * L
     row, column = np.triu_indices(L)
-    band[rows[:, row], column - row] = normal.A[:, row, column]
-    flat = band.reshape(-1)
-    runs = s.pair_runs
-    for first_run, last_run in _run_chunks(runs):
-        pairs = slice(runs[first_run], runs[last_run])
-        i, j = s.pair_left[pairs], s.pair_right[pairs]
-        products = normal.Wp[i] @ Hpp_inv[s.point[i]] @ normal.Wp[j].transpose(0, 2, 1)  # (m, l, l)
-        summed = np.add.reduceat(products, runs[first_run:last_run] - runs[first_run])
-        i, j = s.pair_left[runs[first_run:last_run]], s.pair_right[runs[first_run:last_run]]  # one pair a run
-        row = rows[s.frame[i][:, None], s.local_cols[i]][:, :, None]  # (u, l, 1)
-        column = rows[s.frame[j][:, None], s.local_cols[j]][:, None, :]  # (u, 1, l)
-        keep = column >= row
-        first, last = int(row.min()), int(row.max()) + 1
-        index = (row * width + (column - row) - first * width)[keep]
-        flat[first * width:last * width] -= np.bincount(index, weights=summed[keep], minlength=(last - first) * width)
+    band[rows[frames][:, row], column - row] = normal.A[frames][:, row, column]
+    _group.frames_band_subtract(s.pair_left, s.pair_right, s.pair_runs, first_run, last_run, s.frame, s.point,
+                                s.local_cols, normal.Wp, np.ascontiguousarray(Hpp_inv), rows, band)
     return band
 
 
-def _run_chunks(runs: np.ndarray):
-    """(first, last) runs of pairs (structure.pair_runs) of about PAIR_CHUNK pairs each (a run is not split)."""
-    n_runs, first = len(runs) - 1, 0
-    while first < n_runs:
-        last = max(first + 1, int(np.searchsorted(runs, runs[first] + PAIR_CHUNK, side="right")) - 1)
-        last = min(last, n_runs)
-        yield first, last
-        first = last
-
-
-def _frames_factor(band: np.ndarray, structure: GroupStructure):
-    """A function solving the tied frames' system for right sides (F, L, k), from its band (`_frames_band`,
-    overwritten): LAPACK's banded Cholesky (the frames' system is SPD), in the order of the narrowest
-    band (a fill-reducing order spreads a line's band). DmaisError where the band would need more than
-    FACTOR_BYTES: frames tied over a band of b frames fill F L (b + 1) L numbers."""
-    s = structure
-    F, L = s.n_frames, s.local_size
-    needed = band.nbytes
-    if needed > FACTOR_BYTES:
-        raise _too_large(s, f"its frames are tied over {s.band} frames (points seen {s.band} frames apart), and "
-                            f"the factor of their system would need ~{needed / 2**30:.1f} GiB")
-    try:
-        factor = linalg.cholesky_banded(band.T, overwrite_ab=True, lower=True, check_finite=False).T
-    except linalg.LinAlgError:
-        raise DmaisError("mounting: the group's normal equations are singular") from None
-    rows = _band_rows(s).ravel()
-
-    def solved(right):
-        ordered = np.empty((F * L, right.shape[2]))
-        ordered[rows] = right.reshape(F * L, -1)
-        return _band_solved(factor, ordered)[rows].reshape(right.shape)
-
-    return solved
-
-
-def _band_solved(factor: np.ndarray, right: np.ndarray) -> np.ndarray:
-    """(n, k) the solution of L L^T x = right (n, k), L lower triangular in `factor` (n, u + 1) (LAPACK's
-    lower band storage transposed: factor[c, d] = L[c + d, c]); by blocks of SOLVE_BLOCK columns, each a
-    dense triangle and the rectangle below it (LAPACK's band solve goes a column at a time)."""
+def _band_forward(factor: np.ndarray, x: np.ndarray) -> None:
+    """x (n, k) <- L^-1 x in place, L lower triangular in `factor` (n, u + 1) (`_band_view`'s storage; its
+    entries past row n are not read); by blocks of SOLVE_BLOCK columns, each a dense triangle and the rectangle
+    below it (LAPACK's band solve goes a column at a time)."""
     n, u = factor.shape[0], factor.shape[1] - 1
-    flat = factor.reshape(-1)
-    x = right.copy()
-    starts = range(0, n, min(SOLVE_BLOCK, u + 1))
-    for c0 in starts:
-        c1, triangle, below = _band_blocks(flat, n, u, c0)
+    for c0 in range(0, n, min(SOLVE_BLOCK, u + 1)):
+        c1, triangle, below = _band_blocks(factor, n, u, c0)
         x[c0:c1] = linalg.solve_triangular(triangle, x[c0:c1], lower=True, check_finite=False)
         x[c1:c1 + len(below)] -= below @ x[c0:c1]
-    for c0 in reversed(starts):
-        c1, triangle, below = _band_blocks(flat, n, u, c0)
+
+
+def _band_backward(factor: np.ndarray, x: np.ndarray) -> None:
+    """x (n, k) <- L^-T x in place (`_band_forward`'s L)."""
+    n, u = factor.shape[0], factor.shape[1] - 1
+    for c0 in reversed(range(0, n, min(SOLVE_BLOCK, u + 1))):
+        c1, triangle, below = _band_blocks(factor, n, u, c0)
         x[c0:c1] -= below.T @ x[c1:c1 + len(below)]
         x[c0:c1] = linalg.solve_triangular(triangle, x[c0:c1], lower=True, trans="T", check_finite=False)
-    return x
 
 
-def _band_blocks(flat: np.ndarray, n: int, u: int, c0: int):
-    """(c1, triangle (b, b), below (h, b)) of the band factor's columns c0 to c1 (`_band_solved`):
+def _band_blocks(factor: np.ndarray, n: int, u: int, c0: int):
+    """(c1, triangle (b, b), below (h, b)) of the band factor's columns c0 to c1 (`_band_forward`):
     L[c0:c1, c0:c1] (its lower triangle; the upper holds other entries) and L[c1:c1 + h, c0:c1] with
-    the entries beyond the band zeroed. L[i, j] is flat[j u + i]: a view, rows adjacent, columns u apart."""
+    the entries beyond the band zeroed."""
     c1 = min(c0 + min(SOLVE_BLOCK, u + 1), n)  # a triangle wider than the band would reach beyond it
     h = min(c1 + u, n) - c1
-    view = np.lib.stride_tricks.as_strided(flat[c0 * u + c0:], shape=(c1 - c0 + h, c1 - c0),
-                                           strides=(flat.strides[0], u * flat.strides[0]), writeable=False)
+    view = _band_view(factor, c0, c1 + h, c0, c1)
     below = view[c1 - c0:].copy()
     beyond = (c1 - c0) + np.arange(h)[:, None] - np.arange(c1 - c0) > u  # row - column beyond the band
     below[beyond] = 0.0
