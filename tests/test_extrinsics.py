@@ -490,7 +490,7 @@ def test_calibration_covariance_carries_the_intrinsics_errors_into_the_rig(calib
 
     dataset, results, _ = calibrated
     workspace = Workspace.open(dataset, results)
-    observations, cameras, sigma, std, survey, _ = extrinsics._inputs(workspace, 0.0)
+    observations, cameras, sigma, std, survey, _, pixel = extrinsics._inputs(workspace, 0.0)
     ds = workspace.dataset
 
     def solve(cams):
@@ -511,7 +511,7 @@ def test_calibration_covariance_carries_the_intrinsics_errors_into_the_rig(calib
             for part, share in ((slice(0, 3), 0.02), (slice(3, 6), 0.05)):  # rotations (rad), centres (m)
                 np.testing.assert_array_less(np.abs(change[part] - predicted[part]),
                                              share * np.abs(predicted[part]).max() + precision[part])
-    labels, matrix = calibration_covariance(base, std, survey)
+    labels, matrix = calibration_covariance(base, std, survey, pixel)
     assert labels[:5] == [f"{base.intrinsics_cameras[0]}.{k}" for k in ("fx", "fy", "cx", "cy", "d")]
     rig = slice(5 * len(base.intrinsics_cameras), None)
     assert labels[rig] == base.camera_parameters
@@ -530,7 +530,7 @@ def test_the_rig_responds_to_its_control_points_survey_errors(calibrated):
 
     dataset, results, _ = calibrated
     workspace = Workspace.open(dataset, results)
-    observations, cameras, sigma, std, survey, _ = extrinsics._inputs(workspace, 0.0)
+    observations, cameras, sigma, std, survey, _, pixel = extrinsics._inputs(workspace, 0.0)
     ds = workspace.dataset
 
     def solve(points):
@@ -554,16 +554,25 @@ def test_the_rig_responds_to_its_control_points_survey_errors(calibrated):
             predicted = base.survey_response[k:k + 6, column]
             np.testing.assert_array_less(np.abs(change - predicted), 0.05 * np.abs(predicted).max() + precision)
     # the joint covariance is M M^T of the model: intrinsics -Z u + d, rig S (-Z u + d) + R u + e
-    labels, matrix = calibration_covariance(base, std, survey)
-    own, Z, points = extrinsics_module._intrinsics_parts(base.intrinsics_parameters, std, survey,
-                                                                base.survey_points)
+    labels, matrix = calibration_covariance(base, std, survey, pixel)
+    D, Z, points = extrinsics_module._intrinsics_parts(base.intrinsics_parameters, std, survey,
+                                                       base.survey_points, pixel)
+    assert set(pixel) == set(base.intrinsics_cameras)  # every camera's record has its pixel covariance
+    for camera in base.intrinsics_cameras:  # its diagonal is the variance less the survey's share
+        rows = [k for k, label in enumerate(base.intrinsics_parameters) if label.startswith(f"{camera}.")]
+        names = [base.intrinsics_parameters[k].rsplit(".", 1)[1] for k in rows]
+        variance = np.array([std[camera][name] ** 2 for name in names])
+        np.testing.assert_allclose(np.diag(D)[rows], variance - np.sum(Z[rows] ** 2, axis=1), rtol=1e-9,
+                                   atol=1e-9 * variance.max())
     R = np.zeros((len(base.camera_parameters), len(points) * 3))
     for k, p in enumerate(base.survey_points):
         R[:, 3 * points.index(p):3 * points.index(p) + 3] = base.survey_response[:, 3 * k:3 * k + 3]
     S = base.intrinsics_sensitivity
     e = np.linalg.cholesky(base.camera_covariance + 1e-30 * np.eye(len(R)))
-    M = np.block([[-Z, np.diag(np.sqrt(own)), np.zeros((len(own), len(R)))],
-                  [-(S @ Z) + R, S * np.sqrt(own), e]])
+    values, vectors = np.linalg.eigh(D)
+    d = vectors * np.sqrt(np.clip(values, 0.0, None))
+    M = np.block([[-Z, d, np.zeros((len(D), len(R)))],
+                  [-(S @ Z) + R, S @ d, e]])
     np.testing.assert_allclose(matrix, M @ M.T, rtol=1e-9, atol=1e-12 * np.abs(matrix).max())
     assert np.linalg.eigvalsh(matrix).min() > -1e-9 * np.abs(matrix).max()
 

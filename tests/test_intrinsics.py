@@ -493,3 +493,34 @@ def test_intrinsics_sigma_carries_the_fields_survey_error():
     spread = np.std(focal)
     assert abs(np.mean(predicted) / spread - 1) < 0.2, (np.mean(predicted), spread)
     assert np.mean(pixel_only) < 0.5 * spread
+
+
+def test_the_pixel_covariance_keeps_the_correlations_the_rig_needs():
+    """The record's pixel_covariance (calibrate_camera: the covariance less the survey's share; 0.3 px
+    of noise beside a 0.3 mm survey, its sigma estimated) predicts the spread of fx - fy over 40
+    seeded calibrations, where the diagonal of the same variances (what the rig's calibration
+    covariance took before: fx and fy move together) misses it by several times."""
+    rng = np.random.default_rng(23)
+    field, rows, poses = surveyed_field_views(WIDE, 8, rng)
+    survey, noise = 0.0003, 0.3
+    ids = {k: r.astype(str) for k, r in rows.items()}
+    parameters, pixel, shared = [], [], []
+    for _ in range(40):
+        surveyed = field + rng.normal(scale=survey, size=field.shape)
+        points = {k: surveyed[r] for k, r in rows.items()}
+        pixels = {k: WIDE.project(poses[k].apply(field[r])) + rng.normal(scale=noise, size=(len(r), 2))
+                  for k, r in rows.items()}
+        result = calibrate_camera(points, pixels, WIDE.width, WIDE.height,
+                                  survey={k: (ids[k], np.full(len(r), np.nan)) for k, r in rows.items()})
+        effects = np.hstack(list(result.survey_effect.values()))
+        np.testing.assert_allclose(np.diag(result.pixel_covariance) + np.sum(effects**2, axis=1),
+                                   np.square([result.std[k] for k in WIDE.parameter_names]), rtol=1e-9)
+        parameters.append(result.camera.parameters)
+        pixel.append(result.pixel_covariance)
+        shared.append(effects @ effects.T)
+    a = np.array([1.0, -1.0, 0.0, 0.0, 0.0])  # fx - fy
+    spread = np.std(np.asarray(parameters) @ a)
+    whole = np.sqrt(np.mean([a @ (p + s) @ a for p, s in zip(pixel, shared)]))
+    diagonal = np.sqrt(np.mean([a @ (np.diag(np.diag(p)) + s) @ a for p, s in zip(pixel, shared)]))
+    assert abs(whole / spread - 1) < 0.25, (whole, spread)
+    assert diagonal > 2 * spread, (diagonal, spread)

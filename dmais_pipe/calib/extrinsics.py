@@ -74,33 +74,49 @@ class ExtrinsicsResult:
         }
 
 
-def intrinsics_covariance(parameters: list[str], std: dict[str, dict], survey_effect: dict[str, dict]) -> np.ndarray:
+def intrinsics_covariance(parameters: list[str], std: dict[str, dict], survey_effect: dict[str, dict],
+                          pixel_covariance: dict[str, np.ndarray] | None = None) -> np.ndarray:
     """(n, n) the joint covariance of the cameras' intrinsics `parameters` ("<camera>.<name>", each
     camera's in its model's order, Camera.parameter_names) from their calibrations: each camera's
-    `std` (<camera>.json), of which the share of the control points' survey errors, `survey_effect`
-    ({point: (P, 3)} one-sigma effects), is common to every camera that saw the same points; what a
-    camera lacks counts as 0."""
-    own, shared, _ = _intrinsics_parts(parameters, std, survey_effect, [])
-    return np.diag(own) + shared @ shared.T
+    pixel share, `pixel_covariance` ({camera: (P, P)}, <camera>.json's) or, where a record has
+    none, its `std` (<camera>.json) less the survey's share; and the share of the control points'
+    survey errors, `survey_effect` ({point: (P, 3)} one-sigma effects), common to every camera that
+    saw the same points; what a camera lacks counts as 0."""
+    own, shared, _ = _intrinsics_parts(parameters, std, survey_effect, [], pixel_covariance)
+    return own + shared @ shared.T
 
 
 def _intrinsics_parts(parameters: list[str], std: dict[str, dict], survey_effect: dict[str, dict],
-                      more_points: list[str]) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """`intrinsics_covariance` as diag(own) + shared shared^T: own (n,) the variances but the survey's,
+                      more_points: list[str], pixel_covariance: dict[str, np.ndarray] | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """`intrinsics_covariance` as own + shared shared^T: own (n, n) the pixel share, block-diagonal by
+    camera (a camera's `pixel_covariance`, else the diagonal of its variances less the survey's),
     shared (n, 3 P) the effects of the points (P,) (the survey_effect's and more_points, sorted)."""
     camera_of = np.array([label.rsplit(".", 1)[0] for label in parameters])
     cameras = list(dict.fromkeys(camera_of))
     points = sorted({p for c in cameras for p in (survey_effect.get(c) or {})} | set(more_points))
     shared = np.zeros((len(parameters), 3 * len(points)))
-    own = np.zeros(len(parameters))
+    own = np.zeros((len(parameters), len(parameters)))
     for camera in cameras:
         rows = np.flatnonzero(camera_of == camera)
         for point, effect in (survey_effect.get(camera) or {}).items():
             k = points.index(point)
             shared[rows, 3 * k:3 * k + 3] = np.asarray(effect, dtype=float)
-        given = std.get(camera) or {}
-        own[rows] = [float(given.get(parameters[row].rsplit(".", 1)[1], 0.0)) ** 2 for row in rows]
-    return np.clip(own - np.sum(shared**2, axis=1), 0.0, None), shared, points
+        own[np.ix_(rows, rows)] = _pixel_share(camera, [parameters[row].rsplit(".", 1)[1] for row in rows],
+                                               std.get(camera) or {}, shared[rows], pixel_covariance or {})
+    return own, shared, points
+
+
+def _pixel_share(camera: str, names: list[str], std: dict, shared: np.ndarray,
+                 pixel_covariance: dict[str, np.ndarray]) -> np.ndarray:
+    """(P, P) one camera's pixel share of its intrinsics' covariance (`_intrinsics_parts`): its record's
+    `pixel_covariance` where it has one of P x P, else diag(std^2 less the survey effects' squares,
+    clipped at 0); shared (P, 3 Q) those effects."""
+    given = pixel_covariance.get(camera)
+    if given is not None and np.shape(given) == (len(names), len(names)):
+        return np.asarray(given, dtype=float)
+    variances = np.array([float(std.get(name, 0.0)) ** 2 for name in names])
+    return np.diag(np.clip(variances - np.sum(shared**2, axis=1), 0.0, None))
 
 
 def field_survey_sigma(estimates: dict[str, tuple[float | None, int]]) -> float | None:
@@ -150,13 +166,14 @@ def with_field_survey_sigma(std: dict[str, dict], survey_effect: dict[str, dict]
     return std, survey_effect
 
 
-def calibration_covariance(ba: RigBAResult, std: dict[str, dict], survey_effect: dict[str, dict]
-                           ) -> tuple[list[str], np.ndarray]:
+def calibration_covariance(ba: RigBAResult, std: dict[str, dict], survey_effect: dict[str, dict],
+                           pixel_covariance: dict[str, np.ndarray] | None = None) -> tuple[list[str], np.ndarray]:
     """The calibration's parameters (every camera's intrinsics, "<camera>.fx" ... ".d", or ... ".k3"
     for an opencv camera, rig_ba.RigBAResult.intrinsics_parameters; then the rig adjustment's
     "<camera>.rx" ... ".vz", rig_ba.RigBAResult.camera_parameters) and their joint
-    covariance. The intrinsics' errors K = D + Z Z^T (`intrinsics_covariance`: Z the control
-    points' survey share, one column per point and axis) are carried into the rig by the
+    covariance. The intrinsics' errors K = D + Z Z^T (`intrinsics_covariance`: D the cameras' pixel
+    shares, correlations within a camera included, Z the control points' survey share, one column per
+    point and axis) are carried into the rig by the
     adjustment's sensitivity S (the rig is fitted with the intrinsics as they are), and the same
     points' survey errors move the rig directly by its response R (`survey_response`: the rig is
     fitted on the points as surveyed). With u the points' errors in sigmas, the intrinsics move by
@@ -165,16 +182,16 @@ def calibration_covariance(ba: RigBAResult, std: dict[str, dict], survey_effect:
 
         cov(rig) = cov(e) + S D S^T + Z_rig Z_rig^T,   cov(rig, intrinsics) = S D + Z_rig Z^T."""
     response = ba.survey_response if ba.survey_response.size else np.zeros((len(ba.camera_parameters), 0))
-    own, Z, points = _intrinsics_parts(ba.intrinsics_parameters, std, survey_effect, ba.survey_points)
+    D, Z, points = _intrinsics_parts(ba.intrinsics_parameters, std, survey_effect, ba.survey_points, pixel_covariance)
     S = ba.intrinsics_sensitivity
     R = np.zeros((len(ba.camera_parameters), Z.shape[1]))
     for k, point in enumerate(ba.survey_points):
         j = 3 * points.index(point)
         R[:, j:j + 3] = response[:, 3 * k:3 * k + 3]
     Z_rig = S @ Z - R
-    cross = S * own + Z_rig @ Z.T
-    rig = ba.camera_covariance + (S * own) @ S.T + Z_rig @ Z_rig.T
-    matrix = np.block([[np.diag(own) + Z @ Z.T, cross.T], [cross, rig]])
+    cross = S @ D + Z_rig @ Z.T
+    rig = ba.camera_covariance + S @ D @ S.T + Z_rig @ Z_rig.T
+    matrix = np.block([[D + Z @ Z.T, cross.T], [cross, rig]])
     labels = list(ba.intrinsics_parameters) + list(ba.camera_parameters)
     return labels, 0.5 * (matrix + matrix.T)
 

@@ -103,6 +103,10 @@ class IntrinsicsResult:
     #: (`survey_variance`) where the dataset gives none (`sigma_m` empty or absent), and the effects
     #: of those points made with it; None where every point's sigma is given (or the points are exact)
     survey_sigma_m: float | None = None
+    #: (P, P) the pixel noise's share of the parameters' covariance (the covariance behind `std` less
+    #: the survey effects' outer products), correlations included: the rig's calibration covariance
+    #: takes it whole (fx and fy move together, cx with a rotation of the camera); None: not known
+    pixel_covariance: np.ndarray | None = None
     #: where the model folds inside the image: the part of it where the model is one-to-one, and per
     #: image (calibration and held-out) the largest `Camera.fold_reach` of its fitted points' rays
     one_to_one: OneToOneRegion | None = None
@@ -123,6 +127,8 @@ class IntrinsicsResult:
             "std": {k: float(v) for k, v in self.std.items()},
             "survey_effect": {k: np.asarray(v, dtype=float).tolist() for k, v in self.survey_effect.items()},
             "survey_sigma_estimated_m": None if self.survey_sigma_m is None else float(self.survey_sigma_m),
+            **({} if self.pixel_covariance is None else
+               {"pixel_covariance": np.asarray(self.pixel_covariance, dtype=float).tolist()}),
             "eps_calib_px": float(self.eps_calib_px),
             "eps_eval_px": None if self.eps_eval_px is None else float(self.eps_eval_px),
             "n_images": int(self.n_images), "n_observations": int(self.n_observations),
@@ -418,6 +424,8 @@ def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, s
             survey_effect=None, survey_sigma_m=None):
     eps_eval, eval_poses, eval_residuals = _evaluate(camera, evals, name)
     std = dict(zip(camera.parameter_names, np.sqrt(np.clip(np.diag(cov), 0, None)).tolist()))
+    effects = [np.asarray(e, dtype=float) for e in (survey_effect or {}).values()]
+    pixel_covariance = np.asarray(cov, dtype=float) - sum((e @ e.T for e in effects), np.zeros_like(cov))
     ends = np.cumsum([len(X) for X, _ in calib.values()])[:-1]  # residuals are stacked in calib's order
     calib_residuals = dict(zip(calib, np.split(np.asarray(residuals).reshape(-1, 2), ends)))
     folds = camera.model != "radial1" and camera.folds_in_image
@@ -429,7 +437,7 @@ def _finish(name, method, camera, poses, residuals, cov, calib, evals, centre, s
         image_eps_px={k: _rms(r) for k, r in calib_residuals.items()},
         eval_image_eps_px={k: _rms(r) for k, r in eval_residuals.items()},
         image_residuals_px={**calib_residuals, **eval_residuals}, survey_effect=survey_effect or {},
-        survey_sigma_m=survey_sigma_m,
+        survey_sigma_m=survey_sigma_m, pixel_covariance=pixel_covariance,
         one_to_one=camera.one_to_one_region() if folds else None,
         fold_reach=_fold_reach(camera, {**poses, **eval_poses}, {**calib, **evals}) if folds else {})
 

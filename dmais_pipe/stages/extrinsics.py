@@ -67,7 +67,7 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     has_priors = bool(images[list(PRIOR_CENTER)].notna().all(axis=1).any())
     if conf.use_priors and not has_priors:
         log.warning("extrinsics: no camera-centre priors in %s; calibrating without", dataset.root / "images.csv")
-    *inputs, intrinsics_std, survey_effect, estimated = _inputs(workspace, conf.pixel_sigma_px)
+    *inputs, intrinsics_std, survey_effect, estimated, pixel_covariance = _inputs(workspace, conf.pixel_sigma_px)
     results = {case: _calibrate(workspace, conf, case, *inputs) for case in ([True, False] if has_priors else [False])}
     chosen = results[conf.use_priors and has_priors]
     unknown = _points_without_sigma(workspace)
@@ -81,7 +81,7 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
                                                                 {c: sigma for c, (sigma, _) in estimated.items()},
                                                                 field, unknown)
         ba = with_field_survey_rig(ba, field)
-    parameters, covariance = calibration_covariance(ba, intrinsics_std, survey_effect)
+    parameters, covariance = calibration_covariance(ba, intrinsics_std, survey_effect, pixel_covariance)
     written = [workspace.save_rig(chosen.rig, **chosen.extra(), calibration_covariance={
                    "parameters": parameters, "matrix": covariance.tolist()}),
                workspace.save_rig_config(colmap_rig_config(chosen.rig,
@@ -126,23 +126,26 @@ def _survey_row(calibration: str, seen: list[str], points: pd.DataFrame, unknown
 
 def _inputs(workspace: Workspace, pixel_sigma_px: float
             ) -> tuple[pd.DataFrame, dict[str, Camera], dict[str, float], dict[str, dict], dict[str, dict],
-                       dict[str, tuple[float | None, int]]]:
+                       dict[str, tuple[float | None, int]], dict[str, np.ndarray]]:
     """The extrinsics images' observations, the calibrated cameras, each camera's pixel sigma
     (pixel_sigma_px when positive, else from the camera's calibration), and its intrinsics' standard
-    deviations, control-point survey effects and the survey sigma it estimated with its observations'
-    count (its record's `std`, `survey_effect`, `survey_sigma_estimated_m` and `n_observations`, empty
-    or None where it has none: for rig.json's `calibration_covariance`)."""
+    deviations, control-point survey effects, the survey sigma it estimated with its observations'
+    count and its pixel covariance (its record's `std`, `survey_effect`, `survey_sigma_estimated_m`,
+    `n_observations` and `pixel_covariance`, empty or None where it has none: for rig.json's
+    `calibration_covariance`)."""
     dataset = workspace.dataset
     images = dataset.images_of("extrinsics")
     observations = workspace.load_observations()
     observations = observations[observations["image"].isin(set(images["image"]))]
     names = [c for c in dataset.cameras if c in set(images["camera"]) or c == dataset.reference_camera]
-    cameras, pixel_sigma, std, survey_effect, estimated = {}, {}, {}, {}, {}
+    cameras, pixel_sigma, std, survey_effect, estimated, pixel_covariance = {}, {}, {}, {}, {}, {}
     for name in names:
         cameras[name], record = workspace.load_intrinsics(name)
         std[name] = record.get("std") or {}
         survey_effect[name] = record.get("survey_effect") or {}
         estimated[name] = (record.get("survey_sigma_estimated_m"), int(record.get("n_observations") or 0))
+        if record.get("pixel_covariance") is not None:
+            pixel_covariance[name] = np.asarray(record["pixel_covariance"], dtype=float)
         # per-axis pixel sigma from the intrinsic calibration's RMS point distance (eps / sqrt 2)
         eps = record.get("eps_calib_px")
         if pixel_sigma_px > 0:
@@ -151,7 +154,7 @@ def _inputs(workspace: Workspace, pixel_sigma_px: float
             pixel_sigma[name] = float(eps) / np.sqrt(2.0)
         else:
             pixel_sigma[name] = DEFAULT_PIXEL_SIGMA_PX
-    return observations, cameras, pixel_sigma, std, survey_effect, estimated
+    return observations, cameras, pixel_sigma, std, survey_effect, estimated, pixel_covariance
 
 
 def _calibrate(workspace: Workspace, conf: Conf, use_priors: bool, observations: pd.DataFrame,
