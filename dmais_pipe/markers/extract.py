@@ -79,8 +79,8 @@ _FRAME_COLUMNS = ("pos_x", "pos_y", "pos_z") + _QUAT
 def _first_row(table: pd.DataFrame, column: str, value, names: tuple) -> dict:
     """{name: value} of `names` in the first row of `table` whose `column` is `value` (IndexError where
     none), as `table[table[column] == value].iloc[0]` has them, without making that frame and Series."""
-    at = np.flatnonzero((table[column] == value).to_numpy())[0]
-    return {name: table[name].iat[at] for name in names}
+    at = np.flatnonzero(table[column].to_numpy() == value)[0]
+    return {name: table.iat[at, table.columns.get_loc(name)] for name in names}
 
 
 def _prediction_model(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None):
@@ -141,13 +141,18 @@ def predicted_projections(dataset: Dataset, image: str, rig: Rig | None = None, 
 
 def _projections(model, margin_px: float):
     """(uv (m, 2), point ids (m,)) of `predicted_projections` from a `_prediction_model`."""
+    return _projected_points(model, margin_px)[:2]
+
+
+def _projected_points(model, margin_px: float):
+    """`_projections` and the points' world positions (m, 3)."""
     camera, cam_from_world, points = model
     xyz = points[["x", "y", "z"]].to_numpy(dtype=float)
     uv = camera.project(cam_from_world.apply(xyz))
     m = margin_px
     keep = (np.all(np.isfinite(uv), axis=1) & (uv[:, 0] > -m) & (uv[:, 0] < camera.width + m)
             & (uv[:, 1] > -m) & (uv[:, 1] < camera.height + m))
-    return uv[keep], points.index.to_numpy(dtype=object)[keep]
+    return uv[keep], points.index.to_numpy(dtype=object)[keep], xyz[keep]
 
 
 def prediction_radius(camera: Camera, xyz: np.ndarray, turn_deg: float, shift_m: float) -> np.ndarray:
@@ -172,10 +177,10 @@ def search_windows(model, attitude_deg: float = PRIOR_ATTITUDE_DEG, position_m: 
     `_prediction_model` puts near its image (within margin_px, as `predicted_projections`): the
     prediction's move under the priors' error bounds (`prediction_radius`) plus `gate_px`, only
     those reaching into the image. None where they cover more than MAX_WINDOW_SHARE of the image
-    (summed): then it is searched whole. projected: `_projections(model, margin_px)` if already made."""
-    camera, cam_from_world, points = model
-    uv, ids = _projections(model, margin_px) if projected is None else projected
-    xyz = cam_from_world.apply(points[["x", "y", "z"]].to_numpy(dtype=float)[points.index.get_indexer(ids)])
+    (summed): then it is searched whole. projected: `_projected_points(model, margin_px)` if already made."""
+    camera, cam_from_world, _ = model
+    uv, _, world = _projected_points(model, margin_px) if projected is None else projected
+    xyz = cam_from_world.apply(world)
     reach = prediction_radius(camera, xyz, attitude_deg, position_m) + gate_px
     boxes = np.column_stack([uv - reach[:, None], uv + reach[:, None]])
     image = np.array([-0.5, -0.5, camera.width - 0.5, camera.height - 0.5])
@@ -212,7 +217,7 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
     pixels = dataset.read_image(image)
     seconds["decode_s"] = time.perf_counter() - started
     model = _prediction_model(dataset, image, rig, calibrated)  # a sentence: why there is none
-    projected = None if isinstance(model, str) else _projections(model, margin_px)  # the windows' and identify's
+    projected = None if isinstance(model, str) else _projected_points(model, margin_px)  # windows' and identify's
     windows = None if projected is None or attitude_deg is None else search_windows(
         model, attitude_deg, position_m, identify_gate_px, margin_px, projected)
     seconds["detect_s"] = time.perf_counter() - started - seconds["decode_s"]  # the windows are detection's
@@ -231,7 +236,7 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
 def _identified(dataset: Dataset, image: str, pixels: np.ndarray, predicted: tuple, settings: tuple, seconds: dict,
                 windows: np.ndarray | None = None) -> pd.DataFrame:
     """`process_image`'s detections of `image` (pixels (h, w)) in `windows` (m, 4) (None: the whole
-    image) named from predicted: the `_prediction_model` (or why there is none) and its `_projections`
+    image) named from predicted: the `_prediction_model` (or why there is none) and its `_projected_points`
     (None where there is none); settings: its gate_px, identify_gate_px and identify_min_inliers.
     Adds each phase's seconds to `seconds`."""
     model, projected = predicted
@@ -248,7 +253,7 @@ def _identified(dataset: Dataset, image: str, pixels: np.ndarray, predicted: tup
         found["id_refusal"] = model
         log.warning("markers %s: %d detected, none can be identified: %s", image, len(found), model)
     if not isinstance(model, str) and len(found):
-        uv, ids = projected
+        uv, ids = projected[:2]
         height, width = pixels.shape
         named = identify_with_reasons(uv_of(found), uv, ids, (width, height),
                                       rejected=uv_of(rejected), gate_px=identify_gate_px,
