@@ -166,6 +166,21 @@ def test_a_band_made_a_segment_at_a_time_solves_as_the_kept_one(kind, segment_by
     np.testing.assert_allclose(streamed[0], kept[0], rtol=1e-12, atol=1e-14)
 
 
+@pytest.mark.parametrize("method", [FRAMES_FIRST, POINTS_FIRST])
+@pytest.mark.parametrize("kind", ["shared", "own", "line"])
+def test_the_rigs_columns_are_those_of_a_solve_of_its_unit_columns(kind, method):
+    structure, normal, _, _ = random_normal(kind, 9, method)
+    normal = with_priors(normal)
+    first = structure.n_frames * L
+    unit = np.zeros((structure.size, R))
+    unit[first + np.arange(R), np.arange(R)] = 1.0
+    columns, rig_inverse = group_normal.rig_columns(normal)
+    expected = solve(normal, unit)
+    np.testing.assert_allclose(columns, expected[0], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(rig_inverse, expected[1], rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(columns, np.linalg.inv(normal.dense())[:, first:first + R], rtol=1e-9, atol=1e-14)
+
+
 def test_a_group_whose_frames_system_would_not_fit_is_refused(monkeypatch):
     structure, normal, _, _ = random_normal("line", 120, POINTS_FIRST)
     monkeypatch.setattr(group_normal, "FACTOR_BYTES", 120 * L * 3 * L * 8 * 0.9)  # a band of 2 frames needs more

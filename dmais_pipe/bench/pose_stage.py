@@ -29,8 +29,8 @@ Rows:
    seconds per frame and their ratio, peak memory;
 3. dense reference: 2 groups of 40 frames of each kind through the stage in this process, once as it
    is and once with every solve of the group adjustment's normal equations replaced by a dense solve of
-   the whole matrix (`dense_solve`): the largest relative difference of mounting.csv's numbers, of
-   poses.csv's sigmas and of the error budget.
+   the whole matrix (`dense_solve`, `dense_rig_columns`): the largest relative difference of mounting.csv's
+   numbers, of poses.csv's sigmas and of the error budget.
 """
 
 from __future__ import annotations
@@ -268,8 +268,17 @@ def dense_solve(normal, right):
     return solution[:, :right.shape[1]], solution[first:first + s.rig_size, right.shape[1]:]
 
 
+def dense_rig_columns(normal):
+    """pose.group_normal.rig_columns's result by `dense_solve` of the rig's unit columns."""
+    s = normal.structure
+    unit = np.zeros((s.size, s.rig_size))
+    unit[s.n_frames * s.local_size + np.arange(s.rig_size), np.arange(s.rig_size)] = 1.0
+    return dense_solve(normal, unit)
+
+
 def reference_differences(dataset: Path, results: Path) -> dict:
-    """The stage run in this process as it is and with `dense_solve`: the largest relative differences
+    """The stage run in this process as it is and with `dense_solve` (and `dense_rig_columns`): the largest
+    relative differences
     of mounting.csv's numbers, poses.csv's sigmas and the error budget's numbers (relative to the
     largest magnitude of each column)."""
     from ..pose import group_normal
@@ -281,7 +290,8 @@ def reference_differences(dataset: Path, results: Path) -> dict:
         out = results.parent / f"results_{name}"
         shutil.rmtree(out, ignore_errors=True)
         shutil.copytree(results, out)
-        with mock.patch.object(group_normal, "solve", patch) if patch else nullcontext():
+        with (mock.patch.multiple(group_normal, solve=patch, rig_columns=dense_rig_columns) if patch else
+              nullcontext()):
             stage.run(Workspace.open(dataset, out), stage.Conf())
         tables[name] = {kind: pd.read_csv(out / f"poses{suffix}") for kind, suffix in
                         (("mounting", ".mounting.csv"), ("poses", ".csv"), ("budget", ".budget.csv"))}

@@ -28,7 +28,10 @@ rig's block of the inverse equal those of a dense solve of the whole matrix to r
 (tests/test_group_normal.py). The cost is linear in the frames for a fixed number of points per frame
 and frames per point; the dense system of the frames-first order is of the points alone. Frames tied
 over a band of b frames (a line: C0 sees the markers the forward camera saw ~17 frames before) give
-a factor of F L (b + 1) L numbers, which is refused beyond FACTOR_BYTES (`_frames_factor`).
+a factor of F L (b + 1) L numbers (0.94 GiB at 10,000 frames of L = 18): beyond KEPT_FACTOR_BYTES it is
+made a segment of frames at a time and not kept, each segment made again for the back substitution from
+the factor's coupling to the segment before (`_FramesBand`), so that the memory is that of a segment and
+the couplings whatever the frames; the memory they need is refused beyond FACTOR_BYTES.
 """
 
 from __future__ import annotations
@@ -165,7 +168,7 @@ def _observation_pairs(frame: np.ndarray, point: np.ndarray, local_cols: np.ndar
     rank, band = _banded_order(frame[left], frame[right], n_frames)
     upper = rank[frame[left]] <= rank[frame[right]]
     left, right = left[upper], right[upper]
-    column_set = np.unique(local_cols, axis=0, return_inverse=True)[1].ravel()
+    column_set = _row_sets(local_cols)
     n_sets = int(column_set.max(initial=0)) + 1
     key = ((rank[frame[left]] * n_frames + rank[frame[right]]) * n_sets + column_set[left]) * n_sets \
         + column_set[right]
@@ -173,6 +176,17 @@ def _observation_pairs(frame: np.ndarray, point: np.ndarray, local_cols: np.ndar
     key = key[by_key]
     runs = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1], [True]]))
     return rank, band, left[by_key], right[by_key], runs
+
+
+def _row_sets(cols: np.ndarray) -> np.ndarray:
+    """(N,) each row's place among the distinct rows of cols (N, l) (non-negative) in their lexicographic
+    order: np.unique(cols, axis=0)'s inverse, by one integer per row where they fit in 62 bits (numpy's
+    unique of rows sorts them as records, most of group_structure's time on a line of 10,000 frames)."""
+    base = int(cols.max(initial=0)) + 1
+    if cols.shape[1] * np.log2(base) >= 62:
+        return np.unique(cols, axis=0, return_inverse=True)[1].ravel()
+    key = cols @ (base ** np.arange(cols.shape[1] - 1, -1, -1, dtype=np.int64))
+    return np.unique(key, return_inverse=True)[1]
 
 
 def _banded_order(left: np.ndarray, right: np.ndarray, n_frames: int) -> tuple[np.ndarray, int]:
@@ -295,10 +309,33 @@ def solve(normal: GroupNormal, right: np.ndarray) -> tuple[np.ndarray, np.ndarra
         right = np.zeros((s.size, 1))
     r_local = right[:F * L].reshape(F, L, -1)
     r_rig, r_point = right[F * L:F * L + R], right[F * L + R:].reshape(s.n_points, 3, -1)
-    solver = _frames_first if s.method == FRAMES_FIRST else _points_first
-    x_local, x_rig, x_point, rig_inverse = solver(normal, r_local, r_rig, r_point)
-    x = np.concatenate([x_local.reshape(F * L, -1), x_rig, x_point.reshape(3 * s.n_points, -1)])
+    x, rig_inverse = _solved(normal, r_local, r_rig, r_point)
     return x[:, :k], rig_inverse
+
+
+def rig_columns(normal: GroupNormal) -> tuple[np.ndarray, np.ndarray]:
+    """(F L + R + 3P, R) the inverse normal matrix's columns of the rig's unknowns and (R, R) their rows: `solve`
+    of the rig's unit columns, without making them (the points' (P, 3, R) zeros are not made where the points
+    are eliminated first)."""
+    s = normal.structure
+    F, L, R = s.n_frames, s.local_size, s.rig_size
+    r_point = None if s.method == POINTS_FIRST else np.zeros((s.n_points, 3, R))
+    return _solved(normal, np.zeros((F, L, R)), np.eye(R), r_point)
+
+
+def _solved(normal: GroupNormal, r_local, r_rig, r_point) -> tuple[np.ndarray, np.ndarray]:
+    """`solve`'s (solution, rig inverse) of the right sides r_local (F, L, k), r_rig (R, k), r_point (P, 3, k)
+    (None: zeros, where the points are eliminated first); the points' part written in place."""
+    s = normal.structure
+    F, L, R = s.n_frames, s.local_size, s.rig_size
+    x = np.empty((s.size, r_rig.shape[1]))
+    x_point = x[F * L + R:].reshape(s.n_points, 3, -1)
+    if s.method == FRAMES_FIRST:
+        x_local, x_rig, x_point[:], rig_inverse = _frames_first(normal, r_local, r_rig, r_point)
+    else:
+        x_local, x_rig, rig_inverse = _points_first(normal, r_local, r_rig, r_point, x_point)
+    x[:F * L], x[F * L:F * L + R] = x_local.reshape(F * L, -1), x_rig
+    return x, rig_inverse
 
 
 def _inverted(blocks: np.ndarray, what: str) -> np.ndarray:
@@ -424,8 +461,9 @@ def _dense_coupling(normal: GroupNormal, chunk: np.ndarray) -> np.ndarray:
     return W
 
 
-def _points_first(normal: GroupNormal, r_local, r_rig, r_point):
-    """Eliminate the points' blocks, then solve the frames' and the rig's system (module docstring)."""
+def _points_first(normal: GroupNormal, r_local, r_rig, r_point, x_point):
+    """Eliminate the points' blocks, then solve the frames' and the rig's system (module docstring): (x_local,
+    x_rig, the rig's inverse), the points' solution written into x_point (P, 3, k); r_point None: zeros."""
     s = normal.structure
     F, L, R, P = s.n_frames, s.local_size, s.rig_size, s.n_points
     Hpp_inv = _inverted(normal.Hpp, "a point")
@@ -441,8 +479,9 @@ def _points_first(normal: GroupNormal, r_local, r_rig, r_point):
         factor = _cho_factor(S_rr - S_fr.reshape(F * L, R).T @ Z.reshape(F * L, R))
         x_rig = linalg.cho_solve(factor, y_rig - S_fr.reshape(F * L, R).T @ frames_y.reshape(F * L, -1))
         x_local = frames_y - Z @ x_rig
-    return x_local, x_rig, _points_back(normal, Hpp_inv, r_point, x_rig, W_point(x_local)), \
-        linalg.cho_solve(factor, np.eye(R))
+    x_point[:] = 0.0
+    _points_back(normal, Hpp_inv, r_point, x_rig, W_point(x_local, x_point))
+    return x_local, x_rig, linalg.cho_solve(factor, np.eye(R))
 
 
 def _rig_reduced(normal: GroupNormal, Hpp_inv: np.ndarray, r_rig: np.ndarray, r_point: np.ndarray):
@@ -452,7 +491,11 @@ def _rig_reduced(normal: GroupNormal, Hpp_inv: np.ndarray, r_rig: np.ndarray, r_
     S_rr, y_rig = normal.Hrr.copy(), np.array(r_rig, dtype=float)
     for chunk in _point_chunks(normal.structure):
         coupled = normal.Hpr[chunk].reshape(-1, R).T
-        moved = Hpp_inv[chunk] @ np.concatenate([normal.Hpr[chunk], r_point[chunk]], axis=2)
+        moved = Hpp_inv[chunk] @ (normal.Hpr[chunk] if r_point is None else
+                                  np.concatenate([normal.Hpr[chunk], r_point[chunk]], axis=2))
+        if r_point is None:
+            S_rr -= coupled @ moved.reshape(-1, R)
+            continue
         S_rr -= coupled @ moved[:, :, :R].reshape(-1, R)
         y_rig -= coupled @ moved[:, :, R:].reshape(len(coupled.T), -1)
     return S_rr, y_rig
@@ -460,9 +503,10 @@ def _rig_reduced(normal: GroupNormal, Hpp_inv: np.ndarray, r_rig: np.ndarray, r_
 
 def _points_back(normal: GroupNormal, Hpp_inv, r_point, x_rig, moved: np.ndarray) -> np.ndarray:
     """(P, 3, k) the points' solution Hpp_inv (r_point - Hpr x_rig - moved) from the rig's x_rig (R, k) and the
-    frames' share moved (P, 3, k) (overwritten by it), POINT_CHUNK points at a time."""
+    frames' share moved (P, 3, k) (overwritten by it), POINT_CHUNK points at a time; r_point None: zeros."""
     for chunk in _point_chunks(normal.structure):
-        moved[chunk] = Hpp_inv[chunk] @ (r_point[chunk] - normal.Hpr[chunk] @ x_rig - moved[chunk])
+        moved[chunk] = Hpp_inv[chunk] @ ((0.0 if r_point is None else r_point[chunk])
+                                         - normal.Hpr[chunk] @ x_rig - moved[chunk])
     return moved
 
 
@@ -504,8 +548,13 @@ def _untied_reduction(normal: GroupNormal, Hpp_inv, r_point, r_local):
     V_stack = stacked(W @ Hpp_inv).transpose(0, 2, 1, 3).reshape(F, L, 3 * slots)
     blocks = normal.A - V_stack @ W_stack.transpose(0, 2, 1)
     S_fr = normal.Wr - V_stack @ stacked(normal.Hpr).reshape(F, 3 * slots, -1)
-    y_local = r_local - V_stack @ stacked(r_point).reshape(F, 3 * slots, -1)
-    return blocks, S_fr, y_local, lambda x_local: W.transpose(0, 2, 1) @ x_local[s.point_frame]
+    y_local = r_local if r_point is None else r_local - V_stack @ stacked(r_point).reshape(F, 3 * slots, -1)
+
+    def W_point(x_local, out):  # (F, L, k) -> out (P, 3, k), Wp^T x_local
+        out[:] = W.transpose(0, 2, 1) @ x_local[s.point_frame]
+        return out
+
+    return blocks, S_fr, y_local, W_point
 
 
 def _tied_reduction(normal: GroupNormal, Hpp_inv, r_point, r_local):
@@ -514,15 +563,18 @@ def _tied_reduction(normal: GroupNormal, Hpp_inv, r_point, r_local):
     Wp_i Hpp_inv_p (Hpr_p, r_point_p) at the rows of i's local unknowns, and x_local -> Wp^T x_local summed per
     point, each by one compiled loop over the observations (_group; nothing of the observations' size held)."""
     s = normal.structure
-    coupled = np.ascontiguousarray(np.concatenate([normal.Hpr, r_point], axis=2))
-    moved = np.zeros((s.n_frames, s.local_size, coupled.shape[2]))
-    _group.frames_from_points(s.frame, s.point, s.local_cols, normal.Wp, np.ascontiguousarray(Hpp_inv), coupled,
-                              moved)
-    R = s.rig_size
-    S_fr, y_local = normal.Wr - moved[:, :, :R], r_local - moved[:, :, R:]
+    Hpp_inv = np.ascontiguousarray(Hpp_inv)
 
-    def W_point(x_local):  # (F, L, k) -> (P, 3, k)
-        out = np.zeros((s.n_points, 3, x_local.shape[2]))
+    def moved(coupled):  # (P, 3, q) -> (F, L, q)
+        out = np.zeros((s.n_frames, s.local_size, coupled.shape[2]))
+        _group.frames_from_points(s.frame, s.point, s.local_cols, normal.Wp, Hpp_inv, np.ascontiguousarray(coupled),
+                                  out)
+        return out
+
+    S_fr = normal.Wr - moved(normal.Hpr)
+    y_local = r_local if r_point is None or not r_point.any() else r_local - moved(r_point)
+
+    def W_point(x_local, out):  # (F, L, k) -> out (P, 3, k) (zeros) plus Wp^T x_local
         _group.points_from_frames(s.frame, s.point, s.local_cols, normal.Wp, np.ascontiguousarray(x_local), out)
         return out
 

@@ -747,12 +747,9 @@ def _rig_covariance(problem: _Problem, state: _State, normal: GroupNormal, calib
     calibration's covariance (`adjust_group_rig`), its share (`_calibration_share`), from the inverse's rig
     columns and the model at `state`, made again after the solve (its Jacobians' factors are not held
     through it: a line's group of 10,000 frames has 2 million observations)."""
-    first, R = problem.n_frames * problem.local_size, problem.rig_size
     if calibration_covariance is None:
         return group_normal.solve(normal, np.zeros((problem.structure.size, 0)))[1]
-    unit = np.zeros((problem.structure.size, R))
-    unit[first + np.arange(R), np.arange(R)] = 1.0
-    rig_columns, covariance = group_normal.solve(normal, unit)
+    rig_columns, covariance = group_normal.rig_columns(normal)
     moved, columns = _calibration_moved(problem, state, _forward(problem, state), rig_columns, covariance)
     return covariance + _calibration_share(problem, moved, columns, np.asarray(calibration_covariance, float))
 
