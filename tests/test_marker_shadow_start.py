@@ -1,13 +1,18 @@
-"""The compiled scoring of the shadow start (`markers/_shadow.pyx`): the best straight step of log rings
-and the symmetric centre's choice among a grid of rings, against numpy's (`shadow._best_step_numpy`,
-`shadow._most_symmetric_x_numpy`), to the last bit, on seeded rings and images: X's crossed by a shadow
-edge, outline corners, texture, flat rings and ties."""
+"""The compiled scoring of the shadow start (`markers/_shadow.pyx`): the best straight step of log rings,
+the symmetric centre's choice among a grid of rings and the shadowed-X test's best line, against numpy's
+(`shadow._best_step_numpy`, `shadow._most_symmetric_x_numpy`, `detect._best_shadow_line_numpy`), to the
+last bit, on seeded rings and images: X's crossed by a shadow edge, outline corners, texture, flat rings
+and ties."""
+
+import importlib
 
 import numpy as np
 import pytest
 
 from dmais_pipe.markers import shadow
 from dmais_pipe.markers.rings import ImageParts
+
+detect = importlib.import_module("dmais_pipe.markers.detect")  # the module, not the package's function
 
 
 def _log_rings(rng, n: int, k: int) -> np.ndarray:
@@ -39,6 +44,19 @@ def test_best_step_is_numpys_to_the_last_bit(seed, k):
     found = np.isfinite(want[0])
     np.testing.assert_array_equal(got[3][found], want[3][found])
     assert k != 48 or 100 < found.sum() < 550  # both outcomes are compared
+
+
+@pytest.mark.parametrize("seed, k", [(5, 24), (6, 24), (7, 48), (8, 23)])
+def test_shadow_line_is_numpys_to_the_last_bit(seed, k):
+    rng = np.random.default_rng(seed)
+    logs = _log_rings(rng, 500, k)
+    for contrast in (20.0, 60.0, 150.0):
+        for min_quality in (0.5, 0.7):
+            got = detect._best_shadow_line(logs, contrast, min_quality)
+            want = detect._best_shadow_line_numpy(logs, contrast, min_quality)
+            for compiled, numpy_value in zip(got, want):
+                np.testing.assert_array_equal(compiled, numpy_value)
+    assert 50 < detect._best_shadow_line(logs, 60.0, 0.7)[0].sum() < 450  # both outcomes are compared
 
 
 def test_best_step_of_no_rings():

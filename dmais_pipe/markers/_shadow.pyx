@@ -94,11 +94,31 @@ cdef bint both_sides(const double *lit, const unsigned char *bright, const doubl
     return both and low >= same_ratio * high
 
 
+cdef bint step_taken(const double *v, double step, const double *shade, const Py_ssize_t *ends, Py_ssize_t e,
+                     Py_ssize_t runs, Py_ssize_t k, Py_ssize_t min_samples, double same_ratio, double *lit,
+                     double *scratch, unsigned char *bright, double *quality, double *high, double *low) noexcept nogil:
+    """The log ring v (k) with the step of log size `step` beyond a line (its shaded samples shade (k),
+    0 or 1) taken away into lit (k): the ring statistics of its exp (`_rings.one_ring`: quality, levels,
+    bright mask (k)); returns whether the line crosses the X's sectors (the bright mask the same at the
+    samples of each of `runs` equal runs of its e ends' samples) with both levels on both sides in the same
+    ratio (`both_sides`). scratch: 3 k doubles."""
+    cdef Py_ssize_t a, run = e // runs
+    cdef bint crosses = True
+    for a in range(k):
+        lit[a] = v[a] - step * shade[a]
+        scratch[a] = exp(lit[a])
+    one_ring(scratch, k, &scratch[k], bright, quality, high, low)
+    for a in range(e):
+        crosses = crosses and bright[ends[a]] == bright[ends[a - a % run]]
+    return crosses and both_sides(lit, bright, shade, k, min_samples, same_ratio, &scratch[k])
+
+
 def best_steps(logs, g, norm, shade, ends, double min_step, Py_ssize_t top, double min_quality, double same_ratio,
                Py_ssize_t min_samples):
     """`shadow._best_step`'s choice for log rings logs (n, k) and the log steps g (n, l) of the lines
     whose shaded samples are shade (l, k) (0 or 1), norm (l,) their asymmetries' squared norms and ends
-    (l, e) the ring samples about the points where each line crosses the ring: per ring, the line
+    (l, e) the ring samples about the points where each line crosses the ring (all alike for a line
+    that crosses the sectors): per ring, the line
     index (n,) of the best step of the `top` that explain the most of its point asymmetry (ordered as
     np.argsort(kind="stable") orders -explained), whether its X is good enough (n,), its log step (n,)
     and the ring with it taken away (n, k)."""
@@ -116,15 +136,14 @@ def best_steps(logs, g, norm, shade, ends, double min_step, Py_ssize_t top, doub
     cdef double[::1] out_step = step
     cdef double[:, ::1] out_lit = lit_out
     work = np.empty(l + 4 * k + 1)
-    cdef double[::1] w = work  # -explained (l), lit (k), exp(lit) (k), scratch (2 k)
+    cdef double[::1] w = work  # -explained (l), lit (k), scratch (3 k)
     orders = np.empty(l + 1, dtype=np.intp)
     cdef Py_ssize_t[::1] order = orders
     masks = np.empty(k + 1, dtype=np.uint8)
     cdef unsigned char[::1] bright = masks
     cdef double gl, quality, high, low, best, score
     cdef double *lit = &w[l]
-    cdef double *light = &w[l + k]
-    cdef bint crosses
+    cdef bint taken
     if n == 0 or t == 0:
         return choice, good, step, lit_out
     with nogil:
@@ -137,16 +156,9 @@ def best_steps(logs, g, norm, shade, ends, double min_step, Py_ssize_t top, doub
             for s in range(t):
                 line = order[s]
                 gl = steps[i, line]
-                for a in range(k):
-                    lit[a] = v[i, a] - gl * shaded[line, a]
-                    light[a] = exp(lit[a])
-                one_ring(light, k, &w[l + 2 * k], &bright[0], &quality, &high, &low)
-                crosses = True
-                for a in range(1, e):
-                    crosses = crosses and bright[crossing[line, a]] == bright[crossing[line, 0]]
-                score = quality if (-gl >= min_step and crosses and
-                                    both_sides(lit, &bright[0], &shaded[line, 0], k, min_samples, same_ratio,
-                                               &w[l + 2 * k])) else -1.0
+                taken = step_taken(&v[i, 0], gl, &shaded[line, 0], &crossing[line, 0], e, 1, k, min_samples,
+                                   same_ratio, lit, &w[l + k], &bright[0], &quality, &high, &low)
+                score = quality if (-gl >= min_step and taken) else -1.0
                 if score != score:  # np.argmax: the first NaN
                     best, chosen = score, s
                     break
@@ -157,3 +169,43 @@ def best_steps(logs, g, norm, shade, ends, double min_step, Py_ssize_t top, doub
             for a in range(k):
                 out_lit[i, a] = v[i, a] - steps[i, line] * shaded[line, a]
     return choice, good, step, lit_out
+
+
+def shadow_lines(logs, g, shade, ends, double contrast, double min_quality, double min_step, Py_ssize_t min_samples,
+                 double same_ratio):
+    """`detect._best_shadow_line` of log rings logs (m, k) and the log steps g (m, l) of the lines whose
+    shaded samples are shade (l, k) (0 or 1), ends (l, 2 w) the w ring samples about each of the two
+    points where a line crosses the ring (each run of w alike for a line that crosses the sectors): (whether
+    a line passes (m,):
+    its step taken away leaves an X of quality >= min_quality and levels >= contrast apart, crossing the
+    X's sectors, both levels on both sides in the same ratio and -step >= min_step; the index (m,) of the
+    passing line of best quality, the first of equals, 0 where none passes)."""
+    cdef const double[:, ::1] v = np.ascontiguousarray(logs, dtype=np.float64)
+    cdef const double[:, ::1] steps = np.ascontiguousarray(g, dtype=np.float64)
+    cdef const double[:, ::1] shaded = np.ascontiguousarray(shade, dtype=np.float64)
+    cdef const Py_ssize_t[:, ::1] crossing = np.ascontiguousarray(ends, dtype=np.intp)
+    cdef Py_ssize_t m = v.shape[0], k = v.shape[1], l = steps.shape[1], e = crossing.shape[1], i, line
+    passes, choice = np.zeros(m, dtype=bool), np.zeros(m, dtype=np.intp)
+    cdef unsigned char[::1] ok = passes.view(np.uint8)
+    cdef Py_ssize_t[::1] c = choice
+    work = np.empty(4 * k + 1)
+    cdef double[::1] w = work  # lit (k), scratch (3 k)
+    masks = np.empty(k + 1, dtype=np.uint8)
+    cdef unsigned char[::1] bright = masks
+    cdef double gl, quality, high, low, best, score
+    cdef bint good
+    if m == 0 or l == 0:
+        return passes, choice
+    with nogil:
+        for i in range(m):
+            best = 0.0
+            for line in range(l):
+                gl = steps[i, line]
+                good = step_taken(&v[i, 0], gl, &shaded[line, 0], &crossing[line, 0], e, 2, k, min_samples,
+                                  same_ratio, &w[0], &w[k], &bright[0], &quality, &high, &low)
+                good = good and quality >= min_quality and high - low >= contrast and -gl >= min_step
+                ok[i] = ok[i] or good
+                score = quality if good else -1.0  # never NaN: a NaN quality does not pass
+                if line == 0 or score > best:
+                    c[i], best = line, score
+    return passes, choice

@@ -44,10 +44,11 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
+from . import _shadow
 from .centring import seed
 from .refine import ASYMMETRIC, NO_CLEAN_X, refine_corners
 from .rings import RADII, as_float_image, clean_radius, ring_offsets, ring_quality, ring_sample, ring_stats, sample
-from .shadow import SHADOW_REASON, both_sides, line_ends, log_ring_sample, shadowed_corners, step_masks
+from .shadow import SAME_RATIO, SHADOW_REASON, both_sides, line_ends, log_ring_sample, shadowed_corners, step_masks
 
 COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
 REJECTED_COLUMNS = ["u", "v", "reason"]
@@ -459,10 +460,26 @@ def _best_shadow_line(values: np.ndarray, contrast: float, min_quality: float):
     """For log rings (m, k): (passes (m,), shadow direction (m,)) of the line (of _SHADOW_LINES)
     whose step, least-squares fitted to the rings' point asymmetry and taken away, leaves the best
     X; passes where that X has quality >= min_quality, contrast >= `contrast` and the step darkens."""
-    m, k = values.shape
+    shade, g = _shadow_steps(values)
+    ends = line_ends(_SHADOW_LINES, values.shape[1]).reshape(len(_SHADOW_LINES), -1)
+    passes, best = _shadow.shadow_lines(values, g, shade, ends, contrast, min_quality, MIN_SHADOW_LOG,
+                                        SHADOW_SIDE_SAMPLES, SAME_RATIO)
+    return passes, np.array([phi for phi, _ in _SHADOW_LINES])[best]
+
+
+def _shadow_steps(values: np.ndarray):
+    """(the shaded samples (l, k) of each of _SHADOW_LINES, the log steps (m, l) least-squares fitted to
+    the point asymmetry of log rings values (m, k))."""
+    k = values.shape[1]
     shade, h = step_masks(_SHADOW_LINES, k)  # (l, k) each
     anti = values - np.roll(values, k // 2, axis=1)
-    g = anti @ h.T / (h * h).sum(axis=1)  # (m, l) log step of each line
+    return shade, anti @ h.T / (h * h).sum(axis=1)
+
+
+def _best_shadow_line_numpy(values: np.ndarray, contrast: float, min_quality: float):
+    """`_best_shadow_line` in numpy (the reference of tests/test_marker_shadow_start.py)."""
+    m, k = values.shape
+    shade, g = _shadow_steps(values)
     lit = values[:, None, :] - g[:, :, None] * shade[None]
     quality, high, low, bright = (a.reshape(m, len(shade), *a.shape[1:])
                                   for a in ring_stats(np.exp(lit).reshape(-1, k)))
@@ -484,12 +501,12 @@ def _dedupe(points: np.ndarray, score: np.ndarray) -> np.ndarray:
     if len(points) < 2:
         return np.arange(len(points))
     order = np.argsort(-score, kind="stable")
-    tree = cKDTree(points)
+    near = cKDTree(points).query_ball_point(points, DUPLICATE_PX)  # every point's cluster in one query
     taken = np.zeros(len(points), dtype=bool)
     keep = []
-    for i in order:
+    for i in order.tolist():
         if taken[i]:
             continue
         keep.append(i)
-        taken[tree.query_ball_point(points[i], DUPLICATE_PX)] = True
+        taken[near[i]] = True
     return np.array(keep, dtype=int)

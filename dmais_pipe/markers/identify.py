@@ -301,14 +301,25 @@ def _local_shift_reason(scene: _Scene, best: _Alignment, k: int, matched_tree: c
     points, dets = best.pi[near], best.di[near]
     own = max(float(np.sum((best.distance[near] / scene.gates[points]) ** 2)), 1.0)
     shifts = _period_vectors(moved, best.pi[k])
-    for shift, neighbour in zip(shifts, _neighbours_along(moved, moved_tree, points, shifts)):
-        found = neighbour >= 0
-        distance = np.hypot(*(moved[neighbour[found]] - scene.det[dets[found]]).T) / scene.gates[neighbour[found]]
-        ratio = (float(np.sum(np.minimum(distance**2, 1.0))) + np.count_nonzero(~found)) / own
+    for shift, ratio in zip(shifts, _shift_ratios(scene, moved, dets, _neighbours_along(moved, moved_tree, points,
+                                                                                        shifts), own)):
         if ratio < SHIFT_COST_RATIO:
             return (f"its neighbourhood's ids shifted by one period ({shift[0]:+.0f}, {shift[1]:+.0f}) px fit about "
                     f"as well (cost ratio {ratio:.2f} < {SHIFT_COST_RATIO:g})")
     return ""
+
+
+def _shift_ratios(scene: _Scene, moved: np.ndarray, dets: np.ndarray, neighbours: np.ndarray, own: float) -> list:
+    """(s,) per one-period shift, the cost of the ids of detections dets (q,) moved to the predictions
+    neighbours (s, q) (-1: none) over `own`: the squared distances in gates (at most 1) of the found
+    ones, plus 1 per one not found. The distances of all shifts at once, each shift's sum as np.sum
+    of its found ones has it."""
+    found = neighbours >= 0
+    at = np.where(found, neighbours, 0)
+    offset = moved[at] - scene.det[dets][None]  # (s, q, 2)
+    cost = np.minimum((np.hypot(offset[..., 0], offset[..., 1]) / scene.gates[at]) ** 2, 1.0)
+    missing = np.count_nonzero(~found, axis=1)
+    return [(float(np.sum(row[mask])) + int(lost)) / own for row, mask, lost in zip(cost, found, missing)]
 
 
 def identify(detections, predicted, point_ids, image_size=None, *, rejected=None, gate_px: float = GATE_PX,
