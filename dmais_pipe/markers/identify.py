@@ -30,6 +30,7 @@ predicted set with the detected set robustly:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -128,13 +129,13 @@ def _apply(params: np.ndarray, pred: np.ndarray, centre: np.ndarray) -> np.ndarr
     return (a @ params).reshape(-1, 2)
 
 
-def _match(moved: np.ndarray, det: np.ndarray, gate) -> tuple[np.ndarray, np.ndarray]:
+def _match(moved: np.ndarray, det: np.ndarray, gate, det_tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Mutual nearest neighbours within `gate` (a number, or (m,) per prediction): (k,) prediction
-    and (k,) detection indices."""
+    and (k,) detection indices. det_tree: cKDTree(det) if already made."""
     if len(moved) == 0 or len(det) == 0:
         return np.zeros(0, int), np.zeros(0, int)
     _, p_of_d = cKDTree(moved).query(det)
-    p_to_d, d_of_p = cKDTree(det).query(moved)
+    p_to_d, d_of_p = (cKDTree(det) if det_tree is None else det_tree).query(moved)
     pi = np.nonzero((p_to_d <= gate) & (p_of_d[d_of_p] == np.arange(len(moved))))[0]
     return pi, d_of_p[pi]
 
@@ -166,6 +167,11 @@ class _Scene:
     min_inliers: int
     projective: bool = False
 
+    @cached_property
+    def det_tree(self) -> cKDTree:
+        """cKDTree of the detections, made once."""
+        return cKDTree(self.det)
+
     def moved(self, params: np.ndarray) -> np.ndarray:
         return _apply(params, self.pred, self.centre)
 
@@ -181,7 +187,7 @@ class _Scene:
 def _aligned(scene: _Scene, params: np.ndarray) -> _Alignment | None:
     """The matches of the predictions moved by `params` within the gates, or None without any."""
     moved = scene.moved(params)
-    pi, di = _match(moved, scene.det, scene.gates)
+    pi, di = _match(moved, scene.det, scene.gates, scene.det_tree)
     if len(pi) == 0:
         return None
     return _Alignment(params, pi, di, np.hypot(*(moved[pi] - scene.det[di]).T))
@@ -193,7 +199,7 @@ def _refine_hypothesis(scene: _Scene, shift: np.ndarray) -> _Alignment | None:
     params = np.array([1.0, 0.0, shift[0], shift[1]])
     for gate, radial in ((COARSE_GATE_PX, False), (60.0, False), (30.0, False), (30.0, True),
                          (scene.gates, True), (scene.gates, True)):
-        pi, di = _match(_apply(params, pred, centre), det, gate)
+        pi, di = _match(_apply(params, pred, centre), det, gate, scene.det_tree)
         need = 6 if radial else 2
         if len(pi) < need:
             if radial and len(pi) >= 2:

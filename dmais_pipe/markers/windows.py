@@ -79,13 +79,17 @@ def groups(boxes: np.ndarray) -> list[np.ndarray]:
     """The windows boxes (m, 4) in groups (k, 4) that one part of the image serves: those whose
     parts (READ_PX about them) would overlap share one, and the parts of two groups are apart."""
     parts = [box[None] for box in boxes]
+    bounds = [tuple(box.tolist()) for box in boxes]  # each part's `_bounds`, as Python floats
     merged = True
     while merged:
         merged = False
         for i, j in ((i, j) for i in range(len(parts)) for j in range(i + 1, len(parts))):
-            a, b = _bounds(parts[i]), _bounds(parts[j])
-            if np.all(a[:2] - APART_PX <= b[2:]) and np.all(b[:2] - APART_PX <= a[2:]):
+            a, b = bounds[i], bounds[j]
+            if a[0] - APART_PX <= b[2] and a[1] - APART_PX <= b[3] and b[0] - APART_PX <= a[2] \
+                    and b[1] - APART_PX <= a[3]:
                 parts[i] = np.vstack([parts[i], parts.pop(j)])
+                bounds[i] = (min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]), max(a[3], b[3]))
+                bounds.pop(j)
                 merged = True
                 break
     return parts
