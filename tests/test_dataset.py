@@ -158,6 +158,19 @@ def test_read_image_converts_colour_and_keeps_16_bit(root):
     assert ds.check_images() == 4
 
 
+def test_an_images_row_found_by_its_id_is_the_masks(root):
+    """image_path and read_image find the row through the grouped positions; it is the boolean mask's,
+    in the whole load and in a slice of it, and an unknown image is refused."""
+    ds = Dataset.load(root)
+    for part in (ds, ds.restricted(["f1", "e0"], part="a slice")):
+        for image in part.images["image"]:
+            row = part.images[part.images["image"] == image].iloc[0]
+            assert part._row(image).equals(row)
+            assert part.image_path(image) == (part.root / row["path"] if row["path"] else None)
+    with pytest.raises(DatasetError, match="unknown image 'i0'"):
+        ds.restricted(["f1"]).image_path("i0")
+
+
 def test_quaternions_are_normalized(root):
     _set_cells(root, "images.csv", 0, prior_qw="2", prior_qx="0", prior_qy="0", prior_qz="0")
     assert Dataset.load(root).images.loc[0, ["prior_qw", "prior_qx"]].tolist() == [1.0, 0.0]

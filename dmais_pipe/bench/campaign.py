@@ -342,6 +342,7 @@ def _one_core(root: Path, dataset: Path, demo: Path, results: Path, plan: dict) 
     log.info("campaign: marker batch %s on one core", batch)
     wall, _ = _run(command, root, timeout=3600)
     phases = pd.read_csv(results / "markers" / "batches" / f"{batch}.csv")[list(PHASES)]
+    resumed = _medians([_timed(command, root) for _ in range(3)])  # its every image done: the job without work
     images, work = len(phases), float(phases.to_numpy().sum())
     note = f"{batch}: {images} images, mean per image"
     return [*(_row(f"one_core_{phase}", float(phases[phase].mean()), "s", note) for phase in PHASES),
@@ -349,7 +350,9 @@ def _one_core(root: Path, dataset: Path, demo: Path, results: Path, plan: dict) 
             _row("one_core_batch_wall_s", wall, "s", f"`dmais markers --batch {batch}` as a process"),
             _row("one_core_overhead_per_image_s", (wall - work) / images, "s",
                  "(wall - phases) / images: interpreter start, imports, loading the dataset, planning its "
-                 "batches, per-image bookkeeping")]
+                 "batches, per-image bookkeeping"),
+            _row("one_core_resumed_batch_cpu_s", resumed[1], "s", f"the same `dmais markers --batch {batch}` again, "
+                 "every image resumed: the job's overhead, CPU (median of 3); target: <= 1 s")]
 
 
 def _copy_upstream(demo: Path, results: Path, plan: dict) -> None:
@@ -591,10 +594,13 @@ def _slurm_rows(jobs: pd.DataFrame) -> list[dict]:
 # ------------------------------------------------------------------------------ what a job reads
 
 
-#: `_job_reads`' jobs: a Python importing what `dmais <stage>` imports, and that also reads what the job
-#: of one marker batch or flight group reads (slices.batch_workspace, group_workspace: its slice where
-#: one is current, else the whole dataset), and does nothing else.
-_JOB_START = "from dmais_pipe import cli\nfrom dmais_pipe.stages import {stage}\n"
+#: `_job_reads`' jobs: a Python importing what `dmais <stage>` imports as `dmais` does (cli.main: the
+#: collector paused), and that also reads what the job of one marker batch or flight group reads
+#: (slices.batch_workspace, group_workspace: its slice where one is current, else the whole dataset),
+#: does nothing else and ends as `dmais` ends (cli._end).
+_JOB_START = ("from dmais_pipe import cli\nwith cli._collector_paused(freeze=True):\n"
+              "    cli._imported({stage!r})\n")
+_JOB_END = "cli._end(0)\n"
 _JOB_READS = {  # logging as `dmais` logs, so that the log says whether the slice was read
     "markers": "import logging, sys\nlogging.basicConfig(level=logging.INFO)\n"
                "from dmais_pipe.slices import batch_workspace\n"
@@ -632,8 +638,9 @@ def _job_reads(root: Path, source: Path, demo: Path, out: Path, dataset: Path, r
 def _reads_rows(root: Path, results: Path, stage: str, arguments: list[str], what: str, repeats: int) -> list[dict]:
     """Rows of a Python importing `stage`, and of one reading besides what a job reads (`_JOB_READS`
     with `arguments`) both ways: wall and CPU (user + system) seconds."""
-    start = _medians([_timed([sys.executable, "-c", _JOB_START.format(stage=stage)], root) for _ in range(repeats)])
-    reads = [sys.executable, "-c", _JOB_START.format(stage=stage) + _JOB_READS[stage], *arguments]
+    started = _JOB_START.format(stage=stage)
+    start = _medians([_timed([sys.executable, "-c", started + _JOB_END], root) for _ in range(repeats)])
+    reads = [sys.executable, "-c", started + _JOB_READS[stage] + _JOB_END, *arguments]
     ways = _both_ways(root, results, reads, repeats)
     rows = []
     for kind, k in (("", 0), ("_cpu", 1)):
