@@ -138,3 +138,16 @@ def test_ring_samples_are_the_samples_at_their_sums(seed):
         np.testing.assert_array_equal(ring_sample(img, centres, offsets), want)
     grid = centres[:60].reshape(6, 10, 2)
     np.testing.assert_array_equal(ring_sample(parts, grid, offsets), sample(parts, grid[:, :, None, :] + offsets))
+
+
+def test_parts_pixels_as_numpys_gather():
+    rng = np.random.default_rng(11)
+    image = rng.normal(100.0, 30.0, (700, 900)).astype(np.float32)
+    parts = ImageParts([(0, 0, 192, 180), (448, 300, 900, 700), (256, 0, 320, 40)], image.shape)
+    for pixels, top, left in zip(parts.pixels, parts.tops, parts.lefts):
+        pixels[...] = image[top:top + pixels.shape[0], left:left + pixels.shape[1]]
+    ys, xs = rng.integers(-70, 770, (50, 40)), rng.integers(-70, 970, (50, 40))
+    np.testing.assert_array_equal(parts[ys, xs], parts._gathered(ys, xs))
+    inside = (rng.integers(0, 180, 500), rng.integers(0, 192, 500))
+    np.testing.assert_array_equal(parts[inside], image[inside])
+    assert parts[ys.astype(np.int32), xs].dtype == np.float32

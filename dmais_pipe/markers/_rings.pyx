@@ -326,3 +326,39 @@ def ring_samples(buffer, bases, lefts, tops, widths, heights, rows, columns, cel
             dmais_sample(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
                          &owner[0], &xy[0, 0], k, &o[i, 0])
     return out
+
+
+def parts_gather(buffer, bases, lefts, tops, widths, heights, cells, Py_ssize_t cell_px, ys, xs):
+    """(n,) float32 pixels at integer positions ys, xs (n,) (whole-image coordinates) of the parts of
+    `rings.ImageParts` (its flat buffer, per part its offset, left, top, width, height, and the map `cells`
+    (r, c) of the part each cell of cell_px holds): each from the part of its cell, its row and column
+    clamped into that part (`ImageParts.__getitem__`'s)."""
+    cdef const float[::1] buf = buffer
+    cdef const Py_ssize_t[::1] base = np.ascontiguousarray(bases, dtype=np.intp)
+    cdef const Py_ssize_t[::1] left = np.ascontiguousarray(lefts, dtype=np.intp)
+    cdef const Py_ssize_t[::1] top = np.ascontiguousarray(tops, dtype=np.intp)
+    cdef const Py_ssize_t[::1] width = np.ascontiguousarray(widths, dtype=np.intp)
+    cdef const Py_ssize_t[::1] height = np.ascontiguousarray(heights, dtype=np.intp)
+    cdef const Py_ssize_t[:, ::1] cell_map = np.ascontiguousarray(cells, dtype=np.intp)
+    cdef const Py_ssize_t[::1] y = np.ascontiguousarray(ys, dtype=np.intp)
+    cdef const Py_ssize_t[::1] x = np.ascontiguousarray(xs, dtype=np.intp)
+    cdef Py_ssize_t n = y.shape[0], i, k, row, column
+    out = np.empty(n, dtype=np.float32)
+    cdef float[::1] o = out
+    with nogil:
+        for i in range(n):
+            k = cell_map[index_cell(y[i], cell_px, cell_map.shape[0]), index_cell(x[i], cell_px, cell_map.shape[1])]
+            row = clamp_index(y[i] - top[k], height[k])
+            column = clamp_index(x[i] - left[k], width[k])
+            o[i] = buf[base[k] + row * width[k] + column]
+    return out
+
+
+cdef inline Py_ssize_t clamp_index(Py_ssize_t value, Py_ssize_t size) noexcept nogil:
+    """value clamped into 0..size - 1."""
+    return 0 if value < 0 else (size - 1 if value > size - 1 else value)
+
+
+cdef inline Py_ssize_t index_cell(Py_ssize_t value, Py_ssize_t cell_px, Py_ssize_t count) noexcept nogil:
+    """floor(value / cell_px) clamped into 0..count - 1 (a negative value's cell is 0 either way)."""
+    return clamp_index(value // cell_px if value >= 0 else 0, count)

@@ -71,6 +71,13 @@ class ImageParts:
         if self._cells is None:  # one part
             return self.pixels[0][np.clip(ys - self.tops[0], 0, self.heights[0] - 1),
                                   np.clip(xs - self.lefts[0], 0, self.widths[0] - 1)]
+        if ys.dtype.kind in "iu" and xs.dtype.kind in "iu":  # the same pixels, by one compiled loop
+            return _rings.parts_gather(self.buffer, self.bases, self.lefts, self.tops, self.widths, self.heights,
+                                       self._cells, self.CELL_PX, ys.ravel(), xs.ravel()).reshape(xs.shape)
+        return self._gathered(ys, xs)
+
+    def _gathered(self, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
+        """`__getitem__` of several parts in numpy (the reference of tests/test_marker_sampling.py)."""
         owner = self.owners(xs.ravel(), ys.ravel()).reshape(xs.shape)
         height, width = self.heights[owner], self.widths[owner]
         row = np.minimum(np.maximum(ys - self.tops[owner], 0), height - 1)
