@@ -66,8 +66,9 @@ PIXEL_NOISE_PX, VIBRATION_ARCMIN, SURVEY_M = 0.5, 0.3, (0.015, 0.015, 0.025)
 LINE_REACH_FRAMES = 25
 THROUGHPUT_FRAMES, REFERENCE_FRAMES = (100, 1100), 40
 #: Frames of the scaling rows' two groups per kind: a line's frames are tied over ~38 frames (C0 sees the
-#: markers the forward camera saw 17 frames before, the backward camera 18 after): its frames' band
-#: (group_normal._frames_band) holds F L 39 L numbers, 0.94 GiB at 10,000 frames of L = 18.
+#: markers the forward camera saw 17 frames before, the backward camera 18 after): its frames' band factor
+#: (group_normal._FramesBand) would hold F L 39 L numbers, 0.94 GiB at 10,000 frames of L = 18, and is made a
+#: segment at a time instead.
 SCALING_FRAMES = {"hover": (200, 10_000), "line": (200, 10_000)}
 
 
