@@ -101,3 +101,23 @@ def test_most_symmetric_x_takes_the_first_of_equals():
     points = np.array([[[10.0, 10.0], [20.0, 20.0], [30.0, 30.0]]])
     np.testing.assert_array_equal(shadow._most_symmetric_x(flat, points, 24), [[10.0, 10.0]])
     np.testing.assert_array_equal(shadow._most_symmetric_x_numpy(flat, points, 24), [[10.0, 10.0]])
+
+
+def test_shadowed_markers_in_windows_are_the_whole_image_s():
+    """On scenes whose markers a shadow edge crosses (the effects benchmark's shadow row), the detections
+    and rejections in windows about the markers (the compiled start on `ImageParts`) are the whole
+    image's there, to the last bit."""
+    from dmais_pipe.bench.marker_effects import EFFECTS, effect_scenes
+    from dmais_pipe.markers.windows import detect_in_windows
+
+    found = rejected = 0
+    for image, truth, _, _ in effect_scenes(EFFECTS["shadow"], 5, 208):
+        boxes = np.column_stack([truth - 60.0, truth + 60.0])
+        whole = detect.detect(image, with_rejected=True)
+        for frame, windowed in zip(whole, detect_in_windows(image, boxes, with_rejected=True)):
+            uv = frame[["u", "v"]].to_numpy(dtype=float)
+            inside = ((uv[:, None] >= boxes[None, :, :2]) & (uv[:, None] <= boxes[None, :, 2:])).all(axis=2).any(axis=1)
+            want = frame[inside].sort_values(["v", "u"], ignore_index=True)
+            assert windowed.sort_values(["v", "u"], ignore_index=True).equals(want)
+        found, rejected = found + len(whole[0]), rejected + int((whole[1]["reason"] == shadow.SHADOW_REASON).sum())
+    assert found >= 20 and rejected >= 1
