@@ -638,7 +638,11 @@ def main(argv: list[str] | None = None) -> int:
         except DmaisError as error:
             print(f"dmais: error: {error}", file=sys.stderr)
             return _end(2) if own else 2
-        _imported(args.command)
+        try:
+            _imported(args.command)
+        except DmaisError as error:  # a stage's compiled cores built for another CPU (build_cpu.py)
+            print(f"dmais {args.command}: error: {error}", file=sys.stderr)
+            return _end(2) if own else 2
     status = _run(args)
     return _end(status) if own else status
 

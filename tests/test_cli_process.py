@@ -71,3 +71,13 @@ def test_every_commands_modules_exist():
         assert command in commands
         for name in names:
             assert (cli.Path(cli.__file__).parent / f"{name.replace('.', '/')}.py").is_file(), name
+
+
+def test_an_error_importing_the_commands_modules_is_one_line_and_status_2(monkeypatch, capsys):
+    def imported(command):
+        raise cli.DmaisError("the pose solver's compiled cores were built for a CPU with avx512f")
+
+    monkeypatch.setattr(cli, "_imported", imported)
+    assert cli.main(["pose", "somewhere", "--out", "elsewhere"]) == 2
+    err = capsys.readouterr().err
+    assert err == "dmais pose: error: the pose solver's compiled cores were built for a CPU with avx512f\n"
