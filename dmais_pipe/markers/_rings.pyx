@@ -130,6 +130,21 @@ cdef inline Py_ssize_t cell(float value, Py_ssize_t cell_px, Py_ssize_t count) n
     return <Py_ssize_t>q  # truncation: floor, q > 0
 
 
+cdef inline void ring_points(double cx, double cy, double scale, const double *ring, Py_ssize_t k,
+                             const Py_ssize_t *cells, Py_ssize_t cell_rows, Py_ssize_t cell_columns,
+                             Py_ssize_t cell_px, float *xy, Py_ssize_t *owner) noexcept nogil:
+    """The k float32 positions (cx, cy) + scale * ring (ring (k, 2) row-major; each sum in float64, then
+    rounded) into xy (k, 2), and with `cells` (the parts' cell map, cell_rows x cell_columns; NULL: one
+    part) the part of each into owner (k,)."""
+    cdef Py_ssize_t j
+    for j in range(k):
+        xy[2 * j] = <float>(cx + scale * ring[2 * j])
+        xy[2 * j + 1] = <float>(cy + scale * ring[2 * j + 1])
+        if cells != NULL:
+            owner[j] = cells[cell(xy[2 * j + 1], cell_px, cell_rows) * cell_columns
+                             + cell(xy[2 * j], cell_px, cell_columns)]
+
+
 def parts_sample(buffer, bases, lefts, tops, widths, heights, part, xy):
     """(n,) float32 samples at float32 positions xy (n, 2) (whole-image coordinates) of the parts of
     `rings.ImageParts` (its flat buffer, and per part its offset in it, left, top, width, height),
@@ -256,12 +271,8 @@ def clean_radius(buffer, bases, lefts, tops, widths, heights, rows, columns, cel
         for i in range(n):
             started, ref_high, ref_low = False, 0.0, 0.0
             for a in range(r.shape[0]):
-                for j in range(k):
-                    xy[j, 0] = <float>(p[i, 0] + r[a] * ring[j, 0])
-                    xy[j, 1] = <float>(p[i, 1] + r[a] * ring[j, 1])
-                    if not one_part:
-                        owner[j] = cell_map[cell(xy[j, 1], cell_px, cell_map.shape[0]),
-                                            cell(xy[j, 0], cell_px, cell_map.shape[1])]
+                ring_points(p[i, 0], p[i, 1], r[a], &ring[0, 0], k, NULL if one_part else &cell_map[0, 0],
+                            cell_map.shape[0], cell_map.shape[1], cell_px, &xy[0, 0], &owner[0])
                 dmais_sample(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
                              &owner[0], &xy[0, 0], k, &s[0])
                 for j in range(k):
@@ -306,7 +317,7 @@ def ring_samples(buffer, bases, lefts, tops, widths, heights, rows, columns, cel
     cdef bint one_part = cells is None
     cdef const double[:, ::1] p = np.ascontiguousarray(centres, dtype=np.float64)
     cdef const double[:, ::1] ring = np.ascontiguousarray(offsets, dtype=np.float64)
-    cdef Py_ssize_t m = p.shape[0], k = ring.shape[0], i, j
+    cdef Py_ssize_t m = p.shape[0], k = ring.shape[0], i
     out = np.empty((m, k), dtype=np.float32)
     cdef float[:, ::1] o = out
     points = np.empty((k if k else 1, 2), dtype=np.float32)
@@ -317,12 +328,8 @@ def ring_samples(buffer, bases, lefts, tops, widths, heights, rows, columns, cel
         return out
     with nogil:
         for i in range(m):
-            for j in range(k):
-                xy[j, 0] = <float>(p[i, 0] + ring[j, 0])
-                xy[j, 1] = <float>(p[i, 1] + ring[j, 1])
-                if not one_part:
-                    owner[j] = cell_map[cell(xy[j, 1], cell_px, cell_map.shape[0]),
-                                        cell(xy[j, 0], cell_px, cell_map.shape[1])]
+            ring_points(p[i, 0], p[i, 1], 1.0, &ring[0, 0], k, NULL if one_part else &cell_map[0, 0],
+                        cell_map.shape[0], cell_map.shape[1], cell_px, &xy[0, 0], &owner[0])  # 1.0 * x is x
             dmais_sample(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
                          &owner[0], &xy[0, 0], k, &o[i, 0])
     return out
