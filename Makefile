@@ -9,11 +9,11 @@ CORES ?= 2
 
 .PHONY: install install-slurm run paper test test-cluster lint clean
 
-# The compiled cores (the pose solver's, the markers') are rebuilt when their sources change.
+# The compiled cores (the pose solver's, the markers', the CSV float cells') are rebuilt when their sources change.
 $(STAMP): pyproject.toml constraints.txt setup.py dmais_pipe/pose/_kernels.pyx dmais_pipe/pose/_refine.pyx \
 		dmais_pipe/pose/_group.pyx dmais_pipe/pose/_error.pyx dmais_pipe/pose/_small.pxd \
 		dmais_pipe/markers/_xfit.pyx dmais_pipe/markers/_rings.pyx dmais_pipe/markers/_centring.pyx dmais_pipe/markers/_sums.pxd \
-		dmais_pipe/markers/_rings.pxd dmais_pipe/markers/_shadow.pyx
+		dmais_pipe/markers/_rings.pxd dmais_pipe/markers/_shadow.pyx dmais_pipe/_float_text.pyx
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	PIP_CONSTRAINT=$(abspath constraints.txt) $(BIN)/python -m pip install --quiet -e '.[test]'

@@ -1,5 +1,5 @@
-"""Builds the compiled cores of the pose solver, of its refinement and RANSAC and of the markers' fit and
-samples; everything else is configured in pyproject.toml.
+"""Builds the compiled cores of the pose solver, of its refinement and RANSAC, of the markers' fit and
+samples and of the CSV tables' float cells; everything else is configured in pyproject.toml.
 
 The cores are built for the CPU they are built on (`make install` compiles them on the user's
 machine): -march=native lets GCC/Clang vectorize the row operations of the elimination template
@@ -40,9 +40,10 @@ def compile_args() -> list[str]:
 
 
 def portable_args() -> list[str]:
-    """Compiler flags of the markers' cores (markers/_xfit.pyx, _rings.pyx, _centring.pyx, _shadow.pyx):
-    for any CPU of the architecture, as a marker job checks no build CPU (pose.build_cpu comes with the
-    pose package) and -march=native made them no faster; the same roundings (no contracted multiply-adds)."""
+    """Compiler flags of the markers' cores (markers/_xfit.pyx, _rings.pyx, _centring.pyx, _shadow.pyx) and
+    of the CSV float cells (_float_text.pyx, integer arithmetic only): for any CPU of the architecture, as
+    a marker job checks no build CPU (pose.build_cpu comes with the pose package) and -march=native made
+    them no faster; the same roundings (no contracted multiply-adds)."""
     return [] if sys.platform == "win32" else ["-fno-wrapv", "-ffp-contract=off"]
 
 
@@ -69,4 +70,5 @@ setup(ext_modules=cythonize([
     Extension("dmais_pipe.markers._rings", ["dmais_pipe/markers/_rings.pyx"], extra_compile_args=portable_args()),
     Extension("dmais_pipe.markers._centring", ["dmais_pipe/markers/_centring.pyx"], extra_compile_args=portable_args()),
     Extension("dmais_pipe.markers._shadow", ["dmais_pipe/markers/_shadow.pyx"], extra_compile_args=portable_args()),
+    Extension("dmais_pipe._float_text", ["dmais_pipe/_float_text.pyx"], extra_compile_args=portable_args()),
 ]))
