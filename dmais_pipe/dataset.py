@@ -270,19 +270,30 @@ def _manifest_dict(manifest: _Manifest) -> dict:
 # ------------------------------------------------------------------------------ CSV tables
 
 
-@dataclass
 class Table:
     """A CSV file as stripped strings, one row per data line.
 
-    cells: (n, k) DataFrame of str, RangeIndex; lines: (n,) the 1-based file line of every row.
+    path; columns: {name: (n,) its cells, str}, in the header's order; lines: (n,) the 1-based file line of
+    every row. A column is converted when first asked for (`text`, `strings`, `floats`, `codes`; `cells`: all
+    of them as an (n, k) DataFrame of str, RangeIndex), so that a large file's readers pay for the columns
+    they use alone.
     """
 
-    path: Path
-    cells: pd.DataFrame
-    lines: np.ndarray
+    def __init__(self, path: Path, columns: dict[str, Sequence[str]], lines: np.ndarray):
+        self.path, self.columns, self.lines = path, columns, lines
+        self._text: dict[str, np.ndarray] = {}
+        self._codes: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
     def __len__(self) -> int:
-        return len(self.cells)
+        return len(self.lines)
+
+    def __contains__(self, column: str) -> bool:
+        return column in self.columns
+
+    @property
+    def cells(self) -> pd.DataFrame:
+        """(n, k) DataFrame of str, RangeIndex: every column."""
+        return pd.DataFrame({column: self.strings(column) for column in self.columns})
 
     def error(self, message: str, row: int | None = None) -> DatasetError:
         return DatasetError(self.path, message, None if row is None else int(self.lines[row]))
@@ -296,31 +307,51 @@ class Table:
 
     def text(self, column: str) -> np.ndarray:
         """(n,) object array of the column's strings; all empty when the column is absent."""
-        if column not in self.cells:
+        if column not in self.columns:
             return np.full(len(self), "", dtype=object)
-        return self.cells[column].to_numpy(dtype=object)
+        if column not in self._text:  # fromiter: np.array would look into every str for a sequence
+            self._text[column] = np.fromiter(self.columns[column], dtype=object, count=len(self))
+        return self._text[column]
+
+    def strings(self, column: str) -> pd.Series:
+        """(n,) Series of str (RangeIndex) of the column's strings."""
+        return _strings(self.text(column))
+
+    def codes(self, column: str) -> tuple[np.ndarray, np.ndarray]:
+        """(codes (n,), distinct (d,)): pd.factorize of the column's strings (hashed once per table)."""
+        if column not in self._codes:
+            self._codes[column] = _factorized(self.text(column))
+        return self._codes[column]
 
     def required_text(self, column: str) -> np.ndarray:
         values = self.text(column)
-        self.check(values == "", lambda row: f"column {column} is empty")
+        if column in self._codes:  # its distinct strings are known: compare those alone
+            codes, distinct = self._codes[column]
+            empty = np.flatnonzero(distinct == "")
+            self.check(codes == (empty[0] if len(empty) else -1), lambda row: f"column {column} is empty")
+        else:
+            self.check(values == "", lambda row: f"column {column} is empty")
         return values
 
     def floats(self, column: str, optional: bool = False) -> np.ndarray:
-        """(n,) floats of the column; NaN for empty cells when `optional`, else every cell must be finite."""
-        text = self.text(column)
-        values = _parse_floats(text)
-        bad = ~np.isfinite(values)
-        if optional:
-            bad &= text != ""
+        """(n,) floats of the column; NaN for empty cells when `optional`, else every cell must be finite.
+        A column with no empty or bad cell is converted from its cells straight away (float() of each, as
+        numpy's conversion of the object array calls it); the others cell by cell (`_parse_floats`)."""
+        values = _all_floats(self.columns.get(column), len(self))
+        if values is None:
+            text = self.text(column)
+            values = _parse_floats(text)
+            bad = ~np.isfinite(values) & ((text != "") if optional else True)
+        else:  # no cell is empty
+            text, bad = self.columns[column], ~np.isfinite(values)
         self.check(bad, lambda row: f"column {column}: {text[row]!r} is not a finite number"
                    if text[row] else f"column {column} is empty; expected a number")
         return values
 
     def check_unique(self, columns: Sequence[str], what: str) -> None:
-        """`first_rows`' check alone: a repeated key raises naming both lines (hashed in one pass;
-        the first repeat is then named by `first_rows`)."""
-        keys = pd.DataFrame({k: self.text(column) for k, column in enumerate(columns)})
-        if keys.duplicated().any():
+        """`first_rows`' check alone: a repeated key raises naming both lines (hashed in one pass per
+        column, `codes`; the first repeat is then named by `first_rows`)."""
+        if _repeated([self.codes(column) for column in columns]):
             self.first_rows(columns, what)
 
     def first_rows(self, columns: Sequence[str], what: str) -> dict:
@@ -335,7 +366,42 @@ class Table:
         return seen
 
     def extra_columns(self, known: Sequence[str]) -> list[str]:
-        return [column for column in self.cells.columns if column not in known]
+        return [column for column in self.columns if column not in known]
+
+
+def _repeated(factorized: Sequence[tuple[np.ndarray, np.ndarray]]) -> bool:
+    """Whether a key repeats, of keys given by each part's (codes (n,), distinct) (pd.factorize's)."""
+    key = np.zeros(len(factorized[0][0]), dtype=np.int64)
+    for codes, distinct in factorized:
+        key = pd.factorize(key * len(distinct) + codes)[0]  # the keys' places, below n: no overflow
+    return int(key.max(initial=-1)) + 1 < len(key)
+
+
+#: Values `_factorized` looks at to tell whether a column runs in blocks of one value.
+_RUN_SAMPLE = 1024
+
+
+def _factorized(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """pd.factorize(values) of (n,) str objects. A column that runs in blocks of one value (observations.csv's
+    image, every marker of an image in a row) is compared with its neighbours and only each block's first
+    value hashed: the same codes and distinct values (in order of first appearance), at a fraction of the
+    hashing of every cell."""
+    sample = values[:_RUN_SAMPLE]
+    if len(values) <= _RUN_SAMPLE or 4 * np.count_nonzero(sample[1:] != sample[:-1]) >= len(sample):
+        return pd.factorize(values)
+    firsts = np.flatnonzero(np.r_[True, values[1:] != values[:-1]])
+    codes, distinct = pd.factorize(values[firsts])
+    return np.repeat(codes, np.diff(np.r_[firsts, len(values)])), distinct
+
+
+def _all_floats(cells: Sequence[str] | None, n: int) -> np.ndarray | None:
+    """(n,) float() of every cell, None where one is not a number (an empty cell too) or there are none."""
+    if cells is None:
+        return None
+    try:
+        return np.fromiter(map(float, cells), dtype=float, count=n)
+    except ValueError:
+        return None
 
 
 def _parse_float(cell: str) -> float:
@@ -365,8 +431,7 @@ def read_table(path: Path, required: Sequence[str], optional: Sequence[str] = ()
     if plain is not None:
         header, columns = plain
         _check_header(path, header, required)
-        cells = pd.DataFrame(dict(zip(header, columns)), dtype=str)
-        return Table(path, cells, np.arange(2, len(cells) + 2))
+        return Table(path, dict(zip(header, columns)), np.arange(2, len(columns[0]) + 2))
     try:
         header, rows, lines = _read_rows(path)
     except UnicodeDecodeError:
@@ -374,13 +439,12 @@ def read_table(path: Path, required: Sequence[str], optional: Sequence[str] = ()
     if header is None:
         raise DatasetError(path, f"is empty; expected the header {','.join(required)}")
     _check_header(path, header, required)
-    cells = pd.DataFrame(rows, columns=header, dtype=str) if rows else pd.DataFrame(
-        {column: pd.Series([], dtype=str) for column in header})
-    return Table(path, cells, np.asarray(lines, dtype=int))
+    columns = list(zip(*rows)) if rows else [()] * len(header)
+    return Table(path, dict(zip(header, columns)), np.asarray(lines, dtype=int))
 
 
 #: The ASCII whitespace that str.strip() removes, but the line end: a file with one has its cells stripped.
-_ASCII_BLANKS = np.array([ord(c) for c in " \t\x0b\x0c\x1c\x1d\x1e\x1f"], np.uint8)
+_ASCII_BLANKS = tuple(c.encode() for c in " \t\x0b\x0c\x1c\x1d\x1e\x1f")
 
 
 def _read_plain(path: Path) -> tuple[list[str], list[list[str]]] | None:
@@ -397,17 +461,19 @@ def _read_plain(path: Path) -> tuple[list[str], list[list[str]]] | None:
     if not text or '"' in text or "\r" in text or "\0" in text:
         return None
     body = np.frombuffer(data, np.uint8)[len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0:]
-    ends = np.flatnonzero(body == ord("\n"))
+    separators = np.flatnonzero((body == ord(",")) | (body == ord("\n")))
+    line_ends = np.flatnonzero(body[separators] == ord("\n"))  # among the separators
     if body[-1] != ord("\n"):
-        ends = np.append(ends, len(body))
-    commas = np.bincount(np.searchsorted(ends, np.flatnonzero(body == ord(","))), minlength=len(ends))
+        line_ends = np.append(line_ends, len(separators))
+    commas = np.diff(line_ends, prepend=-1) - 1  # each line's
+    ends = np.append(separators, len(body))[line_ends]
     if commas[0] == 0 or (commas != commas[0]).any() or np.diff(ends, prepend=-1).max() > csv.field_size_limit():
         return None
     width = int(commas[0]) + 1
     cells = text.replace("\n", ",").split(",")
     if text.endswith("\n"):
         cells.pop()
-    if not text.isascii() or np.isin(body, _ASCII_BLANKS).any():
+    if not text.isascii() or any(blank in data for blank in _ASCII_BLANKS):
         cells = [cell.strip() for cell in cells]
     return cells[:width], [cells[width + k::width] for k in range(width)]
 
@@ -470,10 +536,9 @@ def _quaternions(table: Table, columns: Sequence[str]) -> np.ndarray:
 
 def _frame(table: Table, columns: dict, known: Sequence[str]) -> pd.DataFrame:
     """DataFrame of the converted `columns` followed by the table's extra columns (as strings)."""
-    extras = {column: table.cells[column] for column in table.extra_columns(known)}
     frame = pd.DataFrame(columns, index=pd.RangeIndex(len(table)))
-    for column, values in extras.items():
-        frame[column] = _strings(values.to_numpy())
+    for column in table.extra_columns(known):
+        frame[column] = table.strings(column)
     return frame
 
 
@@ -493,7 +558,7 @@ def _read_points(path: Path) -> tuple[pd.DataFrame, Table]:
     columns = {"point_id": _strings(ids), **{axis: table.floats(axis) for axis in "xyz"}}
     known = POINT_COLUMNS
     for name in (POINT_SIGMA, POINT_SIGMA_Z):
-        if name in table.cells:
+        if name in table:
             sigma = table.floats(name, optional=True)
             table.check(sigma < 0, lambda row: f"column {name}: {sigma[row]} is negative; expected a survey "
                         "sigma in metres (or an empty cell)")
@@ -564,7 +629,7 @@ def _read_images(path: Path, root: Path, cameras: dict[str, CameraSpec]) -> tupl
     _check_paths(table, root)
     center = _group(table, PRIOR_CENTER)
     quat = _quaternions(table, PRIOR_QUAT)
-    columns = {name: table.cells[name] for name in IMAGE_COLUMNS}  # str already
+    columns = {name: table.strings(name) for name in IMAGE_COLUMNS}
     columns.update(zip(PRIOR_CENTER, center.T))
     columns.update(zip(PRIOR_QUAT, quat.T))
     return _frame(table, columns, IMAGE_COLUMNS + PRIOR_CENTER + PRIOR_QUAT), table
@@ -584,9 +649,8 @@ def _check_placement(table: Table, stage: np.ndarray, camera: np.ndarray) -> Non
     rig = stage != "intrinsics"
     table.check(rig & (placement == ""), lambda row: f"placement is empty; {stage[row]} images need "
                 + ("the frame id" if stage[row] == "flight" else "a rig placement id"))
-    keys = pd.DataFrame({"stage": stage, "placement": placement, "camera": camera})[rig]
-    if not keys.duplicated().any():  # hashed in one pass; a repeat is named by the loop below
-        return
+    if not _repeated([pd.factorize(values[rig]) for values in (stage, placement, camera)]):
+        return  # hashed in one pass per column; a repeat is named by the loop below
     seen = {}
     for row in np.flatnonzero(rig):
         key = (stage[row], placement[row], camera[row])
@@ -748,28 +812,30 @@ def _empty_frames() -> pd.DataFrame:
 
 
 def _read_observations(path: Path, camera_of: dict[str, str], cameras: dict[str, CameraSpec], point_ids,
-                       with_camera: bool) -> pd.DataFrame:
+                       with_camera: bool) -> tuple[pd.DataFrame, np.ndarray]:
     """Observations (image, [camera,] point_id, u, v, extras) checked against images, points and
-    the image area of each image's camera."""
+    the image area of each image's camera, and the distinct images (k,) they are on."""
     names = RESULT_OBSERVATION_COLUMNS if with_camera else OBSERVATION_COLUMNS
     table = read_table(path, names)
+    image_code, image_names = table.codes("image")  # each distinct image and point id looked up once
     image = table.required_text("image")
-    image_camera = pd.Series(image, dtype=object).map(camera_of).to_numpy(object)  # NaN: unknown image
-    table.check(pd.isna(image_camera), lambda row: f"unknown image {image[row]!r} (not in {IMAGES})")
+    image_camera = np.fromiter(map(camera_of.get, image_names), dtype=object, count=len(image_names))  # None: unknown
+    table.check(pd.isna(image_camera)[image_code], lambda row: f"unknown image {image[row]!r} (not in {IMAGES})")
     if with_camera:
         camera = table.required_text("camera")
-        table.check(image_camera != camera, lambda row: f"camera {camera[row]!r} of image {image[row]!r} is "
-                    f"{camera_of[image[row]]!r} in {IMAGES}")
+        table.check(image_camera[image_code] != camera, lambda row: f"camera {camera[row]!r} of image "
+                    f"{image[row]!r} is {camera_of[image[row]]!r} in {IMAGES}")
+    point_code, point_names = table.codes("point_id")
     point_id = table.required_text("point_id")
-    table.check(~pd.Index(point_id).isin(point_ids),
+    table.check(~pd.Index(point_names).isin(point_ids)[point_code],
                 lambda row: f"unknown point id {point_id[row]!r} (not in {CONTROL_POINTS} or {GROUND_POINTS})")
     table.check_unique(["image", "point_id"], "observation (image, point_id)")
-    columns = {name: table.cells[name] for name in names if name not in ("u", "v")}  # str already
+    columns = {name: table.strings(name) for name in names if name not in ("u", "v")}
     columns.update(u=table.floats("u"), v=table.floats("v"))
     sizes = np.array([(spec.width, spec.height) for spec in cameras.values()], dtype=float).reshape(-1, 2)
-    size = sizes[pd.Index(list(cameras)).get_indexer(image_camera)]
+    size = sizes[pd.Index(list(cameras)).get_indexer(image_camera)[image_code]]
     _check_inside_images(table, image, columns["u"], columns["v"], size)
-    return _frame(table, {name: columns[name] for name in names}, names)
+    return _frame(table, {name: columns[name] for name in names}, names), image_names
 
 
 def _check_inside_images(table: Table, image: np.ndarray, u: np.ndarray, v: np.ndarray, size: np.ndarray) -> None:
@@ -870,13 +936,13 @@ class Dataset:
         if geo is not None:
             images = _in_computation_frame(images, PRIOR_CENTER, image_table, geo, pos=True)
         frames = _load_frames(root, images, image_table, geo, manifest.trajectory)
-        observations = _empty_observations()
+        observations, observed = _empty_observations(), np.zeros(0, dtype=object)
         if (root / OBSERVATIONS).exists():
             camera_of = camera_of_images(images)
             points = pd.concat([control.index.to_series(), ground.index.to_series()])
-            observations = _read_observations(root / OBSERVATIONS, camera_of, manifest.cameras, points,
-                                              with_camera=False)
-        _check_sources(image_table, images, observations)
+            observations, observed = _read_observations(root / OBSERVATIONS, camera_of, manifest.cameras, points,
+                                                        with_camera=False)
+        _check_sources(image_table, images, observed)
         return cls(
             root=root, name=manifest.name, reference_camera=manifest.reference_camera, cameras=manifest.cameras,
             marker_size_m=manifest.marker_size_m, description=manifest.description,
@@ -1103,10 +1169,10 @@ def _load_frames(root: Path, images: pd.DataFrame, image_table: Table, geo: Geo 
     return frames
 
 
-def _check_sources(image_table: Table, images: pd.DataFrame, observations: pd.DataFrame) -> None:
-    """Every image needs a file or observations in observations.csv."""
+def _check_sources(image_table: Table, images: pd.DataFrame, observed: np.ndarray) -> None:
+    """Every image needs a file or observations in observations.csv (`observed`: the images they are on)."""
     names = images["image"].to_numpy(dtype=object)
-    bad = (images["path"] == "").to_numpy() & ~pd.Index(names).isin(observations["image"])
+    bad = (images["path"] == "").to_numpy() & ~pd.Index(names).isin(observed)
     image_table.check(bad, lambda row: f"image {names[row]!r} has neither a path nor rows in {OBSERVATIONS}")
 
 
@@ -1186,7 +1252,7 @@ def read_observation_table(path: Path, dataset: Dataset) -> pd.DataFrame:
     """A results observations file (image, camera, point_id, u, v + extras) checked like the
     dataset's own: known images and points, the image's camera, inside the image, no repeats."""
     camera_of = camera_of_images(dataset.images)
-    return _read_observations(path, camera_of, dataset.cameras, dataset.points.index, with_camera=True)
+    return _read_observations(path, camera_of, dataset.cameras, dataset.points.index, with_camera=True)[0]
 
 
 def flight_observations(dataset: Dataset, observations: pd.DataFrame, cameras=None) -> pd.DataFrame:
