@@ -320,7 +320,7 @@ class Table:
     def codes(self, column: str) -> tuple[np.ndarray, np.ndarray]:
         """(codes (n,), distinct (d,)): pd.factorize of the column's strings (hashed once per table)."""
         if column not in self._codes:
-            self._codes[column] = _factorized(self.text(column))
+            self._codes[column] = factorized(self.text(column))
         return self._codes[column]
 
     def required_text(self, column: str) -> np.ndarray:
@@ -369,23 +369,23 @@ class Table:
         return [column for column in self.columns if column not in known]
 
 
-def _repeated(factorized: Sequence[tuple[np.ndarray, np.ndarray]]) -> bool:
+def _repeated(parts: Sequence[tuple[np.ndarray, np.ndarray]]) -> bool:
     """Whether a key repeats, of keys given by each part's (codes (n,), distinct) (pd.factorize's)."""
-    key = np.zeros(len(factorized[0][0]), dtype=np.int64)
-    for codes, distinct in factorized:
+    key = np.zeros(len(parts[0][0]), dtype=np.int64)
+    for codes, distinct in parts:
         key = pd.factorize(key * len(distinct) + codes)[0]  # the keys' places, below n: no overflow
     return int(key.max(initial=-1)) + 1 < len(key)
 
 
-#: Values `_factorized` looks at to tell whether a column runs in blocks of one value.
+#: Values `factorized` looks at to tell whether a column runs in blocks of one value.
 _RUN_SAMPLE = 1024
 
 
-def _factorized(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """pd.factorize(values) of (n,) str objects. A column that runs in blocks of one value (observations.csv's
-    image, every marker of an image in a row) is compared with its neighbours and only each block's first
-    value hashed: the same codes and distinct values (in order of first appearance), at a fraction of the
-    hashing of every cell."""
+def factorized(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """pd.factorize(values) of (n,) str objects: (codes (n,), distinct (d,)). A column that runs in blocks of
+    one value (observations.csv's image, every marker of an image in a row) is compared with its neighbours
+    and only each block's first value hashed: the same codes and distinct values (in order of first
+    appearance), at a fraction of the hashing of every cell."""
     sample = values[:_RUN_SAMPLE]
     if len(values) <= _RUN_SAMPLE or 4 * np.count_nonzero(sample[1:] != sample[:-1]) >= len(sample):
         return pd.factorize(values)

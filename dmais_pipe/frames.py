@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from .dataset import Dataset, flight_observations
+from .dataset import Dataset, factorized
 from .rig import Rig
 
 
@@ -75,24 +75,58 @@ def flight_observations_by_frame(dataset: Dataset, rig: Rig, observations: pd.Da
     """The flight frames with observations (of `cameras`, of `groups` if given), sorted by frame id,
     with their rays, in one vectorised pass.
 
-    observations: image, camera, point_id, u, v (Workspace.load_observations).
+    observations: image, camera, point_id, u, v (Workspace.load_observations). Each id is hashed once
+    per row and looked up, converted and sorted once per distinct id (`_flight_rows`, `_as_str`); the
+    rows are those of dataset.flight_observations sorted by frame stably.
     """
-    obs = flight_observations(dataset, observations, cameras)
-    group_of = pd.Series(dataset.frames["group"].to_numpy(str), index=dataset.frames["frame"].to_numpy(str))
-    if groups:
-        obs = obs[obs["frame"].map(group_of).isin(list(groups))]
-    obs = obs.sort_values("frame", kind="stable")
-    camera = obs["camera"].to_numpy(str)
-    uv = np.ascontiguousarray(obs[["u", "v"]].to_numpy(float))
-    points = np.ascontiguousarray(dataset.points.loc[obs["point_id"], ["x", "y", "z"]].to_numpy(float))
-    origins, directions = rig.rays_of(camera, uv) if len(obs) else (np.zeros((0, 3)), np.zeros((0, 3)))
-    frame = obs["frame"].to_numpy(str)
+    rows, frame, frames = _flight_rows(dataset, observations, cameras, groups)
+    uv = np.column_stack([observations["u"].to_numpy(float)[rows], observations["v"].to_numpy(float)[rows]])
+    point_ids, point = _as_str(observations["point_id"].to_numpy(object)[rows])
+    xyz = dataset.points.loc[point_ids, ["x", "y", "z"]].to_numpy(float).reshape(-1, 3)
+    camera = _as_str(observations["camera"].to_numpy(object)[rows])
+    camera = camera[0][camera[1]]
+    origins, directions = rig.rays_of(camera, uv) if len(rows) else (np.zeros((0, 3)), np.zeros((0, 3)))
     starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]]) if len(frame) else np.zeros(0, int)
-    frames, bounds = frame[starts], np.r_[starts, len(frame)]
-    return FlightObservations(camera, obs["image"].to_numpy(str), obs["point_id"].to_numpy(str), uv, points,
-                              np.ascontiguousarray(origins), np.ascontiguousarray(directions), frames=frames,
-                              groups=group_of.loc[frames].to_numpy(str), bounds=bounds,
-                              frame_index=np.repeat(np.arange(len(starts)), np.diff(bounds)))
+    bounds = np.r_[starts, len(frame)]
+    group_of = pd.Series(dataset.frames["group"].to_numpy(str), index=dataset.frames["frame"].to_numpy(str))
+    images = _as_str(observations["image"].to_numpy(object)[rows])
+    return FlightObservations(camera, images[0][images[1]], point_ids[point], uv, np.ascontiguousarray(xyz[point]),
+                              np.ascontiguousarray(origins), np.ascontiguousarray(directions),
+                              frames=frames[frame[starts]], groups=group_of.loc[frames[frame[starts]]].to_numpy(str),
+                              bounds=bounds, frame_index=np.repeat(np.arange(len(starts)), np.diff(bounds)))
+
+
+def _flight_rows(dataset: Dataset, observations: pd.DataFrame, cameras: Sequence[str] | None,
+                 groups: Sequence[str] | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rows (n,) of `observations` on flight images (images.csv's camera one of `cameras`, the frame one of
+    `groups`, if given), sorted by frame id stably; each one's frame (n,) among the frames (k,) str sorted."""
+    image, names = factorized(observations["image"].to_numpy(object))
+    images = dataset.images
+    flight = (images["stage"] == "flight").to_numpy()
+    if cameras is not None:
+        flight = flight & images["camera"].isin(cameras).to_numpy()
+    at = pd.Index(images["image"].to_numpy(object)[flight]).get_indexer(names)  # -1: not a flight image
+    chosen = at >= 0
+    placement = np.full(len(names), None, dtype=object)
+    placement[chosen] = images["placement"].to_numpy(object)[flight][at[chosen]]
+    if groups:
+        group_of = dict(zip(dataset.frames["frame"].to_numpy(str), dataset.frames["group"].to_numpy(str)))
+        wanted = set(groups)
+        chosen &= np.array([group_of.get(frame) in wanted for frame in placement], dtype=bool)
+    frames, frame_of_name = _as_str(placement[chosen])
+    frame = np.full(len(names), -1)
+    frame[chosen] = frame_of_name
+    rows = np.flatnonzero(chosen[image])
+    rows = rows[np.argsort(frame[image[rows]], kind="stable")]
+    return rows, frame[image[rows]], frames
+
+
+def _as_str(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(distinct (k,), index (n,)) of str objects values (n,): the distinct ones as numpy str, sorted, and each
+    value's place among them: distinct[index] is values.astype(str), of its width."""
+    codes, uniques = factorized(values)
+    distinct, inverse = np.unique(np.asarray(uniques, dtype=object).astype(str), return_inverse=True)
+    return distinct, inverse[codes].reshape(-1)
 
 
 def frame_observations(dataset: Dataset, rig: Rig, observations: pd.DataFrame,

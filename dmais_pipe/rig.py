@@ -58,16 +58,23 @@ class Rig:
         return origins, directions
 
     def rays_of(self, cameras, uv) -> tuple[np.ndarray, np.ndarray]:
-        """Generalized rays of observations from mixed cameras: names (n,), pixels (n, 2)."""
+        """Generalized rays of observations from mixed cameras: names (n,), pixels (n, 2). Each camera's rows
+        are found by comparing the names with it (numpy's unique of n strings sorts them); a name not in
+        the rig raises naming the first of them in sorted order."""
         cameras = np.asarray(cameras)
         uv = np.asarray(uv, dtype=float).reshape(-1, 2)
         if len(cameras) != len(uv):
             raise DmaisError(f"rig: {len(cameras)} camera names for {len(uv)} pixels")
         origins = np.empty((len(uv), 3))
         directions = np.empty((len(uv), 3))
-        for name in np.unique(cameras):
+        found = np.zeros(len(uv), dtype=bool)
+        for name in self.cameras:
             mask = cameras == name
-            origins[mask], directions[mask] = self.rays(str(name), uv[mask])
+            found |= mask
+            if mask.any():
+                origins[mask], directions[mask] = self.rays(name, uv[mask])
+        if not found.all():
+            self._check_known(str(np.unique(cameras[~found])[0]))
         return origins, directions
 
     def project(self, camera: str, rig_from_world: Rigid3, points_world) -> np.ndarray:

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from dmais_pipe import dataset
-from dmais_pipe.dataset import Table, _factorized, _parse_floats, _read_plain, _read_rows, _repeated, read_table
+from dmais_pipe.dataset import Table, _parse_floats, _read_plain, _read_rows, _repeated, factorized, read_table
 from dmais_pipe.errors import DatasetError
 
 
@@ -86,7 +86,7 @@ def test_factorized_column_is_pandas_factorize(kind):
     else:
         values = np.repeat(names[:1], 5000)
     values = np.array([str(v) for v in values], dtype=object)  # str objects of their own, as a file's split makes
-    codes, distinct = _factorized(values)
+    codes, distinct = factorized(values)
     expected_codes, expected_distinct = pd.factorize(values)
     np.testing.assert_array_equal(codes, expected_codes)
     assert list(distinct) == list(expected_distinct)
