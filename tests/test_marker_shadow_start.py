@@ -96,6 +96,30 @@ def test_most_symmetric_x_is_numpys_to_the_last_bit(seed):
                                   shadow._most_symmetric_x_numpy(parts, points, 24))
 
 
+def test_most_symmetric_of_rings_without_four_level_changes_is_numpys():
+    # Rings whose point-symmetric part does not change level four times score 0 without their other
+    # numbers (`_shadow.not_four`): the choice stays numpy's where such rings lie among X's, tie with
+    # each other (0 and -0), or come with a NaN ring or an infinite one (their numbers made).
+    from dmais_pipe.markers import _shadow
+    from dmais_pipe.markers.rings import ring_stats
+
+    rng = np.random.default_rng(21)
+    groups, k = 9, 24
+    logs = _log_rings(rng, 40 * groups, k).astype(np.float32)
+    logs[::3] = rng.normal(4.0, 0.5, (len(logs[::3]), k))  # mostly other than four changes
+    logs[5::groups * 2] = 3.0  # flat: no change, dark level the mean
+    logs[7 * groups + 4, 3] = np.nan
+    logs[11 * groups + 2, 5] = np.inf
+    logs[13 * groups:14 * groups] = 2.0  # a group of ties
+    wide = logs.astype(np.float64)
+    symmetric = 0.5 * (wide + np.roll(wide, k // 2, axis=1))
+    quality, high, low, _ = ring_stats(symmetric)
+    with np.errstate(invalid="ignore"):
+        want = np.argmax((quality * (high - low)).reshape(-1, groups), axis=1)
+    np.testing.assert_array_equal(_shadow.most_symmetric(logs, groups), want)
+    assert np.mean(quality == 0.0) > 0.3
+
+
 def test_most_symmetric_x_takes_the_first_of_equals():
     flat = np.full((40, 40), 50.0, dtype=np.float32)  # every ring scores 0
     points = np.array([[[10.0, 10.0], [20.0, 20.0], [30.0, 30.0]]])

@@ -38,14 +38,31 @@ def most_symmetric(logs, Py_ssize_t groups):
                 r = i * groups + j
                 for a in range(k):  # np.roll by half: the sample half a ring before
                     w[a] = 0.5 * (<double>v[r, a] + <double>v[r, a - half if a >= half else a - half + k])
-                one_ring(&w[0], k, &w[k], &m[0], &quality, &high, &low)
-                score = quality * (high - low)
+                if not_four(&w[0], k):
+                    score = 0.0  # quality 0 times finite levels: 0 (or -0, equal to it in every comparison)
+                else:
+                    one_ring(&w[0], k, &w[k], &m[0], &quality, &high, &low)
+                    score = quality * (high - low)
                 if score != score:
                     best[i] = j
                     break
                 if j == 0 or score > top:
                     best[i], top = j, score
     return out
+
+
+cdef inline bint not_four(const double *v, Py_ssize_t k) noexcept nogil:
+    """Whether the ring v (k) has a finite mean and does not change level exactly four times about it
+    (bright: above the mean): then `_rings.one_ring` gives it quality 0 and finite levels, so its
+    quality x (bright - dark) is 0 and its numbers need not be made. The mean as one_ring makes it."""
+    cdef double mean = pairwise_sum(v, k) / <double>k
+    cdef Py_ssize_t j, transitions
+    if not (mean - mean == 0.0):  # NaN or infinite: one_ring's numbers decide (NaN propagates)
+        return False
+    transitions = (v[0] > mean) != (v[k - 1] > mean)
+    for j in range(1, k):
+        transitions += (v[j] > mean) != (v[j - 1] > mean)
+    return transitions != 4
 
 
 cdef inline bint after(double a, double b) noexcept nogil:
@@ -94,23 +111,29 @@ cdef bint both_sides(const double *lit, const unsigned char *bright, const doubl
     return both and low >= same_ratio * high
 
 
-cdef bint step_taken(const double *v, double step, const double *shade, const Py_ssize_t *ends, Py_ssize_t e,
-                     Py_ssize_t runs, Py_ssize_t k, Py_ssize_t min_samples, double same_ratio, double *lit,
-                     double *scratch, unsigned char *bright, double *quality, double *high, double *low) noexcept nogil:
+cdef void step_ring(const double *v, double step, const double *shade, Py_ssize_t k, double *lit, double *scratch,
+                    unsigned char *bright, double *quality, double *high, double *low) noexcept nogil:
     """The log ring v (k) with the step of log size `step` beyond a line (its shaded samples shade (k),
-    0 or 1) taken away into lit (k): the ring statistics of its exp (`_rings.one_ring`: quality, levels,
-    bright mask (k)); returns whether the line crosses the X's sectors (the bright mask the same at the
-    samples of each of `runs` equal runs of its e ends' samples) with both levels on both sides in the same
-    ratio (`both_sides`). scratch: 3 k doubles."""
-    cdef Py_ssize_t a, run = e // runs
-    cdef bint crosses = True
+    0 or 1) taken away into lit (k), and the ring statistics of its exp (`_rings.one_ring`: quality,
+    levels, bright mask (k)). scratch: 3 k doubles."""
+    cdef Py_ssize_t a
     for a in range(k):
         lit[a] = v[a] - step * shade[a]
         scratch[a] = exp(lit[a])
     one_ring(scratch, k, &scratch[k], bright, quality, high, low)
+
+
+cdef bint step_crosses(const double *lit, const unsigned char *bright, const double *shade, const Py_ssize_t *ends,
+                       Py_ssize_t e, Py_ssize_t runs, Py_ssize_t k, Py_ssize_t min_samples, double same_ratio,
+                       double *scratch) noexcept nogil:
+    """Of a ring `step_ring` made (lit (k), bright (k)): whether the line crosses the X's sectors (the
+    bright mask the same at the samples of each of `runs` equal runs of its e ends' samples) with both
+    levels on both sides in the same ratio (`both_sides`). scratch: k doubles."""
+    cdef Py_ssize_t a, run = e // runs
+    cdef bint crosses = True
     for a in range(e):
         crosses = crosses and bright[ends[a]] == bright[ends[a - a % run]]
-    return crosses and both_sides(lit, bright, shade, k, min_samples, same_ratio, &scratch[k])
+    return crosses and both_sides(lit, bright, shade, k, min_samples, same_ratio, scratch)
 
 
 def best_steps(logs, g, norm, shade, ends, double min_step, Py_ssize_t top, double min_quality, double same_ratio,
@@ -156,9 +179,21 @@ def best_steps(logs, g, norm, shade, ends, double min_step, Py_ssize_t top, doub
             for s in range(t):
                 line = order[s]
                 gl = steps[i, line]
-                taken = step_taken(&v[i, 0], gl, &shaded[line, 0], &crossing[line, 0], e, 1, k, min_samples,
-                                   same_ratio, lit, &w[l + k], &bright[0], &quality, &high, &low)
-                score = quality if (-gl >= min_step and taken) else -1.0
+                if not (-gl >= min_step):
+                    # Scores -1 whatever its X (the ring is not made): so do the rest, sorted after it.
+                    if s == 0:
+                        best, chosen = -1.0, s
+                    break
+                step_ring(&v[i, 0], gl, &shaded[line, 0], k, lit, &w[l + k], &bright[0], &quality, &high, &low)
+                if quality == quality and (quality < min_quality or (s > 0 and not quality > best)):
+                    # A step of less quality than min_quality, or no better than one before it, is never
+                    # the chosen step of a ring whose best step is good enough (the others' choice is not
+                    # used): it scores -1 without its crossing and sides.
+                    score = -1.0
+                else:
+                    taken = step_crosses(lit, &bright[0], &shaded[line, 0], &crossing[line, 0], e, 1, k, min_samples,
+                                         same_ratio, &w[l + 2 * k])
+                    score = quality if taken else -1.0
                 if score != score:  # np.argmax: the first NaN
                     best, chosen = score, s
                     break
@@ -201,9 +236,17 @@ def shadow_lines(logs, g, shade, ends, double contrast, double min_quality, doub
             best = 0.0
             for line in range(l):
                 gl = steps[i, line]
-                good = step_taken(&v[i, 0], gl, &shaded[line, 0], &crossing[line, 0], e, 2, k, min_samples,
-                                  same_ratio, &w[0], &w[k], &bright[0], &quality, &high, &low)
-                good = good and quality >= min_quality and high - low >= contrast and -gl >= min_step
+                good = -gl >= min_step  # else it does not pass, whatever its X: the ring is not made
+                if good:
+                    step_ring(&v[i, 0], gl, &shaded[line, 0], k, &w[0], &w[k], &bright[0], &quality, &high, &low)
+                    good = quality >= min_quality and high - low >= contrast
+                    # Once a line passed, one no better than the best cannot change the result: its
+                    # crossing and sides are not made.
+                    if good and (not ok[i] or quality > best):
+                        good = step_crosses(&w[0], &bright[0], &shaded[line, 0], &crossing[line, 0], e, 2, k,
+                                            min_samples, same_ratio, &w[k])
+                    elif good:
+                        good = False
                 ok[i] = ok[i] or good
                 score = quality if good else -1.0  # never NaN: a NaN quality does not pass
                 if line == 0 or score > best:
