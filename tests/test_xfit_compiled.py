@@ -88,3 +88,55 @@ def test_fit_through_the_core_is_the_numpy_fit(seed):
     np.testing.assert_allclose(compiled[0][:, :2], reference[0][:, :2], rtol=0.0, atol=1e-9)
     np.testing.assert_allclose(compiled[1], reference[1], rtol=1e-8)
     np.testing.assert_allclose(compiled[2], reference[2], rtol=1e-10)
+
+
+@pytest.mark.parametrize("seed", [8, 9])
+def test_meat_of_some_rows_is_the_meat_pass(seed):
+    # J^T W^2 J of the rows asked, made in the pass of the normal equations: the same numbers as a
+    # pass with `meat` of its own, the other rows' zero, the rest of the pass unchanged.
+    params, x, y, values, weights = _windows(seed, n=6)
+    rows = np.array([True, False, True, True, False, False])
+    plain = _xfit.normal_equations(params, x, y, values, weights)
+    every = _xfit.normal_equations(params, x, y, values, weights, meat=True)
+    some = _xfit.normal_equations(params, x, y, values, weights, meat_rows=rows)
+    for a, b in zip(some[:3], plain):
+        np.testing.assert_array_equal(a, b)
+    np.testing.assert_array_equal(some[3][rows], every[3][rows])
+    assert not some[3][~rows].any()
+
+
+@pytest.mark.parametrize("seed", [10, 11])
+def test_kept_erf_factors_are_the_ones_made_again(seed):
+    # `values` keeps the two erf factors; the normal equations of params that differ in the levels
+    # only, taking them from there, are those that make them again, to the last bit.
+    params, x, y, values, weights = _windows(seed, radius=20.0)
+    erfs = np.empty((2,) + x.shape)
+    ab = _xfit.values(np.column_stack([params[:, :5], np.zeros(len(params)), np.ones(len(params))]), x, y, erfs)
+    np.testing.assert_array_equal(ab, 0.0 + 1.0 * erfs[0] * erfs[1])
+    _close(erfs[0] * erfs[1], _erf_product(params, x, y), rtol=1e-13)
+    for meat in (False, True):
+        made = _xfit.normal_equations(params, x, y, values, weights, meat=meat)
+        kept = _xfit.normal_equations(params, x, y, values, weights, meat=meat, erfs=erfs)
+        for a, b in zip(kept, made):
+            np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError):
+        _xfit.normal_equations(params, x, y, values, weights, erfs=erfs[:, :2])
+
+
+@pytest.mark.parametrize("seed, iterations, shift", [(12, 40, 0.3), (13, 40, 2.0), (14, 2, 0.3), (15, 1, 1.0)])
+def test_fit_with_its_covariance_in_the_last_pass_is_the_fit_with_a_pass_of_its_own(seed, iterations, shift,
+                                                                                     monkeypatch):
+    # The fit of the compiled model makes J^T W^2 J in the pass of a small step (the last where it is
+    # taken), and for fits that end otherwise (too few iterations, the damping's limit) in a pass of
+    # their own; with the start's erf factors kept by `linear_levels`: the same bits as the fit that
+    # makes the whole covariance's parts again at its end and every erf again.
+    params, x, y, values, weights = _windows(seed, radius=15.0, n=7)
+    params[:, :2] += np.random.default_rng(seed).normal(0.0, shift, (len(params), 2))
+    params[-1, 4] = np.nan  # a fit that never starts
+    erfs = np.empty((2,) + x.shape)
+    start = xfit.linear_levels(params, x, y, values, weights, erfs)
+    folded = xfit.fit(start, x, y, values, weights, iterations, erfs=erfs)
+    monkeypatch.setattr(xfit, "_is_compiled", lambda fitted: False)  # every pass of its own, as before
+    own = xfit.fit(xfit.linear_levels(params, x, y, values, weights), x, y, values, weights, iterations)
+    for a, b in zip(folded, own):
+        np.testing.assert_array_equal(a, b)

@@ -221,8 +221,9 @@ def _fit_round(img, centre, params, radius):
     for value in np.unique(radius[usable]):
         idx = np.nonzero(usable & (radius == value))[0]
         x, y, values, weights = xfit.window(img, centre[idx], float(value))
-        start = xfit.linear_levels(params[idx], x, y, values, weights)
-        for array, result in zip(out, xfit.fit(start, x, y, values, weights)):
+        erfs = np.empty((2,) + x.shape)  # the start's erf factors, made once for the levels and the fit's first pass
+        start = xfit.linear_levels(params[idx], x, y, values, weights, erfs)
+        for array, result in zip(out, xfit.fit(start, x, y, values, weights, erfs=erfs)):
             array[idx] = result
     return out
 

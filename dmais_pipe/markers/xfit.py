@@ -216,11 +216,12 @@ def _blur_matrix(pixels: np.ndarray, grid: np.ndarray, blur: float):
     return w / total, (dw - w * dtotal / total) / total
 
 
-def linear_levels(params: np.ndarray, x, y, values, weights) -> np.ndarray:
-    """params (n, 7) with m, c set by weighted linear least squares for the other parameters."""
+def linear_levels(params: np.ndarray, x, y, values, weights, erfs: np.ndarray | None = None) -> np.ndarray:
+    """params (n, 7) with m, c set by weighted linear least squares for the other parameters; with
+    erfs (2, n, k), the model's erf factors kept there (`fit`'s first pass of these params takes them)."""
     params = params.copy()
     params[:, 5], params[:, 6] = 0.0, 1.0
-    ab = _xfit.values(params, x, y)
+    ab = _xfit.values(params, x, y, erfs)
     sw, sa, saa = weights.sum(1), (weights * ab).sum(1), (weights * ab * ab).sum(1)
     sv, sav = (weights * values).sum(1), (weights * ab * values).sum(1)
     det = np.maximum(sw * saa - sa**2, 1e-12)
@@ -244,6 +245,11 @@ def _equations(fitted, params, x, y, values, weights):
     return _normal_equations(value - values, jac, weights)
 
 
+def _is_compiled(fitted) -> bool:
+    """Whether the model `fitted` is `model`, whose normal equations `_xfit` makes."""
+    return fitted is model
+
+
 def _sandwich(fitted, params, x, y, values, weights):
     """(weighted cost (n,), J^T W J (n, p, p), J^T W^2 J (n, p, p)) of the model `fitted` at params
     (n, p): the covariance's parts."""
@@ -256,17 +262,27 @@ def _sandwich(fitted, params, x, y, values, weights):
     return (weights * r**2).sum(1), np.matmul(wj, jac), np.matmul(wj * weights[:, None, :], jac)
 
 
-def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=model):
+def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=model, erfs: np.ndarray | None = None):
     """Levenberg-Marquardt from params (n, p) on pixels x, y, values, weights (n, k), of `model`
-    (`model`, p = 7, or `shaded_model`, p = 11).
+    (`model`, p = 7, or `shaded_model`, p = 11). erfs (2, n, k): `model`'s erf factors at params, as
+    `linear_levels` kept them (its pass of params takes them instead of making them again).
 
     Returns (params (n, p), covariance of the corner (n, 2, 2), weighted RMS residual (n,), converged (n,)).
     """
     params = params.copy()
     n = len(params)
     lam = np.full(n, 1e-3)
-    cost, hess, grad = _equations(model, params, x, y, values, weights)
+    if erfs is not None and _is_compiled(model):
+        cost, hess, grad = _xfit.normal_equations(params, x, y, values, weights, erfs=erfs)
+    else:
+        cost, hess, grad = _equations(model, params, x, y, values, weights)
     n_params = params.shape[1]
+    # The compiled model's J^T W^2 J (the covariance's middle) is made in the pass that evaluates a
+    # trial whose step is small (where it is taken, the fit is done there): no pass of its own but
+    # for fits that end otherwise. Every sum is that pass's, so the same as a pass of its own.
+    compiled = _is_compiled(model)
+    meat = np.zeros((n, n_params, n_params)) if compiled else None
+    has_meat = np.zeros(n, dtype=bool)
     eye = np.eye(n_params)
     converged = np.zeros(n, dtype=bool)
     active = np.arange(n)
@@ -290,17 +306,28 @@ def fit(params: np.ndarray, x, y, values, weights, iterations: int = 40, model=m
         trial[:, bounded] = np.maximum(trial[:, bounded], MIN_BLUR)
         # The trial's Jacobian with its values: the next step's normal equations where it is taken.
         rows = slice(None) if len(active) == n else active  # no copies while every fit is active
-        new_cost, new_hess, new_grad = _equations(model, trial, x[rows], y[rows], values[rows], weights[rows])
+        small = np.hypot(step[:, 0], step[:, 1]) < 1e-4
+        if compiled:
+            new_cost, new_hess, new_grad, new_meat = _xfit.normal_equations(trial, x[rows], y[rows], values[rows],
+                                                                            weights[rows], meat_rows=small)
+        else:
+            new_cost, new_hess, new_grad = _equations(model, trial, x[rows], y[rows], values[rows], weights[rows])
         better = np.isfinite(new_cost) & (new_cost <= cost[active])
         taken = active[better]
         params[taken], cost[taken] = trial[better], new_cost[better]
         hess[taken], grad[taken] = new_hess[better], new_grad[better]
+        if compiled:
+            meat[taken], has_meat[taken] = new_meat[better], small[better]
         lam[active] = np.where(better, lam[active] / 3.0, lam[active] * 4.0)
-        small = np.hypot(step[:, 0], step[:, 1]) < 1e-4
         done = (better & small) | (lam[active] > 1e6)
         converged[active[done]] = better[done] | small[done]
         active = active[~done]
-    cost, hess, meat = _sandwich(model, params, x, y, values, weights)
+    if not compiled:
+        cost, hess, meat = _sandwich(model, params, x, y, values, weights)
+    elif not has_meat.all():  # the fits not ended by a small step taken: their covariance's parts made again
+        again = np.flatnonzero(~has_meat)
+        cost[again], hess[again], meat[again] = _sandwich(model, params[again], x[again], y[again], values[again],
+                                                          weights[again])
     sw = weights.sum(1)
     dof = np.maximum(np.count_nonzero(weights > 0, axis=1) - n_params, 1)
     sigma2 = cost / np.maximum(sw, 1e-12) * np.count_nonzero(weights > 0, axis=1) / dof
