@@ -146,3 +146,47 @@ def test_without_priors_the_whole_image_is_searched(flight, tmp_path):
     assert (found["point_id"] == "").all() and len(found) >= 4
     pd.testing.assert_frame_equal(found[["u", "v", "score", "sigma_px", "fit_residual"]],
                                   detect(dataset.read_image(image)), check_exact=True)
+
+
+def test_a_part_of_windows_far_apart_is_read_only_about_them(flight, monkeypatch):
+    """Windows far apart in one part (their parts would overlap): only the pixels READ_PX about a window
+    are converted, and no test or fit reads the rest of the part. With the rest NaN, the detections
+    and rejections are still the whole image's in the windows, to the last bit."""
+    from dmais_pipe.markers import rings, windows
+
+    _, dataset, _ = flight
+    image = dataset.read_image(_flight_images(dataset)[0])
+    whole, rejected = detect(image, with_rejected=True)
+    uv = whole[["u", "v"]].to_numpy()
+    # Windows about detections ~400-600 px apart merge into one part whose box holds much that none reads.
+    picks = [0]
+    for k in range(1, len(uv)):
+        if all(np.hypot(*(uv[k] - uv[j])) > 300.0 for j in picks):
+            picks.append(k)
+    boxes = np.column_stack([uv[picks] - 12.0, uv[picks] + 12.0])
+    members = windows.groups(boxes)
+    assert max(len(m) for m in members) >= 2
+    made = windows._parts(image, members)
+    lone = sum(w * h for w, h in zip(made.widths, made.heights))
+    union = sum((x1 - x0) * (y1 - y0) for m in members
+                for x0, y0, x1, y1 in windows._union([windows._crop_bounds(image.shape, *b, windows.READ_PX) for b in m]))
+    assert union < 0.95 * lone  # the parts' boxes hold pixels no window reads
+    empty = np.empty
+
+    def poisoned(shape, dtype=float, *args, **kwargs):  # the parts' buffer: NaN where not converted
+        out = empty(shape, dtype, *args, **kwargs)
+        out.fill(np.nan)
+        return out
+
+    monkeypatch.setattr(rings.np, "empty", poisoned)
+    parts = windows._parts(image, members)
+    monkeypatch.undo()
+    for pixels, top, left, m in zip(parts.pixels, parts.tops, parts.lefts, members):
+        for x0, y0, x1, y1 in (windows._crop_bounds(image.shape, *b, windows.READ_PX) for b in m):
+            np.testing.assert_array_equal(pixels[y0 - top:y1 - top, x0 - left:x1 - left], image[y0:y1, x0:x1])
+        assert np.isnan(pixels).any() or len(m) == 1
+    monkeypatch.setattr(windows, "_parts", lambda raw, groups: parts)
+    found, lost = detect_in_windows(image, boxes, with_rejected=True)
+    pd.testing.assert_frame_equal(found, _in(whole, boxes), check_exact=True)
+    pd.testing.assert_frame_equal(_sorted(lost), _sorted(_in(rejected, boxes)), check_exact=True)
+    assert len(found) >= 3

@@ -124,11 +124,30 @@ def _level_tile(raw: np.ndarray, tile: tuple[int, int, int, int]) -> np.ndarray:
 
 
 def _parts(raw: np.ndarray, members: list[np.ndarray]) -> ImageParts:
-    """The float image of raw (h, w) READ_PX about each group of windows (k, 4): ImageParts."""
+    """The float image of raw (h, w) READ_PX about each group of windows (k, 4): ImageParts, each part
+    the bounding box of its group's. Only the pixels READ_PX about one of the windows are converted
+    (`_union`: where windows far apart share a part, much of its box lies beyond), for no test or fit
+    reads beyond them (the bound at which the parts of two groups end); the rest stays unwritten."""
     parts = ImageParts([_crop_bounds(raw.shape, *_bounds(boxes), READ_PX) for boxes in members], raw.shape)
-    for pixels, top, left in zip(parts.pixels, parts.tops, parts.lefts):
-        pixels[...] = raw[top:top + pixels.shape[0], left:left + pixels.shape[1]]
+    for pixels, top, left, boxes in zip(parts.pixels, parts.tops, parts.lefts, members):
+        for x0, y0, x1, y1 in _union([_crop_bounds(raw.shape, *box, READ_PX) for box in boxes]):
+            pixels[y0 - top:y1 - top, x0 - left:x1 - left] = raw[y0:y1, x0:x1]
     return parts
+
+
+def _union(rects: list[tuple[int, int, int, int]]) -> list[tuple[int, int, int, int]]:
+    """Disjoint rectangles (x0, y0, x1, y1: columns x0..x1 - 1, rows y0..y1 - 1) that cover the union of
+    rects: per band between their rows' ends, its columns' runs."""
+    rows = sorted({r[1] for r in rects} | {r[3] for r in rects})
+    out = []
+    for top, bottom in zip(rows[:-1], rows[1:]):
+        runs = sorted((r[0], r[2]) for r in rects if r[1] <= top and r[3] >= bottom)
+        for x0, x1 in runs:
+            if out and out[-1][1] == top and out[-1][3] == bottom and x0 <= out[-1][2]:
+                out[-1] = (out[-1][0], top, max(out[-1][2], x1), bottom)
+            else:
+                out.append((x0, top, x1, bottom))
+    return out
 
 
 def _candidates(parts: ImageParts, members: list[np.ndarray], min_contrast: float) -> np.ndarray:
