@@ -96,7 +96,8 @@ def test_repeated_keys_are_those_pandas_finds_duplicated():
     rng = np.random.default_rng(4)
     for trial in range(30):
         n = int(rng.integers(0, 300))
-        columns = [rng.integers(0, int(rng.integers(1, 40)), n).astype(str).astype(object) for _ in range(1 + trial % 3)]
+        columns = [rng.integers(0, int(rng.integers(1, 40)), n).astype(str).astype(object)
+                   for _ in range(1 + trial % 3)]
         expected = pd.DataFrame({k: c for k, c in enumerate(columns)}).duplicated().any() if n else False
         assert _repeated([pd.factorize(c) for c in columns]) == expected
 

@@ -556,13 +556,16 @@ def mounting_assemble(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] image, 
 def mounting_points_in_cameras(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point,
                                const Py_ssize_t[::1] image, const double[:, :, ::1] R, const double[:, ::1] t,
                                const double[:, ::1] points, const double[:, :, ::1] cam_from_rig,
-                               const double[:, ::1] cam_t, double[:, ::1] x_rig, double[:, ::1] x) -> None:
+                               const double[:, ::1] cam_t, double[:, ::1] x_rig, double[:, ::1] x,
+                               const double[:, ::1] centre=None, double[:, ::1] q=None) -> None:
     """pose.mounting's observations' points in the rig, x_rig (N, 3) = R_f M_p + t_f, and in their
     (jittered) camera, x (N, 3) = cam_from_rig_image x_rig + cam_t_image: R (F, 3, 3), t (F, 3), points
-    (P, 3), cam_from_rig (F C, 3, 3), cam_t (F C, 3)."""
+    (P, 3), cam_from_rig (F C, 3, 3), cam_t (F C, 3); given their frames' centres (F, 3), also q (N, 3) =
+    x_rig - centre_f."""
     cdef Py_ssize_t n = frame.shape[0], i, f, p, im
     cdef int a, b
     cdef double value
+    cdef bint with_q = q is not None
     with nogil:
         for i in range(n):
             f, p, im = frame[i], point[i], image[i]
@@ -573,6 +576,9 @@ def mounting_points_in_cameras(const Py_ssize_t[::1] frame, const Py_ssize_t[::1
                 value = cam_from_rig[im, a, 0] * x_rig[i, 0] + cam_from_rig[im, a, 1] * x_rig[i, 1] \
                     + cam_from_rig[im, a, 2] * x_rig[i, 2]
                 x[i, a] = value + cam_t[im, a]
+            if with_q:
+                for a in range(3):
+                    q[i, a] = x_rig[i, a] - centre[f, a]
 
 
 def mounting_transposed_products(const Py_ssize_t[::1] rows, const Py_ssize_t[::1] frame,

@@ -89,6 +89,7 @@ from scipy.special import chdtri
 
 from ..blas import single_threaded_blas
 from ..camera import Camera, project_unmasked
+from ..dataset import factorized
 from ..errors import DmaisError
 from ..frames import FlightObservations
 from ..geometry import Rigid3, exp_so3, left_jacobian_so3, skew
@@ -120,6 +121,9 @@ LENS = len(CALIBRATION_PARAMETERS)
 #: where 1e-7 without taking it cost 21 iterations on two groups of 1,100 frames instead of 14.
 MAX_ITERATIONS = 50
 STEP_TOLERANCE = 1e-3
+#: Up to this many observations (~140 bytes each), the model at the minimum is kept through the covariance's
+#: solve for the calibration's share (`_rig_covariance`) rather than made again after it.
+KEPT_FORWARD_OBSERVATIONS = 200_000
 #: A trial cost above the current one by less than this fraction is its rounding, not an increase.
 COST_ROUNDING = 1e-13
 #: The mounting CSV's columns (`mounting_table`).
@@ -258,11 +262,12 @@ def adjust_group_rig(rig: Rig, cameras, uv, point_ids, points, frame_index, R, t
     with single_threaded_blas():  # small matrices: threads only add hand-offs (2x slower on 2 busy cores)
         state, iterations, cost, forward = _levenberg_marquardt(problem, state)
         normal = _normal_equations(problem, state, forward if forward.J_e is not None else None)
-        del forward  # its Jacobians' factors are in `normal`: not held through the covariance's solve
+        if forward.J_e is None or len(problem.uv) > KEPT_FORWARD_OBSERVATIONS:
+            forward = None  # its Jacobians' factors are in `normal`: not held through the covariance's solve
         rig_columns, rig_inverse = (group_normal.rig_columns(normal) if calibration_covariance is not None else
                                     (None, group_normal.solve(normal, np.zeros((problem.structure.size, 0)))[1]))
         del normal  # not held through the calibration's share (0.46 GB on a line of 10,000 frames)
-        covariance = _rig_covariance(problem, state, rig_columns, rig_inverse, calibration_covariance)
+        covariance = _rig_covariance(problem, state, rig_columns, rig_inverse, calibration_covariance, forward)
     state = replace(state, t=state.t - state.R @ problem.origin)
     return _result(problem, state, covariance, iterations, cost)
 
@@ -318,11 +323,10 @@ def mounting_table(adjusted: Mapping[str, GroupRig]) -> pd.DataFrame:
 def _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px, jitter_sigma_arcmin,
              survey_sigma_m, prior_sigma_arcmin, center_prior_m, center_sigma_m, calibration_covariance) -> _Problem:
     """The checked inputs of `adjust_group_rig` as a _Problem."""
-    cameras, uv, point_ids, points = _checked_observations(rig, cameras, uv, point_ids, points, frame_index)
+    (names, by_name), (ids, point), uv, points = _checked_observations(rig, cameras, uv, point_ids, points, frame_index)
     n_frames = len(np.asarray(R).reshape(-1, 3, 3))
     frame = _checked_frames(np.asarray(frame_index), n_frames)
-    free, camera, slot = _camera_slots(rig, cameras)
-    ids, point = np.unique(point_ids, return_inverse=True)
+    free, camera, slot = _camera_slots(rig, names, by_name)
     surveyed, survey_sigma = _points(ids, point, points, survey_sigma_m)
     origin = surveyed.mean(axis=0)
     surveyed, points = surveyed - origin, points - origin
@@ -334,7 +338,7 @@ def _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px
     centroid = sums / np.bincount(frame, minlength=n_frames)[:, None]
     center, center_sigma = _centers(center_prior_m, center_sigma_m, n_frames)
     problem = _Problem(rig, rig.camera_names, free, frame, camera, slot, point, uv,
-                       1.0 / _pixel_sigmas(cameras, pixel_sigma_px), origin, surveyed, survey_sigma, centroid,
+                       1.0 / _pixel_sigmas(names, by_name, pixel_sigma_px), origin, surveyed, survey_sigma, centroid,
                        n_frames, None if center is None else center - origin, center_sigma, jitter, prior,
                        *_focal_priors(rig, calibration_covariance))
     local_cols, rig_cols = _columns(problem)
@@ -343,9 +347,10 @@ def _problem(rig, cameras, uv, point_ids, points, frame_index, R, pixel_sigma_px
 
 
 def _checked_observations(rig: Rig, cameras, uv, point_ids, points, frame_index):
-    """cameras (N,) str, uv (N, 2), point_ids (N,) str, points (N, 3): one of each per observation,
-    finite, of the rig's cameras."""
-    cameras, point_ids = np.asarray(cameras).astype(str), np.asarray(point_ids).astype(str)
+    """((names (D,), camera (N,)), (ids (P,), point (N,)), uv (N, 2), points (N, 3)): one camera name, point id,
+    pixel and point per observation, finite, of the rig's cameras; the names and ids as str, each in its
+    `_distinct` form."""
+    cameras, point_ids = np.asarray(cameras), np.asarray(point_ids)
     uv, points = np.asarray(uv, dtype=float).reshape(-1, 2), np.asarray(points, dtype=float).reshape(-1, 3)
     n = len(cameras)
     if n == 0:
@@ -355,17 +360,30 @@ def _checked_observations(rig: Rig, cameras, uv, point_ids, points, frame_index)
                          f"and {len(frame_index)} frame indices: one of each per observation")
     if not (np.isfinite(uv).all() and np.isfinite(points).all()):
         raise DmaisError("mounting: non-finite pixels or points")
-    unknown = sorted(set(cameras) - set(rig.cameras))
+    names, camera = _distinct(cameras)
+    unknown = sorted(set(names) - set(rig.cameras))
     if unknown:
         raise DmaisError(f"mounting: camera(s) {', '.join(unknown)} not in the rig ({', '.join(rig.cameras)})")
-    return cameras, uv, point_ids, points
+    return (names, camera), _distinct(point_ids), uv, points
 
 
-def _camera_slots(rig: Rig, cameras: np.ndarray) -> tuple[list[str], np.ndarray, np.ndarray]:
+def _distinct(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """np.unique(values.astype(str), return_inverse=True) of values (N,): the distinct strings (D,) sorted and
+    each value's place among them (N,). Values that are str objects (a table's column) are hashed first and
+    only their distinct ones converted and sorted: numpy's sort of N fixed-width copies was most of a group's
+    set-up."""
+    if values.dtype == object and values.ndim == 1 and pd.api.types.infer_dtype(values, skipna=False) == "string":
+        codes, uniques = factorized(values)
+        distinct, inverse = np.unique(np.asarray(uniques, dtype=object).astype(str), return_inverse=True)
+        return distinct, inverse[codes]
+    return np.unique(values.astype(str), return_inverse=True)
+
+
+def _camera_slots(rig: Rig, distinct: np.ndarray, camera: np.ndarray) -> tuple[list[str], np.ndarray, np.ndarray]:
     """The non-reference cameras observed (K, in rig order), each observation's camera (N,) index in
-    rig order and its delta slot (N,) in [0, K) (-1: the reference); a warning names the others."""
+    rig order and its delta slot (N,) in [0, K) (-1: the reference), from the observed cameras' names
+    `distinct` (D,) and each observation's among them (N,); a warning names the others."""
     names = rig.camera_names
-    distinct, camera = np.unique(cameras, return_inverse=True)
     seen = set(distinct)
     free = [c for c in names if c != rig.reference_camera and c in seen]
     missing = [c for c in names if c != rig.reference_camera and c not in seen]
@@ -412,10 +430,14 @@ def _points(ids: np.ndarray, point: np.ndarray, points: np.ndarray, survey_sigma
     first = np.zeros(len(ids), int)
     first[point[::-1]] = np.arange(len(point))[::-1]
     surveyed = points[first]
-    if not (np.allclose(points, surveyed[point], rtol=0, atol=1e-9)
-            and np.allclose(sigma, sigma[first][point], rtol=0, atol=1e-12)):
+    if not (_close(points, surveyed[point], 1e-9) and _close(sigma, sigma[first][point], 1e-12)):
         raise DmaisError("mounting: one point id with different coordinates or survey sigmas")
     return surveyed, sigma[first].copy()
+
+
+def _close(a: np.ndarray, b: np.ndarray, atol: float) -> bool:
+    """np.allclose(a, b, rtol=0, atol=atol), at once where they are equal (one table's lookups)."""
+    return bool(np.array_equal(a, b) or np.allclose(a, b, rtol=0, atol=atol))
 
 
 def _centers(center_prior_m, center_sigma_m, n_frames: int) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -456,15 +478,16 @@ def _focal_priors(rig: Rig, calibration_covariance) -> tuple[np.ndarray, np.ndar
     return sigma[~held], np.where(held, -1, np.cumsum(~held) - 1)
 
 
-def _pixel_sigmas(cameras: np.ndarray, pixel_sigma_px) -> np.ndarray:
-    """(N,) per-axis pixel sigma of each observation, from one value or a per-camera mapping."""
+def _pixel_sigmas(names: np.ndarray, camera: np.ndarray, pixel_sigma_px) -> np.ndarray:
+    """(N,) per-axis pixel sigma of each observation, of camera (N,) among `names` (D,), from one value or a
+    per-camera mapping."""
     if isinstance(pixel_sigma_px, Mapping):
-        absent = sorted(set(cameras) - set(pixel_sigma_px))
+        absent = sorted(set(names) - set(pixel_sigma_px))
         if absent:
             raise DmaisError(f"mounting: no pixel sigma for camera(s) {', '.join(absent)}")
-        sigma = np.array([float(pixel_sigma_px[c]) for c in cameras])
+        sigma = np.array([float(pixel_sigma_px[c]) for c in names])[camera]
     else:
-        sigma = np.full(len(cameras), float(pixel_sigma_px))
+        sigma = np.full(len(camera), float(pixel_sigma_px))
     if not (np.isfinite(sigma).all() and (sigma > 0).all()):
         raise DmaisError("mounting: pixel sigmas must be finite and above 0")
     return sigma
@@ -517,17 +540,19 @@ def _forward(problem: _Problem, state: _State, jacobians: bool = True) -> _Forwa
     cam_t = (turn @ cal_t[:, :, None])[..., 0].reshape(-1, 3)
     image = p.frame * C + p.camera
     x_rig, x = np.empty((len(image), 3)), np.empty((len(image), 3))
+    centre = q = None
+    if jacobians:  # q = x_rig - (R m + t), the point less its frame's centroid in the rig, made in the same loop
+        centre, q = np.einsum("fij,fj->fi", state.R, p.centroid) + state.t, np.empty_like(x)
     _group.mounting_points_in_cameras(p.frame, p.point, image, *map(np.ascontiguousarray, (
-        state.R, state.t, state.points, cam_from_rig, cam_t)), x_rig, x)
+        state.R, state.t, state.points, cam_from_rig, cam_t)), x_rig, x, centre, q)
     if all(rig.cameras[name].model == "radial1" for name in p.names):
         e, J_e, J_focal = _radial1_residuals(p, state, x, jacobians)
     else:
         e, J_e, J_focal = _projected_residuals(p, state, x, jacobians)
     if not jacobians:
         return _Forward(e)
-    centre = np.einsum("fij,fj->fi", state.R, p.centroid) + state.t  # R m + t: q = x_rig - it
     delta_turn = (Jm @ left_jacobian_so3(deltas)).reshape(-1, 3, 3)
-    return _Forward(e, J_e, J_focal, x, x_rig - centre[p.frame], image, cam_from_rig, delta_turn,
+    return _Forward(e, J_e, J_focal, x, q, image, cam_from_rig, delta_turn,
                     left_jacobian_so3(jitters).reshape(-1, 3, 3))
 
 
@@ -587,14 +612,14 @@ def _columns(problem: _Problem) -> tuple[np.ndarray, np.ndarray]:
     problem has focal changes); an observation of the reference camera, or of a camera whose focal
     length is held, takes slot 0's, with zeros in its Jacobian (`_jacobians`)."""
     p, K = problem, len(problem.free)
-    slot, n = np.maximum(p.slot, 0), len(p.slot)
-    local = np.broadcast_to(np.arange(6), (n, 6))
+    slot = np.array([p.free.index(name) if name in p.free else 0 for name in p.names])[:, None]  # per camera
+    local = np.broadcast_to(np.arange(6), (len(p.names), 6))
     if p.local_size > 6:
-        local = np.concatenate([local, 6 + 3 * slot[:, None] + np.arange(3)], axis=1)
-    rig = 3 * slot[:, None] + np.arange(3)
+        local = np.concatenate([local, 6 + 3 * slot + np.arange(3)], axis=1)
+    rig = 3 * slot + np.arange(3)
     if len(p.focal_prior):
-        rig = np.concatenate([rig, 3 * K + np.maximum(p.focal_slot[p.camera], 0)[:, None]], axis=1)
-    return local, rig
+        rig = np.concatenate([rig, 3 * K + np.maximum(p.focal_slot, 0)[:, None]], axis=1)
+    return local[p.camera], rig[p.camera]  # each observation's its camera's
 
 
 def _jacobians(problem: _Problem, state: _State, f: _Forward):
@@ -746,16 +771,16 @@ def _levenberg_marquardt(problem: _Problem, state: _State) -> tuple[_State, int,
 
 
 def _rig_covariance(problem: _Problem, state: _State, rig_columns: np.ndarray | None, covariance: np.ndarray,
-                    calibration_covariance=None) -> np.ndarray:
+                    calibration_covariance=None, forward: _Forward | None = None) -> np.ndarray:
     """(3K + C', 3K + C') covariance of the rig's unknowns (the deltas, rad^2, then C' focal changes):
     their block of the inverse normal matrix (`covariance`; of the normal equations at `state`), plus, given
     the calibration's covariance (`adjust_group_rig`), its share (`_calibration_share`), from the inverse's
-    rig columns (F L + G, 3K + C') (group_normal.rig_columns) and the model at `state`, made again after the
-    solve (its Jacobians' factors are not held through it: a line's group of 10,000 frames has 1.4 million
-    observations)."""
+    rig columns (F L + G, 3K + C') (group_normal.rig_columns) and the model at `state` with its Jacobians'
+    factors: `forward` where kept, else made again after the solve (a line's group of 10,000 frames has 1.4
+    million observations: KEPT_FORWARD_OBSERVATIONS)."""
     if calibration_covariance is None:
         return covariance
-    moved, columns = _calibration_moved(problem, state, _forward(problem, state), rig_columns, covariance)
+    moved, columns = _calibration_moved(problem, state, forward or _forward(problem, state), rig_columns, covariance)
     return covariance + _calibration_share(problem, moved, columns, np.asarray(calibration_covariance, float))
 
 
@@ -821,16 +846,17 @@ def _calibration_moved(problem: _Problem, state: _State, f: _Forward, rig_column
     for c in np.unique(p.camera):
         rows = np.flatnonzero(p.camera == c)
         camera = _focal_changed(p.rig.cameras[p.names[c]], _focal(p, state, c))
-        by_parameter = project_unmasked(f.x[rows], camera, True)[2]  # the model's, fx, fy, cx, cy, d first
-        by_parameter = by_parameter * p.weight[rows, None, None]
-        parameters = [0, 1, 2, 3, 4] + [LENS + k for k in range(by_parameter.shape[2] - 5)]
-        if p.focal_slot[c] >= 0:
-            aspect = by_parameter[:, :, :1] * camera.fx - by_parameter[:, :, 1:2] * camera.fy
-            by_parameter = np.concatenate([aspect, by_parameter[:, :, 2:]], axis=2)
+        intrinsic = project_unmasked(f.x[rows], camera, True)[2]  # the model's, fx, fy, cx, cy, d first
+        parameters = [0, 1, 2, 3, 4] + [LENS + k for k in range(intrinsic.shape[2] - 5)]
+        aspect = int(p.focal_slot[c] >= 0)
+        by_parameter = np.empty((len(rows), 2, intrinsic.shape[2] - aspect + 3))  # whitened, then the centre's 3
+        weight = p.weight[rows, None]
+        if aspect:
+            by_parameter[:, :, 0] = intrinsic[:, :, 0] * weight * camera.fx - intrinsic[:, :, 1] * weight * camera.fy
             parameters = [ASPECT] + parameters[2:]
+        np.multiply(intrinsic[:, :, 2 * aspect:], weight[:, :, None], out=by_parameter[:, :, aspect:-3])
         # d e / d x_rig is the pose's translation columns; x_cam = C (x_rig - centre): d e / d centre = -d_rig
-        d_rig = f.J_e[rows] @ f.cam_from_rig[f.image[rows]]
-        by_parameter = np.ascontiguousarray(np.concatenate([by_parameter, -d_rig], axis=2))
+        np.negative(f.J_e[rows] @ f.cam_from_rig[f.image[rows]], out=by_parameter[:, :, -3:])
         effect = np.zeros((s.size, by_parameter.shape[2]))  # J^T E
         _group.mounting_transposed_products(rows, p.frame, f.image, p.slot, p.focal_slot[p.camera], f.J_e,
                                             f.J_focal, f.x, f.q, f.cam_from_rig, f.delta_turn, f.jitter_turn,

@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from ..blas import single_threaded_blas
-from ..dataset import FRAME_COLUMNS, Dataset, point_sigma
+from ..dataset import FRAME_COLUMNS, Dataset, factorized, point_sigma
 from ..errors import DmaisError
 from ..geometry import rotation_from_quat
 from ..pose.error_model import CALIBRATION_PARAMETERS, COMPONENTS, UNITS, calibration_parameters, survey_sigma
@@ -164,29 +164,64 @@ def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise:
     positions less it, per-axis sigma pos_sigma (3,) m; with the calibration's joint covariance
     `calibration` (`calibration_covariance`), the changes' sigmas carry its share (a calibration error
     is not flagged as a change). A group it cannot adjust is left out with a warning naming it."""
-    used = solved.observations[solved.observations["used"].to_numpy(bool)]
-    points, pos = dataset.points, dataset.frames.set_index("frame")[list(FRAME_COLUMNS[2:])]  # pos_x, pos_y, pos_z
+    table, rows = solved.table, _WatchedRows.of(dataset, solved)
+    pos = dataset.frames.set_index("frame")[list(FRAME_COLUMNS[2:])]  # pos_x, pos_y, pos_z
+    table_groups = table["group"].astype(str).to_numpy(object)
     watched = {}
     for group, model in solved.error_model.items():
-        frames = solved.table[solved.table["group"].astype(str) == str(group)]
-        rows = used[used["frame"].isin(set(frames["frame"]))]
+        chosen = np.flatnonzero(table_groups == str(group))  # the group's rows of the table
+        frames = table.iloc[chosen]
+        place = np.full(len(table) + 1, -1)  # each table row's place among the group's frames; -1 past the end
+        place[chosen] = np.arange(len(chosen))
+        frame_index = place[rows.table_row]
+        kept = np.flatnonzero(frame_index >= 0)
         pixel = max(model.sigma["pixel"], calibrated_noise if np.isfinite(calibrated_noise) else 0.0,
                     WATCH_MIN_PIXEL_PX)
         rotation = float(np.hypot(model.sigma["jitter"], model.sigma["mounting"]))
-        survey = np.maximum(survey_sigma(point_sigma(points, rows["point_id"]), model), WATCH_MIN_SURVEY_M)
+        point = rows.point[kept]
+        survey = np.maximum(survey_sigma(rows.point_sigma, model), WATCH_MIN_SURVEY_M)[point]
         R = rotation_from_quat(frames[list(QUAT)].to_numpy(float))
         centres = {} if lever_arm is None else {
             "center_prior_m": pos.loc[frames["frame"]].to_numpy(float) - np.einsum("fji,j->fi", R, lever_arm),
             "center_sigma_m": pos_sigma}
         try:
             watched[str(group)] = adjust_group_rig(
-                rig, rows["camera"].to_numpy(), rows[["u", "v"]].to_numpy(float), rows["point_id"].to_numpy(),
-                points.loc[rows["point_id"], ["x", "y", "z"]].to_numpy(float),
-                pd.Index(frames["frame"]).get_indexer(rows["frame"]), R, frames[list(TRANSLATION)].to_numpy(float),
-                pixel, rotation, survey, **centres, calibration_covariance=calibration)
+                rig, rows.cameras[kept], rows.uv[kept], rows.point_ids[kept], rows.xyz[point], frame_index[kept], R,
+                frames[list(TRANSLATION)].to_numpy(float), pixel, rotation, survey, **centres,
+                calibration_covariance=calibration)
         except DmaisError as error:
             log.warning("pose: the rig of group %s is not watched in flight: %s", group, error)
     return watched
+
+
+@dataclass(frozen=True)
+class _WatchedRows:
+    """The used observations (n) of `solve_flight`'s per-observation table, in its order, as `watch_rig`
+    reads them: table_row (n,) the row of each one's frame in the poses table (-1: none), cameras and
+    point_ids (n,) str objects, uv (n, 2); point (n,) each one's distinct point, of the point ids' xyz (p, 3)
+    and point_sigma (p, 3) (dataset.point_sigma). Every id is looked up once per distinct id, not per row."""
+
+    table_row: np.ndarray
+    cameras: np.ndarray
+    point_ids: np.ndarray
+    uv: np.ndarray
+    point: np.ndarray
+    xyz: np.ndarray
+    point_sigma: np.ndarray
+
+    @classmethod
+    def of(cls, dataset: Dataset, solved: FlightPoses) -> _WatchedRows:
+        observations = solved.observations
+        used = observations["used"].to_numpy(bool)
+        frame, frames = factorized(observations["frame"].to_numpy(object)[used])  # hashed a frame's block at once
+        point_ids = observations["point_id"].to_numpy(object)[used]
+        point, ids = pd.factorize(point_ids)
+        ids = np.asarray(ids, dtype=object)
+        table_row = pd.Index(solved.table["frame"]).get_indexer(frames)[frame] if len(frames) else frame
+        points = dataset.points
+        return cls(table_row, observations["camera"].to_numpy(object)[used], point_ids,
+                   observations[["u", "v"]].to_numpy(float)[used], point,
+                   points.loc[ids, ["x", "y", "z"]].to_numpy(float).reshape(-1, 3), point_sigma(points, ids))
 
 
 def with_geodetic_columns(table: pd.DataFrame, geo: Geo, covariance: np.ndarray) -> pd.DataFrame:
