@@ -140,3 +140,23 @@ def test_fit_with_its_covariance_in_the_last_pass_is_the_fit_with_a_pass_of_its_
     own = xfit.fit(xfit.linear_levels(params, x, y, values, weights), x, y, values, weights, iterations)
     for a, b in zip(folded, own):
         np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("radius", [3.0, 7.25, 25.0])
+def test_window_is_numpys(radius):
+    # `xfit.window`'s positions, pixels and taper weights in one compiled pass (`_xfit.window_pixels`):
+    # numpy's to the last bit, at the image's borders, beyond them and about a NaN centre, on a float
+    # image and on ImageParts.
+    from dmais_pipe.markers.rings import ImageParts
+
+    rng = np.random.default_rng(int(radius * 4))
+    image = rng.uniform(0.0, 255.0, (120, 160)).astype(np.float32)
+    centre = np.vstack([rng.uniform(-5.0, 165.0, (40, 2)), [[0.0, 0.0], [159.5, 119.5], [np.nan, 30.0],
+                                                          [80.49999999, 60.5]]])
+    parts = ImageParts([(0, 0, 64, 120), (128, 0, 160, 120)], image.shape)
+    for pixels, top, left in zip(parts.pixels, parts.tops, parts.lefts):
+        pixels[...] = image[top:top + pixels.shape[0], left:left + pixels.shape[1]]
+    for img in (image, parts):
+        for got, want in zip(xfit.window(img, centre, radius), xfit._window_numpy(img, centre, radius)):
+            assert got.dtype == want.dtype
+            np.testing.assert_array_equal(got, want)

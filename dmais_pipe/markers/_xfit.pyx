@@ -184,3 +184,35 @@ cdef inline double erf_of(double z) noexcept nogil:
     if z <= -ERF_ONE:
         return -1.0
     return erf(z)
+
+
+def window_pixels(centre, rounded, ox, oy, double radius2, Py_ssize_t width, Py_ssize_t height):
+    """`xfit.window`'s arithmetic in one pass: for centres (n, 2), their rounded pixels rounded (n, 2)
+    (int) and the disc's offsets ox, oy (k,) (int): the positions x, y (n, k) (float), the rows and
+    columns clamped into the image (n, k) (intp, the pixels to read) and the taper weights (n, k),
+    max(1 - d^2 / radius2, 0)^2 where the pixel is in the image, else 0 (NaN stays NaN), each number
+    as numpy's expressions make it."""
+    cdef const double[:, ::1] c = np.ascontiguousarray(centre, dtype=np.float64)
+    cdef const Py_ssize_t[:, ::1] r = np.ascontiguousarray(rounded, dtype=np.intp)
+    cdef const Py_ssize_t[::1] dx = np.ascontiguousarray(ox, dtype=np.intp)
+    cdef const Py_ssize_t[::1] dy = np.ascontiguousarray(oy, dtype=np.intp)
+    cdef Py_ssize_t n = c.shape[0], k = dx.shape[0], i, j, xv, yv
+    xs, ys = np.empty((n, k)), np.empty((n, k))
+    rows, columns = np.empty((n, k), dtype=np.intp), np.empty((n, k), dtype=np.intp)
+    weights = np.empty((n, k))
+    cdef double[:, ::1] xo = xs, yo = ys, wo = weights
+    cdef Py_ssize_t[:, ::1] ro = rows, co = columns
+    cdef double ex, ey, t
+    with nogil:
+        for i in range(n):
+            for j in range(k):
+                xv, yv = r[i, 0] + dx[j], r[i, 1] + dy[j]
+                xo[i, j], yo[i, j] = <double>xv, <double>yv
+                co[i, j] = 0 if xv < 0 else (width - 1 if xv > width - 1 else xv)
+                ro[i, j] = 0 if yv < 0 else (height - 1 if yv > height - 1 else yv)
+                ex, ey = <double>xv - c[i, 0], <double>yv - c[i, 1]
+                t = 1.0 - (ex * ex + ey * ey) / radius2
+                if not (t >= 0.0 or t != t):  # np.maximum(t, 0.0): NaN stays
+                    t = 0.0
+                wo[i, j] = t * t * (1.0 if (xv >= 0 and xv < width and yv >= 0 and yv < height) else 0.0)
+    return xs, ys, rows, columns, weights

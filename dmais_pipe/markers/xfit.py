@@ -26,6 +26,8 @@ over its pixels (`_xfit`, equal to the numpy expressions to rounding).
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from scipy.special import erf
 
@@ -43,18 +45,37 @@ def window(img: np.ndarray, centre: np.ndarray, radius: float):
     taper weights (n, k), 0 outside the disc or the image. Only pixels within radius + 1 of the
     rounded centre are listed (the taper is 0 beyond radius from the centre itself)."""
     height, width = img.shape
-    half = int(np.ceil(radius)) + 1
-    offs = np.arange(-half, half + 1)
-    oy, ox = np.meshgrid(offs, offs, indexing="ij")
-    disc = ox**2 + oy**2 <= (radius + 1.0) ** 2
+    ox, oy = _disc(float(radius))
     c = np.rint(np.nan_to_num(centre)).astype(int)
-    x = c[:, :1] + ox[disc][None]
-    y = c[:, 1:] + oy[disc][None]
+    x, y, rows, columns, weights = _xfit.window_pixels(centre, c, ox, oy, radius**2, width, height)
+    return x, y, img[rows, columns].astype(np.float64), weights
+
+
+def _window_numpy(img: np.ndarray, centre: np.ndarray, radius: float):
+    """`window` in numpy (the reference of tests/test_xfit_compiled.py)."""
+    height, width = img.shape
+    ox, oy = _disc(float(radius))
+    c = np.rint(np.nan_to_num(centre)).astype(int)
+    x = c[:, :1] + ox[None]
+    y = c[:, 1:] + oy[None]
     inside = (x >= 0) & (x < width) & (y >= 0) & (y < height)
     values = img[np.clip(y, 0, height - 1), np.clip(x, 0, width - 1)].astype(np.float64)
     d2 = (x - centre[:, :1]) ** 2 + (y - centre[:, 1:]) ** 2
     weights = np.maximum(1.0 - d2 / radius**2, 0.0) ** 2 * inside
     return x.astype(float), y.astype(float), values, weights
+
+
+@lru_cache(maxsize=64)
+def _disc(radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """(k,) column and row offsets (int, read-only) of `window`'s disc of `radius`: within radius + 1 px
+    of the rounded centre, in raster order."""
+    half = int(np.ceil(radius)) + 1
+    offs = np.arange(-half, half + 1)
+    oy, ox = np.meshgrid(offs, offs, indexing="ij")
+    disc = ox**2 + oy**2 <= (radius + 1.0) ** 2
+    ox, oy = ox[disc], oy[disc]
+    ox.flags.writeable = oy.flags.writeable = False
+    return ox, oy
 
 
 def model(params: np.ndarray, x: np.ndarray, y: np.ndarray, jacobian: bool = True):
