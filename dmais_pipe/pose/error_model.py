@@ -76,8 +76,8 @@ from scipy.optimize import nnls
 
 from ..camera import LENS_FIELDS, project_unmasked
 from ..rig import Rig
-from ._error import row_products, scaled_outer_sums
-from .refine import _jacobian, inverse_normal_matrices, tangent_bases
+from ._error import block_outer_sums, calibration_columns, covariance_sums, linearised_rows, row_products
+from .refine import inverse_normal_matrices
 
 ARCMIN = np.radians(1.0 / 60.0)
 #: The components, in the order of every array here.
@@ -199,34 +199,27 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     None: 0.
     """
     n_frames = len(R)
+    frame_index = np.asarray(frame_index)
     counts = np.bincount(frame_index, minlength=n_frames)
     centroid = np.stack([np.bincount(frame_index, points[:, k], minlength=n_frames) for k in range(3)], axis=1)
     centroid = centroid / np.maximum(counts, 1)[:, None]
     t_centred = t + np.einsum("fij,fj->fi", R, centroid)
-    R_rows = R[frame_index]
-    unit = directions / np.linalg.norm(directions, axis=1)[:, None]
-    bases = tangent_bases(unit)
-    points_centred = points - centroid[frame_index]
-    residual, J = _jacobian(origins, bases, points_centred, R_rows, t_centred[frame_index])
-    J = J.reshape(-1, 2, 6)
-    p = np.einsum("nij,nj->ni", R_rows, points) + t[frame_index] - origins
-    if object_space:
-        weight = np.sum(p * p, axis=1)
-        weight /= np.bincount(frame_index, weight, minlength=n_frames)[frame_index] / counts[frame_index]
-    else:
-        weight = np.ones(len(points))
-    A = row_products(J * weight[:, None, None], J, frame_index, n_frames)
     names = list(rig.cameras)
     camera_names = np.asarray(cameras)
     camera = np.full(len(cameras), -1)
     for c, name in enumerate(names):
         camera[camera_names == name] = c
-    residual = residual.reshape(-1, 2)
-    norm = np.linalg.norm(p, axis=1)
-    dr_dp = (bases - residual[:, :, None] * (p / norm[:, None])[:, None, :]) / norm[:, None, None]
-    axis = np.array([rig.cam_from_rig[name].R[2] for name in names])[camera]
-    focal_effect = -np.einsum("ni,ni->n", unit, axis)[:, None] * np.einsum("nki,ni->nk", bases, axis)
-    rotation = np.cross(bases, unit[:, None, :])  # B [f]x: each row b^T [f]x is b x f (einsum's sums, exactly)
+    axes = np.array([rig.cam_from_rig[name].R[2] for name in names])
+    # one compiled pass for the rows (numpy's expressions, tests/test_error_model_rows.py): the rays' unit
+    # vectors and tangent bases, refine._jacobian about the centroids, |p|^2 of the uncentred points and the
+    # survey's dr/dp, B [f]x and the focal effect -(f . a) B a
+    unit, bases, residual, J, squares, dr_dp, rotation, focal_effect, points_centred = linearised_rows(
+        origins, directions, points, centroid, R, t, t_centred, frame_index, axes, camera)
+    if object_space:
+        weight = squares / (np.bincount(frame_index, squares, minlength=n_frames)[frame_index] / counts[frame_index])
+    else:
+        weight = np.ones(len(points))
+    A = row_products(J, J, frame_index, n_frames, weight)  # sum of (w J)^T J
     group_codes = pd.factorize(np.asarray(groups).astype(str), sort=True)[0]  # np.unique's codes, by hashing
     point_codes = pd.factorize(np.asarray(point_ids).astype(str), sort=True)[0]
     n_parameters = len(calibration_parameters(rig)) * len(names)
@@ -235,6 +228,7 @@ def linearised_solve(rig: Rig, cameras: np.ndarray, uv: np.ndarray, origins, dir
     calibration = _calibration_effects(rig, names, camera, uv, bases, rotation, dr_dp, np.diag(calibration_covariance))
     point_sigma = np.full((len(points), 3), np.nan) if point_sigma_m is None else \
         np.broadcast_to(np.asarray(point_sigma_m, float).reshape(len(points), -1), (len(points), 3)).copy()
+    R_rows = R[frame_index]
     return Geometry(J=J, weight=weight, A_inverse=inverse_normal_matrices(A), residual=residual,
                     focal=np.array([rig.cameras[n].fx for n in names])[camera], frame=np.asarray(frame_index),
                     starts=np.searchsorted(frame_index, np.arange(n_frames)), camera=camera,
@@ -258,33 +252,41 @@ def _calibration_effects(rig: Rig, names: list[str], camera_of, uv, bases, rotat
         sigma = np.sqrt(np.clip(variances[k_all * c:k_all * (c + 1)], 0.0, None))
         if not len(rows) or not sigma.any():
             continue
-        camera, block = rig.cameras[name], np.zeros((len(rows), 2, k_all))
+        camera = rig.cameras[name]
         # the camera's own parameters: fx fy cx cy and d (k1), then LENS_PARAMETERS by name
         own = {k: k if k < 5 else camera.parameter_names.index(parameters[k]) for k in range(k_all)
                if (k < 5 or parameters[k] in LENS_PARAMETERS) and sigma[k] > 0}
-        if own:
-            change = _ray_changes(camera, rig.cam_from_rig[name].R.T, uv[rows])  # (n, 3, P)
-            block[:, :, list(own)] = -np.einsum("nki,nip->nkp", bases[rows], change[:, :, list(own.values())])
+        w, dw = _pixel_changes(camera, uv[rows]) if own else (np.zeros((0, 3)), np.zeros((0, 2, 0)))
         # d f / d w = -[f]x: r changes by -B df = B [f]x w; the origin by dv: p by -dv
-        block[:, :, 5:8] = rotation[rows]
-        block[:, :, 8:11] = -dr_dp[rows]
-        effects[rows] = block
+        calibration_columns(w, dw, rig.cam_from_rig[name].R.T, bases, rotation, dr_dp, rows, list(own),
+                            list(own.values()), effects)
     return effects
 
 
-def _ray_changes(camera, rig_from_cam: np.ndarray, pixels: np.ndarray) -> np.ndarray:
-    """(n, 3, P) the change of the unit rays (rig frame) of pixels (n, 2) per unit change of each of the
-    camera's parameter_names (P): at a fixed pixel its undistorted point xy moves by -J_xy^-1 J_p (the
-    projection's Jacobians there), its ray w / |w|, w = (x, y, 1), by (I - f f^T) dw / |w|. NaN where the
-    pixel does not undistort. (Central differences of the rays did the same, 10 undistortions a camera.)"""
+def _pixel_changes(camera, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """w (n, 3) = (x, y, 1), the undistorted points of pixels (n, 2), and the change of (x, y) (n, 2, P) per unit
+    change of each of the camera's parameter_names (P): at a fixed pixel it moves by -J_xy^-1 J_p (the
+    projection's Jacobians there). NaN where the pixel does not undistort."""
     xy = camera.undistort_normalized(pixels)
     w = np.column_stack([xy, np.ones(len(xy))])
     _, J_point, J_parameters = project_unmasked(w, camera, jacobian=True)
     J = J_point[:, :, :2]  # at depth 1, d pixels / d (x, y)
-    inverse = np.stack([np.stack([J[:, 1, 1], -J[:, 0, 1]], axis=1), np.stack([-J[:, 1, 0], J[:, 0, 0]], axis=1)],
-                       axis=1) / (J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0])[:, None, None]
-    dw = np.zeros((len(xy), 3, J_parameters.shape[2]))
-    dw[:, :2] = -inverse @ J_parameters
+    inverse = np.empty((len(xy), 2, 2))
+    inverse[:, 0, 0], inverse[:, 0, 1] = J[:, 1, 1], -J[:, 0, 1]
+    inverse[:, 1, 0], inverse[:, 1, 1] = -J[:, 1, 0], J[:, 0, 0]
+    inverse /= (J[:, 0, 0] * J[:, 1, 1] - J[:, 0, 1] * J[:, 1, 0])[:, None, None]
+    return w, -inverse @ J_parameters
+
+
+def _ray_changes(camera, rig_from_cam: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+    """(n, 3, P) the change of the unit rays (rig frame) of pixels (n, 2) per unit change of each of the
+    camera's parameter_names (P): the ray w / |w| of `_pixel_changes`' w moves by (I - f f^T) dw / |w|, dw its
+    change (of x, y; not of 1). NaN where the pixel does not undistort. (Central differences of the rays did the
+    same, 10 undistortions a camera.) The numpy of what `_calibration_effects` computes compiled
+    (`_error.calibration_columns`)."""
+    w, moved = _pixel_changes(camera, pixels)
+    dw = np.zeros((len(w), 3, moved.shape[2]))
+    dw[:, :2] = moved
     norm = np.linalg.norm(w, axis=1)
     f = w / norm[:, None]
     change = (dw - f[:, :, None] * np.einsum("ni,nip->np", f, dw)[:, None, :]) / norm[:, None, None]
@@ -314,10 +316,17 @@ def solve_response(geometry: Geometry, errors: np.ndarray) -> np.ndarray:
 
 
 def _dense(key: np.ndarray) -> np.ndarray:
-    """key (N,) renumbered 0, 1, ... in order of value, -1 kept."""
+    """key (N,) renumbered 0, 1, ... in order of value, -1 kept: np.unique's codes, by counting the
+    values present where they are fewer than about 8 N."""
     out = np.full(len(key), -1)
     keep = key >= 0
-    out[keep] = np.unique(key[keep], return_inverse=True)[1]
+    kept = key[keep]
+    if len(kept) and kept.max() < 8 * len(kept) + 1024:
+        present = np.zeros(int(kept.max()) + 1, bool)
+        present[kept] = True
+        out[keep] = (np.cumsum(present) - 1)[kept]
+    else:
+        out[keep] = np.unique(kept, return_inverse=True)[1]
     return out
 
 
@@ -675,42 +684,31 @@ def frame_covariances(geometry: Geometry, model: ErrorModel) -> dict[str, np.nda
     parametrisation of uncertainty.py, about the frame's point centroid)."""
     g = geometry
     n_frames = g.n_frames
-    weighted = g.J * g.weight[:, None, None]  # (N, 2, 6) rows w_i J_i
     n_cameras = int(g.camera.max()) + 1 if len(g.camera) else 1
     frame_camera = _dense(g.frame * n_cameras + g.camera)
     block_frame = np.zeros(int(frame_camera.max()) + 1 if len(frame_camera) else 0, int)
     block_frame[frame_camera] = g.frame
-    block_camera = np.zeros_like(block_frame)
-    block_camera[frame_camera] = g.camera
-    k_all = g.calibration.shape[2]
-
-    def per_observation(effect, variance):  # sum_i (w J^T E_i) V_i (w J^T E_i)^T
-        return scaled_outer_sums(weighted, effect, variance, g.frame, n_frames)
-
-    def calibration():  # L K L^T, L (F, 6, K C) the frame's sums of w J^T C_i in its camera's columns
-        blocks = row_products(weighted, g.calibration, frame_camera, len(block_frame))
-        L = np.zeros((n_frames, 6, g.calibration_covariance.shape[0]))
-        for c in np.unique(block_camera):
-            mine = block_camera == c
-            L[:, :, k_all * c:k_all * (c + 1)] += _sum_by(blocks[mine], block_frame[mine], n_frames)
-        return L @ g.calibration_covariance @ np.swapaxes(L, 1, 2) * model.si("calibration") ** 2
-
-    def per_block(effect, sigma):  # sum over blocks of L L^T, L = sum over the block's rows of w J^T E_i sigma
-        L = row_products(weighted, effect, frame_camera, len(block_frame)) * sigma[:, None, :]
-        return _sum_by(np.einsum("bij,bkj->bik", L, L), block_frame, n_frames)
-
-    pixel = per_observation(np.broadcast_to(np.eye(2), (len(g.frame), 2, 2)) / g.focal[:, None, None],
-                            np.full(len(g.frame), model.si("pixel") ** 2))
     point_sigma = survey_sigma(g.point_sigma, model)
+    # one compiled pass over the rows w_i J_i: the per-observation terms' sums per frame, the rotation's
+    # and focal change's per (frame, camera) block, the calibration's per frame in its camera's columns
+    pixel, survey, vertical, rotation_blocks, focal_blocks, L = covariance_sums(
+        g.J, g.weight, g.focal, g.survey, point_sigma, g.rotation, g.focal_effect, g.calibration, g.frame,
+        frame_camera, g.camera, n_frames, len(block_frame), g.calibration_covariance.shape[0] // g.calibration.shape[2],
+        model.si("pixel") ** 2)
+
+    def per_block(blocks, sigma):  # sum over blocks of L L^T, L = sum over the block's rows of w J^T E_i sigma
+        return block_outer_sums(blocks, sigma, block_frame, n_frames)
+
     rotation_sigma = np.hypot(model.si("jitter"), model.si("mounting"))
     moving = np.where(np.bincount(frame_camera, g.reference, minlength=len(block_frame)) > 0, 0.0, rotation_sigma)
     covariances = {
         "pixel": pixel,
-        "survey": per_observation(g.survey[:, :, :2] * point_sigma[:, None, :2], np.ones(len(g.frame))),
-        "survey_vertical": per_observation(g.survey[:, :, 2:] * point_sigma[:, None, 2:], np.ones(len(g.frame))),
-        "rotation": per_block(g.rotation, np.repeat(moving[:, None], 3, axis=1)),
-        "focal": per_block(g.focal_effect[:, :, None], np.full((len(block_frame), 1), model.si("focal"))),
-        "calibration": calibration(),
+        "survey": survey,
+        "survey_vertical": vertical,
+        "rotation": per_block(rotation_blocks, np.repeat(moving[:, None], 3, axis=1)),
+        "focal": per_block(focal_blocks, np.full((len(block_frame), 1), model.si("focal"))),
+        # L K L^T, L (F, 6, K C) the frame's sums of w J^T C_i in its camera's columns
+        "calibration": L @ g.calibration_covariance @ np.swapaxes(L, 1, 2) * model.si("calibration") ** 2,
     }
     rotation = covariances.pop("rotation")
     share = model.si("jitter") ** 2 / rotation_sigma**2 if rotation_sigma > 0 else 0.0

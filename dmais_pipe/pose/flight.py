@@ -40,6 +40,7 @@ from ..frames import FlightObservations, flight_observations_by_frame
 from ..geometry import Rigid3, quat_from_rotation
 from ..rig import Rig
 from ..workspace import POSE_BUDGET_COLUMNS, POSE_COLUMNS, POSE_OBSERVATION_COLUMNS, POSE_UNCERTAINTY_COLUMNS
+from ._error import frame_points
 from .error_model import UNITS, ErrorModel, Geometry, estimate, estimation_frames, linearised_solve
 from .nonlinear import DRAWS, NONLINEAR_INDEX, bootstrap_variances, curvature_index, observation_noise
 from .robust import solve_robust
@@ -150,7 +151,7 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
     whole = solution if set(cameras) == set(rig.cameras) else \
         _solve(dataset, rig, observations, list(rig.cameras), robust, refine, groups, threshold_px)
     table = solution.table.copy()
-    table[list(POSE_UNCERTAINTY_COLUMNS)] = np.nan
+    sigmas = np.full((len(table), len(POSE_UNCERTAINTY_COLUMNS)), np.nan)
     models, budgets = {}, []
     covariance = np.full((len(table), 6, 6), np.nan)
 
@@ -175,12 +176,11 @@ def solve_flight(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras
             uncertainty = uncertainty.with_totals(np.flatnonzero(weak), *drawn)
             log.info("pose: group %s: the sigmas of %d frame(s) from %d re-solves each (their linearised "
                      "ones do not hold)", group, int(weak.sum()), DRAWS)
-        values = np.column_stack([uncertainty.attitude, uncertainty.sigma_position, uncertainty.sigma_attitude,
-                                  uncertainty.noise_px])
-        for name, column in zip(POSE_UNCERTAINTY_COLUMNS, values.T):
-            table.loc[frames, name] = column
+        sigmas[frames] = np.column_stack([uncertainty.attitude, uncertainty.sigma_position,
+                                          uncertainty.sigma_attitude, uncertainty.noise_px])
         covariance[frames] = uncertainty.pose_covariance
         budgets.append(budget_table(table["frame"].to_numpy()[frames], uncertainty, models[group]))
+    table[list(POSE_UNCERTAINTY_COLUMNS)] = sigmas
     budget = pd.concat(budgets, ignore_index=True) if budgets else pd.DataFrame(columns=list(POSE_BUDGET_COLUMNS))
     return FlightPoses(_with_frame_extras(table, dataset), solution.observations, models, budget, covariance)
 
@@ -206,7 +206,7 @@ def _solve(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list
     focal = _per_observation(flight.cameras, {name: rig.cameras[name].fx for name in cameras})
     R, t, ms, used, certified, failures = _solve_frames(flight, focal, robust, refine, threshold_px)
     index = flight.frame_index
-    residuals = rows_pixel_residuals(rig, R[index], t[index], flight.cameras, flight.uv, flight.points)
+    residuals = _frames_pixel_residuals(rig, R, t, index, flight.cameras, flight.uv, flight.points)
     hidden = np.bincount(index, used & ~np.isfinite(residuals).all(axis=1), minlength=len(flight)) > 0
     for k in np.flatnonzero(hidden & ~failures.astype(bool)):
         failures[k] = "the pose puts observed points behind their camera"
@@ -216,13 +216,41 @@ def _solve(dataset: Dataset, rig: Rig, observations: pd.DataFrame, cameras: list
                     "; ".join(f"{flight.frames[k]} ({failures[k]})" for k in np.flatnonzero(~solved)))
     rows = solved[index]
     per_observation = pd.DataFrame({
-        "frame": flight.frames[index[rows]], "image": flight.images[rows], "camera": flight.cameras[rows],
-        "point_id": flight.point_ids[rows], "u": flight.uv[rows, 0], "v": flight.uv[rows, 1], "used": used[rows],
+        "frame": _str_column(flight.frames[index[rows]]), "image": _str_column(flight.images[rows]),
+        "camera": _str_column(flight.cameras[rows]), "point_id": flight.point_ids[rows], "u": flight.uv[rows, 0],
+        "v": flight.uv[rows, 1], "used": used[rows],
         "du": residuals[rows, 0], "dv": residuals[rows, 1]}, columns=list(POSE_OBSERVATION_COLUMNS))
     used_rows = used & rows
     frame_of_row = (np.cumsum(solved) - 1)[index[used_rows]]
     table = _poses_table(cameras, flight, solved, R, t, ms, certified, used_rows, frame_of_row, residuals)
     return _Solution(table, per_observation, R[solved], t[solved], flight, used_rows, frame_of_row)
+
+
+def _frames_pixel_residuals(rig: Rig, R: np.ndarray, t: np.ndarray, frame: np.ndarray, cameras: np.ndarray,
+                            uv: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """rows_pixel_residuals of each row under its frame's (frame (N,)) rig_from_world R (F, 3, 3), t (F, 3),
+    without the rows' copies of the poses (`_error.frame_points`)."""
+    x_rig = frame_points(R, t, frame, points)
+    residuals = np.empty_like(uv, dtype=float)
+    left = np.ones(len(cameras), bool)
+    for name in rig.cameras:
+        mask = cameras == name
+        if mask.any():
+            residuals[mask] = uv[mask] - rig.project_rig_points(name, x_rig[mask])
+            left &= ~mask
+    for name in pd.unique(cameras[left]):  # not the rig's: project_rig_points names it
+        mask = cameras == name
+        residuals[mask] = uv[mask] - rig.project_rig_points(str(name), x_rig[mask])
+    return residuals
+
+
+def _str_column(values: np.ndarray):
+    """values (n,) numpy str as the str array pandas makes of them, each run of equal values (a frame's rows, an
+    image's) made one str: pandas makes a str object per row."""
+    if not len(values):
+        return pd.array(values, dtype="str")
+    change = np.r_[True, values[1:] != values[:-1]]
+    return pd.array(values[change], dtype="str").take(np.cumsum(change) - 1)
 
 
 def _geometry(dataset: Dataset, rig: Rig, solution: _Solution, frames: np.ndarray, object_space: bool,

@@ -26,7 +26,7 @@ import numpy as np
 
 from ..geometry import exp_so3
 from ..errors import PoseError
-from ._error import predicted_directions
+from ._error import curvature_sums, noise_rows, predicted_directions
 from .error_model import ErrorModel, Geometry, calibration_errors, model_draw, survey_sigma
 from .refine import tangent_bases
 from .uncertainty import heading_pitch_roll
@@ -45,8 +45,7 @@ def observation_noise(geometry: Geometry, model: ErrorModel) -> np.ndarray:
     calibration) move all points of a camera together, and a frame's pose absorbs most of them:
     they are not the noise against which its fit's curvature shows."""
     g = geometry
-    survey = survey_sigma(g.point_sigma, model)  # (N, 3)
-    return np.sqrt((model.si("pixel") / g.focal) ** 2 + np.sum(survey**2 * np.sum(g.survey**2, axis=1), axis=1) / 2)
+    return noise_rows(model.si("pixel"), g.focal, survey_sigma(g.point_sigma, model), g.survey)
 
 
 def curvature_index(geometry: Geometry, covariance: np.ndarray, noise: np.ndarray) -> np.ndarray:
@@ -57,16 +56,17 @@ def curvature_index(geometry: Geometry, covariance: np.ndarray, noise: np.ndarra
     g = geometry
     finite = np.isfinite(covariance).all(axis=(1, 2))
     values, vectors = np.linalg.eigh(np.where(finite[:, None, None], covariance, np.eye(6)))
-    bases = tangent_bases(_predicted_directions(g, g.R, g.t_centred))
-    centre = _residuals(g, bases, g.R, g.t_centred)
-    index = np.zeros(g.n_frames)
+    R, t = [g.R], [g.t_centred]  # the solved poses, then each axis' step (plus, minus)
     for k in range(6):
         step = vectors[:, :, k] * np.sqrt(np.clip(values[:, k], 0.0, None))[:, None]  # (F, 6)
-        plus = _residuals(g, bases, _rotated(step[:, :3], g.R), g.t_centred + step[:, 3:])
-        minus = _residuals(g, bases, _rotated(-step[:, :3], g.R), g.t_centred - step[:, 3:])
-        second = np.divide(plus + minus - 2 * centre, 2 * noise[:, None], out=np.zeros_like(centre),
-                           where=noise[:, None] > 0)
-        index = np.maximum(index, np.sqrt(np.bincount(g.frame, np.sum(second**2, axis=1), minlength=g.n_frames)))
+        R += [_rotated(step[:, :3], g.R), _rotated(-step[:, :3], g.R)]
+        t += [g.t_centred + step[:, 3:], g.t_centred - step[:, 3:]]
+    # one compiled pass: per axis and frame the sum of ((plus + minus - 2 centre) / (2 noise))^2, the
+    # residuals in the tangent bases of the solved poses' directions (the numpy: tests/test_error_model_rows.py)
+    sums = curvature_sums(np.stack(R), np.stack(t), g.frame, g.points_centred, g.origins, noise)
+    index = np.zeros(g.n_frames)
+    for total in sums:
+        index = np.maximum(index, np.sqrt(total))
     return np.where(finite, index, np.inf)
 
 

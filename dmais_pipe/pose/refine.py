@@ -196,14 +196,50 @@ def inverse_normal_matrices(normal) -> np.ndarray:
     """Inverses (..., k, k) of symmetric normal matrices (..., k, k); NaN where one is singular
     (a zero diagonal entry, or condition number above 1e12 after scaling to a unit diagonal)."""
     normal = np.asarray(normal, dtype=float)
+    shape, k = normal.shape, normal.shape[-1]
+    normal = normal.reshape(-1, k, k)
     scale = np.sqrt(np.clip(np.diagonal(normal, axis1=-2, axis2=-1), 0.0, None))
     observable = (scale > 0).all(axis=-1)
     scale = np.where(observable[..., None], scale, 1.0)
     outer = scale[..., :, None] * scale[..., None, :]
-    normalized = np.where(observable[..., None, None], normal / outer, np.eye(normal.shape[-1]))
-    observable &= np.linalg.cond(normalized) <= 1e12  # unit diagonal: the test ignores the units of x
-    normalized[~observable] = np.eye(normal.shape[-1])
-    inverse = np.linalg.inv(normalized) / outer
+    normalized = np.where(observable[..., None, None], normal / outer, np.eye(k))
+    inverse = _inverses(normalized)
+    observable &= _conditioned(normalized, inverse)
+    if inverse is None:
+        normalized[~observable] = np.eye(k)
+        inverse = np.linalg.inv(normalized)
+    else:  # numpy's inverse of the identity, where the matrix is singular
+        inverse[~observable] = np.eye(k)
+    inverse = inverse / outer
     inverse = 0.5 * (inverse + np.swapaxes(inverse, -1, -2))
     inverse[~observable] = np.nan
-    return inverse
+    return inverse.reshape(shape)
+
+
+#: The largest condition number (unit diagonal) of an invertible normal matrix.
+MAX_CONDITION = 1e12
+
+
+def _inverses(normalized: np.ndarray) -> np.ndarray | None:
+    """np.linalg.inv of matrices (F, k, k), None where one of them is exactly singular."""
+    try:
+        with np.errstate(all="ignore"):
+            return np.linalg.inv(normalized)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def _conditioned(normalized: np.ndarray, inverse: np.ndarray | None) -> np.ndarray:
+    """(F,) np.linalg.cond(normalized) <= MAX_CONDITION for matrices (F, k, k), with their inverses
+    (`_inverses`) if made: cond = |A|_2 |A^-1|_2 <= |A|_F |A^-1|_F, so a product of the Frobenius norms
+    at most half the limit (room for the inverse's rounding) is conditioned; numpy's singular values
+    (most of the time of the error model's inverses) decide the others, and every frame without the
+    inverses."""
+    if inverse is None:
+        return np.linalg.cond(normalized) <= MAX_CONDITION
+    bound = np.sqrt(np.sum(normalized**2, axis=(1, 2))) * np.sqrt(np.sum(inverse**2, axis=(1, 2)))
+    conditioned = bound <= 0.5 * MAX_CONDITION  # NaN: not sure
+    unsure = ~conditioned
+    if unsure.any():
+        conditioned[unsure] = np.linalg.cond(normalized[unsure]) <= MAX_CONDITION
+    return conditioned
