@@ -1,13 +1,17 @@
 """The compiled float64 cells (`_float_text.float_cells`): each exactly Python's repr, NaN empty, over
 more than a million seeded doubles drawn many ways (bit patterns of every exponent, decimals, integers,
 powers of two and their neighbours, halves, the ends of the round-trip interval); and `files.csv_text`
-with them, the bytes pandas' to_csv writes."""
+with them, the bytes pandas' to_csv writes. The reading (`_float_text.cells_floats`): float()'s bits of
+those cells, of long and tie-like decimals and of every form float() accepts or refuses."""
+
+from decimal import Decimal
+
 
 import numpy as np
 import pandas as pd
 import pytest
 
-from dmais_pipe._float_text import float_cells
+from dmais_pipe._float_text import cells_floats, float_cells
 from dmais_pipe.files import csv_text
 
 
@@ -98,3 +102,58 @@ def test_csv_text_with_float_cells_is_pandas_to_csv():
                           "var_x_m2": rng.uniform(1e-9, 1e-3, n) ** 2, "note": np.where(np.arange(n) % 9, "a,b", "")})
     frame["frame"] = frame["frame"].astype("string")
     assert csv_text(frame) == frame.to_csv(index=False, lineterminator="\n")
+
+
+def _floats(cells: list[str]) -> np.ndarray | None:
+    """The reference: float() of each cell, None where one raises."""
+    try:
+        return np.array([float(cell) for cell in cells], dtype=float)
+    except ValueError:
+        return None
+
+
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.shape == b.shape and bool((a.view(np.uint64) == b.view(np.uint64)).all())
+
+
+def _midpoints(rng, n: int) -> list[str]:
+    """Exact decimals of the midpoints between neighbouring doubles (where reading must round half to even),
+    and of numbers just beside them (a digit more or less at the 40th place)."""
+    x = np.abs(_bits(rng, n, 1, 2046))
+    x = x[np.isfinite(x) & (x > 0)]
+    cells = []
+    for value, nudge in zip(x.tolist(), rng.integers(-1, 2, len(x)).tolist()):
+        middle = (Decimal(value) + Decimal(np.nextafter(value, np.inf))) / 2
+        cells.append(f"{middle + nudge * middle.scaleb(-40):.60e}" if nudge else f"{middle:.60e}")
+    return cells
+
+
+def test_reading_gives_floats_bits():
+    rng = np.random.default_rng(1)
+    for name, x in _draws(1).items():
+        cells = [cell for cell in _reprs(x) if cell]
+        assert _same_bits(cells_floats(cells, len(cells)), _floats(cells)), name
+    digits = rng.integers(0, 10, (60_000, 40)).astype(str)
+    lengths, exponents = rng.integers(1, 41, 60_000), rng.integers(-360, 330, 60_000)
+    decimals = [("-" if k % 3 == 0 else "") + "".join(row[:m - 1]) + "." + row[m - 1] + f"e{e:+d}"
+                for k, (row, m, e) in enumerate(zip(digits, lengths, exponents))]
+    for name, cells in {"long decimals": decimals, "midpoints": _midpoints(rng, 20_000),
+                        "forms": ["1", "-0", "+0.0", ".5", "5.", "007", "1E5", "1e-400", "1e400", "-1e400",
+                                  "4.9e-324", "2.4703282292062328e-324", "2.4703282292062327e-324",
+                                  "1.7976931348623158e308", "1.7976931348623159e308", "nan", "-inf", "Infinity",
+                                  " 3 ", "1_000.5", "\u0663.5", "0" * 400 + "1", "1" + "0" * 400]}.items():
+        assert _same_bits(cells_floats(cells, len(cells)), _floats(cells)), name
+    assert cells_floats((cell for cell in ["1.5", "2"]), 2).tolist() == [1.5, 2.0]  # any iterable
+
+
+@pytest.mark.parametrize("cell", ["", "1e", "e5", ".", "-", "+-1", "1.2.3", "1e+", "0x1p3", "abc", "1 2", "nan5",
+                                  "1__0", "--1", "1e5e5"])
+def test_reading_refuses_what_float_refuses(cell):
+    with pytest.raises(ValueError):
+        float(cell)
+    assert cells_floats(["1.0", cell], 2) is None
+
+
+def test_reading_checks_the_count():
+    with pytest.raises(ValueError, match="3 cells, expected 2"):
+        cells_floats(["1", "2", "3"], 2)
