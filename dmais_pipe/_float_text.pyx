@@ -265,3 +265,38 @@ def cells_floats(cells, Py_ssize_t n):
         except ValueError:
             return None
     return out
+
+
+def csv_lines(str header, columns):
+    """header + "\\n" + the rows of `columns` (k lists of n str each: a row's cells joined by ",") each ended
+    by "\\n": "\\n".join([header, *map(",".join, zip(*columns))]) + "\\n", in one pass where every cell is
+    ASCII; None otherwise (the caller joins them)."""
+    cdef Py_ssize_t k = len(columns), n = len(columns[0]) if k else 0, i, j, size, total
+    cdef list column
+    cdef char *out
+    for column in columns:
+        if len(column) != n:
+            raise ValueError("csv_lines: the columns differ in length")
+    if not PyUnicode_IS_COMPACT_ASCII(header):
+        return None
+    total = PyUnicode_GET_LENGTH(header) + 1 + n * k  # the header and its line end, the commas and line ends
+    for column in columns:
+        for i in range(n):
+            cell = column[i]
+            if type(cell) is not str or not PyUnicode_IS_COMPACT_ASCII(cell):
+                return None
+            total += PyUnicode_GET_LENGTH(cell)
+    text = PyUnicode_New(total, 127)
+    out = <char *> PyUnicode_1BYTE_DATA(text)
+    size = PyUnicode_GET_LENGTH(header)
+    memcpy(out, PyUnicode_1BYTE_DATA(header), size)
+    out[size] = b"\n"
+    out += size + 1
+    for i in range(n):
+        for j in range(k):
+            cell = (<list> columns[j])[i]
+            size = PyUnicode_GET_LENGTH(cell)
+            memcpy(out, PyUnicode_1BYTE_DATA(cell), size)
+            out[size] = b"," if j < k - 1 else b"\n"
+            out += size + 1
+    return text

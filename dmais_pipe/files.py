@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from ._float_text import float_cells
+from ._float_text import csv_lines, float_cells
 from .errors import FileAccessError
 
 _UMASK = os.umask(0)
@@ -103,12 +103,13 @@ def csv_text(frame: pd.DataFrame) -> str:
     """`frame.to_csv(index=False, lineterminator="\\n")`'s text, built column by column: the same bytes
     (floats as their shortest repr, NaN and None empty, bools True/False, fields quoted only where
     they hold a comma, a quote or a "\\n") several times faster for large tables, the float64 cells by
-    the compiled `_float_text.float_cells`."""
+    the compiled `_float_text.float_cells`, the lines by `_float_text.csv_lines` where every cell is ASCII."""
     if frame.shape[1] < 2 or not all(d in _PLAIN_DTYPES or isinstance(d, pd.StringDtype) for d in frame.dtypes):
         return frame.to_csv(index=False, lineterminator="\n")
     columns = [_csv_cells(frame[name]) for name in frame.columns]
     header = ",".join(_csv_quoted([str(name) for name in frame.columns]))
-    return "\n".join([header, *map(",".join, zip(*columns))]) + "\n"
+    text = csv_lines(header, columns)
+    return text if text is not None else "\n".join([header, *map(",".join, zip(*columns))]) + "\n"
 
 
 def _csv_cells(column: pd.Series) -> list[str]:

@@ -132,9 +132,11 @@ def test_csv_text_writes_the_bytes_pandas_writes(monkeypatch):
                           "mixed": np.array([1.5, None, "t", np.nan, True], dtype=object)[np.arange(n) % 5],
                           "a,b": texts[::-1]})
     frame["objects"] = pd.Series(texts, dtype=object)
-    expected = [f.to_csv(index=False, lineterminator="\n") for f in (frame, frame.iloc[:0])]
+    accented = frame.assign(**{"frame": frame["frame"] + "\u00e9", "h\u00f6he": 1.0})  # not ASCII: joined in Python
+    frames = (frame, frame.iloc[:0], accented, frame.rename(columns={"x": "\u00f6"}))
+    expected = [f.to_csv(index=False, lineterminator="\n") for f in frames]
     with monkeypatch.context() as patch:  # csv_text must build these itself
         patch.setattr(pd.DataFrame, "to_csv", None)
-        assert [csv_text(frame), csv_text(frame.iloc[:0])] == expected
+        assert [csv_text(f) for f in frames] == expected
     small = frame[["x"]].astype(np.float32).assign(y=1)  # float32: left to pandas
     assert csv_text(small) == small.to_csv(index=False, lineterminator="\n")
