@@ -16,6 +16,8 @@ number as numpy's expressions (`rings._ring_stats`) do, the sums in np.sum's pai
 last bit. tests/test_marker_sampling.py compares both with what they replace.
 """
 
+from libc.math cimport isfinite
+
 import numpy as np
 
 from dmais_pipe.markers._sums cimport pairwise_sum
@@ -80,7 +82,100 @@ cdef extern from *:
     #else
     #define dmais_sample dmais_sample_libm
     #endif
+
+    /* `cell` (below) in C: floor(value / cell_px) clamped into 0..count - 1, 0 where not finite or beyond int64. */
+    static inline Py_ssize_t dmais_cell(float value, Py_ssize_t cell_px, Py_ssize_t count) {
+        double q = (double)value / cell_px;
+        if (!(q > -9.2e18 && q < 9.2e18)) return 0;
+        if (q < 1.0) return 0;
+        if (q >= count - 1) return count - 1;
+        return (Py_ssize_t)q;
+    }
+
+    /* One ring's k samples into out (k): at the float32 positions (float)(cx + scale ring[2 j]),
+       (float)(cy + scale ring[2 j + 1]) (each sum in double, then rounded, as `ring_points`), each of the
+       part of its cell in cells (cell_rows x cell_columns; NULL: part 0), as `ring_points` and `dmais_sample`
+       make them, with no array of positions or parts between. bounds (NULL: none): the least and largest x and y
+       offsets of ring (4, finite): with scale >= 0 the extremes of the positions are those of the bounds (each
+       rounding does not decrease with its operand), and where they lie within +-2^30 in one cell, every position
+       is in that cell (nor does a coordinate's cell), so the ring's part is looked up once. */
+    #define DMAIS_RING(NAME, FMA) \
+    static void NAME(const float *buffer, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top, \
+                     const Py_ssize_t *width, const Py_ssize_t *height, const Py_ssize_t *row, \
+                     const Py_ssize_t *column, const Py_ssize_t *cells, Py_ssize_t cell_rows, \
+                     Py_ssize_t cell_columns, Py_ssize_t cell_px, double cx, double cy, double scale, \
+                     const double *ring, const double *bounds, Py_ssize_t k, float *out) { \
+        Py_ssize_t one = 0; \
+        if (cells) { \
+            one = -1; \
+            if (bounds && scale >= 0.0) { \
+                float x_lo = (float)(cx + scale * bounds[0]), x_hi = (float)(cx + scale * bounds[1]); \
+                float y_lo = (float)(cy + scale * bounds[2]), y_hi = (float)(cy + scale * bounds[3]); \
+                if (x_lo > -1073741824.0f && x_hi < 1073741824.0f && y_lo > -1073741824.0f && y_hi < 1073741824.0f) { \
+                    Py_ssize_t c0 = dmais_cell(x_lo, cell_px, cell_columns), c1 = dmais_cell(x_hi, cell_px, cell_columns); \
+                    Py_ssize_t r0 = dmais_cell(y_lo, cell_px, cell_rows), r1 = dmais_cell(y_hi, cell_px, cell_rows); \
+                    if (c0 == c1 && r0 == r1) one = cells[r0 * cell_columns + c0]; \
+                } \
+            } \
+        } \
+        if (one >= 0) { /* one part: its numbers in locals (no store to out can change them) */ \
+            const float *p = buffer + base[one]; \
+            float fl = (float)left[one], ft = (float)top[one]; \
+            Py_ssize_t w = width[one], h = height[one], rs = row[one], cs = column[one]; \
+            double w_last = (double)(w - 1), h_last = (double)(h - 1); \
+            for (Py_ssize_t j = 0; j < k; j++) { \
+                float x = (float)(cx + scale * ring[2 * j]) - fl, y = (float)(cy + scale * ring[2 * j + 1]) - ft; \
+                if (!(isfinite(x) && isfinite(y))) { out[j] = NAN; continue; } \
+                float fx = dmais_floor(x), fy = dmais_floor(y); \
+                float a = x - fx, b = y - fy; \
+                double dx = fx, dy = fy, dx1 = fx + 1.0, dy1 = fy + 1.0; \
+                Py_ssize_t x0 = (dx <= 0.0 ? 0 : (dx >= w_last ? w - 1 : (Py_ssize_t)dx)) * cs; \
+                Py_ssize_t y0 = (dy <= 0.0 ? 0 : (dy >= h_last ? h - 1 : (Py_ssize_t)dy)) * rs; \
+                Py_ssize_t x1 = (dx1 <= 0.0 ? 0 : (dx1 >= w_last ? w - 1 : (Py_ssize_t)dx1)) * cs; \
+                Py_ssize_t y1 = (dy1 <= 0.0 ? 0 : (dy1 >= h_last ? h - 1 : (Py_ssize_t)dy1)) * rs; \
+                float p00 = p[y0 + x0], p01 = p[y0 + x1], p10 = p[y1 + x0], p11 = p[y1 + x1]; \
+                float t0 = FMA(a, p01 - p00, p00), t1 = FMA(a, p11 - p10, p10); \
+                out[j] = FMA(b, t1 - t0, t0); \
+            } \
+            return; \
+        } \
+        for (Py_ssize_t j = 0; j < k; j++) { \
+            float px = (float)(cx + scale * ring[2 * j]), py = (float)(cy + scale * ring[2 * j + 1]); \
+            Py_ssize_t q = cells[dmais_cell(py, cell_px, cell_rows) * cell_columns + dmais_cell(px, cell_px, cell_columns)]; \
+            float x = px - (float)left[q], y = py - (float)top[q]; \
+            if (!(isfinite(x) && isfinite(y))) { out[j] = NAN; continue; } \
+            float fx = dmais_floor(x), fy = dmais_floor(y); \
+            float a = x - fx, b = y - fy; \
+            Py_ssize_t x0 = dmais_clamp(fx, width[q]) * column[q], y0 = dmais_clamp(fy, height[q]) * row[q]; \
+            Py_ssize_t x1 = dmais_clamp(fx + 1.0, width[q]) * column[q], y1 = dmais_clamp(fy + 1.0, height[q]) * row[q]; \
+            const float *p = buffer + base[q]; \
+            float p00 = p[y0 + x0], p01 = p[y0 + x1], p10 = p[y1 + x0], p11 = p[y1 + x1]; \
+            float t0 = FMA(a, p01 - p00, p00), t1 = FMA(a, p11 - p10, p10); \
+            out[j] = FMA(b, t1 - t0, t0); \
+        } \
+    }
+
+    typedef void (*dmais_ring_fn)(const float *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
+                                  const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
+                                  const Py_ssize_t *, Py_ssize_t, Py_ssize_t, Py_ssize_t, double, double, double,
+                                  const double *, const double *, Py_ssize_t, float *);
+    DMAIS_RING(dmais_ring_libm, fmaf)
+    #if defined(__x86_64__) && defined(__GNUC__)
+    __attribute__((target("fma"))) DMAIS_RING(dmais_ring_fma, __builtin_fmaf)
+    /* The ring sampler of this CPU (the FMA instruction's where it has one), chosen once per call of a loop. */
+    static dmais_ring_fn dmais_ring_of_cpu(void) {
+        __builtin_cpu_init();
+        return __builtin_cpu_supports("fma") ? dmais_ring_fma : dmais_ring_libm;
+    }
+    #else
+    static dmais_ring_fn dmais_ring_of_cpu(void) { return dmais_ring_libm; }
+    #endif
     """
+    ctypedef void (*dmais_ring_fn)(const float *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
+                                   const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
+                                   const Py_ssize_t *, Py_ssize_t, Py_ssize_t, Py_ssize_t, double, double, double,
+                                   const double *, const double *, Py_ssize_t, float *) noexcept nogil
+    dmais_ring_fn dmais_ring_of_cpu() noexcept nogil
     void dmais_sample(const float *buffer, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top,
                       const Py_ssize_t *width, const Py_ssize_t *height, const Py_ssize_t *row,
                       const Py_ssize_t *column, const Py_ssize_t *owner, const float *xy, Py_ssize_t n,
@@ -130,19 +225,20 @@ cdef inline Py_ssize_t cell(float value, Py_ssize_t cell_px, Py_ssize_t count) n
     return <Py_ssize_t>q  # truncation: floor, q > 0
 
 
-cdef inline void ring_points(double cx, double cy, double scale, const double *ring, Py_ssize_t k,
-                             const Py_ssize_t *cells, Py_ssize_t cell_rows, Py_ssize_t cell_columns,
-                             Py_ssize_t cell_px, float *xy, Py_ssize_t *owner) noexcept nogil:
-    """The k float32 positions (cx, cy) + scale * ring (ring (k, 2) row-major; each sum in float64, then
-    rounded) into xy (k, 2), and with `cells` (the parts' cell map, cell_rows x cell_columns; NULL: one
-    part) the part of each into owner (k,)."""
+cdef const double *ring_bounds(const double *ring, Py_ssize_t k, double *extremes) noexcept nogil:
+    """The least and largest x and y of the offsets ring (k, 2) into extremes (4), and extremes; NULL where
+    one is not finite (then every position's part is looked up)."""
     cdef Py_ssize_t j
+    extremes[0] = extremes[1] = ring[0]
+    extremes[2] = extremes[3] = ring[1]
     for j in range(k):
-        xy[2 * j] = <float>(cx + scale * ring[2 * j])
-        xy[2 * j + 1] = <float>(cy + scale * ring[2 * j + 1])
-        if cells != NULL:
-            owner[j] = cells[cell(xy[2 * j + 1], cell_px, cell_rows) * cell_columns
-                             + cell(xy[2 * j], cell_px, cell_columns)]
+        if not (isfinite(ring[2 * j]) and isfinite(ring[2 * j + 1])):
+            return NULL
+        extremes[0] = ring[2 * j] if ring[2 * j] < extremes[0] else extremes[0]
+        extremes[1] = ring[2 * j] if ring[2 * j] > extremes[1] else extremes[1]
+        extremes[2] = ring[2 * j + 1] if ring[2 * j + 1] < extremes[2] else extremes[2]
+        extremes[3] = ring[2 * j + 1] if ring[2 * j + 1] > extremes[3] else extremes[3]
+    return extremes
 
 
 def parts_sample(buffer, bases, lefts, tops, widths, heights, part, xy):
@@ -255,26 +351,24 @@ def clean_radius(buffer, bases, lefts, tops, widths, heights, rows, columns, cel
     cdef double[::1] out = result
     work = np.empty(4 * k)
     cdef double[::1] w = work
-    points = np.empty((k, 2), dtype=np.float32)
-    cdef float[:, ::1] xy = points
     samples = np.empty(k, dtype=np.float32)
     cdef float[::1] s = samples
-    owner_of = np.zeros(k, dtype=np.intp)
-    cdef Py_ssize_t[::1] owner = owner_of
     masks = np.empty((2, k), dtype=np.uint8)
     cdef unsigned char[:, ::1] m = masks  # this ring's and the reference
     cdef double quality, high, low, ref_high, ref_low, contrast
     cdef bint started, ok, same
     if k == 0 or n == 0:
         return result
+    cdef dmais_ring_fn ring_of = dmais_ring_of_cpu()
+    cdef double extremes[4]
+    cdef const double *bounds = ring_bounds(&ring[0, 0], k, extremes)
     with nogil:
         for i in range(n):
             started, ref_high, ref_low = False, 0.0, 0.0
             for a in range(r.shape[0]):
-                ring_points(p[i, 0], p[i, 1], r[a], &ring[0, 0], k, NULL if one_part else &cell_map[0, 0],
-                            cell_map.shape[0], cell_map.shape[1], cell_px, &xy[0, 0], &owner[0])
-                dmais_sample(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
-                             &owner[0], &xy[0, 0], k, &s[0])
+                ring_of(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
+                        NULL if one_part else &cell_map[0, 0], cell_map.shape[0], cell_map.shape[1], cell_px,
+                        p[i, 0], p[i, 1], r[a], &ring[0, 0], bounds, k, &s[0])
                 for j in range(k):
                     w[j] = s[j]
                 one_ring(&w[0], k, &w[k], &m[0, 0], &quality, &high, &low)
@@ -320,18 +414,16 @@ def ring_samples(buffer, bases, lefts, tops, widths, heights, rows, columns, cel
     cdef Py_ssize_t m = p.shape[0], k = ring.shape[0], i
     out = np.empty((m, k), dtype=np.float32)
     cdef float[:, ::1] o = out
-    points = np.empty((k if k else 1, 2), dtype=np.float32)
-    cdef float[:, ::1] xy = points
-    owner_of = np.zeros(k if k else 1, dtype=np.intp)
-    cdef Py_ssize_t[::1] owner = owner_of
     if k == 0 or m == 0:
         return out
+    cdef dmais_ring_fn ring_of = dmais_ring_of_cpu()
+    cdef double extremes[4]
+    cdef const double *bounds = ring_bounds(&ring[0, 0], k, extremes)
     with nogil:
         for i in range(m):
-            ring_points(p[i, 0], p[i, 1], 1.0, &ring[0, 0], k, NULL if one_part else &cell_map[0, 0],
-                        cell_map.shape[0], cell_map.shape[1], cell_px, &xy[0, 0], &owner[0])  # 1.0 * x is x
-            dmais_sample(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
-                         &owner[0], &xy[0, 0], k, &o[i, 0])
+            ring_of(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
+                    NULL if one_part else &cell_map[0, 0], cell_map.shape[0], cell_map.shape[1], cell_px,
+                    p[i, 0], p[i, 1], 1.0, &ring[0, 0], bounds, k, &o[i, 0])  # 1.0 * x is x
     return out
 
 
