@@ -100,8 +100,49 @@ def _dn_scale(image: np.ndarray) -> float:
     if image.dtype == np.uint8:
         return 1.0
     step = max(1, image.size // 100000)
-    bright = float(np.percentile(image.reshape(-1)[::step], 99.5))
+    values = image.reshape(-1)[::step]
+    bright = _percentile_u16(values, 99.5) if values.dtype == np.uint16 else float(np.percentile(values, 99.5))
     return max(bright / 220.0, 1e-6)
+
+
+def _percentile_u16(values: np.ndarray, q: float) -> float:
+    """float(np.percentile(values, q)) of uint16 values (n,), n > 0, to the last bit: its two order
+    statistics from the values' counts (np.bincount) instead of a partition, interpolated as numpy's
+    `_lerp` does (in float64: a + (b - a) t, or b - (b - a) (1 - t) where t >= 0.5)."""
+    n = len(values)
+    virtual = (n - 1) * (q / 100.0)
+    if virtual >= n - 1:
+        low = high = n - 1
+    else:
+        low = int(np.floor(virtual))
+        high = low + 1
+    gamma = virtual - low
+    counts = np.cumsum(np.bincount(values, minlength=1))
+    a, b = (float(v) for v in np.searchsorted(counts, [low + 1, high + 1]))  # the values of sorted ranks low, high
+    diff = b - a
+    return b - diff * (1.0 - gamma) if gamma >= 0.5 else a + diff * gamma
+
+
+def _median_of_abs(values: np.ndarray):
+    """np.median(np.abs(values)) of float32 values (n,), to the last bit: the middle order statistics of
+    |values| by their bits (non-negative float32 sort as their uint32 patterns; two counting passes of 16
+    bits each instead of a partition), then np.mean of them as np.median takes it; np.median's own where
+    a value is NaN or the values are no float32."""
+    values = np.abs(values)
+    if values.dtype != np.float32 or values.ndim != 1 or len(values) == 0 or np.isnan(values).any():
+        return np.median(values)
+    n = len(values)
+    bits = values.view(np.uint32)
+    high = (bits >> 16).astype(np.intp)
+    counts = np.cumsum(np.bincount(high, minlength=1))
+    ranks = [n // 2 - 1, n // 2] if n % 2 == 0 else [(n - 1) // 2]
+    middle = []
+    for rank in ranks:
+        top = int(np.searchsorted(counts, rank + 1))  # the high 16 bits of the value of this rank
+        before = int(counts[top - 1]) if top else 0
+        low = np.sort(bits[high == top] & 0xFFFF, kind="stable") if not middle or middle[-1][0] != top else middle[-1][1]
+        middle.append((top, low, (top << 16) | int(low[rank - before])))
+    return np.mean(np.array([m[2] for m in middle], dtype=np.uint32).view(np.float32))
 
 
 def clutter(level: np.ndarray) -> float:
@@ -115,7 +156,7 @@ def clutter_of_tiles(tiles: list[np.ndarray]) -> float:
     """`clutter` of the level's tiles (each (80, 80), or the whole level)."""
     band = np.concatenate([(cv2.GaussianBlur(t, (0, 0), 1.0) - cv2.GaussianBlur(t, (0, 0), 2.0)).ravel()
                            for t in tiles])
-    return float(1.4826 * np.median(np.abs(band)))  # a band-pass has zero mean
+    return float(1.4826 * _median_of_abs(band))  # a band-pass has zero mean
 
 
 def tile_boxes(shape: tuple[int, int], size: int = 80, count: int = 4) -> list[tuple[int, int, int, int]]:
