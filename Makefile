@@ -11,7 +11,7 @@ CORES ?= 2
 
 # The compiled cores (the pose solver's, the markers', the CSV float cells') are rebuilt when their sources change.
 $(STAMP): pyproject.toml constraints.txt setup.py dmais_pipe/pose/_kernels.pyx dmais_pipe/pose/_refine.pyx \
-		dmais_pipe/pose/_group.pyx dmais_pipe/pose/_error.pyx dmais_pipe/pose/_small.pxd \
+		dmais_pipe/pose/_group.pyx dmais_pipe/pose/_error.pyx dmais_pipe/pose/_certificate.pyx dmais_pipe/pose/_small.pxd \
 		dmais_pipe/markers/_xfit.pyx dmais_pipe/markers/_rings.pyx dmais_pipe/markers/_centring.pyx dmais_pipe/markers/_sums.pxd \
 		dmais_pipe/markers/_rings.pxd dmais_pipe/markers/_shadow.pyx dmais_pipe/_float_text.pyx
 	$(PYTHON) -m venv $(VENV)

@@ -1,4 +1,4 @@
-"""Builds the compiled cores of the pose solver, of its refinement and RANSAC, of the markers' fit and
+"""Builds the compiled cores of the pose solver and its tighter certificate, of its refinement and RANSAC, of the markers' fit and
 samples and of the CSV tables' float cells; everything else is configured in pyproject.toml.
 
 The cores are built for the CPU they are built on (`make install` compiles them on the user's
@@ -66,6 +66,7 @@ setup(ext_modules=cythonize([
     Extension("dmais_pipe.pose._refine", ["dmais_pipe/pose/_refine.pyx"], extra_compile_args=compile_args()),
     Extension("dmais_pipe.pose._group", ["dmais_pipe/pose/_group.pyx"], extra_compile_args=compile_args()),
     Extension("dmais_pipe.pose._error", ["dmais_pipe/pose/_error.pyx"], extra_compile_args=compile_args()),
+    Extension("dmais_pipe.pose._certificate", ["dmais_pipe/pose/_certificate.pyx"], extra_compile_args=compile_args()),
     Extension("dmais_pipe.markers._xfit", ["dmais_pipe/markers/_xfit.pyx"], extra_compile_args=portable_args()),
     Extension("dmais_pipe.markers._rings", ["dmais_pipe/markers/_rings.pyx"], extra_compile_args=portable_args()),
     Extension("dmais_pipe.markers._centring", ["dmais_pipe/markers/_centring.pyx"], extra_compile_args=portable_args()),

@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import _certificate
+
 #: As `_kernels.CERTIFICATE_TOLERANCE`: the least eigenvalue allowed, relative to trace H + |g| + |c|.
 CERTIFICATE_TOLERANCE = 1e-9
 #: Barrier-method iterations before the search gives up (the certified frames take 6-8).
@@ -65,7 +67,15 @@ _EYE9 = np.eye(9)
 
 def tight_certified(H: np.ndarray, g: np.ndarray, c: float, R: np.ndarray) -> bool:
     """Whether the dual with SO(3)'s redundant constraints (module docstring) proves R (3, 3) the global
-    minimum of r^T H r - 2 g^T r + c (H (9, 9), g (9,): the solver's statistics) over SO(3)."""
+    minimum of r^T H r - 2 g^T r + c (H (9, 9), g (9,): the solver's statistics) over SO(3): the compiled
+    `_certificate.tight_certified` (`tight_certified_numpy`'s steps; ~0.3 against ~0.8 ms)."""
+    as_rows = [np.ascontiguousarray(a, dtype=float) for a in (H, g, R)]
+    return _certificate.tight_certified(as_rows[0], as_rows[1], float(c), as_rows[2], _FLAT, CERTIFICATE_TOLERANCE,
+                                        ITERATIONS)
+
+
+def tight_certified_numpy(H: np.ndarray, g: np.ndarray, c: float, R: np.ndarray) -> bool:
+    """`tight_certified` by numpy (the compiled one's reference, tests/test_pose_fallback.py)."""
     x = np.append(R.reshape(9), 1.0)
     Q = np.block([[H, -g[:, None]], [-g[None], np.array([[c]])]])
     tolerance = CERTIFICATE_TOLERANCE * (np.trace(H) + np.linalg.norm(g) + abs(c))
