@@ -1,5 +1,5 @@
-"""Builds the compiled cores of the pose solver and its tighter certificate, of its refinement and RANSAC, of the markers' fit and
-samples and of the CSV tables' float cells; everything else is configured in pyproject.toml.
+"""Builds the compiled cores of the pose solver and its tighter certificate, of its refinement and RANSAC,
+of the markers' fit and samples and of the CSV tables' float cells; everything else is configured in pyproject.toml.
 
 The cores are built for the CPU they are built on (`make install` compiles them on the user's
 machine): -march=native lets GCC/Clang vectorize the row operations of the elimination template

@@ -251,4 +251,5 @@ def test_the_compiled_tight_certificate_answers_as_numpys():
     assert sum(answers[:len(TIGHT)]) == len(TIGHT) and not all(answers[len(TIGHT):len(TIGHT) + len(MISSED)])
     assert all(answers[-16:-12]) and not any(answers[-12:])
     H, g, c, R = cases[-1]
-    assert not tight_certified(np.full_like(H, np.nan), g, c, R) and not tight_certified_numpy(np.full_like(H, np.nan), g, c, R)
+    unknown = np.full_like(H, np.nan)
+    assert not tight_certified(unknown, g, c, R) and not tight_certified_numpy(unknown, g, c, R)
