@@ -42,10 +42,10 @@ import time
 import cv2
 import numpy as np
 import pandas as pd
-from scipy.spatial import cKDTree
 
 from . import _shadow
 from .centring import seed
+from .neighbours import Neighbours
 from .refine import ASYMMETRIC, NO_CLEAN_X, refine_corners
 from .rings import RADII, as_float_image, clean_radius, ring_offsets, ring_quality, ring_sample, ring_stats, sample
 from .shadow import SAME_RATIO, SHADOW_REASON, both_sides, line_ends, log_ring_sample, shadowed_corners, step_masks
@@ -397,7 +397,7 @@ def _rejection_frame(pieces: list[tuple], detected: np.ndarray | None = None) ->
     uv = np.concatenate([np.asarray(where, dtype=float).reshape(-1, 2) for where, _ in pieces])
     reason = np.concatenate([np.broadcast_to(np.asarray(why, dtype=object), (len(where),)) for where, why in pieces])
     if len(uv) and detected is not None and len(detected):
-        kept = cKDTree(detected).query(uv)[0] >= DUPLICATE_PX
+        kept = Neighbours(detected).query(uv)[0] >= DUPLICATE_PX
         uv, reason = uv[kept], reason[kept]
     return pd.DataFrame({"u": uv[:, 0], "v": uv[:, 1], "reason": pd.Series(reason, dtype=object)})
 
@@ -547,7 +547,7 @@ def _dedupe(points: np.ndarray, score: np.ndarray) -> np.ndarray:
     if len(points) < 2:
         return np.arange(len(points))
     order = np.argsort(-score, kind="stable")
-    near = cKDTree(points).query_ball_point(points, DUPLICATE_PX)  # every point's cluster in one query
+    near = Neighbours(points).query_ball_point(points, DUPLICATE_PX)  # every point's cluster in one query
     taken = np.zeros(len(points), dtype=bool)
     keep = []
     for i in order.tolist():

@@ -33,7 +33,8 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-from scipy.spatial import cKDTree
+
+from .neighbours import Neighbours
 
 COARSE_GATE_PX = 120.0
 GATE_PX = 12.0
@@ -129,13 +130,14 @@ def _apply(params: np.ndarray, pred: np.ndarray, centre: np.ndarray) -> np.ndarr
     return (a @ params).reshape(-1, 2)
 
 
-def _match(moved: np.ndarray, det: np.ndarray, gate, det_tree: cKDTree | None = None) -> tuple[np.ndarray, np.ndarray]:
+def _match(moved: np.ndarray, det: np.ndarray, gate,
+           det_tree: Neighbours | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Mutual nearest neighbours within `gate` (a number, or (m,) per prediction): (k,) prediction
-    and (k,) detection indices. det_tree: cKDTree(det) if already made."""
+    and (k,) detection indices. det_tree: Neighbours(det) if already made."""
     if len(moved) == 0 or len(det) == 0:
         return np.zeros(0, int), np.zeros(0, int)
-    _, p_of_d = cKDTree(moved).query(det)
-    p_to_d, d_of_p = (cKDTree(det) if det_tree is None else det_tree).query(moved)
+    _, p_of_d = Neighbours(moved).query(det)
+    p_to_d, d_of_p = (Neighbours(det) if det_tree is None else det_tree).query(moved)
     pi = np.nonzero((p_to_d <= gate) & (p_of_d[d_of_p] == np.arange(len(moved))))[0]
     return pi, d_of_p[pi]
 
@@ -144,7 +146,7 @@ def _local_periods(pred: np.ndarray) -> np.ndarray:
     """(m,) distance from each prediction (m, 2) to the nearest other one (inf for a single one)."""
     if len(pred) < 2:
         return np.full(len(pred), np.inf)
-    return cKDTree(pred).query(pred, 2)[0][:, 1]
+    return Neighbours(pred).query(pred, 2)[0][:, 1]
 
 
 def _scale_ok(params: np.ndarray) -> bool:
@@ -168,9 +170,9 @@ class _Scene:
     projective: bool = False
 
     @cached_property
-    def det_tree(self) -> cKDTree:
-        """cKDTree of the detections, made once."""
-        return cKDTree(self.det)
+    def det_tree(self) -> Neighbours:
+        """Neighbours of the detections, made once."""
+        return Neighbours(self.det)
 
     def moved(self, params: np.ndarray) -> np.ndarray:
         return _apply(params, self.pred, self.centre)
@@ -255,7 +257,7 @@ def _period_vectors(moved: np.ndarray, anchor: int) -> np.ndarray:
     return np.vstack([v for b in basis for v in (b, -b)])
 
 
-def _neighbours_along(moved: np.ndarray, tree: cKDTree, points: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+def _neighbours_along(moved: np.ndarray, tree: Neighbours, points: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     """(s, k) index of the prediction one period shifts[j] (s, 2) from each of points (k,) of moved
     (m, 2), -1 where none lies within half the shift of where it would be: one query for every shift."""
     if len(shifts) == 0:
@@ -269,7 +271,7 @@ def _period_alternatives(scene: _Scene, best: _Alignment) -> list[tuple[np.ndarr
     """(shift (2,), alignment) for each period vector at the image centre: `best` with every id moved
     one period along it, refitted."""
     moved = scene.moved(best.params)
-    tree = cKDTree(moved)
+    tree = Neighbours(moved)
     anchor = int(best.pi[np.argmin(np.hypot(*(moved[best.pi] - scene.centre).T))])
     out = []
     shifts = _period_vectors(moved, anchor)
@@ -298,8 +300,8 @@ def _settle_period(scene: _Scene, best: _Alignment) -> tuple[_Alignment, str]:
     return best, ""
 
 
-def _local_shift_reason(scene: _Scene, best: _Alignment, k: int, matched_tree: cKDTree, moved: np.ndarray,
-                        moved_tree: cKDTree) -> str:
+def _local_shift_reason(scene: _Scene, best: _Alignment, k: int, matched_tree: Neighbours, moved: np.ndarray,
+                        moved_tree: Neighbours) -> str:
     """Why match k of `best` is refused by its neighbourhood's one-period shifts ('' when none fits
     about as well): the ids of its detection and its nearest identified ones (matched_tree: of the
     matched detections), all moved one local period, against the same alignment (moved (m, 2))."""
@@ -405,7 +407,7 @@ def _hypotheses(scene: _Scene, max_shift: float) -> list[_Alignment]:
     shifts = shifts[np.hypot(*shifts.T) <= max_shift]
     if len(shifts) == 0:
         return []
-    counts = _coarse_counts(cKDTree(det), pred, shifts)
+    counts = _coarse_counts(Neighbours(det), pred, shifts)
     results, tried = [], []
     for k in np.argsort(-counts, kind="stable"):
         if len(tried) >= TOP_HYPOTHESES or counts[k] < scene.min_inliers:
@@ -420,7 +422,7 @@ def _hypotheses(scene: _Scene, max_shift: float) -> list[_Alignment]:
     return results
 
 
-def _coarse_counts(tree: cKDTree, pred: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+def _coarse_counts(tree: Neighbours, pred: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     """(s,) how many of the predictions (m, 2) moved by each of shifts (s, 2) have a detection (tree)
     within the coarse gate."""
     per_chunk = max(200_000 // len(pred), 1)
@@ -440,7 +442,7 @@ def _name_matches(scene: _Scene, best: _Alignment, ids: np.ndarray, gate_px: flo
     out = np.full(len(det), "", dtype=object)
     reasons = np.full(len(det), UNMATCHED, dtype=object)
     moved = scene.moved(best.params)
-    moved_tree, det_tree, matched_tree = cKDTree(moved), cKDTree(det), cKDTree(det[best.di])
+    moved_tree, det_tree, matched_tree = Neighbours(moved), Neighbours(det), Neighbours(det[best.di])
     radius = np.minimum(2.5 * gate_px, 0.5 * _local_periods(scene.pred))
     nearest_rejected = _nearest(rejected, moved)
     for k, (p, d) in enumerate(zip(best.pi, best.di)):
@@ -461,4 +463,4 @@ def _nearest(points, queries: np.ndarray) -> np.ndarray:
     points = np.zeros((0, 2)) if points is None else np.asarray(points, dtype=float).reshape(-1, 2)
     if len(points) == 0:
         return np.full(len(queries), np.inf)
-    return cKDTree(points).query(queries)[0]
+    return Neighbours(points).query(queries)[0]
