@@ -7,6 +7,13 @@ Least-squares solvers perturb a rotation on the left of a fixed reference, R = e
 they work in a chart around R0. The exact derivative uses the left Jacobian of SO(3) (Barfoot,
 "State Estimation for Robotics", eq. 7.77): exp(phi + dphi) ~ exp(J_l(phi) dphi) exp(phi), hence
 d(R X)/dphi = -[R X]x J_l(phi) (`pose_jacobian`).
+
+`exp_so3` and `rotation_from_quat` (every flight image's prior and windows, every frame of the pose
+stage) are scipy's `Rotation.from_rotvec(...).as_matrix()` and `Rotation.from_quat(...,
+scalar_first=True).as_matrix()` to the last bit, computed here in the same order of operations
+(`_matrix_of_quat`), so that a marker job does not import scipy.spatial (~0.1-0.2 CPU s; issue 40,
+per-job overhead); tests/test_geometry.py compares them with scipy's. The other conversions import
+scipy's Rotation where they are called.
 """
 
 from __future__ import annotations
@@ -14,9 +21,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .errors import GeometryError
+
+#: Below this angle (rad) `exp_so3` takes sin(angle / 2) / angle from its Taylor series (as scipy does).
+_SMALL_ANGLE = 1e-3
 
 
 def skew(v) -> np.ndarray:
@@ -32,12 +41,25 @@ def skew(v) -> np.ndarray:
 
 
 def exp_so3(phi) -> np.ndarray:
-    """Rotations (3, 3) or (n, 3, 3) of rotation vectors phi (3,) or (n, 3) (angle |phi| about phi / |phi|)."""
-    return Rotation.from_rotvec(np.asarray(phi, dtype=float)).as_matrix()
+    """Rotations (3, 3) or (n, 3, 3) of rotation vectors phi (3,) or (n, 3) (angle |phi| about phi / |phi|):
+    the quaternion (sin(angle / 2) / angle * phi, cos(angle / 2)), its factor from the Taylor series
+    0.5 - angle^2 / 48 + angle^4 / 3840 below 1e-3 rad, as a matrix (scipy's bits, module docstring)."""
+    phi = np.asarray(phi, dtype=float)
+    if phi.ndim not in (1, 2) or phi.shape[-1] != 3:
+        raise ValueError(f"Expected `rot_vec` to have shape (3,) or (N, 3), got {phi.shape}")
+    x, y, z = phi[..., 0], phi[..., 1], phi[..., 2]
+    angle = np.sqrt(x * x + y * y + z * z)
+    small = angle <= _SMALL_ANGLE
+    squared = angle * angle
+    series = 0.5 - squared / 48 + squared * squared / 3840
+    scale = np.where(small, series, np.sin(angle / 2) / np.where(small, 1.0, angle))
+    return _matrix_of_quat(scale * x, scale * y, scale * z, np.cos(angle / 2))
 
 
 def log_so3(R) -> np.ndarray:
     """Rotation vectors (3,) or (n, 3), angle in [0, pi], of rotations (3, 3) or (n, 3, 3); exp_so3's inverse."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
 
 
@@ -110,22 +132,48 @@ def cayley_from_rotation(R, min_denominator: float = 1e-12) -> np.ndarray:
 
 
 def rotation_from_quat(q) -> np.ndarray:
-    """Rotation matrices (3, 3) or (n, 3, 3) from unit quaternions (w, x, y, z), (4,) or (n, 4)."""
-    return Rotation.from_quat(np.asarray(q, dtype=float), scalar_first=True).as_matrix()
+    """Rotation matrices (3, 3) or (n, 3, 3) from quaternions (w, x, y, z), (4,) or (n, 4), each divided
+    by its norm first (scipy's bits, module docstring); a zero or non-finite norm raises ValueError."""
+    q = np.asarray(q, dtype=float)
+    if q.ndim not in (1, 2) or q.shape[-1] != 4:
+        raise ValueError(f"Expected `quat` to have shape (4,) or (N, 4), got {q.shape}")
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    norm = np.sqrt(x * x + y * y + z * z + w * w)
+    if np.any(np.isnan(norm) | (norm == 0)):
+        raise ValueError("Found zero norm quaternions in `quat`.")
+    return _matrix_of_quat(x / norm, y / norm, z / norm, w / norm)
+
+
+def _matrix_of_quat(x, y, z, w) -> np.ndarray:
+    """(..., 3, 3) rotation matrices of the quaternions' parts x, y, z, w (...), each entry formed in
+    the order scipy's `Rotation.as_matrix` forms it."""
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    R = np.empty(np.shape(x) + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)
+    R[..., 1, 0], R[..., 1, 1], R[..., 1, 2] = 2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)
+    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = 2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2
+    return R
 
 
 def quat_from_rotation(R) -> np.ndarray:
     """Unit quaternions (w, x, y, z) with w >= 0, (4,) or (n, 4), of rotations (3, 3) or (n, 3, 3)."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat(canonical=True, scalar_first=True)
 
 
 def euler_zyx_from_rotation(R) -> np.ndarray:
     """Intrinsic ZYX Euler angles (z, y, x) in radians, R = Rz(z) Ry(y) Rx(x), as the paper's tables."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_matrix(np.asarray(R, dtype=float)).as_euler("ZYX")
 
 
 def rotation_from_euler_zyx(angles) -> np.ndarray:
     """R = Rz(z) Ry(y) Rx(x) from angles (z, y, x) in radians, (3,) or (n, 3)."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_euler("ZYX", np.asarray(angles, dtype=float)).as_matrix()
 
 
@@ -165,6 +213,8 @@ def translation_error(t_estimate, t_reference) -> np.ndarray:
 
 def average_rotations(rotations, weights=None) -> np.ndarray:
     """Markley's quaternion average (3, 3) of rotations (n, 3, 3), via scipy's Rotation.mean."""
+    from scipy.spatial.transform import Rotation
+
     return Rotation.from_matrix(np.asarray(rotations, dtype=float)).mean(weights=weights).as_matrix()
 
 

@@ -326,6 +326,33 @@ def test_rotation_from_quat_is_scalar_first():
     np.testing.assert_allclose(rotation_from_quat([np.sqrt(0.5), 0, 0, np.sqrt(0.5)]), Rz(np.pi / 2), atol=1e-15)
 
 
+def test_exp_so3_and_rotation_from_quat_are_scipys_to_the_last_bit():
+    """Computed without scipy (a marker job does not import scipy.spatial), they are scipy's bits: on
+    1e5 rotation vectors of every scale, about the 1e-3 rad switch to the series, and 1e5 quaternions
+    of any norm, both as arrays and one at a time."""
+    rng = np.random.default_rng(40)
+    scales = [1e-9, 1e-6, 1e-4, 5e-4, 9.99e-4, 1e-3, 1.001e-3, 0.01, 0.3, 1.0, np.pi, 7.0]
+    phi = rng.normal(size=(100_000, 3)) * rng.choice(scales, (100_000, 1))
+    edges = np.array([[1e-3, 0, 0], [np.nextafter(1e-3, 1), 0, 0], [0, 0, 0], [0, 0, np.pi], [0, 2 * np.pi, 0]])
+    phi = np.vstack([phi, edges])
+    np.testing.assert_array_equal(exp_so3(phi), Rotation.from_rotvec(phi).as_matrix())
+    for one in phi[::997]:
+        np.testing.assert_array_equal(exp_so3(one), Rotation.from_rotvec(one).as_matrix())
+    q = rng.normal(size=(100_000, 4)) * rng.choice([1e-3, 1.0, 1e3], (100_000, 1))
+    q[:1000] /= np.linalg.norm(q[:1000], axis=1, keepdims=True)
+    np.testing.assert_array_equal(rotation_from_quat(q), Rotation.from_quat(q, scalar_first=True).as_matrix())
+    for one in q[::997]:
+        np.testing.assert_array_equal(rotation_from_quat(one), Rotation.from_quat(one, scalar_first=True).as_matrix())
+
+
+def test_rotation_from_quat_refuses_a_zero_quaternion_as_scipy_does():
+    for q in ([0.0, 0.0, 0.0, 0.0], [[1.0, 0.0, 0.0, 0.0], [np.nan, 0.0, 0.0, 0.0]]):
+        with pytest.raises(ValueError, match="zero norm"):
+            rotation_from_quat(q)
+        with pytest.raises(ValueError, match="zero norm"):
+            Rotation.from_quat(q, scalar_first=True)
+
+
 def test_quat_from_rotation_canonical_and_round_trip():
     R = random_rotations(100, 6)
     q = quat_from_rotation(R)
