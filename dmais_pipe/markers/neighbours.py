@@ -10,10 +10,10 @@ cKDTree's to the last bit and so are the neighbours, but among points exactly as
 
 Why not cKDTree: importing scipy.spatial costs a marker job ~0.1-0.2 CPU s (it loads scipy.sparse,
 scipy.linalg and qhull with it) for look-ups among a few hundred points (issue 40, per-job
-overhead). Queries without a bound compare every pair (in chunks of `CHUNK_PAIRS`); those with a
-bound or a radius only the points in the 3 x 3 cells of a grid as wide as the bound about the
-query's cell, so a marker batch's largest look-ups (identify's coarse counts: up to 2e6 moved
-predictions against the detections) stay linear.
+overhead). Look-ups of up to `CHUNK_PAIRS` pairs (queries x points: nearly all of an image's)
+compare every pair at once; larger ones without a bound in chunks, and those with a bound or a
+radius only the points in the 3 x 3 cells of a grid as wide as the bound about the query's cell, so
+that identify's coarse counts (up to 2e6 moved predictions against the detections) stay linear.
 """
 
 from __future__ import annotations
@@ -46,10 +46,14 @@ class Neighbours:
         neighbour missing (fewer than k points, or none nearer than distance_upper_bound) has
         distance inf and index n."""
         x, queries = _queries(x)
-        squared, index = self._nearest_squared(queries, int(k), float(distance_upper_bound))
+        k, bound = int(k), float(distance_upper_bound)
+        if k == 1 and len(queries) * self.n <= CHUNK_PAIRS:
+            squared, index = self._nearest_of_all(queries, bound)
+        else:
+            squared, index = self._nearest_squared(queries, k, bound)
+            if k == 1:
+                squared, index = squared[:, 0], index[:, 0]
         distance = np.sqrt(squared)
-        if k == 1:
-            distance, index = distance[:, 0], index[:, 0]
         if x.ndim == 1:
             return distance[0], index[0]
         return distance, index
@@ -58,18 +62,36 @@ class Neighbours:
         """The indices (ascending) of the points within r of x (2,): a list; for queries x (m, 2), an
         object array (m,) of such lists."""
         x, queries = _queries(x)
-        pairs = [(np.repeat(met, counts)[inside], pj[inside]) for met, counts, pj, squared in
-                 self._grid_pairs(queries, float(r)) for inside in [squared <= r * r]]
-        qi = np.concatenate([q for q, _ in pairs] or [np.zeros(0, dtype=np.intp)])
-        pj = np.concatenate([p for _, p in pairs] or [np.zeros(0, dtype=np.intp)])
-        points = pj[np.lexsort((pj, qi))].tolist()
-        ends = np.cumsum(np.bincount(qi, minlength=len(queries))).tolist()
-        found = [points[start:end] for start, end in zip([0, *ends[:-1]], ends)]
+        r = float(r)
+        if len(queries) * self.n <= CHUNK_PAIRS:  # every pair at once, in (query, point) order
+            qi, pj = np.nonzero(_squared_distances(queries, self.data) <= r * r)
+        else:
+            pairs = [(np.repeat(met, counts)[inside], pj[inside]) for met, counts, pj, squared in
+                     self._grid_pairs(queries, r) for inside in [squared <= r * r]]
+            qi = np.concatenate([q for q, _ in pairs] or [np.zeros(0, dtype=np.intp)])
+            pj = np.concatenate([p for _, p in pairs] or [np.zeros(0, dtype=np.intp)])
+            order = np.lexsort((pj, qi))
+            qi, pj = qi[order], pj[order]
         if x.ndim == 1:
-            return found[0]
-        out = np.empty(len(found), dtype=object)
-        out[:] = found
+            return pj.tolist()
+        points = pj.tolist()
+        ends = np.cumsum(np.bincount(qi, minlength=len(queries))).tolist()
+        out = np.empty(len(queries), dtype=object)
+        out[:] = [points[start:end] for start, end in zip([0, *ends[:-1]], ends)]
         return out
+
+    def _nearest_of_all(self, queries: np.ndarray, bound: float) -> tuple[np.ndarray, np.ndarray]:
+        """(m,) squared distances and indices of the nearest point (the lower index of equals) nearer
+        than bound to each of queries (m, 2), from every pair at once; inf and n where none is."""
+        if self.n == 0:
+            return np.full(len(queries), np.inf), np.full(len(queries), self.n, dtype=np.intp)
+        block = _squared_distances(queries, self.data)
+        index = np.argmin(block, axis=1)  # the first of equal minima: the lower index
+        squared = block[np.arange(len(queries)), index]
+        missing = ~(squared < bound * bound)
+        if missing.any():
+            squared[missing], index[missing] = np.inf, self.n
+        return squared, index
 
     def _nearest_squared(self, queries: np.ndarray, k: int, bound: float) -> tuple[np.ndarray, np.ndarray]:
         """(m, k) squared distances and indices of the k nearest points (ties: the lower index first)
