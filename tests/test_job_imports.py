@@ -1,7 +1,9 @@
 """A workflow job imports only what it uses (issue 40, per-job overhead): each job below runs as the
 workflow runs it, in a Python of its own, which then lists the heavy modules it had loaded. Those
 the job does not use must not be among them: pyproj (a dataset without a CRS), the calibration
-package and scipy.optimize (a flight marker batch), OpenCV (the plan, which reads no image)."""
+package and scipy.optimize (a flight marker batch), scipy.spatial (a flight marker batch: its
+neighbour look-ups are markers.neighbours', its rotations geometry's own), OpenCV (the plan, which
+reads no image)."""
 
 from __future__ import annotations
 
@@ -30,7 +32,8 @@ status = cli.main(sys.argv[2:])
 if sys.argv[1] == "crs":
     from dmais_pipe import geo
     geo.ecef_from_crs("EPSG:4979", [[10.0, 50.0, 100.0]])
-watched = ("cv2", "pandas", "pyproj", "scipy.optimize", "dmais_pipe.calib") + """ + repr(UNUSED) + """
+watched = ("cv2", "pandas", "pyproj", "scipy.optimize", "scipy.spatial", "scipy.special",
+           "dmais_pipe.calib") + """ + repr(UNUSED) + """
 print(json.dumps({"status": status, "loaded": [m for m in watched if m in sys.modules]}))
 """
 
@@ -63,8 +66,9 @@ def test_a_flight_marker_job_loads_neither_pyproj_nor_the_calibration(flight):
     job = _job("markers", str(dataset), "--out", str(results), "--batch", batch, "--per-job", "1")
     assert job["status"] == 0 and f"marker batch {batch} of" in job["log"]  # its slice read
     assert (results / "markers" / "batches" / f"{batch}.csv").is_file()
-    assert {"cv2", "pandas"} <= set(job["loaded"])  # what it uses, so that the probe is seen to see
-    assert {"pyproj", "scipy.optimize", "dmais_pipe.calib", *UNUSED}.isdisjoint(job["loaded"])
+    assert {"cv2", "pandas", "scipy.special"} <= set(job["loaded"])  # what it uses (the fit's erf), so that
+    # the probe is seen to see
+    assert {"pyproj", "scipy.optimize", "scipy.spatial", "dmais_pipe.calib", *UNUSED}.isdisjoint(job["loaded"])
 
 
 def test_the_probe_sees_pyproj_where_a_crs_is_used(flight):
