@@ -16,7 +16,7 @@ from dmais_pipe.markers.neighbours import Neighbours
 
 @pytest.fixture(params=["all pairs", "chunks and grid"])
 def paths(request, monkeypatch):
-    """Each test both ways: look-ups of up to CHUNK_PAIRS pairs compare every pair at once, larger
+    """Each test both ways: look-ups of up to CHUNK_PAIRS pairs (65,536) compare every pair at once, larger
     ones go by chunks (unbounded) or by the grid (bounds, radii); a CHUNK_PAIRS of 64 sends nearly
     every look-up the second way."""
     if request.param != "all pairs":

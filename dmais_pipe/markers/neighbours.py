@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Pairs (query, point) compared at once where every pair is compared: bounds the temporaries.
-CHUNK_PAIRS = 1 << 20
+#: Pairs (query, point) compared at once where every pair is compared: bounds the temporaries (~2 MB).
+CHUNK_PAIRS = 1 << 16
 #: Grids of more cells than this (points and queries absurdly far apart for the bound) compare every
 #: pair instead: the cells' numbers stay exact in int64.
 MAX_CELLS = 2.0 ** 60
