@@ -315,7 +315,12 @@ class Table:
         return self._text[column]
 
     def strings(self, column: str) -> pd.Series:
-        """(n,) Series of str (RangeIndex) of the column's strings."""
+        """(n,) Series of str (RangeIndex) of the column's strings; of a column hashed already (`codes`), made of
+        its distinct str objects, one per value (observations.csv's image and point id: a few thousand objects
+        in place of a million cells)."""
+        if column in self._codes:
+            codes, distinct = self._codes[column]
+            return _strings(np.asarray(distinct, dtype=object).take(codes))
         return _strings(self.text(column))
 
     def codes(self, column: str) -> tuple[np.ndarray, np.ndarray]:
