@@ -47,6 +47,19 @@ cdef extern from *:
     /* The samples out[i] at xy[2 i], xy[2 i + 1] of the part owner[i] (part 0 where owner is NULL):
        part k's pixel r, c is buffer[base[k] + r row[k] + c column[k]], its left column and top row
        left[k], top[k] in the positions' coordinates. FMA: fmaf, or the instruction. */
+    /* OUT = the bilinear sample of the part at p (rs, cs its row and column strides, w x h pixels) at its
+       offsets x, y (finite), with FMA's roundings and `dmais_clamp`'s edges: `dmais_sample`'s and the rings'. */
+    #define DMAIS_BILINEAR(FMA, OUT, p, x, y, w, h, rs, cs) do { \
+        float fx_ = dmais_floor(x), fy_ = dmais_floor(y); \
+        float a_ = (x) - fx_, b_ = (y) - fy_; \
+        Py_ssize_t x0_ = dmais_clamp(fx_, w) * (cs), y0_ = dmais_clamp(fy_, h) * (rs); \
+        Py_ssize_t x1_ = dmais_clamp(fx_ + 1.0, w) * (cs), y1_ = dmais_clamp(fy_ + 1.0, h) * (rs); \
+        const float *p_ = (p); \
+        float p00_ = p_[y0_ + x0_], p01_ = p_[y0_ + x1_], p10_ = p_[y1_ + x0_], p11_ = p_[y1_ + x1_]; \
+        float t0_ = FMA(a_, p01_ - p00_, p00_), t1_ = FMA(a_, p11_ - p10_, p10_); \
+        (OUT) = FMA(b_, t1_ - t0_, t0_); \
+    } while (0)
+
     #define DMAIS_SAMPLE(NAME, FMA) \
     static void NAME(const float *buffer, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top, \
                      const Py_ssize_t *width, const Py_ssize_t *height, const Py_ssize_t *row, \
@@ -55,14 +68,7 @@ cdef extern from *:
             Py_ssize_t k = owner ? owner[i] : 0; \
             float x = xy[2 * i] - (float)left[k], y = xy[2 * i + 1] - (float)top[k]; \
             if (!(isfinite(x) && isfinite(y))) { out[i] = NAN; continue; } \
-            float fx = dmais_floor(x), fy = dmais_floor(y); \
-            float a = x - fx, b = y - fy; \
-            Py_ssize_t x0 = dmais_clamp(fx, width[k]) * column[k], y0 = dmais_clamp(fy, height[k]) * row[k]; \
-            Py_ssize_t x1 = dmais_clamp(fx + 1.0, width[k]) * column[k], y1 = dmais_clamp(fy + 1.0, height[k]) * row[k]; \
-            const float *p = buffer + base[k]; \
-            float p00 = p[y0 + x0], p01 = p[y0 + x1], p10 = p[y1 + x0], p11 = p[y1 + x1]; \
-            float t0 = FMA(a, p01 - p00, p00), t1 = FMA(a, p11 - p10, p10); \
-            out[i] = FMA(b, t1 - t0, t0); \
+            DMAIS_BILINEAR(FMA, out[i], buffer + base[k], x, y, width[k], height[k], row[k], column[k]); \
         } \
     }
 
@@ -144,14 +150,7 @@ cdef extern from *:
             Py_ssize_t q = cells[dmais_cell(py, cell_px, cell_rows) * cell_columns + dmais_cell(px, cell_px, cell_columns)]; \
             float x = px - (float)left[q], y = py - (float)top[q]; \
             if (!(isfinite(x) && isfinite(y))) { out[j] = NAN; continue; } \
-            float fx = dmais_floor(x), fy = dmais_floor(y); \
-            float a = x - fx, b = y - fy; \
-            Py_ssize_t x0 = dmais_clamp(fx, width[q]) * column[q], y0 = dmais_clamp(fy, height[q]) * row[q]; \
-            Py_ssize_t x1 = dmais_clamp(fx + 1.0, width[q]) * column[q], y1 = dmais_clamp(fy + 1.0, height[q]) * row[q]; \
-            const float *p = buffer + base[q]; \
-            float p00 = p[y0 + x0], p01 = p[y0 + x1], p10 = p[y1 + x0], p11 = p[y1 + x1]; \
-            float t0 = FMA(a, p01 - p00, p00), t1 = FMA(a, p11 - p10, p10); \
-            out[j] = FMA(b, t1 - t0, t0); \
+            DMAIS_BILINEAR(FMA, out[j], buffer + base[q], x, y, width[q], height[q], row[q], column[q]); \
         } \
     }
 
