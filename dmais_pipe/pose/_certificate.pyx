@@ -4,7 +4,7 @@ docstring in one call, with LAPACK (SciPy's `cython_lapack`) on the 10 x 10 and 
 few dozen numpy calls of ~10 microseconds each. The steps are certificate.py's, in its order; the bases of
 x's complement and of the multipliers' free directions are other orthonormal bases of the same spaces (the
 search is the same in any), so the numbers differ from numpy's by roundings and the answer is the same
-(tests/test_certificate.py compares both on certified and refused frames). Only the answer is used: where
+(tests/test_pose_fallback.py compares both on certified and refused frames). Only the answer is used: where
 it says no, the global fallback searches, and it finds the same pose where the pose is the global minimum.
 """
 
