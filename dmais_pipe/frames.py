@@ -49,14 +49,18 @@ class FlightObservations(ObservationRows):
     """The observations of every flight frame at once, grouped by frame (F frames, N observations).
 
     frames, groups: (F,) str, sorted by frame id; bounds: (F + 1,) int, frame k's observations are
-    rows bounds[k]:bounds[k + 1]; frame_index: (N,) int, each row's frame. Every (N, 3) array is
-    C-contiguous, so a frame's rows go to the compiled solver without a copy.
+    rows bounds[k]:bounds[k + 1]; frame_index: (N,) int, each row's frame; point_names (P,) str the
+    distinct point ids, sorted, and point_index (N,) int each row's among them (point_ids is
+    point_names[point_index]). Every (N, 3) array is C-contiguous, so a frame's rows go to the compiled
+    solver without a copy.
     """
 
     frames: np.ndarray
     groups: np.ndarray
     bounds: np.ndarray
     frame_index: np.ndarray
+    point_names: np.ndarray
+    point_index: np.ndarray
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -93,7 +97,8 @@ def flight_observations_by_frame(dataset: Dataset, rig: Rig, observations: pd.Da
     return FlightObservations(camera, images[0][images[1]], point_ids[point], uv, np.ascontiguousarray(xyz[point]),
                               np.ascontiguousarray(origins), np.ascontiguousarray(directions),
                               frames=frames[frame[starts]], groups=group_of.loc[frames[frame[starts]]].to_numpy(str),
-                              bounds=bounds, frame_index=np.repeat(np.arange(len(starts)), np.diff(bounds)))
+                              bounds=bounds, frame_index=np.repeat(np.arange(len(starts)), np.diff(bounds)),
+                              point_names=point_ids, point_index=point)
 
 
 def _flight_rows(dataset: Dataset, observations: pd.DataFrame, cameras: Sequence[str] | None,

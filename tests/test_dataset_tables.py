@@ -120,6 +120,21 @@ def test_required_text_finds_the_first_empty_cell_by_its_codes_too():
             table.required_text("image")
 
 
+def test_strings_are_new_objects_one_per_distinct_value_equal_to_the_cells():
+    """No cell outlives its table through a column's strings (it would hold its neighbours' memory: Table.strings)."""
+    rng = np.random.default_rng(8)
+    cells = [f"P{k:05d}" for k in rng.integers(0, 300, 2000)] + ["", "é-1", "x y"]
+    for hashed in (False, True):
+        table = _table({"point_id": cells, "u": ["1.5"] * len(cells)})
+        if hashed:
+            table.codes("point_id")
+        strings = table.strings("point_id")
+        assert strings.tolist() == cells and str(strings.dtype) == "str"
+        kept = {id(value) for value in strings.array.to_numpy(object)}
+        assert len(kept) == len(set(cells))  # one object per value
+        assert not kept & {id(cell) for cell in cells if len(cell) > 1}  # none of them a cell
+
+
 def _plain_files(rng):
     """Plain CSV texts of a few shapes: blanks around cells, non-ASCII ids, no final line end, a BOM."""
     for trial in range(40):

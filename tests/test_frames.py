@@ -32,10 +32,12 @@ def _reference(dataset, rig, observations, cameras=None, groups=None) -> FlightO
     frame = obs["frame"].to_numpy(str)
     starts = np.flatnonzero(np.r_[True, frame[1:] != frame[:-1]]) if len(frame) else np.zeros(0, int)
     frames, bounds = frame[starts], np.r_[starts, len(frame)]
+    point_names, point_index = np.unique(obs["point_id"].to_numpy(str), return_inverse=True)
     return FlightObservations(camera, obs["image"].to_numpy(str), obs["point_id"].to_numpy(str), uv, points,
                               np.ascontiguousarray(origins), np.ascontiguousarray(directions), frames=frames,
                               groups=group_of.loc[frames].to_numpy(str), bounds=bounds,
-                              frame_index=np.repeat(np.arange(len(starts)), np.diff(bounds)))
+                              frame_index=np.repeat(np.arange(len(starts)), np.diff(bounds)),
+                              point_names=point_names, point_index=point_index)
 
 
 @pytest.fixture(scope="module")
