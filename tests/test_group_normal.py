@@ -95,6 +95,21 @@ def test_each_elimination_solves_as_the_dense_matrix(kind, n_frames, method, sol
                                atol=1e-14)
 
 
+@pytest.mark.parametrize("kind", ["shared", "line"])
+def test_damped_equations_raise_every_diagonal_and_are_put_back_after(kind):
+    _, normal, _, _ = random_normal(kind, 9, None)
+    normal = with_priors(normal)
+    before = normal.dense()
+    with normal.damped(0.3) as damped:
+        dense = damped.dense()
+        np.testing.assert_array_equal(np.diag(dense), np.diag(before) * 1.3)
+        np.testing.assert_array_equal(dense - np.diag(np.diag(dense)), before - np.diag(np.diag(before)))
+    np.testing.assert_array_equal(normal.dense(), before)
+    with pytest.raises(ZeroDivisionError), normal.damped(2.0):
+        raise ZeroDivisionError  # put back on an error too
+    np.testing.assert_array_equal(normal.dense(), before)
+
+
 def scaled(normal, scale: np.ndarray) -> GroupNormal:
     """The normal equations D N D and gradient D b with D = diag(scale) (F L + R + 3P,)."""
     s = normal.structure

@@ -79,7 +79,7 @@ cdef enum:
     MAX_ROW = 32  # an observation's Jacobian columns: local, rig and point
 
 
-cdef inline void add_observation(const double *j, int w, int l, int r, const Py_ssize_t *lc, const Py_ssize_t *rc,
+cdef inline void add_observation(const double *j, int w, int l, int r, const int *lc, const int *rc,
                                  const double *ei, double *A_f, double *Wr_f, double *b_f, int L, int R,
                                  double *Hrr, double *b_rig, double *Hp, double *Hpr_p, double *b_p,
                                  double *Wp_i) noexcept nogil:
@@ -128,8 +128,8 @@ cdef void mirrored(double[:, :, ::1] A) noexcept nogil:
                 A_f[b * L + a] = A_f[a * L + b]
 
 
-def assemble(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
-             const Py_ssize_t[:, ::1] rig_cols, const double[:, :, ::1] local_J, const double[:, :, ::1] rig_J,
+def assemble(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const int[:, ::1] local_cols,
+             const int[:, ::1] rig_cols, const double[:, :, ::1] local_J, const double[:, :, ::1] rig_J,
              const double[:, :, ::1] point_J, const double[:, ::1] e, double[:, :, ::1] A, double[:, :, ::1] Wr,
              double[:, ::1] b_local, double[:, ::1] Hrr, double[:, :, ::1] Hpp, double[:, :, ::1] Hpr,
              double[:, :, ::1] Wp, double[::1] b_rig, double[:, ::1] b_point) -> None:
@@ -158,7 +158,7 @@ def assemble(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_
 
 
 cdef void coupling(double *W, int L, int G, const double[:, :, ::1] Wr, const double[:, :, ::1] Wp,
-                   const Py_ssize_t[::1] rows, const Py_ssize_t[:, ::1] local_cols, const Py_ssize_t[::1] point,
+                   const Py_ssize_t[::1] rows, const int[:, ::1] local_cols, const Py_ssize_t[::1] point,
                    Py_ssize_t f, Py_ssize_t first, Py_ssize_t last) noexcept nogil:
     """W (L x G) <- frame f's rows of the normal matrix beside A: Wr, then its observations rows[first:last]'
     Wp at their points' columns."""
@@ -175,7 +175,7 @@ cdef void coupling(double *W, int L, int G, const double[:, :, ::1] Wr, const do
                 W[local_cols[i, a] * G + R + 3 * point[i] + c] += Wp[i, a, c]
 
 
-def local_layout(const Py_ssize_t[:, ::1] local_cols, const double[:, :, ::1] A) -> tuple:
+def local_layout(const int[:, ::1] local_cols, const double[:, :, ::1] A) -> tuple:
     """(n_shared, width) of the frames' blocks (module docstring): the first n_shared local columns (at
     least 1) every observation touches in order, then blocks of `width` each observation touches one of
     whole, not tied to each other in A (F, L, L); (L, 0) where the blocks are not so (a dense factor)."""
@@ -193,7 +193,7 @@ def local_layout(const Py_ssize_t[:, ::1] local_cols, const double[:, :, ::1] A)
     return n_shared, width
 
 
-cdef bint blocks_apart(const Py_ssize_t[:, ::1] local_cols, const double[:, :, ::1] A, int n_shared,
+cdef bint blocks_apart(const int[:, ::1] local_cols, const double[:, :, ::1] A, int n_shared,
                        int width) noexcept nogil:
     """Whether every observation's columns after the n_shared are one block of `width` whole and A (F, L,
     L) ties no two blocks."""
@@ -267,7 +267,7 @@ cdef void flushed(BlockStack *stack, double[:, ::1] system, double *product) noe
 
 def frames_first_reduction(double[:, :, ::1] factors, const double[:, :, ::1] Wr, const double[:, :, ::1] Wp,
                            const Py_ssize_t[::1] by_frame, const Py_ssize_t[::1] frame_starts,
-                           const Py_ssize_t[:, ::1] local_cols, const Py_ssize_t[::1] point, int n_shared,
+                           const int[:, ::1] local_cols, const Py_ssize_t[::1] point, int n_shared,
                            int width, const double[:, :, ::1] r_local, double[:, ::1] system, double[:, ::1] y,
                            double[:, ::1] stacked) -> int:
     """Eliminate the frames: factors (F, L, L) the frames' blocks A, replaced by their factors M (module
@@ -396,7 +396,7 @@ def frames_first_reduction(double[:, :, ::1] factors, const double[:, :, ::1] Wr
 
 def frames_first_back(const double[:, :, ::1] factors, const double[:, :, ::1] Wr, const double[:, :, ::1] Wp,
                       const Py_ssize_t[::1] by_frame, const Py_ssize_t[::1] frame_starts,
-                      const Py_ssize_t[:, ::1] local_cols, const Py_ssize_t[::1] point, int n_shared, int width,
+                      const int[:, ::1] local_cols, const Py_ssize_t[::1] point, int n_shared, int width,
                       const double[:, :, ::1] r_local, const double[:, ::1] x_global,
                       double[:, :, ::1] x_local) -> None:
     """x_local (F, L, k) <- A^-1 (r_local - W x_global) per frame, A's factors M from
@@ -531,8 +531,8 @@ def mounting_assemble(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] image, 
                       const Py_ssize_t[::1] focal_slot, const double[:, :, ::1] J_e, const double[:, ::1] J_focal,
                       const double[:, ::1] x, const double[:, ::1] q, const double[:, :, ::1] cam_from_rig,
                       const double[:, :, ::1] delta_turn, const double[:, :, ::1] jitter_turn,
-                      const double[:, :, ::1] R, const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
-                      const Py_ssize_t[:, ::1] rig_cols, const double[:, ::1] e, double[:, :, ::1] A,
+                      const double[:, :, ::1] R, const Py_ssize_t[::1] point, const int[:, ::1] local_cols,
+                      const int[:, ::1] rig_cols, const double[:, ::1] e, double[:, :, ::1] A,
                       double[:, :, ::1] Wr, double[:, ::1] b_local, double[:, ::1] Hrr, double[:, :, ::1] Hpp,
                       double[:, :, ::1] Hpr, double[:, :, ::1] Wp, double[::1] b_rig, double[:, ::1] b_point) -> None:
     """`assemble` of pose.mounting's Jacobians (`mounting_jacobians`' arguments, then assemble's but the
@@ -587,8 +587,8 @@ def mounting_transposed_products(const Py_ssize_t[::1] rows, const Py_ssize_t[::
                                  const double[:, ::1] J_focal, const double[:, ::1] x, const double[:, ::1] q,
                                  const double[:, :, ::1] cam_from_rig, const double[:, :, ::1] delta_turn,
                                  const double[:, :, ::1] jitter_turn, const double[:, :, ::1] R,
-                                 const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
-                                 const Py_ssize_t[:, ::1] rig_cols, int L, int n_rig, const double[:, :, ::1] P,
+                                 const Py_ssize_t[::1] point, const int[:, ::1] local_cols,
+                                 const int[:, ::1] rig_cols, int L, int n_rig, const double[:, :, ::1] P,
                                  double[:, ::1] B) -> None:
     """B (F L + n_rig + 3P', m) += J_i^T P[j] for the observations i = rows[j] (n,): J_i the whole Jacobian's two
     rows of observation i (`mounting_jacobians`' arguments; formed here, at its frame's local columns, its rig
@@ -653,9 +653,9 @@ def radial1_residuals(const double[:, ::1] x, const Py_ssize_t[::1] camera, cons
 # ------------------------------------------------------------------------------ the points-first tied frames
 
 
-def frames_band_subtract(const Py_ssize_t[::1] pair_left, const Py_ssize_t[::1] pair_right,
+def frames_band_subtract(const int[::1] pair_left, const int[::1] pair_right,
                          const Py_ssize_t[::1] runs, Py_ssize_t first_run, Py_ssize_t last_run,
-                         const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
+                         const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const int[:, ::1] local_cols,
                          const double[:, :, ::1] Wp, const double[:, :, ::1] Hpp_inv, const Py_ssize_t[:, ::1] rows,
                          double[:, ::1] band) -> None:
     """Subtract from `band` (S, u + 1; LAPACK's lower band storage transposed: band[r, d] holds (r + d, r)) the
@@ -691,7 +691,7 @@ def frames_band_subtract(const Py_ssize_t[::1] pair_left, const Py_ssize_t[::1] 
                         band[row, column - row] -= summed[a * l + b]
 
 
-def frames_from_points(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
+def frames_from_points(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const int[:, ::1] local_cols,
                        const double[:, :, ::1] Wp, const double[:, :, ::1] Hpp_inv, const double[:, :, ::1] coupled,
                        double[:, :, ::1] out) -> None:
     """Add to out (F, L, q), for every observation i of a point p, Wp_i Hpp_inv_p coupled_p at the rows of its
@@ -711,7 +711,7 @@ def frames_from_points(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point,
                         + V[2] * coupled[p, 2, b]
 
 
-def points_from_frames(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const Py_ssize_t[:, ::1] local_cols,
+def points_from_frames(const Py_ssize_t[::1] frame, const Py_ssize_t[::1] point, const int[:, ::1] local_cols,
                        const double[:, :, ::1] Wp, const double[:, :, ::1] x_local, double[:, :, ::1] out) -> None:
     """Add to out (P, 3, k), for every observation i of a point p, Wp_i^T x_local at the rows of its local
     columns; Wp (N, l, 3), x_local (F, L, k)."""

@@ -36,6 +36,8 @@ the couplings whatever the frames; the memory they need is refused beyond FACTOR
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,13 +62,16 @@ SEGMENT_BYTES = 64 * 2**20
 POINT_CHUNK = 50_000
 #: Columns of the frames' band factor per block of its triangular solves (`_band_forward`).
 SOLVE_BLOCK = 128
+#: The most observations of a group: the largest C int, the type of the observations' columns and pairs
+#: (GroupStructure: local_cols, rig_cols, pair_left, pair_right; half the memory of 64-bit ones).
+INDEX_MAX = np.iinfo(np.intc).max
 
 
 @dataclass(frozen=True)
 class GroupStructure:
     """Which unknowns each observation touches, fixed for one adjustment, and the order of elimination.
 
-    frame (N,) in [0, F); point (N,) in [0, P); local_cols (N, l) in [0, L); rig_cols (N, r) in [0, R);
+    frame (N,) in [0, F); point (N,) in [0, P); local_cols (N, l) in [0, L) and rig_cols (N, r) in [0, R), C ints;
     by_frame (N,) the observations in frame order, frame_starts (F + 1,) each frame's first in it,
     slot (N,) an observation's place among its frame's (fewer than n_slots); frames_tied: whether some
     point is seen by two frames (the points-first frames' system is then not block diagonal); method:
@@ -74,7 +79,7 @@ class GroupStructure:
     frame of each point and point_slot (P,) its place among that frame's points (fewer than
     n_point_slots); tied: band_rank (F,) each frame's place in the order that ties frames over the
     narrowest band, band the most places apart two tied frames are in it (`_banded_order`),
-    pair_left, pair_right (M,) every ordered pair of observations of one point (each with itself
+    pair_left, pair_right (M,) C ints, every ordered pair of observations of one point (each with itself
     too) whose left frame is not after its right one in that order, by the left frame's place, and
     within it by run: pair_runs (U + 1,) the first pair of each run of pairs of the same two frames
     and the same two sets of local columns (their products add up at the same places), and M."""
@@ -111,7 +116,10 @@ def group_structure(frame, point, local_cols, rig_cols, n_frames: int, local_siz
                     n_points: int, method: str | None = None) -> GroupStructure:
     """The GroupStructure of N observations (its docstring), by `method` or `elimination`'s choice."""
     frame, point = np.asarray(frame, dtype=np.int64), np.asarray(point, dtype=np.int64)
-    local_cols, rig_cols = (np.ascontiguousarray(cols, dtype=np.int64) for cols in (local_cols, rig_cols))
+    if len(frame) > INDEX_MAX:
+        raise DmaisError(f"mounting: a group of {len(frame)} observations is too large to adjust at once; split it "
+                         "into groups of fewer frames (frames.csv's group)")
+    local_cols, rig_cols = (np.ascontiguousarray(cols, dtype=np.intc) for cols in (local_cols, rig_cols))
     by_frame = np.argsort(frame, kind="stable")
     frame_starts = np.searchsorted(frame[by_frame], np.arange(n_frames + 1))
     slot = np.empty(len(frame), dtype=np.int64)
@@ -125,8 +133,8 @@ def group_structure(frame, point, local_cols, rig_cols, n_frames: int, local_siz
                                    float(np.sum(counts.astype(float)**2)), tied)
     if method not in (FRAMES_FIRST, POINTS_FIRST):
         raise ValueError(f"unknown elimination {method!r}")
-    none = np.zeros(0, dtype=np.int64)
-    points, pairs = (none, none, 0), (none, 0, none, none, none)
+    none, no_pair = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.intc)
+    points, pairs = (none, none, 0), (none, 0, no_pair, no_pair, none)
     if method == POINTS_FIRST and tied:
         pairs = _observation_pairs(frame, point, local_cols, counts, n_frames)
     elif method == POINTS_FIRST:
@@ -175,7 +183,7 @@ def _observation_pairs(frame: np.ndarray, point: np.ndarray, local_cols: np.ndar
     by_key = np.argsort(key, kind="stable")
     key = key[by_key]
     runs = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1], [True]]))
-    return rank, band, left[by_key], right[by_key], runs
+    return rank, band, left[by_key].astype(np.intc), right[by_key].astype(np.intc), runs
 
 
 def _row_sets(cols: np.ndarray) -> np.ndarray:
@@ -229,17 +237,21 @@ class GroupNormal:
         """(F L + R + 3P,) the flat gradient."""
         return np.concatenate([self.b_local.ravel(), self.b_rig, self.b_point.ravel()])
 
-    def damped(self, damping: float) -> GroupNormal:
-        """The equations with every diagonal raised by damping x itself (Levenberg-Marquardt)."""
-        if not damping:
-            return self
-        A, Hrr, Hpp = self.A.copy(), self.Hrr.copy(), self.Hpp.copy()
-        for M in (A, Hpp):
-            n = M.shape[1]
-            M[:, np.arange(n), np.arange(n)] *= 1.0 + damping
-        Hrr[np.diag_indices(len(Hrr))] *= 1.0 + damping
-        return GroupNormal(self.structure, A, self.Wr, Hrr, Hpp, self.Hpr, self.Wp, self.b_local, self.b_rig,
-                           self.b_point)
+    @contextmanager
+    def damped(self, damping: float) -> Iterator[GroupNormal]:
+        """The equations with every diagonal raised by damping x itself (Levenberg-Marquardt), in place while the
+        context lasts: the diagonals are put back as they were after it (A and Hpp are not copied; a line of
+        10,000 frames: 55 MB)."""
+        diagonals = [(M, index, M[index]) for M, index in (
+            (self.A, (slice(None), *np.diag_indices(self.A.shape[1]))),
+            (self.Hpp, (slice(None), *np.diag_indices(3))), (self.Hrr, np.diag_indices(len(self.Hrr))))]
+        try:
+            for M, index, diagonal in diagonals:
+                M[index] = diagonal * (1.0 + damping)
+            yield self
+        finally:
+            for M, index, diagonal in diagonals:
+                M[index] = diagonal
 
     def dense(self) -> np.ndarray:
         """(n, n) the whole normal matrix, n = F L + R + 3P: for tests and small groups only."""

@@ -179,16 +179,15 @@ def watch_rig(dataset: Dataset, rig: Rig, solved: FlightPoses, calibrated_noise:
                     WATCH_MIN_PIXEL_PX)
         rotation = float(np.hypot(model.sigma["jitter"], model.sigma["mounting"]))
         point = rows.point[kept]
-        survey = np.maximum(survey_sigma(rows.point_sigma, model), WATCH_MIN_SURVEY_M)[point]
+        survey = np.maximum(survey_sigma(rows.point_sigma, model), WATCH_MIN_SURVEY_M)  # (p, 3) per distinct point
         R = rotation_from_quat(frames[list(QUAT)].to_numpy(float))
-        centres = {} if lever_arm is None else {
-            "center_prior_m": pos.loc[frames["frame"]].to_numpy(float) - np.einsum("fji,j->fi", R, lever_arm),
-            "center_sigma_m": pos_sigma}
-        try:
+        centres = None if lever_arm is None else \
+            pos.loc[frames["frame"]].to_numpy(float) - np.einsum("fji,j->fi", R, lever_arm)
+        try:  # the per-observation arguments are the callee's alone (no ** call), which frees them once read
             watched[str(group)] = adjust_group_rig(
                 rig, rows.cameras[kept], rows.uv[kept], rows.point_ids[kept], rows.xyz[point], frame_index[kept], R,
-                frames[list(TRANSLATION)].to_numpy(float), pixel, rotation, survey, **centres,
-                calibration_covariance=calibration)
+                frames[list(TRANSLATION)].to_numpy(float), pixel, rotation, survey[point], center_prior_m=centres,
+                center_sigma_m=None if lever_arm is None else pos_sigma, calibration_covariance=calibration)
         except DmaisError as error:
             log.warning("pose: the rig of group %s is not watched in flight: %s", group, error)
     return watched
