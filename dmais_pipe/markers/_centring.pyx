@@ -118,7 +118,12 @@ cdef void one_point(const Parts *parts, Py_ssize_t height, Py_ssize_t width, dou
             d2 = rx * rx + ry * ry
             taper = 1.0 - d2 / square
             taper = taper if taper > 0.0 else (taper if taper != taper else 0.0)
-            w[j] = exp(-d2 / sigma2) * (taper * taper) * kept[j]
+            if taper == 0.0 or kept[j] == 0.0:
+                # exp(-d2 / sigma2) (finite, >= 0) times a zero: +0.0 exactly, without the exp
+                # (the pixels beyond the taper's radius: ~80% of the window).
+                w[j] = 0.0
+            else:
+                w[j] = exp(-d2 / sigma2) * (taper * taper) * kept[j]
         for j in range(k):
             t[j] = w[j] * gx[j] * gx[j]
         wxx = pairwise_sum(t, k)

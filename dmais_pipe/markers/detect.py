@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from . import _shadow
+from . import _rings, _shadow
 from .centring import seed
 from .neighbours import Neighbours
 from .refine import ASYMMETRIC, NO_CLEAN_X, refine_corners
@@ -100,16 +100,17 @@ def _dn_scale(image: np.ndarray) -> float:
     if image.dtype == np.uint8:
         return 1.0
     step = max(1, image.size // 100000)
-    values = image.reshape(-1)[::step]
-    bright = _percentile_u16(values, 99.5) if values.dtype == np.uint16 else float(np.percentile(values, 99.5))
+    flat = image.reshape(-1)
+    bright = _percentile_u16(flat, 99.5, step) if flat.dtype == np.uint16 else float(np.percentile(flat[::step], 99.5))
     return max(bright / 220.0, 1e-6)
 
 
-def _percentile_u16(values: np.ndarray, q: float) -> float:
-    """float(np.percentile(values, q)) of uint16 values (n,), n > 0, to the last bit: its two order
-    statistics from the values' counts (np.bincount) instead of a partition, interpolated as numpy's
-    `_lerp` does (in float64: a + (b - a) t, or b - (b - a) (1 - t) where t >= 0.5)."""
-    n = len(values)
+def _percentile_u16(values: np.ndarray, q: float, step: int = 1) -> float:
+    """float(np.percentile(values[::step], q)) of uint16 values (n,), n > 0, to the last bit: its two order
+    statistics from the sampled values' counts instead of a partition (`_rings.strided_ranks_u16`, one
+    pass over the samples without their copy; np.bincount where values are not contiguous), interpolated
+    as numpy's `_lerp` does (in float64: a + (b - a) t, or b - (b - a) (1 - t) where t >= 0.5)."""
+    n = (len(values) + step - 1) // step
     virtual = (n - 1) * (q / 100.0)
     if virtual >= n - 1:
         low = high = n - 1
@@ -117,8 +118,11 @@ def _percentile_u16(values: np.ndarray, q: float) -> float:
         low = int(np.floor(virtual))
         high = low + 1
     gamma = virtual - low
-    counts = np.cumsum(np.bincount(values, minlength=1))
-    a, b = (float(v) for v in np.searchsorted(counts, [low + 1, high + 1]))  # the values of sorted ranks low, high
+    if values.ndim == 1 and values.flags.c_contiguous:
+        a, b = (float(v) for v in _rings.strided_ranks_u16(values, step, low, high))
+    else:
+        counts = np.cumsum(np.bincount(values[::step], minlength=1))
+        a, b = (float(v) for v in np.searchsorted(counts, [low + 1, high + 1]))  # the values of sorted ranks low, high
     diff = b - a
     return b - diff * (1.0 - gamma) if gamma >= 0.5 else a + diff * gamma
 

@@ -233,10 +233,11 @@ def _initial_params(img: np.ndarray, start: np.ndarray, radius: np.ndarray) -> n
     not an X from the local saddle (`_saddle_params`); NaN rows where neither is."""
     rho = np.clip(0.6 * np.nan_to_num(radius, nan=MIN_RADIUS), 2.5, 12.0)
     values = sample(img, start[:, None, :] + rho[:, None, None] * ring_offsets(1.0)[None]).astype(float)
-    params = _saddle_params(img, start, radius)
-    ring = ring_params(start, values)
-    ok = np.isfinite(ring[:, 0])
-    params[ok] = ring[ok]
+    params = ring_params(start, values)
+    # The saddle's only where the ring is no X (each row's numbers are its own: the same as for all rows).
+    missing = np.flatnonzero(~np.isfinite(params[:, 0]))
+    if len(missing):
+        params[missing] = _saddle_params(img, start[missing], np.asarray(radius)[missing])
     return params
 
 
