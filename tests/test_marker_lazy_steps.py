@@ -96,3 +96,25 @@ def test_initial_params_make_the_saddle_only_where_the_ring_is_no_x():
             0.6 * np.nan_to_num(radius, nan=refine.MIN_RADIUS), 2.5, 12.0)[:, None, None] * ring_offsets(1.0)[None]
         ).astype(float))[:, 0])
         assert ring_only.sum() >= 20 and (~ring_only & np.isfinite(want[:, 0])).sum() >= 5  # both kinds of start
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_rings_inside_a_part_sample_as_every_position_alone(seed):
+    """The ring sampler's rings whose extremes lie inside their part (read without clamps) and those at and
+    beyond its edges, against `sample` at every position (cv2.remap's arithmetic, tests/test_marker_sampling.py)."""
+    from dmais_pipe.markers.rings import ring_sample
+    rng = np.random.default_rng(130 + seed)
+    image = (rng.normal(0.0, 1.0, (300, 460)) * 10 ** rng.uniform(-2, 4)).astype(np.float32)
+    parts = ImageParts([(0, 0, 192, 180), (256, 100, 460, 300)], image.shape)
+    for pixels, top, left in zip(parts.pixels, parts.tops, parts.lefts):
+        pixels[...] = image[top:top + pixels.shape[0], left:left + pixels.shape[1]]
+    centres = np.vstack([rng.uniform(-0.1, 1.1, (200, 2)) * [470, 310], [[0.0, 0.0], [458.0, 298.0], [191.0, 179.0],
+                                                                         [np.nan, 5.0], [96.5, 90.25], [350.0, 200.0]]])
+    centres = np.vstack([centres, rng.uniform(0, 1, (300, 2)) * [460, 300]])
+    for radius in (0.0, 1.0, 2.5, 4.0, 30.0, 148.5):
+        for k in (24, 48):
+            offsets = radius * np.column_stack([np.cos(2 * np.pi * (np.arange(k) + 0.5) / k),
+                                                np.sin(2 * np.pi * (np.arange(k) + 0.5) / k)])
+            for img in (image, parts):
+                want = sample(img, centres[:, None, :] + offsets)
+                assert ring_sample(img, centres, offsets).tobytes() == want.tobytes(), (radius, k)

@@ -129,6 +129,27 @@ cdef extern from *:
             float fl = (float)left[one], ft = (float)top[one]; \
             Py_ssize_t w = width[one], h = height[one], rs = row[one], cs = column[one]; \
             double w_last = (double)(w - 1), h_last = (double)(h - 1); \
+            if (bounds && scale >= 0.0) { \
+                /* Every position within the part's pixels but its last row and column (the extremes' are: \
+                   each rounding does not decrease with its operand): no clamp changes an index, every \
+                   position is finite, so neither is made. */ \
+                float x_lo = (float)(cx + scale * bounds[0]) - fl, x_hi = (float)(cx + scale * bounds[1]) - fl; \
+                float y_lo = (float)(cy + scale * bounds[2]) - ft, y_hi = (float)(cy + scale * bounds[3]) - ft; \
+                if (x_lo >= 0.0f && y_lo >= 0.0f && x_hi < (float)w_last && y_hi < (float)h_last \
+                        && x_hi < 1073741824.0f && y_hi < 1073741824.0f) { \
+                    for (Py_ssize_t j = 0; j < k; j++) { \
+                        float x = (float)(cx + scale * ring[2 * j]) - fl, y = (float)(cy + scale * ring[2 * j + 1]) - ft; \
+                        float fx = dmais_floor(x), fy = dmais_floor(y); \
+                        float a = x - fx, b = y - fy; \
+                        Py_ssize_t x0 = (Py_ssize_t)fx * cs, y0 = (Py_ssize_t)fy * rs; \
+                        Py_ssize_t x1 = x0 + cs, y1 = y0 + rs; \
+                        float p00 = p[y0 + x0], p01 = p[y0 + x1], p10 = p[y1 + x0], p11 = p[y1 + x1]; \
+                        float t0 = FMA(a, p01 - p00, p00), t1 = FMA(a, p11 - p10, p10); \
+                        out[j] = FMA(b, t1 - t0, t0); \
+                    } \
+                    return; \
+                } \
+            } \
             for (Py_ssize_t j = 0; j < k; j++) { \
                 float x = (float)(cx + scale * ring[2 * j]) - fl, y = (float)(cy + scale * ring[2 * j + 1]) - ft; \
                 if (!(isfinite(x) && isfinite(y))) { out[j] = NAN; continue; } \

@@ -9,7 +9,7 @@ compares both with numpy's."""
 
 import numpy as np
 
-from libc.math cimport INFINITY, exp
+from libc.math cimport INFINITY, exp, isfinite
 
 from dmais_pipe.markers._rings cimport one_ring
 from dmais_pipe.markers._sums cimport pairwise_sum
@@ -111,16 +111,25 @@ cdef bint both_sides(const double *lit, const unsigned char *bright, const doubl
     return both and low >= same_ratio * high
 
 
-cdef void step_ring(const double *v, double step, const double *shade, Py_ssize_t k, double *lit, double *scratch,
-                    unsigned char *bright, double *quality, double *high, double *low) noexcept nogil:
+cdef void step_ring(const double *v, const double *ev, double step, const double *shade, Py_ssize_t k, double *lit,
+                    double *scratch, unsigned char *bright, double *quality, double *high, double *low) noexcept nogil:
     """The log ring v (k) with the step of log size `step` beyond a line (its shaded samples shade (k),
     0 or 1) taken away into lit (k), and the ring statistics of its exp (`_rings.one_ring`: quality,
-    levels, bright mask (k)). scratch: 3 k doubles."""
+    levels, bright mask (k)). ev (k): exp(v), the exp of an unshaded sample where step is finite (v - step 0
+    is v but for the sign of a zero, whose exp is 1 either way; a NaN keeps its bits). scratch: 3 k doubles."""
     cdef Py_ssize_t a
+    cdef bint finite = isfinite(step)
     for a in range(k):
         lit[a] = v[a] - step * shade[a]
-        scratch[a] = exp(lit[a])
+        scratch[a] = ev[a] if (finite and shade[a] == 0.0) else exp(lit[a])
     one_ring(scratch, k, &scratch[k], bright, quality, high, low)
+
+
+cdef inline void exp_ring(const double *v, Py_ssize_t k, double *ev) noexcept nogil:
+    """ev (k) = exp(v) of a log ring v (k): its unshaded samples' exp, made once for every step tried on it."""
+    cdef Py_ssize_t a
+    for a in range(k):
+        ev[a] = exp(v[a])
 
 
 cdef bint step_crosses(const double *lit, const unsigned char *bright, const double *shade, const Py_ssize_t *ends,
@@ -158,8 +167,8 @@ def best_steps(logs, g, norm, shade, ends, double min_step, Py_ssize_t top, doub
     cdef unsigned char[::1] ok = good.view(np.uint8)
     cdef double[::1] out_step = step
     cdef double[:, ::1] out_lit = lit_out
-    work = np.empty(l + 4 * k + 1)
-    cdef double[::1] w = work  # -explained (l), lit (k), scratch (3 k)
+    work = np.empty(l + 5 * k + 1)
+    cdef double[::1] w = work  # -explained (l), lit (k), scratch (3 k), exp of the ring (k)
     orders = np.empty(l + 1, dtype=np.intp)
     cdef Py_ssize_t[::1] order = orders
     masks = np.empty(k + 1, dtype=np.uint8)
@@ -184,7 +193,10 @@ def best_steps(logs, g, norm, shade, ends, double min_step, Py_ssize_t top, doub
                     if s == 0:
                         best, chosen = -1.0, s
                     break
-                step_ring(&v[i, 0], gl, &shaded[line, 0], k, lit, &w[l + k], &bright[0], &quality, &high, &low)
+                if s == 0:
+                    exp_ring(&v[i, 0], k, &w[l + 4 * k])
+                step_ring(&v[i, 0], &w[l + 4 * k], gl, &shaded[line, 0], k, lit, &w[l + k], &bright[0], &quality,
+                          &high, &low)
                 if quality == quality and (quality < min_quality or (s > 0 and not quality > best)):
                     # A step of less quality than min_quality, or no better than one before it, is never
                     # the chosen step of a ring whose best step is good enough (the others' choice is not
@@ -223,22 +235,27 @@ def shadow_lines(logs, g, shade, ends, double contrast, double min_quality, doub
     passes, choice = np.zeros(m, dtype=bool), np.zeros(m, dtype=np.intp)
     cdef unsigned char[::1] ok = passes.view(np.uint8)
     cdef Py_ssize_t[::1] c = choice
-    work = np.empty(4 * k + 1)
-    cdef double[::1] w = work  # lit (k), scratch (3 k)
+    work = np.empty(5 * k + 1)
+    cdef double[::1] w = work  # lit (k), scratch (3 k), exp of the ring (k)
     masks = np.empty(k + 1, dtype=np.uint8)
     cdef unsigned char[::1] bright = masks
     cdef double gl, quality, high, low, best, score
-    cdef bint good
+    cdef bint good, made
     if m == 0 or l == 0:
         return passes, choice
     with nogil:
         for i in range(m):
             best = 0.0
+            made = False
             for line in range(l):
                 gl = steps[i, line]
                 good = -gl >= min_step  # else it does not pass, whatever its X: the ring is not made
                 if good:
-                    step_ring(&v[i, 0], gl, &shaded[line, 0], k, &w[0], &w[k], &bright[0], &quality, &high, &low)
+                    if not made:
+                        exp_ring(&v[i, 0], k, &w[4 * k])
+                        made = True
+                    step_ring(&v[i, 0], &w[4 * k], gl, &shaded[line, 0], k, &w[0], &w[k], &bright[0], &quality, &high,
+                              &low)
                     good = quality >= min_quality and high - low >= contrast
                     # Once a line passed, one no better than the best cannot change the result: its
                     # crossing and sides are not made.
