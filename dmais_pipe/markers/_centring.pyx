@@ -21,7 +21,9 @@ import numpy as np
 
 
 cdef struct Parts:
-    const float *buffer
+    const void *buffer
+    int kind  # of its pixels: 0 float32, 1 uint16, 2 uint8 (read as float32, exactly)
+    const Py_ssize_t *strides  # per part, its rows' stride (pixels)
     const Py_ssize_t *bases
     const Py_ssize_t *lefts
     const Py_ssize_t *tops
@@ -47,18 +49,36 @@ cdef inline double pixel(const Parts *p, Py_ssize_t x, Py_ssize_t y) noexcept no
                                 + within(floor_div(x, p.cell_px), 0, p.cols - 1)]
     cdef Py_ssize_t row = within(y - p.tops[k], 0, p.heights[k] - 1)
     cdef Py_ssize_t column = within(x - p.lefts[k], 0, p.widths[k] - 1)
-    return p.buffer[p.bases[k] + row * p.widths[k] + column]
+    cdef Py_ssize_t at = p.bases[k] + row * p.strides[k] + column
+    if p.kind == 0:
+        return (<const float *> p.buffer)[at]
+    if p.kind == 1:
+        return <float> (<const unsigned short *> p.buffer)[at]
+    return <float> (<const unsigned char *> p.buffer)[at]
 
 
-def gradient_steps(buffer, bases, lefts, tops, widths, heights, cells, Py_ssize_t cell_px, Py_ssize_t height,
+cdef int _rings_kind(buffer) except -1:
+    """0, 1, 2: a flat C-ordered buffer of float32, uint16 or uint8 pixels (`_rings.pixel_kind`'s)."""
+    if buffer.ndim != 1 or not buffer.flags.c_contiguous:
+        raise ValueError("the parts' pixels must be one flat C-ordered buffer")
+    for kind, dtype in enumerate((np.float32, np.uint16, np.uint8)):
+        if buffer.dtype == dtype:
+            return kind
+    raise TypeError(f"parts of {buffer.dtype} pixels (float32, uint16 or uint8 only)")
+
+
+def gradient_steps(buffer, bases, lefts, tops, widths, heights, rows, cells, Py_ssize_t cell_px, Py_ssize_t height,
                    Py_ssize_t width, start, Py_ssize_t half, double radius, double sigma2, Py_ssize_t steps,
                    double eps, max_shift, bint converge):
     """`centring._refine_fixed`'s result (n, 2) from start (n, 2) (NaN rows stay NaN), in an image of
-    (height, width) px given as parts (`rings.ImageParts`' flat buffer, per part its offset, left,
-    top, width and height, and the map `cells` (rows, cols) of the part each cell of cell_px reads):
+    (height, width) px given as parts (`rings.ImageParts`' flat buffer of float32, uint16 or uint8 pixels,
+    per part its offset, left, top, width, height and row stride, and the map `cells` (rows, cols) of the
+    part each cell of cell_px reads):
     the window of (2 half + 1)^2 px about each rounded start, the taper `radius`, the Gaussian's
     2 sigma^2 = sigma2, at most `steps` steps, converged below `eps` px, each start's max_shift (n,)."""
-    cdef const float[::1] buf = buffer
+    cdef int kind = _rings_kind(buffer)
+    cdef const unsigned char[::1] data = buffer.view(np.uint8)
+    cdef const Py_ssize_t[::1] stride = np.ascontiguousarray(rows, dtype=np.intp)
     cdef const Py_ssize_t[::1] base = np.ascontiguousarray(bases, dtype=np.intp)
     cdef const Py_ssize_t[::1] left = np.ascontiguousarray(lefts, dtype=np.intp)
     cdef const Py_ssize_t[::1] top = np.ascontiguousarray(tops, dtype=np.intp)
@@ -67,7 +87,7 @@ def gradient_steps(buffer, bases, lefts, tops, widths, heights, cells, Py_ssize_
     cdef const Py_ssize_t[:, ::1] cell = np.ascontiguousarray(cells, dtype=np.intp)
     cdef const double[:, ::1] s = np.ascontiguousarray(start, dtype=np.float64)
     cdef const double[::1] shift = np.ascontiguousarray(max_shift, dtype=np.float64)
-    cdef Parts parts = Parts(&buf[0], &base[0], &left[0], &top[0], &wide[0], &high[0], &cell[0, 0],
+    cdef Parts parts = Parts(&data[0], kind, &stride[0], &base[0], &left[0], &top[0], &wide[0], &high[0], &cell[0, 0],
                              cell.shape[0], cell.shape[1], cell_px)
     cdef Py_ssize_t n = s.shape[0], side = 2 * half + 1, k = side * side, i
     out = np.full((n, 2), np.nan)

@@ -54,16 +54,16 @@ cdef extern from *:
         float a_ = (x) - fx_, b_ = (y) - fy_; \
         Py_ssize_t x0_ = dmais_clamp(fx_, w) * (cs), y0_ = dmais_clamp(fy_, h) * (rs); \
         Py_ssize_t x1_ = dmais_clamp(fx_ + 1.0, w) * (cs), y1_ = dmais_clamp(fy_ + 1.0, h) * (rs); \
-        const float *p_ = (p); \
-        float p00_ = p_[y0_ + x0_], p01_ = p_[y0_ + x1_], p10_ = p_[y1_ + x0_], p11_ = p_[y1_ + x1_]; \
+        float p00_ = (p)[y0_ + x0_], p01_ = (p)[y0_ + x1_], p10_ = (p)[y1_ + x0_], p11_ = (p)[y1_ + x1_]; \
         float t0_ = FMA(a_, p01_ - p00_, p00_), t1_ = FMA(a_, p11_ - p10_, p10_); \
         (OUT) = FMA(b_, t1_ - t0_, t0_); \
     } while (0)
 
-    #define DMAIS_SAMPLE(NAME, FMA) \
-    static void NAME(const float *buffer, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top, \
+    #define DMAIS_SAMPLE(NAME, FMA, TYPE) \
+    static void NAME(const void *pixels, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top, \
                      const Py_ssize_t *width, const Py_ssize_t *height, const Py_ssize_t *row, \
                      const Py_ssize_t *column, const Py_ssize_t *owner, const float *xy, Py_ssize_t n, float *out) { \
+        const TYPE *buffer = (const TYPE *)pixels; \
         for (Py_ssize_t i = 0; i < n; i++) { \
             Py_ssize_t k = owner ? owner[i] : 0; \
             float x = xy[2 * i] - (float)left[k], y = xy[2 * i + 1] - (float)top[k]; \
@@ -72,21 +72,36 @@ cdef extern from *:
         } \
     }
 
-    DMAIS_SAMPLE(dmais_sample_libm, fmaf)
+    /* The pixels' kinds: float32, uint16, uint8 (read as float32, exactly). */
+    typedef void (*dmais_sample_fn)(const void *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
+                                    const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
+                                    const Py_ssize_t *, const float *, Py_ssize_t, float *);
+    DMAIS_SAMPLE(dmais_sample_libm_f32, fmaf, float)
+    DMAIS_SAMPLE(dmais_sample_libm_u16, fmaf, unsigned short)
+    DMAIS_SAMPLE(dmais_sample_libm_u8, fmaf, unsigned char)
+    static const dmais_sample_fn dmais_sample_libm[3] = {dmais_sample_libm_f32, dmais_sample_libm_u16,
+                                                         dmais_sample_libm_u8};
     #if defined(__x86_64__) && defined(__GNUC__)
-    __attribute__((target("fma"))) DMAIS_SAMPLE(dmais_sample_fma, __builtin_fmaf)
-    static void dmais_sample(const float *buffer, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top,
-                             const Py_ssize_t *width, const Py_ssize_t *height, const Py_ssize_t *row,
-                             const Py_ssize_t *column, const Py_ssize_t *owner, const float *xy, Py_ssize_t n,
-                             float *out) {
+    __attribute__((target("fma"))) DMAIS_SAMPLE(dmais_sample_fma_f32, __builtin_fmaf, float)
+    __attribute__((target("fma"))) DMAIS_SAMPLE(dmais_sample_fma_u16, __builtin_fmaf, unsigned short)
+    __attribute__((target("fma"))) DMAIS_SAMPLE(dmais_sample_fma_u8, __builtin_fmaf, unsigned char)
+    static const dmais_sample_fn dmais_sample_fma[3] = {dmais_sample_fma_f32, dmais_sample_fma_u16,
+                                                        dmais_sample_fma_u8};
+    static void dmais_sample(int kind, const void *buffer, const Py_ssize_t *base, const Py_ssize_t *left,
+                             const Py_ssize_t *top, const Py_ssize_t *width, const Py_ssize_t *height,
+                             const Py_ssize_t *row, const Py_ssize_t *column, const Py_ssize_t *owner, const float *xy,
+                             Py_ssize_t n, float *out) {
         __builtin_cpu_init();  /* idempotent: the CPU's features known whatever ran first */
-        if (__builtin_cpu_supports("fma"))
-            dmais_sample_fma(buffer, base, left, top, width, height, row, column, owner, xy, n, out);
-        else
-            dmais_sample_libm(buffer, base, left, top, width, height, row, column, owner, xy, n, out);
+        (__builtin_cpu_supports("fma") ? dmais_sample_fma : dmais_sample_libm)[kind](
+            buffer, base, left, top, width, height, row, column, owner, xy, n, out);
     }
     #else
-    #define dmais_sample dmais_sample_libm
+    static void dmais_sample(int kind, const void *buffer, const Py_ssize_t *base, const Py_ssize_t *left,
+                             const Py_ssize_t *top, const Py_ssize_t *width, const Py_ssize_t *height,
+                             const Py_ssize_t *row, const Py_ssize_t *column, const Py_ssize_t *owner, const float *xy,
+                             Py_ssize_t n, float *out) {
+        dmais_sample_libm[kind](buffer, base, left, top, width, height, row, column, owner, xy, n, out);
+    }
     #endif
 
     /* `cell` (below) in C: floor(value / cell_px) clamped into 0..count - 1, 0 where not finite or beyond int64. */
@@ -105,12 +120,13 @@ cdef extern from *:
        offsets of ring (4, finite): with scale >= 0 the extremes of the positions are those of the bounds (each
        rounding does not decrease with its operand), and where they lie within +-2^30 in one cell, every position
        is in that cell (nor does a coordinate's cell), so the ring's part is looked up once. */
-    #define DMAIS_RING(NAME, FMA) \
-    static void NAME(const float *buffer, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top, \
+    #define DMAIS_RING(NAME, FMA, TYPE) \
+    static void NAME(const void *pixels, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top, \
                      const Py_ssize_t *width, const Py_ssize_t *height, const Py_ssize_t *row, \
                      const Py_ssize_t *column, const Py_ssize_t *cells, Py_ssize_t cell_rows, \
                      Py_ssize_t cell_columns, Py_ssize_t cell_px, double cx, double cy, double scale, \
                      const double *ring, const double *bounds, Py_ssize_t k, float *out) { \
+        const TYPE *buffer = (const TYPE *)pixels; \
         Py_ssize_t one = 0; \
         if (cells) { \
             one = -1; \
@@ -125,7 +141,7 @@ cdef extern from *:
             } \
         } \
         if (one >= 0) { /* one part: its numbers in locals (no store to out can change them) */ \
-            const float *p = buffer + base[one]; \
+            const TYPE *p = buffer + base[one]; \
             float fl = (float)left[one], ft = (float)top[one]; \
             Py_ssize_t w = width[one], h = height[one], rs = row[one], cs = column[one]; \
             double w_last = (double)(w - 1), h_last = (double)(h - 1); \
@@ -175,28 +191,35 @@ cdef extern from *:
         } \
     }
 
-    typedef void (*dmais_ring_fn)(const float *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
+    typedef void (*dmais_ring_fn)(const void *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
                                   const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
                                   const Py_ssize_t *, Py_ssize_t, Py_ssize_t, Py_ssize_t, double, double, double,
                                   const double *, const double *, Py_ssize_t, float *);
-    DMAIS_RING(dmais_ring_libm, fmaf)
+    DMAIS_RING(dmais_ring_libm_f32, fmaf, float)
+    DMAIS_RING(dmais_ring_libm_u16, fmaf, unsigned short)
+    DMAIS_RING(dmais_ring_libm_u8, fmaf, unsigned char)
+    static const dmais_ring_fn dmais_ring_libm[3] = {dmais_ring_libm_f32, dmais_ring_libm_u16, dmais_ring_libm_u8};
     #if defined(__x86_64__) && defined(__GNUC__)
-    __attribute__((target("fma"))) DMAIS_RING(dmais_ring_fma, __builtin_fmaf)
-    /* The ring sampler of this CPU (the FMA instruction's where it has one), chosen once per call of a loop. */
-    static dmais_ring_fn dmais_ring_of_cpu(void) {
+    __attribute__((target("fma"))) DMAIS_RING(dmais_ring_fma_f32, __builtin_fmaf, float)
+    __attribute__((target("fma"))) DMAIS_RING(dmais_ring_fma_u16, __builtin_fmaf, unsigned short)
+    __attribute__((target("fma"))) DMAIS_RING(dmais_ring_fma_u8, __builtin_fmaf, unsigned char)
+    static const dmais_ring_fn dmais_ring_fma[3] = {dmais_ring_fma_f32, dmais_ring_fma_u16, dmais_ring_fma_u8};
+    /* The ring sampler of this CPU (the FMA instruction's where it has one) for pixels of `kind`, chosen once per
+       call of a loop. */
+    static dmais_ring_fn dmais_ring_of_cpu(int kind) {
         __builtin_cpu_init();
-        return __builtin_cpu_supports("fma") ? dmais_ring_fma : dmais_ring_libm;
+        return (__builtin_cpu_supports("fma") ? dmais_ring_fma : dmais_ring_libm)[kind];
     }
     #else
-    static dmais_ring_fn dmais_ring_of_cpu(void) { return dmais_ring_libm; }
+    static dmais_ring_fn dmais_ring_of_cpu(int kind) { return dmais_ring_libm[kind]; }
     #endif
     """
-    ctypedef void (*dmais_ring_fn)(const float *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
+    ctypedef void (*dmais_ring_fn)(const void *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
                                    const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *, const Py_ssize_t *,
                                    const Py_ssize_t *, Py_ssize_t, Py_ssize_t, Py_ssize_t, double, double, double,
                                    const double *, const double *, Py_ssize_t, float *) noexcept nogil
-    dmais_ring_fn dmais_ring_of_cpu() noexcept nogil
-    void dmais_sample(const float *buffer, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top,
+    dmais_ring_fn dmais_ring_of_cpu(int kind) noexcept nogil
+    void dmais_sample(int kind, const void *buffer, const Py_ssize_t *base, const Py_ssize_t *left, const Py_ssize_t *top,
                       const Py_ssize_t *width, const Py_ssize_t *height, const Py_ssize_t *row,
                       const Py_ssize_t *column, const Py_ssize_t *owner, const float *xy, Py_ssize_t n,
                       float *out) noexcept nogil
@@ -212,9 +235,36 @@ def sample(image, xy):
     cdef Py_ssize_t row = img.strides[0] // 4, column = img.strides[1] // 4
     if p.shape[0]:
         with nogil:
-            dmais_sample(&img[0, 0], &zero, &zero, &zero, &width, &height, &row, &column, NULL, &p[0, 0], p.shape[0],
+            dmais_sample(0, &img[0, 0], &zero, &zero, &zero, &width, &height, &row, &column, NULL, &p[0, 0], p.shape[0],
                          &o[0])
     return out
+
+
+cdef int pixel_kind(buffer) except -1:
+    """The kind of a parts' flat buffer (1-D, C-contiguous) for the C samplers: 0 float32, 1 uint16, 2 uint8."""
+    if buffer.ndim != 1 or not buffer.flags.c_contiguous:
+        raise ValueError("the parts' pixels must be one flat C-ordered buffer")
+    if buffer.dtype == np.float32:
+        return 0
+    if buffer.dtype == np.uint16:
+        return 1
+    if buffer.dtype == np.uint8:
+        return 2
+    raise TypeError(f"parts of {buffer.dtype} pixels (float32, uint16 or uint8 only)")
+
+
+cdef const void *pixel_data(const unsigned char[::1] view) noexcept:
+    """The address of a flat buffer's first byte (its bytes `view`), NULL where it has none."""
+    return <const void *> &view[0] if view.shape[0] else NULL
+
+
+cdef float pixel_value(const void *data, int kind, Py_ssize_t at) noexcept nogil:
+    """The pixel `at` of a flat buffer of `kind` (`pixel_kind`), as float32 (exact)."""
+    if kind == 0:
+        return (<const float *> data)[at]
+    if kind == 1:
+        return <float> (<const unsigned short *> data)[at]
+    return <float> (<const unsigned char *> data)[at]
 
 
 def owners(xs, ys, cells, Py_ssize_t cell_px):
@@ -261,12 +311,14 @@ cdef const double *ring_bounds(const double *ring, Py_ssize_t k, double *extreme
     return extremes
 
 
-def parts_sample(buffer, bases, lefts, tops, widths, heights, part, xy):
+def parts_sample(buffer, bases, lefts, tops, widths, heights, rows, part, xy):
     """(n,) float32 samples at float32 positions xy (n, 2) (whole-image coordinates) of the parts of
-    `rings.ImageParts` (its flat buffer, and per part its offset in it, left, top, width, height),
-    each position read from the part `part` (n,) in its own coordinates (x - left, y - top: exact in
-    float32)."""
-    cdef const float[::1] buf = buffer
+    `rings.ImageParts` (its flat buffer of float32, uint16 or uint8 pixels, and per part its offset in it,
+    left, top, width, height and row stride), each position read from the part `part` (n,) in its own
+    coordinates (x - left, y - top: exact in float32)."""
+    cdef int kind = pixel_kind(buffer)
+    cdef const void *buf = pixel_data(buffer.view(np.uint8))
+    cdef const Py_ssize_t[::1] row = np.ascontiguousarray(rows, dtype=np.intp)
     cdef const Py_ssize_t[::1] base = np.ascontiguousarray(bases, dtype=np.intp)
     cdef const Py_ssize_t[::1] left = np.ascontiguousarray(lefts, dtype=np.intp)
     cdef const Py_ssize_t[::1] top = np.ascontiguousarray(tops, dtype=np.intp)
@@ -279,8 +331,8 @@ def parts_sample(buffer, bases, lefts, tops, widths, heights, part, xy):
     cdef float[::1] o = out
     if p.shape[0]:
         with nogil:
-            dmais_sample(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &width[0], &column[0], &owner[0],
-                         &p[0, 0], p.shape[0], &o[0])
+            dmais_sample(kind, buf, &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
+                         &owner[0], &p[0, 0], p.shape[0], &o[0])
     return out
 
 
@@ -352,7 +404,8 @@ def clean_radius(buffer, bases, lefts, tops, widths, heights, rows, columns, cel
     `cells` (r, c) of the part each cell of cell_px reads, or None: every sample from part 0), on
     rings of radii (m,) with the unit ring `unit` (k, 2): each ring's samples, statistics and tests
     as numpy makes them."""
-    cdef const float[::1] buf = buffer
+    cdef int kind = pixel_kind(buffer)
+    cdef const void *buf = pixel_data(buffer.view(np.uint8))
     cdef const Py_ssize_t[::1] base = np.ascontiguousarray(bases, dtype=np.intp)
     cdef const Py_ssize_t[::1] left = np.ascontiguousarray(lefts, dtype=np.intp)
     cdef const Py_ssize_t[::1] top = np.ascontiguousarray(tops, dtype=np.intp)
@@ -379,14 +432,14 @@ def clean_radius(buffer, bases, lefts, tops, widths, heights, rows, columns, cel
     cdef bint started, ok, same
     if k == 0 or n == 0:
         return result
-    cdef dmais_ring_fn ring_of = dmais_ring_of_cpu()
+    cdef dmais_ring_fn ring_of = dmais_ring_of_cpu(kind)
     cdef double extremes[4]
     cdef const double *bounds = ring_bounds(&ring[0, 0], k, extremes)
     with nogil:
         for i in range(n):
             started, ref_high, ref_low = False, 0.0, 0.0
             for a in range(r.shape[0]):
-                ring_of(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
+                ring_of(buf, &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
                         NULL if one_part else &cell_map[0, 0], cell_map.shape[0], cell_map.shape[1], cell_px,
                         p[i, 0], p[i, 1], r[a], &ring[0, 0], bounds, k, &s[0])
                 for j in range(k):
@@ -418,7 +471,8 @@ def ring_samples(buffer, bases, lefts, tops, widths, heights, rows, columns, cel
                  offsets):
     """(m, k) float32 samples at the float32 positions centres (m, 2) + offsets (k, 2) (each sum in float64,
     then rounded, as numpy's sum and astype make them) of an image given as parts (`clean_radius`'s)."""
-    cdef const float[::1] buf = buffer
+    cdef int kind = pixel_kind(buffer)
+    cdef const void *buf = pixel_data(buffer.view(np.uint8))
     cdef const Py_ssize_t[::1] base = np.ascontiguousarray(bases, dtype=np.intp)
     cdef const Py_ssize_t[::1] left = np.ascontiguousarray(lefts, dtype=np.intp)
     cdef const Py_ssize_t[::1] top = np.ascontiguousarray(tops, dtype=np.intp)
@@ -436,23 +490,25 @@ def ring_samples(buffer, bases, lefts, tops, widths, heights, rows, columns, cel
     cdef float[:, ::1] o = out
     if k == 0 or m == 0:
         return out
-    cdef dmais_ring_fn ring_of = dmais_ring_of_cpu()
+    cdef dmais_ring_fn ring_of = dmais_ring_of_cpu(kind)
     cdef double extremes[4]
     cdef const double *bounds = ring_bounds(&ring[0, 0], k, extremes)
     with nogil:
         for i in range(m):
-            ring_of(&buf[0], &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
+            ring_of(buf, &base[0], &left[0], &top[0], &width[0], &height[0], &row[0], &column[0],
                     NULL if one_part else &cell_map[0, 0], cell_map.shape[0], cell_map.shape[1], cell_px,
                     p[i, 0], p[i, 1], 1.0, &ring[0, 0], bounds, k, &o[i, 0])  # 1.0 * x is x
     return out
 
 
-def parts_gather(buffer, bases, lefts, tops, widths, heights, cells, Py_ssize_t cell_px, ys, xs):
+def parts_gather(buffer, bases, lefts, tops, widths, heights, rows, cells, Py_ssize_t cell_px, ys, xs):
     """(n,) float32 pixels at integer positions ys, xs (n,) (whole-image coordinates) of the parts of
-    `rings.ImageParts` (its flat buffer, per part its offset, left, top, width, height, and the map `cells`
-    (r, c) of the part each cell of cell_px holds): each from the part of its cell, its row and column
-    clamped into that part (`ImageParts.__getitem__`'s)."""
-    cdef const float[::1] buf = buffer
+    `rings.ImageParts` (its flat buffer of float32, uint16 or uint8 pixels, per part its offset, left, top,
+    width, height and row stride, and the map `cells` (r, c) of the part each cell of cell_px holds): each
+    from the part of its cell, its row and column clamped into that part (`ImageParts.__getitem__`'s)."""
+    cdef int kind = pixel_kind(buffer)
+    cdef const void *buf = pixel_data(buffer.view(np.uint8))
+    cdef const Py_ssize_t[::1] stride = np.ascontiguousarray(rows, dtype=np.intp)
     cdef const Py_ssize_t[::1] base = np.ascontiguousarray(bases, dtype=np.intp)
     cdef const Py_ssize_t[::1] left = np.ascontiguousarray(lefts, dtype=np.intp)
     cdef const Py_ssize_t[::1] top = np.ascontiguousarray(tops, dtype=np.intp)
@@ -469,7 +525,7 @@ def parts_gather(buffer, bases, lefts, tops, widths, heights, cells, Py_ssize_t 
             k = cell_map[index_cell(y[i], cell_px, cell_map.shape[0]), index_cell(x[i], cell_px, cell_map.shape[1])]
             row = clamp_index(y[i] - top[k], height[k])
             column = clamp_index(x[i] - left[k], width[k])
-            o[i] = buf[base[k] + row * width[k] + column]
+            o[i] = pixel_value(buf, kind, base[k] + row * stride[k] + column)
     return out
 
 

@@ -34,11 +34,12 @@ def _refine_fixed(img, start, radius, max_iterations, eps, max_shift, converge: 
     flat = _flat(img)
     if flat is None:
         return _refine_fixed_numpy(img, start, radius, max_iterations, eps, max_shift, converge)
-    buffer, bases, lefts, tops, widths, heights, _, _, cells, cell_px = flat
+    buffer, bases, lefts, tops, widths, heights, rows, _, cells, cell_px = flat
     cells = np.zeros((1, 1), dtype=np.intp) if cells is None else cells
     start = np.array(start, dtype=float).reshape(-1, 2)
     height, width = img.shape
-    return _centring.gradient_steps(buffer, bases, lefts, tops, widths, heights, cells, cell_px, height, width, start,
+    return _centring.gradient_steps(buffer, bases, lefts, tops, widths, heights, rows, cells, cell_px, height, width,
+                                    start,
                                     _half_window(radius, max_shift), float(radius), _sigma2(radius), max_iterations,
                                     eps, np.broadcast_to(np.asarray(max_shift, float), (len(start),)), converge)
 

@@ -24,26 +24,38 @@ CLEAN_BLOCK_RINGS = 400
 class ImageParts:
     """Parts of a float32 image, read in the whole image's pixel coordinates: part k (h_k, w_k) holds
     the rows tops[k].. and columns lefts[k].. of an image of `shape` (h, w), all parts in one flat
-    buffer. Indexing with integer arrays (`parts[ys, xs]`) and `sample` give the whole image's
-    values (the same arithmetic, to the last bit) wherever a part has them; a position beyond every
-    part reads the nearest part's border (replicated)."""
+    buffer (float32 pixels the caller writes), or views of the 8- or 16-bit image itself (`raw`: its
+    pixels read as float32, which is exact, where they are read, and none converted before). Indexing
+    with integer arrays (`parts[ys, xs]`) and `sample` give the whole image's float32 values (the same
+    arithmetic, to the last bit) wherever a part has them; a position beyond every part reads the
+    nearest part's border (replicated)."""
 
     dtype = np.dtype(np.float32)
     ndim = 2
     #: px: the cells of the map of which part holds a position; parts must lie further apart.
     CELL_PX = 64
 
-    def __init__(self, bounds: list[tuple[int, int, int, int]], shape: tuple[int, int]):
+    def __init__(self, bounds: list[tuple[int, int, int, int]], shape: tuple[int, int], raw: np.ndarray | None = None):
         """bounds: per part (left, top, right, bottom), its columns left..right - 1 and rows top..bottom - 1.
-        The pixels are written by the caller into `pixels[k]` (views of one buffer)."""
+        The pixels are written by the caller into `pixels[k]` (views of one buffer), or with raw, a
+        C-ordered uint8 or uint16 image of `shape`, they are its own (`pixels[k]` views of it)."""
         self.shape = tuple(shape)
         box = np.array(bounds, dtype=int).reshape(-1, 4)
         self.lefts, self.tops = box[:, 0], box[:, 1]
         self.widths, self.heights = box[:, 2] - box[:, 0], box[:, 3] - box[:, 1]
-        self.bases = np.concatenate([[0], np.cumsum(self.widths * self.heights)])
-        self.buffer = np.empty(int(self.bases[-1]), dtype=np.float32)
-        self.pixels = [self.buffer[b:b + h * w].reshape(h, w)
-                       for b, h, w in zip(self.bases, self.heights, self.widths)]
+        if raw is None:
+            self.bases = np.concatenate([[0], np.cumsum(self.widths * self.heights)])
+            self.buffer = np.empty(int(self.bases[-1]), dtype=np.float32)
+            self.pixels = [self.buffer[b:b + h * w].reshape(h, w)
+                           for b, h, w in zip(self.bases, self.heights, self.widths)]
+            self.strides = self.widths  # each part's rows' stride (pixels)
+        else:
+            if raw.shape != self.shape or raw.dtype not in (np.uint8, np.uint16) or not raw.flags.c_contiguous:
+                raise ValueError("parts of a raw image: a C-ordered uint8 or uint16 image of the parts' shape")
+            self.bases = self.tops * self.shape[1] + self.lefts
+            self.buffer = raw.reshape(-1)
+            self.pixels = [raw[t:t + h, x:x + w] for t, x, h, w in zip(self.tops, self.lefts, self.heights, self.widths)]
+            self.strides = np.full(len(box), self.shape[1], dtype=int)
         self._cells = self._owner_map() if len(box) > 1 else None
 
     def _owner_map(self) -> np.ndarray:
@@ -70,10 +82,11 @@ class ImageParts:
         ys, xs = np.broadcast_arrays(*key)
         if self._cells is None:  # one part
             return self.pixels[0][np.clip(ys - self.tops[0], 0, self.heights[0] - 1),
-                                  np.clip(xs - self.lefts[0], 0, self.widths[0] - 1)]
+                                  np.clip(xs - self.lefts[0], 0, self.widths[0] - 1)].astype(np.float32, copy=False)
         if ys.dtype.kind in "iu" and xs.dtype.kind in "iu":  # the same pixels, by one compiled loop
             return _rings.parts_gather(self.buffer, self.bases, self.lefts, self.tops, self.widths, self.heights,
-                                       self._cells, self.CELL_PX, ys.ravel(), xs.ravel()).reshape(xs.shape)
+                                       self.strides, self._cells, self.CELL_PX, ys.ravel(), xs.ravel()
+                                       ).reshape(xs.shape)
         return self._gathered(ys, xs)
 
     def _gathered(self, ys: np.ndarray, xs: np.ndarray) -> np.ndarray:
@@ -82,7 +95,7 @@ class ImageParts:
         height, width = self.heights[owner], self.widths[owner]
         row = np.minimum(np.maximum(ys - self.tops[owner], 0), height - 1)
         column = np.minimum(np.maximum(xs - self.lefts[owner], 0), width - 1)
-        return self.buffer[self.bases[owner] + row * width + column]
+        return self.buffer[self.bases[owner] + row * self.strides[owner] + column].astype(np.float32, copy=False)
 
     def sample(self, xy: np.ndarray) -> np.ndarray:
         """`sample` at float32 positions xy (n, 2): each position's part (`owners`) sampled at its
@@ -92,8 +105,8 @@ class ImageParts:
             owner = np.zeros(len(xy), dtype=np.intp)
         else:
             owner = _rings.owners(xy[:, 0], xy[:, 1], self._cells, self.CELL_PX)
-        return _rings.parts_sample(self.buffer, self.bases, self.lefts, self.tops, self.widths, self.heights, owner,
-                                   xy)
+        return _rings.parts_sample(self.buffer, self.bases, self.lefts, self.tops, self.widths, self.heights,
+                                   self.strides, owner, xy)
 
 
 def as_float_image(image) -> np.ndarray | ImageParts:
@@ -221,7 +234,7 @@ def _flat(image) -> tuple | None:
     the parts' cell map or None for one part, its cell px) of ImageParts or a C-ordered float32 image;
     None for other images."""
     if isinstance(image, ImageParts):
-        return (image.buffer, image.bases, image.lefts, image.tops, image.widths, image.heights, image.widths,
+        return (image.buffer, image.bases, image.lefts, image.tops, image.widths, image.heights, image.strides,
                 np.ones(len(image.widths), dtype=np.intp), image._cells, image.CELL_PX)
     image = np.asarray(image)
     if image.dtype != np.float32 or not image.flags.c_contiguous or image.size == 0:
