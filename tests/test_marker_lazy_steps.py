@@ -118,3 +118,27 @@ def test_rings_inside_a_part_sample_as_every_position_alone(seed):
             for img in (image, parts):
                 want = sample(img, centres[:, None, :] + offsets)
                 assert ring_sample(img, centres, offsets).tobytes() == want.tobytes(), (radius, k)
+
+
+@pytest.mark.parametrize("contrast", [1e-6, 1e-3, 0.05, 1.0, 3.0])
+def test_symmetric_choice_skipping_rings_below_the_best_is_numpys(contrast):
+    """`_shadow.most_symmetric` leaves out a ring whose sample range cannot reach the best score so far:
+    the choice stays numpy's (the first of the largest quality x contrast of the rings' point-symmetric
+    parts) on X's of every contrast down to a few float32 steps, among noise, flat rings and ties."""
+    from dmais_pipe.markers import _shadow
+    from dmais_pipe.markers.rings import ring_stats
+
+    rng = np.random.default_rng(int(contrast * 1e6) % 1000 + 150)
+    groups, k, n = 81, 24, 60
+    angle = 2.0 * np.pi * (np.arange(k) + 0.5) / k
+    edges = rng.uniform(0, np.pi, (n * groups, 1))
+    x = np.sign(np.cos(angle[None] - edges) * np.cos(angle[None] - edges - rng.uniform(0.6, 1.4, (n * groups, 1))))
+    level = rng.uniform(0.0, 11.0, (n * groups, 1))
+    logs = level + contrast * rng.uniform(0.1, 1.0, (n * groups, 1)) * x + contrast * rng.normal(0, 0.3, (n * groups, k))
+    logs[::7] = level[::7]  # flat
+    logs[3::11] = logs[2::11][:len(logs[3::11])]  # ties with the ring before
+    logs = logs.astype(np.float32)
+    symmetric = 0.5 * (logs.astype(np.float64) + np.roll(logs.astype(np.float64), k // 2, axis=1))
+    quality, high, low, _ = ring_stats(symmetric)
+    want = np.argmax((quality * (high - low)).reshape(n, groups), axis=1)
+    np.testing.assert_array_equal(_shadow.most_symmetric(logs, groups), want)

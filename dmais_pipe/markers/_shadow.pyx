@@ -9,7 +9,7 @@ compares both with numpy's."""
 
 import numpy as np
 
-from libc.math cimport INFINITY, exp, isfinite
+from libc.math cimport INFINITY, exp, fabs, isfinite
 
 from dmais_pipe.markers._rings cimport one_ring
 from dmais_pipe.markers._sums cimport pairwise_sum
@@ -28,7 +28,8 @@ def most_symmetric(logs, Py_ssize_t groups):
     cdef double[::1] w = work
     masks = np.empty(k if k else 1, dtype=np.uint8)
     cdef unsigned char[::1] m = masks
-    cdef double quality, high, low, score, top
+    cdef double quality, high, low, score, top, lo, hi
+    cdef bint nan
     if k == 0:
         raise ValueError("rings of no samples")
     with nogil:
@@ -36,8 +37,17 @@ def most_symmetric(logs, Py_ssize_t groups):
             top = -INFINITY
             for j in range(groups):
                 r = i * groups + j
+                lo, hi, nan = INFINITY, -INFINITY, False
                 for a in range(k):  # np.roll by half: the sample half a ring before
                     w[a] = 0.5 * (<double>v[r, a] + <double>v[r, a - half if a >= half else a - half + k])
+                    lo = w[a] if w[a] < lo else lo
+                    hi = w[a] if w[a] > hi else hi
+                    nan = nan or w[a] != w[a]
+                if j > 0 and not nan and (hi - lo) + 1e-6 * (hi - lo) + 1e-9 * (fabs(hi) + fabs(lo)) < top:
+                    # Its score, quality (<= 1) x (bright - dark level), the levels means of samples within
+                    # lo..hi, is at most hi - lo, with room for the means' roundings (~k 1e-16 of the values):
+                    # below the best, it is not chosen (nor is a ring with a NaN, whose score is, skipped).
+                    continue
                 if not_four(&w[0], k):
                     score = 0.0  # quality 0 times finite levels: 0 (or -0, equal to it in every comparison)
                 else:

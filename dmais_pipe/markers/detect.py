@@ -47,7 +47,8 @@ from . import _rings, _shadow
 from .centring import seed
 from .neighbours import Neighbours
 from .refine import ASYMMETRIC, NO_CLEAN_X, refine_corners
-from .rings import RADII, as_float_image, clean_radius, ring_offsets, ring_quality, ring_sample, ring_stats, sample
+from .rings import (RADII, as_float_image, clean_radius, half_turn, ring_offsets, ring_quality, ring_sample, ring_stats,
+                    sample)
 from .shadow import SAME_RATIO, SHADOW_REASON, both_sides, line_ends, log_ring_sample, shadowed_corners, step_masks
 
 COLUMNS = ["u", "v", "score", "sigma_px", "fit_residual"]
@@ -469,6 +470,8 @@ SHADOW_SAMPLES = 24  # samples per ring of the shadowed-X test
 MIN_SHADOW_LOG = 0.3  # least darkening in the shade, as a step of log(intensity): ~26% of the light
 SHADOW_SIDE_SAMPLES = 3  # samples of each level of the X on either side of a shadow line, at least
 _SHADOW_LINES = tuple((phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.5, 0.0, 0.5))
+_SHADOW_PHI = np.array([phi for phi, _ in _SHADOW_LINES])  # the lines' directions, made once
+_SHADOW_PHI.flags.writeable = False
 
 
 def shadowed_x(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: float = MIN_QUALITY) -> np.ndarray:
@@ -488,7 +491,7 @@ def shadowed_x(img: np.ndarray, uv: np.ndarray, contrast: float, min_quality: fl
     # straight edge, where it is flat).
     offsets = ring_offsets(SHADOW_RADII[0], SHADOW_SAMPLES)
     values = log_ring_sample(img, uv, offsets)
-    quality, high, low, _ = ring_stats(0.5 * (values + np.roll(values, SHADOW_SAMPLES // 2, axis=1)))
+    quality, high, low, _ = ring_stats(0.5 * (values + half_turn(values)))
     ok = (quality >= 0.5) & (high - low >= MIN_SHADOW_LOG)
     direction = None
     for radius in SHADOW_RADII:
@@ -514,7 +517,7 @@ def _best_shadow_line(values: np.ndarray, contrast: float, min_quality: float):
     ends = line_ends(_SHADOW_LINES, values.shape[1]).reshape(len(_SHADOW_LINES), -1)
     passes, best = _shadow.shadow_lines(values, g, shade, ends, contrast, min_quality, MIN_SHADOW_LOG,
                                         SHADOW_SIDE_SAMPLES, SAME_RATIO)
-    return passes, np.array([phi for phi, _ in _SHADOW_LINES])[best]
+    return passes, _SHADOW_PHI[best]
 
 
 def _shadow_steps(values: np.ndarray):
@@ -522,7 +525,7 @@ def _shadow_steps(values: np.ndarray):
     the point asymmetry of log rings values (m, k))."""
     k = values.shape[1]
     shade, h = step_masks(_SHADOW_LINES, k)  # (l, k) each
-    anti = values - np.roll(values, k // 2, axis=1)
+    anti = values - half_turn(values)
     return shade, anti @ h.T / (h * h).sum(axis=1)
 
 

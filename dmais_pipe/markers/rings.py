@@ -199,6 +199,12 @@ def _ring_stats(values: np.ndarray):
     return quality, mean_high, mean_low, high
 
 
+def half_turn(values: np.ndarray) -> np.ndarray:
+    """np.roll(values, k // 2, axis=1) of rings (m, k): each ring's samples half a turn on (the same values)."""
+    k = values.shape[1]
+    return np.concatenate([values[:, k - k // 2:], values[:, :k - k // 2]], axis=1)
+
+
 def ring_offsets(radius: float, k: int = RING_SAMPLES) -> np.ndarray:
     """(k, 2) offsets of k samples on a circle of `radius` px, half a step off the x axis."""
     return radius * _unit_ring(k)

@@ -47,7 +47,7 @@ from scipy.special import ndtr
 
 from . import _shadow, xfit
 from .centring import seed
-from .rings import RADII, clean_radius, ring_offsets, ring_params, ring_sample, ring_stats, sample
+from .rings import RADII, clean_radius, half_turn, ring_offsets, ring_params, ring_sample, ring_stats, sample
 from .xfit import rejection_reasons
 
 SHADOW_REASON = "shadow edge at the corner"
@@ -80,6 +80,11 @@ CENTRE_REACH_PX = 4  # and how far from the candidate it looks (px)
 CENTRE_SAMPLES = 48  # samples of that ring
 CENTRE_X_LOG = 0.9  # least log contrast of the X on the start ring about the symmetric centre
 _STEPS = tuple((phi, t) for phi in np.radians(np.arange(0.0, 360.0, 15.0)) for t in (-0.6, -0.3, 0.0, 0.3, 0.6))
+_STEP_LINES = np.array(_STEPS)  # (l, 2): np.array(_STEPS), made once
+_STEP_LINES.flags.writeable = False
+#: `symmetric_centre`'s grids (g, 2): of 1 px within CENTRE_REACH_PX, then of 0.5 px about the best.
+_CENTRE_GRIDS = tuple(np.array([(x, y) for y in steps for x in steps])
+                      for steps in (np.arange(-CENTRE_REACH_PX, CENTRE_REACH_PX + 1e-9), 0.5 * np.arange(-1.0, 2.0)))
 
 
 def shadowed_corners(img: np.ndarray, uv: np.ndarray, contrast, min_quality: float, min_radius: float):
@@ -174,9 +179,7 @@ def symmetric_centre(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     constant, so this stays within ~1 px of a shadowed X's corner where the candidate and the fits
     are drawn 3-4 px towards the shadow edge."""
     uv = np.asarray(uv, dtype=float).reshape(-1, 2)
-    reach = np.arange(-CENTRE_REACH_PX, CENTRE_REACH_PX + 1e-9)
-    for steps, k in ((reach, CENTRE_SAMPLES // 2), (0.5 * np.arange(-1.0, 2.0), CENTRE_SAMPLES)):
-        grid = np.array([(x, y) for y in steps for x in steps])
+    for grid, k in zip(_CENTRE_GRIDS, (CENTRE_SAMPLES // 2, CENTRE_SAMPLES)):
         uv = _most_symmetric_x(img, uv[:, None, :] + grid[None], k)
     return uv
 
@@ -362,8 +365,7 @@ def _start_params(img: np.ndarray, uv: np.ndarray, min_x_log: float = MIN_X_LOG)
     # Cheap first: the point-symmetric part of the ring, where a shadow line near the centre adds
     # little more than a constant, must already be an X (not a straight edge: flat there) of a
     # marker's log contrast, which the shade does not change (texture's is mostly less).
-    k = logs.shape[1]
-    quality, high, low, _ = ring_stats(0.5 * (logs + np.roll(logs, k // 2, axis=1)))
+    quality, high, low, _ = ring_stats(0.5 * (logs + half_turn(logs)))
     is_x = (quality >= MIN_START_QUALITY) & (high - low >= min_x_log)
     symmetric = np.nonzero(is_x)[0]
     phi, offset, step = (np.full(len(uv), np.nan) for _ in range(3))
@@ -373,10 +375,12 @@ def _start_params(img: np.ndarray, uv: np.ndarray, min_x_log: float = MIN_X_LOG)
     # ring reaches past a small marker's outline; a narrower one stands in, less surely.
     near = np.nonzero(np.isfinite(phi))[0]
     sure = np.zeros(len(uv), dtype=bool)
+    params = np.full((len(uv), xfit.N_SHADED), np.nan)
+    if len(near) == 0:  # no step (the wider and narrower rings' tests of none change nothing)
+        return params, is_x, sure
     sure[near] = _same_step(img, uv[near], phi[near], CHECK_RING_PX)
     inner = near[~sure[near]]
     phi[inner[~_same_step(img, uv[inner], phi[inner], INNER_RING_PX)]] = np.nan
-    params = np.full((len(uv), xfit.N_SHADED), np.nan)
     ok = np.isfinite(phi)
     if not ok.any():
         return params, is_x, sure
@@ -406,7 +410,7 @@ def _best_step(logs: np.ndarray):
     line, ok, step, lit = _shadow.best_steps(logs, g, norm, shade, line_ends(_STEPS, k).reshape(len(_STEPS), -1),
                                              MIN_STEP_LOG, TOP_STEPS, MIN_START_QUALITY, SAME_RATIO,
                                              MIN_SIDE_SAMPLES)
-    lines, nan = np.array(_STEPS)[line], np.full(n, np.nan)
+    lines, nan = _STEP_LINES[line], np.full(n, np.nan)
     return np.where(ok, lines[:, 0], nan), np.where(ok, lines[:, 1] * START_RING_PX, nan), np.where(ok, step, nan), lit
 
 
@@ -415,7 +419,7 @@ def _step_sizes(logs: np.ndarray):
     asymmetry of the log rings logs (n, k) best, the lines' asymmetries' squared norms (l,))."""
     k = logs.shape[1]
     shade, asym = step_masks(_STEPS, k)
-    anti = logs - np.roll(logs, k // 2, axis=1)
+    anti = logs - half_turn(logs)
     norm = np.maximum((asym * asym).sum(axis=1), 1e-9)
     return shade, anti @ asym.T / norm, norm
 
