@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import math
 import shutil
+import subprocess
 
 import pandas as pd
 import pytest
 
 from dmais_pipe import cli
+from dmais_pipe.bench import campaign as campaign_bench
 from dmais_pipe.bench.campaign import _slurm_rows, campaign_dataset, given_flight_source, job_stats
 from dmais_pipe.dataset import Dataset
 from dmais_pipe.errors import DmaisError
@@ -158,3 +160,24 @@ def test_a_source_with_the_flight_observations_given_extracts_no_flight_image(so
     dataset = Dataset.load(given)
     assert dataset.images_to_extract("flight") == []
     assert dataset.images_to_extract("intrinsics") == Dataset.load(source).images_to_extract("intrinsics")
+
+
+@pytest.mark.parametrize("plugin", [True, False])
+def test_the_dry_runs_use_the_slurm_profile_only_where_its_plugin_is_installed(tmp_path, monkeypatch, capsys, plugin):
+    commands = []
+
+    def run(command, root, timeout):
+        commands.append(command)
+        (tmp_path / "plan").mkdir(exist_ok=True)
+        (tmp_path / "plan" / "p.json").write_text('{"batches": {"markers": {"b": {"images": 60}}}}')
+        done = subprocess.CompletedProcess(command, 0, "Job stats:\njob count\nmarkers 1\ntotal 1\n", "")
+        return 1.0, done
+
+    monkeypatch.setattr(campaign_bench, "_run", run)
+    monkeypatch.setattr(campaign_bench, "has_slurm_plugin", lambda: plugin)
+    rows, plan = campaign_bench._dry_runs(tmp_path, tmp_path / "c.yaml", tmp_path)
+    profiled = [c for c in commands if "--workflow-profile" in c]
+    assert len(commands) == (4 if plugin else 2) and len(profiled) == (2 if plugin else 0)
+    assert any(r["metric"] == "dry_run_profile_cold_s" for r in rows) == plugin
+    assert ("make install-slurm" in capsys.readouterr().out) != plugin
+    assert plan["batches"]["markers"]["b"]["images"] == 60

@@ -26,6 +26,7 @@ image (decode + detect + refine + identify + write) and <= 0.1 s of cluster over
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import logging
 import os
@@ -190,6 +191,8 @@ def bench_campaign(source: Path, out: Path, csv: Path, frames: int = 10_000, fra
     jobs = None
     if slurm and shutil.which("sbatch") is None:
         print("slurm: skipped: sbatch is not on PATH")
+    elif slurm and not has_slurm_plugin():
+        print(f"slurm: skipped: {NO_PLUGIN}")
     elif slurm:
         jobs = _on_slurm(root, config, results, plan, slurm_batches)
         rows += _slurm_rows(jobs)
@@ -304,10 +307,22 @@ def job_stats(text: str) -> dict[str, int]:
 # ------------------------------------------------------------------------------ dry runs
 
 
+NO_PLUGIN = "Snakemake's SLURM executor plugin is not installed (make install-slurm)"
+
+
+def has_slurm_plugin() -> bool:
+    """Whether Snakemake's SLURM executor plugin, which the SLURM profile names, is installed."""
+    return importlib.util.find_spec("snakemake_executor_plugin_slurm") is not None
+
+
 def _dry_runs(root: Path, config: Path, results: Path) -> tuple[list[dict], dict]:
-    """Rows of the four dry runs and of the jobs they plan; the plan file the runs made (`dmais plan`)."""
+    """Rows of the four dry runs (the two without the SLURM profile where its plugin is not installed) and
+    of the jobs they plan; the plan file the runs made (`dmais plan`)."""
     rows, stats = [], {}
-    for profile in (False, True):
+    profiles = (False, True) if has_slurm_plugin() else (False,)
+    if len(profiles) == 1:
+        print(f"dry runs with the SLURM profile: skipped: {NO_PLUGIN}")
+    for profile in profiles:
         shutil.rmtree(results / "plan", ignore_errors=True)
         for run in ("cold", "warm"):
             command = [_tool("snakemake"), "-n", "--configfile", str(config), *(PROFILE if profile else ())]
