@@ -8,13 +8,17 @@ import shutil
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 
 from dmais_pipe.dataset import Dataset
+from dmais_pipe.errors import DmaisError
 from dmais_pipe.markers.detect import detect
-from dmais_pipe.markers.extract import _prediction_model, process_image, search_windows
+from dmais_pipe.markers.extract import _prediction_model, predicted_projections, process_image, search_windows
 from dmais_pipe.markers.windows import detect_in_windows
 from dmais_pipe.rig import Rig
 from dmais_pipe.sim.config import DEFAULTS
+from dmais_pipe.stages import markers
+from dmais_pipe.workspace import Workspace
 
 SCALE = 0.25  # the paper's rig at 1024 x 768 px: the same fields of view, 2 m markers of ~65 px
 
@@ -190,3 +194,39 @@ def test_a_part_of_windows_far_apart_is_read_only_about_them(flight, monkeypatch
     pd.testing.assert_frame_equal(found, _in(whole, boxes), check_exact=True)
     pd.testing.assert_frame_equal(_sorted(lost), _sorted(_in(rejected, boxes)), check_exact=True)
     assert len(found) >= 3
+
+
+def test_a_given_pos_lever_arm_puts_the_predictions_at_the_rig_s_centre(flight, tmp_path):
+    """frames.csv's POS is the rig's centre plus its lever arm turned into the world, plus the POS's
+    noise (2-3 cm): with the lever arm given, the predictions are the true centre's to that noise; not
+    given (0.37 m) or reversed, they are further off. The windows of a POS-sized position bound then
+    find every id of the whole image."""
+    root, dataset, rig = flight
+    lever = np.array(yaml.safe_load((root / "truth" / "simulation.yaml").read_text())["flight"]["lever_arm_m"])
+    truth = pd.read_csv(root / "truth" / "frames.csv", dtype={"frame": str}).set_index("frame")
+
+    def at_the_centre(frames):
+        frames[["pos_x", "pos_y", "pos_z"]] = truth.loc[frames["frame"], ["x", "y", "z"]].to_numpy()
+
+    centred = _copy(root, tmp_path, at_the_centre)
+    for image in _flight_images(dataset):
+        exact = predicted_projections(centred, image, rig)[0]
+        off = {name: np.abs(predicted_projections(dataset, image, rig, lever_arm=arm)[0] - exact).max()
+               for name, arm in (("given", lever), ("none", None), ("reversed", -lever))}
+        assert off["given"] < 0.3 * off["none"] < 0.3 * off["reversed"], (image, off)
+        phases = {}
+        windowed = process_image(dataset, image, rig, attitude_deg=BOUND_DEG, position_m=0.1, lever_arm=lever,
+                                 seconds=phases)
+        assert phases["windows"] > 0 and phases["whole_image"] == 0, image
+        whole = process_image(dataset, image, rig, attitude_deg=None)
+        named = whole[whole["point_id"] != ""].reset_index(drop=True)
+        pd.testing.assert_frame_equal(windowed[windowed["point_id"] != ""].reset_index(drop=True), named)
+
+
+@pytest.mark.parametrize("arm", [("0.1", "0.2"), ("0", "0", "x"), ("0", "nan", "0")])
+def test_a_pos_lever_arm_that_is_not_three_numbers_stops_the_markers_stage(flight, tmp_path, arm):
+    root, _, _ = flight
+    workspace = Workspace.open(root, tmp_path)
+    with pytest.raises(DmaisError, match="markers: setting pos_lever_arm: .* is not three numbers"):
+        markers.run(workspace, markers.Conf(pos_lever_arm=arm))
+    assert not any(tmp_path.rglob("*.csv"))  # stopped before any image

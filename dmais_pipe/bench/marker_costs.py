@@ -7,10 +7,12 @@
   calibration stages observation-only), simulated once into the cache and reused;
 - `encoded`: that dataset with its flight images as JPEG (quality 95) or uncompressed 16-bit TIFF
   (the 8-bit values x 257), once into the cache;
-- two priors of the same images: the simulator's INS (0.5 deg per axis beside a 0.5 deg boresight,
-  frames.csv as simulated) with the markers stage's default bounds, and a survey-grade INS
+- three priors of the same images: the simulator's INS (0.5 deg per axis beside a 0.5 deg boresight,
+  frames.csv as simulated) with the markers stage's default bounds; a survey-grade INS
   (`survey_ins`: the true attitude turned by SURVEY_INS_DEG per axis, the boresight calibrated away)
-  with the bound SURVEY_BOUND_DEG;
+  with the bound SURVEY_BOUND_DEG and the default position bound (the POS's lever arm not given);
+  and that INS with the POS's lever arm given (the simulator's, as surveyed) and the position bound
+  SURVEY_POSITION_M (the POS's own 2-3 cm);
 - per image, the windowed search and the whole image's (`markers.extract.process_image`) one after
   the other, each phase's seconds (decode, detect, refine, identify, write: the markers file), the
   lowest total of `repeats` runs; whether the ids and positions are the same (to 1e-6 px) and the
@@ -53,6 +55,8 @@ FORMATS = {"jpeg": (".jpg", [cv2.IMWRITE_JPEG_QUALITY, 95]), "tiff16": (".tif", 
 #: A survey-grade INS (post-processed, its boresight to the rig calibrated): deg per axis, and the bound searched.
 SURVEY_INS_DEG = 0.01
 SURVEY_BOUND_DEG = 0.05
+#: The position bound searched with the POS's lever arm given: the simulator's POS, 2-3 cm per axis.
+SURVEY_POSITION_M = 0.1
 PHASES = ("decode_s", "detect_s", "refine_s", "identify_s", "write_s")
 SAME_PX = 1e-6
 
@@ -128,14 +132,14 @@ def survey_ins(source: Path, seed: int = 40) -> Path:
 
 
 def image_costs(dataset: Dataset, image: str, rig: Rig, attitude_deg: float | None, position_m: float,
-                results: Workspace, repeats: int) -> dict:
+                results: Workspace, repeats: int, lever_arm: np.ndarray | None = None) -> dict:
     """One image's phases (seconds, the run of least total of `repeats`), its markers frame
     (`found`), the windows searched and whether the whole image was."""
     best = None
     for _ in range(repeats):
         seconds = {}
         found = process_image(dataset, image, rig, seconds=seconds, attitude_deg=attitude_deg,
-                              position_m=position_m)
+                              position_m=position_m, lever_arm=lever_arm)
         started = time.perf_counter()
         results.save_markers(image, found)
         seconds["write_s"] = time.perf_counter() - started
@@ -158,7 +162,8 @@ def same_results(windowed: pd.DataFrame, whole: pd.DataFrame, windows: np.ndarra
     return same_ids, windowed.reset_index(drop=True).equals(whole[inside].reset_index(drop=True))
 
 
-def path_rows(root: Path, attitude_deg: float, position_m: float, repeats: int) -> tuple[list[dict], list[dict]]:
+def path_rows(root: Path, attitude_deg: float, position_m: float, repeats: int,
+              lever_arm: np.ndarray | None = None) -> tuple[list[dict], list[dict]]:
     """Per flight image of the dataset `root`: a row of the windowed search and one of the whole image."""
     dataset = Dataset.load(root)
     rig = Rig.load(root / "truth" / "rig.json")
@@ -167,9 +172,9 @@ def path_rows(root: Path, attitude_deg: float, position_m: float, repeats: int) 
         results = Workspace(dataset, Path(scratch))
         for image in dataset.images_of("flight")["image"]:
             dataset.read_image(image)  # the file in the page cache for both
-            runs = {path: image_costs(dataset, image, rig, bound, position_m, results, repeats)
+            runs = {path: image_costs(dataset, image, rig, bound, position_m, results, repeats, lever_arm)
                     for path, bound in (("windowed", attitude_deg), ("whole", None))}
-            model = _prediction_model(dataset, image, rig)
+            model = _prediction_model(dataset, image, rig, lever_arm=lever_arm)
             windows = None if runs["windowed"]["whole_image"] else search_windows(model, attitude_deg, position_m)
             same_ids, same_found = same_results(runs["windowed"]["found"], runs["whole"]["found"], windows)
             for path, run in runs.items():
@@ -183,19 +188,21 @@ def path_rows(root: Path, attitude_deg: float, position_m: float, repeats: int) 
 # ------------------------------------------------------------------------------ memory
 
 
-def peak_memory(root: Path, image: str, attitude_deg: float | None, position_m: float) -> dict:
+def peak_memory(root: Path, image: str, attitude_deg: float | None, position_m: float,
+                lever_arm: np.ndarray | None = None) -> dict:
     """One image's marker extraction in a fresh process: its resident size before decoding (MB), its
     peak (MB) and the decoded image's size (MB)."""
     context = multiprocessing.get_context("spawn")
     with context.Pool(1) as pool:
-        return pool.apply(_measure_memory, (str(root), image, attitude_deg, position_m))
+        return pool.apply(_measure_memory, (str(root), image, attitude_deg, position_m, lever_arm))
 
 
-def _measure_memory(root: str, image: str, attitude_deg: float | None, position_m: float) -> dict:
+def _measure_memory(root: str, image: str, attitude_deg: float | None, position_m: float,
+                    lever_arm: np.ndarray | None = None) -> dict:
     dataset = Dataset.load(root)
     rig = Rig.load(Path(root) / "truth" / "rig.json")
     before = _status_mb("VmRSS")
-    process_image(dataset, image, rig, attitude_deg=attitude_deg, position_m=position_m)
+    process_image(dataset, image, rig, attitude_deg=attitude_deg, position_m=position_m, lever_arm=lever_arm)
     peak = _status_mb("VmHWM")
     return {"rss_before_mb": before, "peak_rss_mb": peak, "decoded_mb": dataset.read_image(image).nbytes / 2**20}
 
@@ -221,22 +228,32 @@ def marker_phase_table(presets: Path, cache: Path, frames: int = 1, repeats: int
         source = rendered_flight(presets / PRESETS[size], cache, frames)
         for fmt in FORMATS:
             root = encoded(source, fmt)
-            for ins, folder, bound in (("simulator", root, PRIOR_ATTITUDE_DEG),
-                                       ("survey", survey_ins(root), SURVEY_BOUND_DEG)):
+            surveyed = survey_ins(root)
+            for ins, folder, bound, position, lever in (
+                    ("simulator", root, PRIOR_ATTITUDE_DEG, PRIOR_POSITION_M, None),
+                    ("survey", surveyed, SURVEY_BOUND_DEG, PRIOR_POSITION_M, None),
+                    ("survey+lever", surveyed, SURVEY_BOUND_DEG, SURVEY_POSITION_M, simulated_lever_arm(root))):
                 log.info("markers bench: %s %s, %s INS", size, fmt, ins)
-                windowed, whole = path_rows(folder, bound, PRIOR_POSITION_M, repeats)
+                windowed, whole = path_rows(folder, bound, position, repeats, lever)
                 first = pd.DataFrame(windowed)["image"].iloc[0]
                 for path, table, memory_bound in (("windowed", windowed, bound), ("whole", whole, None)):
-                    memory = peak_memory(folder, first, memory_bound, PRIOR_POSITION_M)
-                    rows.append(_summary(size, fmt, ins, bound, path, pd.DataFrame(table), memory))
+                    memory = peak_memory(folder, first, memory_bound, position, lever)
+                    rows.append(_summary(size, fmt, ins, bound, position, path, pd.DataFrame(table), memory))
     return pd.DataFrame(rows)
 
 
-def _summary(size: str, fmt: str, ins: str, bound: float, path: str, table: pd.DataFrame, memory: dict) -> dict:
+def simulated_lever_arm(root: Path) -> np.ndarray:
+    """(3,) m: the POS lever arm the simulator put into the dataset `root`'s frames.csv (its truth)."""
+    return np.array(yaml.safe_load((root / "truth" / "simulation.yaml").read_text())["flight"]["lever_arm_m"], float)
+
+
+def _summary(size: str, fmt: str, ins: str, bound: float, position: float, path: str, table: pd.DataFrame,
+             memory: dict) -> dict:
     """One row of `marker_phase_table` from the per-image rows of one path."""
     means = {phase: float(table[phase].mean()) for phase in PHASES}
     total = sum(means.values())
-    return {"size": size, "format": fmt, "ins": ins, "bound_deg": bound, "path": path, "images": len(table),
+    return {"size": size, "format": fmt, "ins": ins, "bound_deg": bound, "bound_m": position, "path": path,
+            "images": len(table),
             **means, "total_s": total, "total_over_decode": total / means["decode_s"],
             "windows": float(table["windows"].mean()), "whole_images": int(table["whole_image"].sum()),
             "identified": int(table["identified"].sum()), "same_ids": bool(table["same_ids"].all()),

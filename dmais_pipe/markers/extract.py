@@ -11,7 +11,10 @@ Predicted projections for identification come from the priors:
   else (and always for intrinsics images) a nominal pinhole (dataset.yaml focal_px, principal point
   at the image centre, no distortion);
 - flight images: frames.csv POS position + INS attitude (rig_from_world) and the calibrated rig;
-  without a rig (before `dmais extrinsics`) flight detections stay unidentified.
+  without a rig (before `dmais extrinsics`) flight detections stay unidentified. With the POS lever
+  arm l (the POS reference point in the rig frame, surveyed or an earlier run's tables/lever_arm.csv)
+  the rig's centre is the POS position less R_world_from_rig l (the POS convention of `evaluate`), and
+  the position bound need only cover the POS's own error.
 
 With priors, the markers are searched first in windows about their predicted pixels
 (`search_windows`): each as wide as the priors' error bounds (PRIOR_ATTITUDE_DEG, PRIOR_POSITION_M)
@@ -55,7 +58,8 @@ PRIOR_TURN_DEG = 1.0
 KEYSTONE_PX = 6.0
 #: The priors' error bounds the search windows allow for (`search_windows`): the attitude's (the
 #: simulator's INS: 0.5 deg per axis beside a 0.5 deg boresight; its calibration priors: 1 deg per
-#: axis) and the centre's (RTK or POS: cm, beside the rig's lever arm to the POS, 0.37 m there).
+#: axis) and the centre's (RTK or POS: cm, beside the rig's lever arm to the POS, 0.37 m there,
+#: when the lever arm is not given).
 PRIOR_ATTITUDE_DEG = 3.0
 PRIOR_POSITION_M = 0.5
 #: Windows covering more than this share of an image (summed) cost about as much as the whole image.
@@ -83,9 +87,12 @@ def _first_row(table: pd.DataFrame, column: str, value, names: tuple) -> dict:
     return {name: table.iat[at, table.columns.get_loc(name)] for name in names}
 
 
-def _prediction_model(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None):
+def _prediction_model(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None,
+                      lever_arm: np.ndarray | None = None):
     """(camera, cam_from_world, points) that predict where `image` sees the known points, or a
-    sentence saying what is missing for that (which priors, focal_px, the calibrated rig)."""
+    sentence saying what is missing for that (which priors, focal_px, the calibrated rig).
+    lever_arm (3,): the POS reference point in the rig frame (m), taken off a flight image's POS
+    position; None: the POS position stands for the rig's centre."""
     row = _first_row(dataset.images, "image", image, _IMAGE_COLUMNS)
     camera_name = row["camera"]
     if row["stage"] == "flight":
@@ -100,6 +107,8 @@ def _prediction_model(dataset: Dataset, image: str, rig: Rig | None = None, cali
         if not np.all(np.isfinite(q)):
             return f"frame {row['placement']!r} of frames.csv has no prior_qw..prior_qz (the INS attitude)"
         rig_from_world = Rigid3.from_quat(q, np.zeros(3))
+        if lever_arm is not None:  # POS = centre + R_world_from_rig @ lever_arm
+            centre = centre - rig_from_world.R.T @ np.asarray(lever_arm, dtype=float)
         rig_from_world = Rigid3.from_quat(q, -rig_from_world.R @ centre)
         points = dataset.ground_points if len(dataset.ground_points) else dataset.points
         return rig.cameras[camera_name], rig.cam_from_rig[camera_name] * rig_from_world, points
@@ -130,12 +139,12 @@ def wide_field(camera: Camera) -> bool:
 
 
 def predicted_projections(dataset: Dataset, image: str, rig: Rig | None = None, calibrated: Camera | None = None,
-                          margin_px: float = PREDICTION_MARGIN_PX):
+                          margin_px: float = PREDICTION_MARGIN_PX, lever_arm: np.ndarray | None = None):
     """(uv (m, 2), point ids (m,)) of the known points predicted in `image` from the priors, or None
     when the priors (or a camera model) are missing. Only points in front of the camera and within
     margin_px of the image are kept. rig: for flight images; calibrated: the image camera's
-    calibrated intrinsics, used for extrinsics images."""
-    model = _prediction_model(dataset, image, rig, calibrated)
+    calibrated intrinsics, used for extrinsics images; lever_arm: as `_prediction_model`."""
+    model = _prediction_model(dataset, image, rig, calibrated, lever_arm)
     return None if isinstance(model, str) else _projections(model, margin_px)
 
 
@@ -199,7 +208,7 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
                   margin_px: float = PREDICTION_MARGIN_PX, gate_px: float = VERIFY_GATE_PX,
                   identify_gate_px: float = GATE_PX, identify_min_inliers: int = MIN_INLIERS,
                   seconds: dict | None = None, attitude_deg: float | None = PRIOR_ATTITUDE_DEG,
-                  position_m: float = PRIOR_POSITION_M) -> pd.DataFrame:
+                  position_m: float = PRIOR_POSITION_M, lever_arm: np.ndarray | None = None) -> pd.DataFrame:
     """Detections of one image with ids: DataFrame of `detect`'s columns, point_id ('' when unidentified)
     and id_refusal (why a detection has no id, '' where it has one; not written to the markers file).
 
@@ -207,7 +216,7 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
     are kept; gate_px: the pose verification's residual gate for calibration images;
     identify_gate_px, identify_min_inliers: `identify`'s final gate and fewest matches;
     attitude_deg, position_m: the priors' error bounds of the search windows (`search_windows`;
-    attitude_deg None: the whole image is searched);
+    attitude_deg None: the whole image is searched); lever_arm: the POS lever arm (`_prediction_model`);
     seconds: if given, receives the wall time of each phase (decode_s, detect_s, refine_s,
     identify_s), the windows searched (0: none) and whole_image (1 where the whole image was).
     """
@@ -216,7 +225,7 @@ def process_image(dataset: Dataset, image: str, rig: Rig | None = None, calibrat
     started = time.perf_counter()
     pixels = dataset.read_image(image)
     seconds["decode_s"] = time.perf_counter() - started
-    model = _prediction_model(dataset, image, rig, calibrated)  # a sentence: why there is none
+    model = _prediction_model(dataset, image, rig, calibrated, lever_arm)  # a sentence: why there is none
     projected = None if isinstance(model, str) else _projected_points(model, margin_px)  # windows' and identify's
     windows = None if projected is None or attitude_deg is None else search_windows(
         model, attitude_deg, position_m, identify_gate_px, margin_px, projected)

@@ -91,6 +91,18 @@ def configure(confs: Mapping[str, object], name: str, overrides: Iterable[str] =
     return dataclasses.replace(conf, **changes)
 
 
+def three_numbers(items: tuple, what: str) -> tuple[float, float, float]:
+    """A tuple setting of three finite numbers x, y, z (e.g. a lever arm in m) as floats; DmaisError
+    naming `what` ("<stage>: setting <key>") otherwise."""
+    try:
+        values = tuple(float(v) for v in items)
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(v - v == 0 for v in values):  # finite
+        raise DmaisError(f"{what}: {','.join(map(str, items))!r} is not three numbers x,y,z (m)")
+    return values
+
+
 def _check_range(value, metadata, what: str) -> None:
     minimum, above = metadata.get("minimum"), metadata.get("above")
     if minimum is not None and value < minimum:

@@ -37,7 +37,7 @@ from ..markers.extract import (PREDICTION_MARGIN_PX, PRIOR_ATTITUDE_DEG, PRIOR_P
 from ..markers.identify import GATE_PX, MIN_INLIERS
 from ..files import write_csv_atomic
 from ..plan import MARKERS_PER_JOB
-from . import setting
+from . import setting, three_numbers
 from ..rig import Rig
 from ..workspace import Workspace
 
@@ -65,6 +65,10 @@ class Conf:
     prior_position_m: float = setting(
         PRIOR_POSITION_M, "the largest error of an image's prior centre (m; a flight image's: the POS's and its "
                           "lever arm's)", minimum=0)
+    pos_lever_arm: tuple = setting((), "the POS reference point in the rig frame, x,y,z (m; surveyed, or "
+                                   "tables/lever_arm.csv of an earlier run): given, a flight image's prior centre "
+                                   "is frames.csv's POS position less it, and prior_position_m need only cover the "
+                                   "POS's error and the lever arm's")
     whole_image: bool = setting(False, "search every image whole, not first the windows about the predictions")
 
 
@@ -74,6 +78,7 @@ CONFS = {"default": Conf()}
 def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
     """Every image with a file and no given observations -> markers/<image>.csv, then observations.csv."""
     dataset = workspace.dataset
+    lever_arm(conf)  # a setting that does not parse stops the stage before any image
     todo = dataset.images_to_extract()
     for image in todo:  # fail before any work on a missing file: the dataset's own error names it
         if dataset.image_path(image) is None or not dataset.image_path(image).is_file():
@@ -91,6 +96,7 @@ def run(workspace: Workspace, conf: Conf = Conf()) -> list[Path]:
 def run_image(workspace: Workspace, image: str, conf: Conf = Conf()) -> list[Path]:
     """One image's detections with ids -> RESULTS/markers/<image>.csv."""
     dataset = workspace.dataset
+    lever_arm(conf)
     if image not in dataset.images_to_extract():
         raise DmaisError(f"markers: {image!r} is not an image of {dataset.root / 'images.csv'} with a file "
                          "and no given observations")
@@ -115,6 +121,7 @@ def run_batch(workspace: Workspace, batch: str, per_job: int = MARKERS_PER_JOB, 
     from the same inputs is not redone. An image that fails does not stop the others; the batch then
     fails naming the first, and its finished images are kept for the next run."""
     dataset = workspace.dataset
+    lever_arm(conf)
     batches = workspace.marker_batches(per_job)
     if batch not in batches:
         raise DmaisError(f"markers: no batch {batch!r} among the {len(batches)} marker batches of {dataset.root} "
@@ -248,10 +255,15 @@ def _extract(workspace: Workspace, image: str, conf: Conf, rig: Rig | None, prog
     found = process_image(workspace.dataset, image, rig, _calibrated(workspace, image),
                           conf.prediction_margin_px, conf.verify_gate_px, conf.identify_gate_px,
                           conf.identify_min_inliers, seconds, None if conf.whole_image else conf.prior_attitude_deg,
-                          conf.prior_position_m)
+                          conf.prior_position_m, lever_arm(conf))
     log.info("markers %s%s: %d detected, %d identified (%.2f s)", progress, image, len(found),
              int((found["point_id"] != "").sum()), time.perf_counter() - started)
     return found
+
+
+def lever_arm(conf: Conf) -> tuple[float, float, float] | None:
+    """The setting pos_lever_arm as three numbers (m), None where it is not given; DmaisError otherwise."""
+    return three_numbers(conf.pos_lever_arm, "markers: setting pos_lever_arm") if conf.pos_lever_arm else None
 
 
 def _calibrated(workspace: Workspace, image: str) -> Camera | None:

@@ -33,7 +33,7 @@ from ..rig import Rig
 from ..geo import Geo, ned_attitude, ned_sigmas
 from ..workspace import (CENTER, MOUNTING_COLUMNS, POSE_GEO_COLUMNS, POSE_UNCERTAINTY_COLUMNS, QUAT, TRANSLATION,
                          ResultsError, Workspace)
-from . import setting
+from . import setting, three_numbers
 
 log = logging.getLogger(__name__)
 
@@ -247,21 +247,12 @@ def pos_prior(conf: Conf) -> tuple[np.ndarray | None, np.ndarray | None]:
     arm; DmaisError naming the setting where one is not three finite numbers (pos_sigma above 0)."""
     if not conf.pos_lever_arm:
         return None, None
-    lever, sigma = (_three_numbers(getattr(conf, key), key) for key in ("pos_lever_arm", "pos_sigma"))
+    lever, sigma = (np.array(three_numbers(getattr(conf, key), f"pose: setting {key}"))
+                    for key in ("pos_lever_arm", "pos_sigma"))
     if not (sigma > 0).all():
         given = ",".join(map(str, conf.pos_sigma))
         raise DmaisError(f"pose: setting pos_sigma: every value must be above 0, got {given}")
     return lever, sigma
-
-
-def _three_numbers(items: tuple, key: str) -> np.ndarray:
-    try:
-        values = np.array([float(v) for v in items])
-    except ValueError:
-        values = np.array([np.nan])
-    if values.shape != (3,) or not np.isfinite(values).all():
-        raise DmaisError(f"pose: setting {key}: {','.join(map(str, items))!r} is not three numbers x,y,z (m)")
-    return values
 
 
 def _with_in_flight_rigs(workspace: Workspace, conf: Conf, rig: Rig, record: dict, calibration: np.ndarray,
