@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import os
 from pathlib import Path
 
 import cv2
@@ -155,6 +156,47 @@ def test_read_image_converts_colour_and_keeps_16_bit(root):
     gray = ds.read_image("i0")
     assert gray.shape == (H, W) and gray.dtype == np.uint8
     assert ds.read_image("i1").dtype == np.uint16
+    assert ds.check_images() == 4
+
+
+def test_read_image_gives_the_files_pixels_in_every_format(root):
+    """PNG, TIFF (uncompressed and LZW) and JPEG, 8- and 16-bit, grey, BGR and BGRA: the pixels as
+    written (lossless) or as cv2.imdecode of the file's bytes converted to grey (JPEG, colour)."""
+    rng = np.random.default_rng(7)
+    grey8 = rng.integers(0, 256, (H, W), dtype=np.uint8)
+    grey16 = rng.integers(0, 65536, (H, W), dtype=np.uint16)
+    colour = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    files = [("a.png", grey8, []), ("b.png", grey16, []), ("c.tif", grey16, [cv2.IMWRITE_TIFF_COMPRESSION, 1]),
+             ("d.tif", grey8, [cv2.IMWRITE_TIFF_COMPRESSION, 5]), ("e.jpg", grey8, [cv2.IMWRITE_JPEG_QUALITY, 90]),
+             ("f.jpg", colour, []), ("g.png", np.dstack([colour, grey8]), []), ("h.tif", colour, [])]
+    for name, pixels, flags in files:
+        assert cv2.imwrite(str(root / "images" / name), pixels, flags)
+    rows = pd.read_csv(root / "images.csv", dtype=str, keep_default_na=False)
+    extra = pd.DataFrame([{**rows.iloc[1].to_dict(), "image": f"x{k}", "path": f"images/{name}"}
+                          for k, (name, _, _) in enumerate(files)])
+    pd.concat([rows, extra]).to_csv(root / "images.csv", index=False)
+    ds = Dataset.load(root)
+    for k, (name, pixels, _) in enumerate(files):
+        decoded = cv2.imdecode(np.frombuffer((root / "images" / name).read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
+        if decoded.ndim == 3:
+            decoded = cv2.cvtColor(decoded, cv2.COLOR_BGR2GRAY if decoded.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+        expected = pixels if name.endswith((".png", ".tif")) and pixels.ndim == 2 else decoded
+        got = ds.read_image(f"x{k}")
+        assert got.dtype == expected.dtype and np.array_equal(got, expected), name
+
+
+def test_a_dataset_under_a_folder_whose_name_is_not_utf8_reads_its_images(tmp_path):
+    """A path OpenCV cannot take as text (bytes that are not UTF-8, as the command line can give):
+    the file's bytes are decoded instead of OpenCV being handed the name (its binding would crash)."""
+    root = tmp_path / os.fsdecode(b"fl\xfcge")
+    inputs = _inputs()
+    write_dataset(root, inputs["manifest"], inputs["control_points"], inputs["images"],
+                  ground_points=inputs["ground_points"], frames=inputs["frames"], observations=inputs["observations"])
+    for k, path in enumerate(p for p in inputs["images"]["path"] if p):
+        (root / path).parent.mkdir(parents=True, exist_ok=True)
+        (root / path).write_bytes(cv2.imencode(".png", np.full((H, W), 70 + k, np.uint8))[1].tobytes())
+    ds = Dataset.load(root)
+    assert np.array_equal(ds.read_image("i0"), np.full((H, W), 70, np.uint8))
     assert ds.check_images() == 4
 
 
