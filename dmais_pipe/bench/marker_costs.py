@@ -16,7 +16,9 @@
 - per image, the windowed search and the whole image's (`markers.extract.process_image`) one after
   the other, each phase's seconds (decode, detect, refine, identify, write: the markers file), the
   lowest total of `repeats` runs; whether the ids and positions are the same (to 1e-6 px) and the
-  detections in the windows the whole image's there (exactly);
+  detections in the windows the whole image's there (exactly); the total over the image's own decode
+  time (`reference_decode`: cv2.imread of the file, the least of `repeats`) beside the total over the
+  job's own decode phase (`Dataset.read_image`);
 - a marker job's peak memory (`peak_memory`): one image in a fresh process, its peak resident size
   beside its size before decoding (the interpreter and the imports: the constant) and the decoded image.
 
@@ -172,6 +174,7 @@ def path_rows(root: Path, attitude_deg: float, position_m: float, repeats: int,
         results = Workspace(dataset, Path(scratch))
         for image in dataset.images_of("flight")["image"]:
             dataset.read_image(image)  # the file in the page cache for both
+            reference = reference_decode(dataset.image_path(image), repeats)
             runs = {path: image_costs(dataset, image, rig, bound, position_m, results, repeats, lever_arm)
                     for path, bound in (("windowed", attitude_deg), ("whole", None))}
             model = _prediction_model(dataset, image, rig, lever_arm=lever_arm)
@@ -179,10 +182,23 @@ def path_rows(root: Path, attitude_deg: float, position_m: float, repeats: int,
             same_ids, same_found = same_results(runs["windowed"]["found"], runs["whole"]["found"], windows)
             for path, run in runs.items():
                 rows[path].append({"image": image, **{phase: run[phase] for phase in PHASES},
+                                   "reference_decode_s": reference,
                                    "windows": run["windows"], "whole_image": run["whole_image"],
                                    "detected": len(run["found"]), "identified": int((run["found"]["point_id"] != "").sum()),
                                    "same_ids": same_ids, "same_detections": same_found})
     return rows["windowed"], rows["whole"]
+
+
+def reference_decode(path: Path, repeats: int) -> float:
+    """The image's own decode time: the least wall seconds of `repeats` cv2.imread of the file at
+    `path` (unchanged), each result dropped before the next as a marker job drops its image."""
+    best = np.inf
+    for _ in range(repeats):
+        started = time.perf_counter()
+        pixels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        best = min(best, time.perf_counter() - started)
+        del pixels
+    return best
 
 
 # ------------------------------------------------------------------------------ memory
@@ -255,6 +271,8 @@ def _summary(size: str, fmt: str, ins: str, bound: float, position: float, path:
     return {"size": size, "format": fmt, "ins": ins, "bound_deg": bound, "bound_m": position, "path": path,
             "images": len(table),
             **means, "total_s": total, "total_over_decode": total / means["decode_s"],
+            "reference_decode_s": float(table["reference_decode_s"].mean()),
+            "total_over_reference": total / float(table["reference_decode_s"].mean()),
             "windows": float(table["windows"].mean()), "whole_images": int(table["whole_image"].sum()),
             "identified": int(table["identified"].sum()), "same_ids": bool(table["same_ids"].all()),
             "same_detections": bool(table["same_detections"].all()),
