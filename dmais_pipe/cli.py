@@ -36,10 +36,11 @@ def _cmd_simulate(args) -> None:
 
 
 def _cmd_validate(args) -> None:
-    from .dataset import Dataset
+    from .dataset import Dataset, keep_freed_image_memory
 
     dataset = Dataset.load(args.dataset)
     if not args.skip_images:
+        keep_freed_image_memory()
         dataset.check_images()
     print(dataset.summary())
 
@@ -120,8 +121,10 @@ def _cmd_intrinsics(args) -> None:
 
 
 def _cmd_markers(args) -> None:
+    from .dataset import keep_freed_image_memory
     from .stages import markers
 
+    keep_freed_image_memory()  # this process reads its images one after another
     conf = _conf(args, markers)
     if args.batch:  # a workflow job: its slice of the dataset, where the plan cut one (slices.py)
         from .slices import batch_workspace

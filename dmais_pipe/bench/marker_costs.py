@@ -16,9 +16,10 @@
 - per image, the windowed search and the whole image's (`markers.extract.process_image`) one after
   the other, each phase's seconds (decode, detect, refine, identify, write: the markers file), the
   lowest total of `repeats` runs; whether the ids and positions are the same (to 1e-6 px) and the
-  detections in the windows the whole image's there (exactly); the total over the image's own decode
-  time (`reference_decode`: cv2.imread of the file, the least of `repeats`) beside the total over the
-  job's own decode phase (`Dataset.read_image`);
+  detections in the windows the whole image's there (exactly); each in a process set up as a marker
+  job's (`dataset.keep_freed_image_memory`); the total over the image's own decode time
+  (`reference_decodes`: cv2.imread of the file in a plain process, the least of `repeats`) beside the
+  total over the job's own decode phase (`Dataset.read_image`, the memory of the image before reused);
 - a marker job's peak memory (`peak_memory`): one image in a fresh process, its peak resident size
   beside its size before decoding (the interpreter and the imports: the constant) and the decoded image.
 
@@ -40,7 +41,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from ..dataset import FRAMES, IMAGES, Dataset
+from ..dataset import FRAMES, IMAGES, Dataset, keep_freed_image_memory
 from ..errors import DmaisError
 from ..files import write_csv_atomic
 from ..geometry import Rigid3
@@ -166,15 +167,27 @@ def same_results(windowed: pd.DataFrame, whole: pd.DataFrame, windows: np.ndarra
 
 def path_rows(root: Path, attitude_deg: float, position_m: float, repeats: int,
               lever_arm: np.ndarray | None = None) -> tuple[list[dict], list[dict]]:
-    """Per flight image of the dataset `root`: a row of the windowed search and one of the whole image."""
+    """Per flight image of the dataset `root`: a row of the windowed search and one of the whole image,
+    run in a process of its own as a marker job runs (`_job_rows`), with each image's own decode time
+    from another, a plain one (`reference_decodes`)."""
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(1) as pool:
+        reference = pool.apply(reference_decodes, (str(root), repeats))
+    with context.Pool(1) as pool:
+        return pool.apply(_job_rows, (str(root), attitude_deg, position_m, repeats, lever_arm, reference))
+
+
+def _job_rows(root: str, attitude_deg: float, position_m: float, repeats: int, lever_arm: np.ndarray | None,
+              reference: dict[str, float]) -> tuple[list[dict], list[dict]]:
+    """`path_rows` in a process set up as `dmais markers` sets up its own (`keep_freed_image_memory`)."""
+    keep_freed_image_memory()
     dataset = Dataset.load(root)
-    rig = Rig.load(root / "truth" / "rig.json")
+    rig = Rig.load(Path(root) / "truth" / "rig.json")
     rows = {"windowed": [], "whole": []}
     with tempfile.TemporaryDirectory() as scratch:
         results = Workspace(dataset, Path(scratch))
         for image in dataset.images_of("flight")["image"]:
             dataset.read_image(image)  # the file in the page cache for both
-            reference = reference_decode(dataset.image_path(image), repeats)
             runs = {path: image_costs(dataset, image, rig, bound, position_m, results, repeats, lever_arm)
                     for path, bound in (("windowed", attitude_deg), ("whole", None))}
             model = _prediction_model(dataset, image, rig, lever_arm=lever_arm)
@@ -182,22 +195,27 @@ def path_rows(root: Path, attitude_deg: float, position_m: float, repeats: int,
             same_ids, same_found = same_results(runs["windowed"]["found"], runs["whole"]["found"], windows)
             for path, run in runs.items():
                 rows[path].append({"image": image, **{phase: run[phase] for phase in PHASES},
-                                   "reference_decode_s": reference,
+                                   "reference_decode_s": reference[image],
                                    "windows": run["windows"], "whole_image": run["whole_image"],
                                    "detected": len(run["found"]), "identified": int((run["found"]["point_id"] != "").sum()),
                                    "same_ids": same_ids, "same_detections": same_found})
     return rows["windowed"], rows["whole"]
 
 
-def reference_decode(path: Path, repeats: int) -> float:
-    """The image's own decode time: the least wall seconds of `repeats` cv2.imread of the file at
-    `path` (unchanged), each result dropped before the next as a marker job drops its image."""
-    best = np.inf
-    for _ in range(repeats):
-        started = time.perf_counter()
-        pixels = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        best = min(best, time.perf_counter() - started)
-        del pixels
+def reference_decodes(root: str, repeats: int) -> dict[str, float]:
+    """Each flight image's own decode time, image -> the least wall seconds of `repeats` cv2.imread of
+    its file (unchanged), each result dropped before the next: in a process whose allocator is as
+    Python leaves it (the caller's, a plain one)."""
+    dataset = Dataset.load(root)
+    best = {}
+    for image in dataset.images_of("flight")["image"]:
+        path = str(dataset.image_path(image))
+        best[image] = np.inf
+        for _ in range(repeats + 1):  # the first: the file into the page cache
+            started = time.perf_counter()
+            pixels = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+            best[image] = min(best[image], time.perf_counter() - started)
+            del pixels
     return best
 
 
@@ -215,6 +233,7 @@ def peak_memory(root: Path, image: str, attitude_deg: float | None, position_m: 
 
 def _measure_memory(root: str, image: str, attitude_deg: float | None, position_m: float,
                     lever_arm: np.ndarray | None = None) -> dict:
+    keep_freed_image_memory()  # as the job
     dataset = Dataset.load(root)
     rig = Rig.load(Path(root) / "truth" / "rig.json")
     before = _status_mb("VmRSS")
