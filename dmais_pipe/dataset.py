@@ -1154,7 +1154,7 @@ def _read_file(cv2, file: Path) -> np.ndarray | None:
                                                           cv2.IMREAD_UNCHANGED)
 
 
-#: glibc's mallopt parameters (malloc.h) and the largest block it lets the heap serve (its 64-bit limit).
+#: glibc's mallopt parameters (malloc.h) and the highest mmap threshold it takes (its 64-bit limit).
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD, _HEAP_BLOCK_MAX = -1, -3, 32 * 2**20
 
 
@@ -1165,8 +1165,9 @@ def keep_freed_image_memory() -> bool:
     image's pixels are faulted in and zeroed afresh: a page-cached 12 MP 16-bit TIFF then decodes in
     ~27 ms of which ~15 are those pages. Here blocks up to 32 MB come from the heap and its free top is
     kept (no trimming below 2 GB): the process keeps one image's memory, which it needed anyway. Larger
-    images keep their mappings: glibc's heap serves nothing larger, and a 140 MP job with no mappings at
-    all peaked at 3 x its image where it peaks at 2 x (fragments of the heap between images). Returns
+    images keep their mappings: glibc takes no higher threshold, and a 140 MP job with no mappings at
+    all (M_MMAP_MAX 0) peaked at 3 x its image where it peaks at 2 x (fragments of the heap between
+    images). Returns
     whether the allocator took the settings (False where the C library is not glibc)."""
     import ctypes
 

@@ -204,8 +204,8 @@ def _job_rows(root: str, attitude_deg: float, position_m: float, repeats: int, l
 
 def reference_decodes(root: str, repeats: int) -> dict[str, float]:
     """Each flight image's own decode time, image -> the least wall seconds of `repeats` cv2.imread of
-    its file (unchanged), each result dropped before the next: in a process whose allocator is as
-    Python leaves it (the caller's, a plain one)."""
+    its file (unchanged), each result dropped before the next; `path_rows` runs it in a process of its
+    own whose allocator is as Python leaves it."""
     dataset = Dataset.load(root)
     best = {}
     for image in dataset.images_of("flight")["image"]:
