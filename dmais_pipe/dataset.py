@@ -1167,8 +1167,7 @@ def keep_freed_image_memory() -> bool:
     kept (no trimming below 2 GB): the process keeps one image's memory, which it needed anyway. Larger
     images keep their mappings: glibc takes no higher threshold, and a 140 MP job with no mappings at
     all (M_MMAP_MAX 0) peaked at 3 x its image where it peaks at 2 x (fragments of the heap between
-    images). Returns
-    whether the allocator took the settings (False where the C library is not glibc)."""
+    images). Returns whether the allocator took the settings (False where the C library is not glibc)."""
     import ctypes
 
     try:

@@ -60,7 +60,7 @@ def _write(root: Path, inputs: dict) -> Path:
     for path in inputs["images"]["path"]:
         if path:
             (root / path).parent.mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(root / path), np.full((H, W), 128, np.uint8))
+            (root / path).write_bytes(cv2.imencode(".png", np.full((H, W), 128, np.uint8))[1].tobytes())
     return root
 
 
@@ -190,15 +190,9 @@ def test_read_image_gives_the_files_pixels_in_every_format(root):
 def test_a_dataset_under_a_folder_whose_name_is_not_utf8_reads_its_images(tmp_path):
     """A path OpenCV cannot take as text (bytes that are not UTF-8, as the command line can give):
     the file's bytes are decoded instead of OpenCV being handed the name (its binding would crash)."""
-    root = tmp_path / os.fsdecode(b"fl\xfcge")
-    inputs = _inputs()
-    write_dataset(root, inputs["manifest"], inputs["control_points"], inputs["images"],
-                  ground_points=inputs["ground_points"], frames=inputs["frames"], observations=inputs["observations"])
-    for k, path in enumerate(p for p in inputs["images"]["path"] if p):
-        (root / path).parent.mkdir(parents=True, exist_ok=True)
-        (root / path).write_bytes(cv2.imencode(".png", np.full((H, W), 70 + k, np.uint8))[1].tobytes())
+    root = _write(tmp_path / os.fsdecode(b"fl\xfcge"), _inputs())
     ds = Dataset.load(root)
-    assert np.array_equal(ds.read_image("i0"), np.full((H, W), 70, np.uint8))
+    assert np.array_equal(ds.read_image("i0"), np.full((H, W), 128, np.uint8))
     assert ds.check_images() == 4
 
 
